@@ -1,0 +1,30 @@
+# One entry point for a new machine: every target builds .venv/ itself.
+PYTHON ?= python3.11
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: main fit test lint bench clean
+
+$(STAMP): pyproject.toml
+	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+# The main job on embedded data: fit every method on the bundled real 46-hour test.
+main fit: $(STAMP)
+	$(PY) -m gateway fit data/fl_thermal.csv --method mlr --target ch5_um --store .cache/models
+
+test: $(STAMP)
+	bash scripts/test.sh
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+bench: $(STAMP)
+	$(PY) benchmarks/fit_speed.py
+
+clean:
+	rm -rf $(VENV) .cache

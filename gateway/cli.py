@@ -1,0 +1,211 @@
+"""Command line: ``python -m gateway COMMAND …``.
+
+Commands stay thin: they parse options, call ``models``, and print tables that
+``gateway.tables`` formats. Any input problem ends with one line on stderr that
+says where it is and what was expected, and exit status 2.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable
+from functools import wraps
+from pathlib import Path
+from typing import Any
+
+import click
+
+from gateway import __version__
+from gateway.tables import accuracy_table, sigma_matrix_table
+from models.dataset import DataError, load_runs
+from models.features import prepare
+from models.fitting import fit_and_store
+from models.references import POLICIES
+from models.regimes import format_report, rank_regimes, read_sigma_csv
+from models.registry import METHODS
+from models.significance import anova_oneway, format_table, manova_oneway, speed_groups
+from models.store import ModelStore, StoreError
+
+INPUT_ERRORS = (DataError, StoreError, ValueError, KeyError, FileNotFoundError)
+
+
+def input_errors_exit(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Turn a bad-input exception into one clear line and exit status 2."""
+
+    @wraps(command)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return command(*args, **kwargs)
+        except INPUT_ERRORS as exc:
+            message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+            click.echo(f"error: {message}", err=True)
+            sys.exit(2)
+
+    return wrapper
+
+
+def parse_sensors(value: str | None) -> list[str] | None:
+    if value is None:
+        return None
+    names = [name.strip() for name in value.split(",") if name.strip()]
+    if not names:
+        raise click.BadParameter("expected sensor names such as T1,T7")
+    return names
+
+
+def write_json(path: Path | None, payload: dict[str, Any]) -> None:
+    if path is not None:
+        path.write_text(json.dumps(payload, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        click.echo(f"wrote {path}")
+
+
+def report_skipped(data) -> None:
+    for skipped in data.skipped:
+        click.echo(f"note: {skipped.describe()}", err=True)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="gateway")
+def main() -> None:
+    """Spindle thermal-error gateway: fit, rank and store compensation models."""
+
+
+@main.command()
+@click.argument("data_csv", type=click.Path(path_type=Path))
+@click.option("--method", type=click.Choice(sorted(METHODS)), default="mlr", show_default=True)
+@click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
+@click.option("--sensors", help="Declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
+@click.option("--per-run", is_flag=True, help="One model per run, cross-evaluated on every run.")
+@click.option("--regime-column", help="Column that labels each run's speed regime.")
+@click.option(
+    "--reference",
+    type=click.Choice(POLICIES),
+    default="auto",
+    show_default=True,
+    help="Where rises are measured from (see models/references.py).",
+)
+@click.option("--store", "store_dir", type=click.Path(path_type=Path), required=True)
+@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
+@input_errors_exit
+def fit(
+    data_csv: Path,
+    method: str,
+    target: str,
+    sensors: str | None,
+    per_run: bool,
+    regime_column: str | None,
+    reference: str,
+    store_dir: Path,
+    json_out: Path | None,
+    progress: bool | None,
+) -> None:
+    """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
+    if per_run and regime_column:
+        raise click.UsageError("--per-run and --regime-column exclude each other")
+    sensor_list = parse_sensors(sensors)
+    data = load_runs(data_csv, target=target, sensors=sensor_list)
+    report_skipped(data)
+    prepared = prepare(data, sensor_list, reference)
+    show_progress = sys.stderr.isatty() if progress is None else progress
+
+    recordings = prepared.plan.recording_runs
+    click.echo(
+        f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, target {target} (µm), "
+        f"sensors {','.join(prepared.inputs.sensors)} (°C)"
+    )
+    click.echo(
+        f"references ({reference}): {len(recordings)} recording(s); rises are taken from the "
+        "first sample of each recording: " + " | ".join(" ".join(r) for r in recordings)
+    )
+    outcome = fit_and_store(
+        prepared,
+        method,
+        ModelStore(store_dir),
+        sensors=sensor_list,
+        per_run=per_run,
+        regime_column=regime_column,
+        progress=show_progress,
+        software_version=__version__,
+    )
+    for group, validation in outcome.validations.items():
+        click.echo(f"\n{method} [{group}] — {validation.scheme}")
+        click.echo(accuracy_table(validation))
+    if outcome.sigma_rows:
+        click.echo("\nσ (µm) of each run's model (rows) on each run (columns):")
+        click.echo(sigma_matrix_table(outcome.sigma_rows))
+    if outcome.ranking is not None:
+        click.echo("\n" + format_report(outcome.ranking))
+    for model_id, text in outcome.summaries.items():
+        click.echo(f"\n{model_id}: {text}")
+    for model_id, path in outcome.saved.items():
+        click.echo(f"saved {model_id} → {path}")
+    write_json(
+        json_out,
+        {
+            "method": method,
+            "target": target,
+            "reference": prepared.plan.describe(),
+            "validations": {g: v.as_dict() for g, v in outcome.validations.items()},
+            "sigma": [row.__dict__ for row in outcome.sigma_rows],
+            "ranking": outcome.ranking.as_json() if outcome.ranking else None,
+            "saved": {k: str(v) for k, v in outcome.saved.items()},
+        },
+    )
+
+
+@main.command()
+@click.argument("sigma_csv", type=click.Path(path_type=Path))
+@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write the ranking.")
+@click.option(
+    "--tolerance-pct",
+    type=click.FloatRange(min=0.0),
+    default=1.0,
+    show_default=True,
+    help="Accuracies closer than this (%) are tied; robustness (SD) decides.",
+)
+@input_errors_exit
+def regimes(sigma_csv: Path, json_out: Path | None, tolerance_pct: float) -> None:
+    """Rank per-regime models from their cross-evaluation σ table (paper 002)."""
+    report = rank_regimes(read_sigma_csv(sigma_csv), tolerance_pct=tolerance_pct)
+    click.echo(format_report(report))
+    write_json(json_out, report.as_json())
+
+
+@main.command()
+@click.argument("data_csv", type=click.Path(path_type=Path))
+@click.option("--sensors", help="Temperature columns to test (default: every T<n>).")
+@click.option("--alpha", type=click.FloatRange(0.0, 1.0, min_open=True), default=0.05)
+@click.option(
+    "--band-rpm",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=100.0,
+    show_default=True,
+    help="Speeds are grouped to the nearest multiple of this, r/min.",
+)
+@click.option("--target", default="error_um", show_default=True)
+@click.option("--json", "json_out", type=click.Path(path_type=Path))
+@input_errors_exit
+def significance(
+    data_csv: Path,
+    sensors: str | None,
+    alpha: float,
+    band_rpm: float,
+    target: str,
+    json_out: Path | None,
+) -> None:
+    """Does spindle speed change the temperatures? MANOVA + per-sensor ANOVA (paper 000)."""
+    sensor_list = parse_sensors(sensors)
+    data = load_runs(data_csv, target=target, sensors=sensor_list)
+    report_skipped(data)
+    groups = speed_groups(data.speed_rpm, band_rpm)
+    values = data.temperatures(sensor_list)
+    names = sensor_list or list(data.sensors)
+    manova = manova_oneway(values, groups, alpha=alpha)
+    anova = anova_oneway(values, groups, names, alpha=alpha)
+    click.echo(f"{data_csv.name}: {data.n_samples} samples in {manova.n_groups} speed groups")
+    click.echo(format_table(manova, anova))
+    write_json(
+        json_out, {"manova": manova.as_dict(), "anova": [result.as_dict() for result in anova]}
+    )

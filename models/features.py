@@ -1,0 +1,50 @@
+"""From a loaded file to what a model sees: rises of the sensors and of the error."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.base import ModelInputs
+from models.dataset import MeasuredRuns
+from models.references import ReferencePlan, plan_references, rises
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """Row-aligned model inputs and target (µm rise), with the reference plan used."""
+
+    data: MeasuredRuns
+    inputs: ModelInputs
+    error_um: np.ndarray
+    plan: ReferencePlan
+
+    def take(self, rows: np.ndarray) -> Prepared:
+        return Prepared(
+            data=self.data.take(rows),
+            inputs=self.inputs.take(rows),
+            error_um=self.error_um[rows],
+            plan=self.plan,
+        )
+
+
+def prepare(
+    data: MeasuredRuns, sensors: Sequence[str] | None = None, reference: str = "auto"
+) -> Prepared:
+    """Rises of the declared sensors (°C) and of the target (µm) from their references."""
+    names = tuple(sensors) if sensors is not None else data.sensors
+    plan = plan_references(data, reference)
+    inputs = ModelInputs(
+        rise_C=rises(data.temperatures(names), plan.recording),
+        sensors=names,
+        speed_rpm=data.speed_rpm,
+        run_index=data.run_index,
+    )
+    return Prepared(
+        data=data,
+        inputs=inputs,
+        error_um=rises(data.error_um, plan.recording),
+        plan=plan,
+    )

@@ -1,0 +1,68 @@
+"""Multiple linear regression on temperature rises.
+
+    e = b0 + Σ_i b_i ΔT_i          (e in µm, ΔT_i in °C, b_i in µm/°C)
+
+Paper 002 §4 fits exactly this on the temperature-sensitive points
+(e.g. Y1 = 6.97 + 4.64 ΔT1 − 2.10 ΔT7). Solved by ordinary least squares
+(``numpy.linalg.lstsq``, SVD based, so a rank-deficient set of sensors still
+gives the minimum-norm solution instead of failing).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from models.base import ModelInputs, ThermalModel
+
+
+def least_squares_with_intercept(X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
+    """(b0, b) minimising ‖y − b0 − X b‖²."""
+    design = np.column_stack([np.ones(X.shape[0]), X])
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    return float(coef[0]), coef[1:]
+
+
+class MlrModel(ThermalModel):
+    """Linear in the rises of the declared sensors (default: every input sensor)."""
+
+    method = "mlr"
+
+    def __init__(self, sensors: Sequence[str] | None = None) -> None:
+        self.sensors = None if sensors is None else list(sensors)
+
+    def hyperparams(self) -> dict[str, Any]:
+        return {"sensors": self.sensors}
+
+    def _fit(self, inputs: ModelInputs, error_um: np.ndarray) -> None:
+        used = tuple(self.sensors) if self.sensors is not None else inputs.sensors
+        self.intercept_um_, self.coef_um_per_C_ = least_squares_with_intercept(
+            inputs.columns(used), error_um
+        )
+        self.sensors_used_ = used
+
+    def _predict(self, inputs: ModelInputs) -> np.ndarray:
+        return self.intercept_um_ + inputs.columns(self.sensors_used_) @ self.coef_um_per_C_
+
+    def fitted_params(self) -> dict[str, Any]:
+        return {
+            "sensors": list(self.sensors_used_),
+            "intercept_um": self.intercept_um_,
+            "coefficients_um_per_C": [float(b) for b in self.coef_um_per_C_],
+        }
+
+    def _load_params(self, params: dict[str, Any]) -> None:
+        self.intercept_um_ = float(params["intercept_um"])
+        self.coef_um_per_C_ = np.asarray(params["coefficients_um_per_C"], dtype=float)
+        self.sensors_used_ = tuple(params["sensors"])
+        if len(self.sensors_used_) != self.coef_um_per_C_.size:
+            raise ValueError("mlr: one coefficient per sensor was expected")
+
+    def summary(self) -> str:
+        terms = " ".join(
+            f"{b:+.4g}·Δ{name}"
+            for name, b in zip(self.sensors_used_, self.coef_um_per_C_, strict=True)
+        )
+        return f"e [µm] = {self.intercept_um_:.4g} {terms}   (ΔT in °C)"

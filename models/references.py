@@ -1,0 +1,105 @@
+"""Where temperature rises and errors are measured from.
+
+Every model works on *rises*: ΔT = T − T_ref and Δe = e − e_ref (paper 002 §4:
+"ΔT1 is the change of T1 relative to its initial temperature"). The question is
+which sample is the reference.
+
+- A run that starts cold (its own experiment, the machine at rest and at room
+  temperature) is its own reference: its first sample.
+- A run that is one part of a continuous recording (the heating–cooling cycles of
+  ``fl_thermal.csv``) does *not* start cold: the machine is still warm from the
+  cycle before, and the displacement probe was not re-zeroed. Taking that run's
+  first sample as reference would claim zero error in a warm machine. Its
+  reference is the first sample of the recording it belongs to, so the rises
+  carry across cycles exactly as the machine carried its heat.
+
+Policies (``--reference``):
+
+- ``run-start``: every run is its own recording.
+- ``recording-start``: all runs of the file form one recording.
+- ``auto`` (default): a run continues the recording of the run before it in the
+  file when its first ``time_s`` follows that run's last ``time_s`` by more than
+  0 and at most ``CONTINUITY_FACTOR`` (3) × that run's median sample interval —
+  i.e. the clock ran on without a break. Otherwise (time restarts, or a gap) it
+  starts a new recording and is taken to start cold.
+
+The reference is ``REFERENCE_SAMPLES`` (1) sample, the first of the recording.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from models.dataset import MeasuredRuns
+
+POLICIES = ("auto", "run-start", "recording-start")
+CONTINUITY_FACTOR = 3.0
+REFERENCE_SAMPLES = 1
+
+
+@dataclass(frozen=True)
+class ReferencePlan:
+    """Which recording each row belongs to and where that recording starts."""
+
+    policy: str
+    recording: np.ndarray  # (n,) recording number of each row
+    recording_runs: tuple[tuple[str, ...], ...]  # run ids of each recording
+
+    def describe(self) -> dict[str, object]:
+        """The plan as stored with a model (how references are taken)."""
+        return {
+            "policy": self.policy,
+            "reference_sample": "first sample of the recording",
+            "continuity_rule": (
+                f"a run continues the previous run's recording when its first time_s follows "
+                f"the previous last time_s by >0 and <= {CONTINUITY_FACTOR:g} x the median "
+                "sample interval"
+            ),
+            "recordings": [list(runs) for runs in self.recording_runs],
+        }
+
+
+def plan_references(data: MeasuredRuns, policy: str = "auto") -> ReferencePlan:
+    if policy not in POLICIES:
+        raise ValueError(f"unknown reference policy '{policy}'; expected one of {POLICIES}")
+    slices = data.run_slices()
+    recording_of_run: list[int] = []
+    for i, (_, rows) in enumerate(slices):
+        if i == 0:
+            recording_of_run.append(0)
+            continue
+        if policy == "run-start":
+            continues = False
+        elif policy == "recording-start":
+            continues = True
+        else:
+            continues = _follows_on(data.time_s, slices[i - 1][1], rows)
+        recording_of_run.append(recording_of_run[-1] + (0 if continues else 1))
+
+    recording = np.empty(data.n_samples, dtype=int)
+    groups: dict[int, list[str]] = {}
+    for (run_id, rows), number in zip(slices, recording_of_run, strict=True):
+        recording[rows] = number
+        groups.setdefault(number, []).append(run_id)
+    return ReferencePlan(
+        policy=policy,
+        recording=recording,
+        recording_runs=tuple(tuple(groups[k]) for k in sorted(groups)),
+    )
+
+
+def _follows_on(time_s: np.ndarray, previous: slice, current: slice) -> bool:
+    before = time_s[previous]
+    gap = time_s[current][0] - before[-1]
+    interval = float(np.median(np.diff(before))) if before.size > 1 else np.inf
+    return bool(0 < gap <= CONTINUITY_FACTOR * interval)
+
+
+def rises(values: np.ndarray, recording: np.ndarray) -> np.ndarray:
+    """values − the first row of each row's recording (works for (n,) and (n, k))."""
+    values = np.asarray(values, dtype=float)
+    starts = np.flatnonzero(np.r_[True, recording[1:] != recording[:-1]])
+    first_row = starts[np.searchsorted(starts, np.arange(recording.size), side="right") - 1]
+    return values - values[first_row]

@@ -1,0 +1,25 @@
+"""The fitting methods by the name used on the command line and in the store."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from models.base import ThermalModel
+from models.grey_mlr import GreyMlrModel
+from models.mlr import MlrModel
+from models.pca_quadratic import PcaQuadraticModel
+
+METHODS: dict[str, type[ThermalModel]] = {
+    MlrModel.method: MlrModel,
+    GreyMlrModel.method: GreyMlrModel,
+    PcaQuadraticModel.method: PcaQuadraticModel,
+}
+
+
+def make_model(method: str, sensors: Sequence[str] | None = None) -> ThermalModel:
+    """A fresh, unfitted model of ``method`` using the declared sensors."""
+    try:
+        cls = METHODS[method]
+    except KeyError:
+        raise ValueError(f"unknown method '{method}'; expected one of {sorted(METHODS)}") from None
+    return cls(sensors=sensors)

@@ -1,0 +1,258 @@
+"""The model store: fitted models as JSON files in one folder, never pickle.
+
+One file per model, ``<model_id>.json``, holding everything the runtime and an
+auditor need: the method and its hyperparameters, every input with its unit, how
+the temperature and error references are taken, the fitted numbers, the
+training-data fingerprint, the regime label, validation figures and the creation
+time.
+
+Two guards on load, so that a damaged or incompatible file is refused instead of
+compensating a machine wrongly:
+
+- ``sha256``: a checksum of the file's canonical content (all keys but itself);
+  any edited or corrupted number changes it.
+- ``probe``: a few training rows' inputs and the predictions the fitted model
+  made for them when it was saved. The loaded model must reproduce them exactly;
+  this catches a file written by a different, incompatible version of the maths.
+
+Writes go to a temporary file that is then renamed, so a crash mid-write never
+leaves half a model behind.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import tempfile
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from models.base import ModelInputs, ThermalModel
+from models.registry import METHODS
+
+FORMAT = "spindle-thermal-model"
+FORMAT_VERSION = 1
+PROBE_ROWS = 5
+
+
+class StoreError(ValueError):
+    """A model file that cannot be used, with the file and what is wrong."""
+
+
+class Probe(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    sensors: list[str]
+    rise_C: list[list[float]]
+    speed_rpm: list[float]
+    predicted_um: list[float]
+
+
+class TrainingData(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    file: str
+    data_sha256: str
+    rows: int
+    runs: list[str]
+    target: str
+
+
+class StoredModel(BaseModel):
+    """The file format (version 1). Unknown keys are refused, not ignored."""
+
+    model_config = ConfigDict(extra="forbid")
+    format: Literal["spindle-thermal-model"]
+    format_version: Literal[1]
+    model_id: str
+    method: str
+    hyperparams: dict[str, Any]
+    inputs: dict[str, str]
+    target: dict[str, str]
+    reference: dict[str, Any]
+    params: dict[str, Any]
+    training_data: TrainingData
+    regime: str
+    validation: dict[str, Any]
+    created_utc: str
+    software_version: str
+    probe: Probe
+    sha256: str
+
+
+def data_fingerprint(inputs: ModelInputs, error_um: np.ndarray) -> str:
+    """sha256 of the training arrays (names, rises, speed, error) — not of file formatting."""
+    digest = hashlib.sha256()
+    digest.update(json.dumps(list(inputs.sensors)).encode())
+    for array in (inputs.rise_C, inputs.speed_rpm, np.asarray(error_um, dtype=float)):
+        digest.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
+    return digest.hexdigest()
+
+
+def _checksum(document: dict[str, Any]) -> str:
+    content = {k: v for k, v in document.items() if k != "sha256"}
+    canonical = json.dumps(content, sort_keys=True, ensure_ascii=False, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def safe_model_id(text: str) -> str:
+    """A file-name-safe id: letters, digits, '-', '_' and '.' only."""
+    cleaned = re.sub(r"[^A-Za-z0-9._-]+", "-", text).strip("-.")
+    if not cleaned:
+        raise StoreError(f"cannot make a model id from '{text}'")
+    return cleaned
+
+
+def _probe(model: ThermalModel, inputs: ModelInputs) -> Probe:
+    rows = np.unique(np.linspace(0, inputs.n_samples - 1, PROBE_ROWS).astype(int))
+    sample = inputs.take(rows)
+    return Probe(
+        sensors=list(inputs.sensors),
+        rise_C=sample.rise_C.tolist(),
+        speed_rpm=sample.speed_rpm.tolist(),
+        predicted_um=model.predict(sample).tolist(),
+    )
+
+
+def build_document(
+    model: ThermalModel,
+    *,
+    model_id: str,
+    inputs: ModelInputs,
+    error_um: np.ndarray,
+    target: str,
+    source_file: str,
+    runs: list[str],
+    reference: dict[str, Any],
+    regime: str,
+    validation: dict[str, Any],
+    software_version: str,
+) -> dict[str, Any]:
+    """The JSON document for a fitted model (checksum included)."""
+    document: dict[str, Any] = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "model_id": safe_model_id(model_id),
+        "method": model.method,
+        "hyperparams": model.hyperparams(),
+        "inputs": model.input_units(),
+        "target": {
+            "name": target,
+            "unit": "µm",
+            "meaning": "thermal Z error rise from the reference; positive = tool towards table",
+        },
+        "reference": reference,
+        "params": model.fitted_params(),
+        "training_data": {
+            "file": Path(source_file).name,
+            "data_sha256": data_fingerprint(inputs, error_um),
+            "rows": inputs.n_samples,
+            "runs": runs,
+            "target": target,
+        },
+        "regime": regime,
+        "validation": validation,
+        "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "software_version": software_version,
+        "probe": _probe(model, inputs).model_dump(),
+    }
+    # Round-trip through JSON so the checksum covers exactly what is written.
+    document = json.loads(json.dumps(document, ensure_ascii=False))
+    document["sha256"] = _checksum(document)
+    return document
+
+
+def model_from_document(document: StoredModel) -> ThermalModel:
+    cls = METHODS.get(document.method)
+    if cls is None:
+        raise StoreError(f"unknown method '{document.method}' (known: {sorted(METHODS)})")
+    return cls.from_params(document.hyperparams, document.params)
+
+
+class ModelStore:
+    """A folder of model files."""
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+
+    def path_of(self, model_id: str) -> Path:
+        return self.root / f"{safe_model_id(model_id)}.json"
+
+    def save(self, document: dict[str, Any]) -> Path:
+        """Validate ``document`` as a loader would, then write it atomically."""
+        StoredModel.model_validate(document)
+        self.root.mkdir(parents=True, exist_ok=True)
+        path = self.path_of(document["model_id"])
+        handle, tmp = tempfile.mkstemp(dir=self.root, prefix=".tmp-", suffix=".json")
+        try:
+            with os.fdopen(handle, "w", encoding="utf-8") as out:
+                json.dump(document, out, ensure_ascii=False, indent=2)
+                out.write("\n")
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    def load(self, model_id: str) -> tuple[ThermalModel, StoredModel]:
+        return load_file(self.path_of(model_id))
+
+    def ids(self) -> list[str]:
+        return sorted(p.stem for p in self.root.glob("*.json"))
+
+
+def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
+    """Load, validate and self-check one model file."""
+    path = Path(path)
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StoreError(f"{path}: no such model file") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StoreError(f"{path}: not a readable JSON model file ({exc})") from None
+    if not isinstance(raw, dict):
+        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    if raw.get("format") != FORMAT:
+        raise StoreError(
+            f"{path}: not a model file (format '{raw.get('format')}', expected '{FORMAT}')"
+        )
+    if raw.get("format_version") != FORMAT_VERSION:
+        raise StoreError(
+            f"{path}: format_version {raw.get('format_version')!r} is not supported "
+            f"(this software reads version {FORMAT_VERSION})"
+        )
+    try:
+        document = StoredModel.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(part) for part in first["loc"])
+        raise StoreError(f"{path}: field '{where}': {first['msg']}") from None
+    if _checksum(raw) != document.sha256:
+        raise StoreError(
+            f"{path}: checksum mismatch — the file was changed or damaged since it was saved"
+        )
+    try:
+        model = model_from_document(document)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise StoreError(
+            f"{path}: fitted numbers do not fit method '{document.method}': {exc}"
+        ) from None
+    probe = document.probe
+    replay = model.predict(
+        ModelInputs(
+            rise_C=np.asarray(probe.rise_C, dtype=float).reshape(-1, len(probe.sensors)),
+            sensors=tuple(probe.sensors),
+            speed_rpm=np.asarray(probe.speed_rpm, dtype=float),
+        )
+    )
+    if not np.array_equal(replay, np.asarray(probe.predicted_um, dtype=float)):
+        raise StoreError(
+            f"{path}: the model does not reproduce its saved probe predictions "
+            f"(saved {probe.predicted_um}, now {replay.tolist()}); it was written by an "
+            "incompatible version"
+        )
+    return model, document

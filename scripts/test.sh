@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# The whole test suite: lint first (a style error is a red CI), then pytest.
+# Called by `make test` after .venv/ exists; installs nothing by hand.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=.venv
+"$VENV/bin/ruff" check .
+"$VENV/bin/pytest" -q "$@"

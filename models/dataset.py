@@ -222,14 +222,7 @@ def load_runs(
     _require_columns(path, names, target, sensor_names, sensors)
     chosen_sensors = tuple(sensors) if sensors is not None else tuple(sensor_names)
 
-    table = pd.read_csv(
-        path,
-        dtype=str,
-        keep_default_na=False,
-        skip_blank_lines=False,
-        skipinitialspace=True,
-        encoding="utf-8",
-    )
+    table = _read_text_table(path, len(names))
     table.columns = names
     if table.empty:
         raise DataError(path, HEADER_LINE + 1, None, "no data rows after the header")
@@ -285,6 +278,29 @@ def load_runs(
         lines=lines,
         skipped=skipped,
     )
+
+
+def _read_text_table(path: Path, n_columns: int) -> pd.DataFrame:
+    """Every cell as text; a row with the wrong number of fields is refused by line."""
+    try:
+        return pd.read_csv(
+            path,
+            dtype=str,
+            keep_default_na=False,
+            skip_blank_lines=False,
+            skipinitialspace=True,
+            encoding="utf-8",
+        )
+    except pd.errors.ParserError as exc:
+        found = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))
+        if found is None:
+            raise DataError(path, None, None, f"not a readable CSV file ({exc})") from None
+        raise DataError(
+            path,
+            int(found.group(2)),
+            None,
+            f"expected {n_columns} fields as in the header, found {found.group(3)}",
+        ) from None
 
 
 def _require_columns(

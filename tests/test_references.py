@@ -1,0 +1,63 @@
+"""Where rises are measured from: continuous recordings vs runs that start cold."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.dataset import load_runs
+from models.references import plan_references, rises
+
+DATA = Path(__file__).resolve().parent.parent / "data"
+
+
+def write_runs(tmp_path: Path, starts: list[float], n: int = 4, dt: float = 60.0) -> Path:
+    lines = ["run,time_s,speed_rpm,T1,error_um"]
+    for r, start in enumerate(starts):
+        for k in range(n):
+            lines.append(f"R{r},{start + k * dt},1000,{20 + r + k},{k}")
+    path = tmp_path / "runs.csv"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_runs_whose_clock_runs_on_form_one_recording(tmp_path: Path) -> None:
+    # R0 covers 0..180 s; R1 starts 60 s later (one interval) → same recording;
+    # R2 restarts its clock at 0 → a new recording that starts cold.
+    data = load_runs(write_runs(tmp_path, [0, 240, 0]))
+    plan = plan_references(data, "auto")
+    assert plan.recording_runs == (("R0", "R1"), ("R2",))
+    np.testing.assert_array_equal(plan.recording, [0] * 8 + [1] * 4)
+
+
+def test_a_gap_longer_than_three_intervals_starts_a_new_recording(tmp_path: Path) -> None:
+    # R1 starts 181 s after R0's last sample (> 3 × 60 s).
+    data = load_runs(write_runs(tmp_path, [0, 180 + 181]))
+    assert plan_references(data, "auto").recording_runs == (("R0",), ("R1",))
+    data = load_runs(write_runs(tmp_path, [0, 180 + 180]))
+    assert plan_references(data, "auto").recording_runs == (("R0", "R1"),)
+
+
+def test_explicit_policies(tmp_path: Path) -> None:
+    data = load_runs(write_runs(tmp_path, [0, 240, 0]))
+    assert plan_references(data, "run-start").recording_runs == (("R0",), ("R1",), ("R2",))
+    assert plan_references(data, "recording-start").recording_runs == (("R0", "R1", "R2"),)
+    with pytest.raises(ValueError, match="unknown reference policy 'cold'"):
+        plan_references(data, "cold")
+
+
+def test_rises_subtract_the_first_sample_of_each_recording() -> None:
+    values = np.array([[20.0, 1.0], [21.0, 3.0], [22.5, 4.0], [30.0, 7.0], [31.0, 9.0]])
+    recording = np.array([0, 0, 0, 1, 1])
+    expected = np.array([[0.0, 0.0], [1.0, 2.0], [2.5, 3.0], [0.0, 0.0], [1.0, 2.0]])
+    np.testing.assert_array_equal(rises(values, recording), expected)
+    np.testing.assert_array_equal(rises(values[:, 1], recording), expected[:, 1])
+
+
+def test_fl_thermal_cycles_are_one_recording() -> None:
+    data = load_runs(DATA / "fl_thermal.csv", target="ch5_um")
+    plan = plan_references(data, "auto")
+    assert plan.recording_runs == (data.run_ids,)
+    assert len(data.run_ids) == 6

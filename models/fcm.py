@@ -164,6 +164,19 @@ def _iterate(
     return u, centers, n_iter
 
 
+def span_coordinates(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Coordinates (n, r) of n points in an orthonormal basis (r, d) of their span.
+
+    Centres are weighted means of the points, so they stay in that span, and
+    every distance the algorithm needs is the same in these coordinates (an
+    orthonormal change of basis). Sensors as points have one coordinate per
+    sample (d up to millions) but there are only p of them: clustering their
+    p-dimensional coordinates gives the same result at a cost independent of d.
+    """
+    _, _, basis = np.linalg.svd(x, full_matrices=False)
+    return x @ basis.T, basis
+
+
 def fuzzy_c_means(
     points: np.ndarray,
     n_clusters: int,
@@ -196,6 +209,10 @@ def fuzzy_c_means(
     if max_iter < 1 or n_init < 1:
         raise ValueError(f"max_iter and n_init must be ≥ 1, got {max_iter} and {n_init}")
 
+    basis = None
+    if x.shape[1] > n:
+        x, basis = span_coordinates(x)
+
     rng = np.random.default_rng(seed)
     best: tuple[float, np.ndarray, np.ndarray, int] | None = None
     for _ in range(n_init):
@@ -207,6 +224,8 @@ def fuzzy_c_means(
             best = (objective, u, centers, n_iter)
 
     objective, u, centers, n_iter = best
+    if basis is not None:
+        centers = centers @ basis
     u, centers, labels = _relabel(u, centers)
     return FcmResult(
         centers=centers, membership=u, labels=labels, objective=objective, n_iter=n_iter

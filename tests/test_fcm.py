@@ -175,3 +175,24 @@ def test_sensor_points_validation() -> None:
         sensor_points(np.ones((1, 3)))
     with pytest.raises(ValueError, match="n_samples, p"):
         sensor_points(np.ones(5))
+
+
+def test_high_dimensional_points_cluster_as_in_full_space() -> None:
+    # 6 sensors × 400 samples: FCM runs on their 6-D span coordinates; the
+    # memberships must equal plain iterations in the full 400-D space from the
+    # same random start (the change of basis is orthonormal).
+    from models.fcm import _iterate
+
+    rng = np.random.default_rng(7)
+    base = rng.normal(size=(2, 400))
+    points = np.vstack(
+        [base[0] + 0.3 * rng.normal(size=(3, 400)), base[1] + 0.3 * rng.normal(size=(3, 400))]
+    )
+    result = fuzzy_c_means(points, 2, n_init=1, seed=3)
+    start = np.random.default_rng(3).random((2, 6))
+    start /= start.sum(axis=0)
+    full_u, full_centers, _ = _iterate(points, start, 2.0, 1e-9, 1000)
+    order = np.argsort(np.argmax(full_u, axis=0)[[0, 3]])  # label of point 0 first
+    np.testing.assert_allclose(result.membership, full_u[order], atol=1e-9)
+    np.testing.assert_allclose(result.centers, full_centers[order], atol=1e-9)
+    assert result.centers.shape == (2, 400)

@@ -222,7 +222,7 @@ def load_runs(
     _require_columns(path, names, target, sensor_names, sensors)
     chosen_sensors = tuple(sensors) if sensors is not None else tuple(sensor_names)
 
-    table = _read_text_table(path, len(names))
+    table = _read_table(path, len(names))
     table.columns = names
     if table.empty:
         raise DataError(path, HEADER_LINE + 1, None, "no data rows after the header")
@@ -233,9 +233,7 @@ def load_runs(
         required_numeric.append(AMBIENT_COLUMN)
     needed = [RUN_COLUMN, *required_numeric]
 
-    empty = np.zeros(len(table), dtype=bool)
-    for name in needed:
-        empty |= table[name].str.strip().to_numpy() == ""
+    empty = table[needed].isna().any(axis=1).to_numpy()
     skipped: tuple[SkippedRows, ...] = ()
     if empty.any():
         skipped = (
@@ -262,7 +260,7 @@ def load_runs(
             if np.all(np.isfinite(converted)):
                 numeric[name] = converted
             else:
-                labels[name] = table[name].to_numpy(dtype=object)
+                labels[name] = table[name].fillna("").astype(str).to_numpy(dtype=object)
 
     run = table[RUN_COLUMN].str.strip().to_numpy(dtype=object)
     _check_runs(path, run, numeric[TIME_COLUMN], lines)
@@ -280,13 +278,19 @@ def load_runs(
     )
 
 
-def _read_text_table(path: Path, n_columns: int) -> pd.DataFrame:
-    """Every cell as text; a row with the wrong number of fields is refused by line."""
+def _read_table(path: Path, n_columns: int) -> pd.DataFrame:
+    """The cells, numbers parsed natively where a whole column is numeric.
+
+    Only an empty cell counts as missing (NaN); text such as "nan" or "hot" keeps
+    its column as text, so the check that follows can name the exact cell. A row
+    with the wrong number of fields is refused by line.
+    """
     try:
         return pd.read_csv(
             path,
-            dtype=str,
+            dtype={RUN_COLUMN: str},
             keep_default_na=False,
+            na_values=[""],
             skip_blank_lines=False,
             skipinitialspace=True,
             encoding="utf-8",

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from models.fcm import fuzzy_c_means, sensor_points, xie_beni
+from models.fcm import fuzzy_c_means, sensor_points, span_coordinates, xie_beni
 from models.grey import absolute_degrees
 
 
@@ -132,7 +132,9 @@ def select_sensors(
         labels = np.arange(p)
         pc, xb = 1.0, float("nan")
     else:
-        points = sensor_points(rise)
+        # One coordinate per sample is wasteful: the p sensors span at most p
+        # dimensions, and memberships and the Xie–Beni index are the same there.
+        points, _ = span_coordinates(sensor_points(rise))
         if n_clusters is not None:
             if not 2 <= n_clusters <= p:
                 raise ValueError(f"n_clusters must be in 2..{p} for {p} sensors, got {n_clusters}")

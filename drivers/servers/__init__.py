@@ -1,0 +1,1 @@
+"""Protocol servers of the simulated machine (apart from the gateway's clients)."""

@@ -209,3 +209,74 @@ def significance(
     write_json(
         json_out, {"manova": manova.as_dict(), "anova": [result.as_dict() for result in anova]}
     )
+
+
+@main.command()
+@click.option("--record", "record_path", type=click.Path(path_type=Path), help="Write runs here.")
+@click.option(
+    "--program",
+    "programs",
+    multiple=True,
+    help="Speed programme (repeatable): iso230-spectrum, spectrum-swapped, spectrum-const4000, "
+    "const2000, const4000, const6000, const8000 or production-<seed>. Default: the first six.",
+)
+@click.option(
+    "--effect",
+    "effects",
+    multiple=True,
+    help="Hidden effect (repeatable): thermal_lag, speed_direct, ambient, drift, cooler or none.",
+)
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option(
+    "--sample-s", type=click.FloatRange(min=0, min_open=True), default=60.0, show_default=True
+)
+@click.option(
+    "--params",
+    "params_file",
+    type=click.Path(path_type=Path),
+    help="YAML overriding the machine's default parameters (simulator/machine.yaml).",
+)
+@input_errors_exit
+def simulate(
+    record_path: Path | None,
+    programs: tuple[str, ...],
+    effects: tuple[str, ...],
+    seed: int,
+    sample_s: float,
+    params_file: Path | None,
+) -> None:
+    """Run the simulated machine: record measured runs offline (--record)."""
+    from simulator.programs import program_by_name
+    from simulator.record import DEFAULT_PROGRAMS, record, write_recording
+
+    params = load_machine_params(params_file)
+    if record_path is None:
+        raise click.UsageError(
+            "serving the simulated machine over its protocols comes with the runtime; use --record"
+        )
+    chosen = [program_by_name(name) for name in (programs or DEFAULT_PROGRAMS)]
+    recording = record(params, chosen, effects or ("none",), seed=seed, sample_s=sample_s)
+    write_recording(record_path, recording)
+    runs = ", ".join(p.name for p in chosen)
+    click.echo(
+        f"wrote {record_path}: {len(recording.rows)} rows, runs {runs}, "
+        f"effects {', '.join(effects) or 'none'}, seed {seed}"
+    )
+
+
+def load_machine_params(params_file: Path | None):
+    import yaml
+
+    from simulator.params import load_params
+
+    if params_file is None:
+        return load_params()
+    try:
+        overrides = yaml.safe_load(params_file.read_text(encoding="utf-8")) or {}
+    except FileNotFoundError:
+        raise ValueError(f"{params_file}: file not found") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{params_file}: not valid YAML ({exc})") from None
+    if not isinstance(overrides, dict):
+        raise ValueError(f"{params_file}: a mapping of machine parameters was expected")
+    return load_params(overrides, source=str(params_file))

@@ -4,5 +4,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=.venv
+bash scripts/setup-system.sh
 "$VENV/bin/ruff" check .
 "$VENV/bin/pytest" -q "$@"

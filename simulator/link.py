@@ -64,7 +64,7 @@ class MachineLink(Protocol):
     def snapshot(self) -> MachineSnapshot: ...
 
     def write_macro(self, number: int, value: float) -> None:
-        """Apply a client's write of macro variable #number (raises ValueError outside #500–#999)."""
+        """Apply a client's write of macro #number; ValueError outside #500–#999."""
         ...
 
 

@@ -1,0 +1,180 @@
+"""The simulated machine: thermal network + sensors + programme + CNC, one object.
+
+It advances on a fixed grid of ``sub_step_s`` seconds of machine time
+(``advance_to``), and is what the protocol endpoints publish (``snapshot``) and
+write to (``write_macro``, see :mod:`simulator.link`). Closed loop: the value a
+client writes to the compensation macro (default #500, in mm) shifts the tool,
+so the measured error is
+
+    error = Z growth − sign · #500 · (µm per CNC unit) + probe noise.
+
+All randomness (sensor and probe noise) comes from one seeded generator, so a
+recording is reproducible to the byte.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import numpy as np
+
+from simulator.effects import HiddenEffects
+from simulator.faults import SensorFault
+from simulator.link import (
+    MACRO_FIRST,
+    MACRO_LAST,
+    ChannelReading,
+    MachineSnapshot,
+    RunMode,
+    check_macro_number,
+)
+from simulator.params import NODES, MachineParams
+from simulator.programs import SpeedProgram
+from simulator.thermal import ThermalNetwork
+
+AMBIENT_CHANNEL = "ambient"
+
+
+class SimulatedMachine:
+    def __init__(
+        self,
+        params: MachineParams,
+        program: SpeedProgram,
+        effects: Iterable[str] = (),
+        seed: int = 0,
+        start_s: float = 0.0,
+    ) -> None:
+        self.params = params
+        self.program = program
+        self.effects = HiddenEffects(params, effects)
+        self.network = ThermalNetwork(
+            params, params.sub_step_s, self.effects.coolant_conductance_W_per_K
+        )
+        self.rng = np.random.default_rng(seed)
+        self.program_start_s = start_s
+        self.time_s = start_s
+        self.reference_C = params.ambient_C
+        self.nodes_C = np.full(len(NODES), params.ambient_C)
+        self.sensor_names = tuple(params.sensors)
+        self.mix = np.array([[s.mix.get(n, 0.0) for n in NODES] for s in params.sensors.values()])
+        self.offsets_C = np.array([s.offset_C for s in params.sensors.values()])
+        self.sensor_decay = np.exp(
+            -params.sub_step_s / np.array([s.lag_s for s in params.sensors.values()])
+        )
+        self.sensors_C = self.mix @ self.nodes_C
+        self.ambient_decay = math.exp(-params.sub_step_s / params.ambient_sensor.lag_s)
+        self.ambient_sensor_C = params.ambient_C
+        self.macros: dict[int, float] = dict.fromkeys(range(MACRO_FIRST, MACRO_LAST + 1), 0.0)
+        self.faults: list[SensorFault] = []
+        self.probe_error_um: float | None = None
+        self._next_probe_s = start_s + params.probe.period_s
+        self.compensation_log: list[tuple[float, float]] = []
+
+    # --- time -------------------------------------------------------------------------
+    @property
+    def run_time_s(self) -> float:
+        return self.time_s - self.program_start_s
+
+    def commanded_speed_rpm(self, time_s: float | None = None) -> float:
+        t = self.time_s if time_s is None else time_s
+        return self.program.speed_at(t - self.program_start_s)
+
+    def advance_to(self, time_s: float) -> None:
+        """Integrate up to ``time_s`` in whole sub-steps (state time never runs ahead)."""
+        h = self.params.sub_step_s
+        while self.time_s + h <= time_s + 1e-9:
+            self._step(h)
+
+    def _step(self, h: float) -> None:
+        speed = self.commanded_speed_rpm()
+        room = self.effects.room_C(self.time_s)
+        coolant = self.effects.coolant_C(self.time_s, self.params.ambient_C)
+        # The hall air reaches the column; the spindle head sees the enclosure air.
+        air = np.full(len(NODES), self.params.ambient_C)
+        air[NODES.index("column")] = room
+        self.nodes_C = self.network.step(self.nodes_C, speed, air, coolant)
+        self.effects.advance_lag(self.nodes_C[NODES.index("shaft")], h)
+        self.sensors_C = self.sensor_decay * self.sensors_C + (1 - self.sensor_decay) * (
+            self.mix @ self.nodes_C
+        )
+        self.ambient_sensor_C = (
+            self.ambient_decay * self.ambient_sensor_C + (1 - self.ambient_decay) * room
+        )
+        self.time_s += h
+        if self.time_s + 1e-9 >= self._next_probe_s:
+            self._next_probe_s += self.params.probe.period_s
+            self.probe_error_um = self.measured_error_um()
+            self.macros[self.params.probe.macro] = self.probe_error_um
+
+    # --- physics read-outs ------------------------------------------------------------
+    def growth_um(self) -> float:
+        """Z thermal growth (µm, positive = tool towards the table), before compensation."""
+        rise = {n: self.nodes_C[i] - self.reference_C for i, n in enumerate(NODES)}
+        total = 0.0
+        for node, um_per_K in self.params.growth_um_per_K.items():
+            if node == "shaft":
+                total += self.effects.shaft_growth_um(
+                    self.nodes_C[NODES.index("shaft")], self.reference_C, um_per_K
+                )
+            else:
+                total += um_per_K * rise[node]
+        return total + self.effects.direct_um(self.commanded_speed_rpm(), self.run_time_s)
+
+    def applied_compensation_um(self) -> float:
+        comp = self.params.compensation
+        return comp.sign * self.macros[comp.macro] * comp.um_per_unit
+
+    def true_error_um(self) -> float:
+        """Error at the tool after the CNC applied the compensation, without probe noise."""
+        return self.growth_um() - self.applied_compensation_um()
+
+    def measured_error_um(self) -> float:
+        """What a probe measures: the true error plus probe noise."""
+        return self.true_error_um() + self.rng.normal(0.0, self.params.probe.noise_um)
+
+    # --- sensors ------------------------------------------------------------------------
+    def add_fault(self, fault: SensorFault) -> None:
+        if fault.sensor not in (*self.sensor_names, AMBIENT_CHANNEL):
+            raise ValueError(
+                f"no sensor '{fault.sensor}' (sensors: {', '.join(self.sensor_names)})"
+            )
+        self.faults.append(fault)
+
+    def clear_faults(self) -> None:
+        self.faults.clear()
+
+    def readings(self) -> dict[str, ChannelReading]:
+        """What each transmitter channel measures now (°C), with noise and faults."""
+        noise = self.rng.normal(0.0, self.params.sensor_noise_C, len(self.sensor_names) + 1)
+        values = self.sensors_C + self.offsets_C + noise[:-1]
+        readings = {
+            name: ChannelReading(float(v))
+            for name, v in zip(self.sensor_names, values, strict=True)
+        }
+        readings[AMBIENT_CHANNEL] = ChannelReading(float(self.ambient_sensor_C + noise[-1]))
+        for fault in self.faults:
+            readings[fault.sensor] = fault.apply(readings[fault.sensor], self.time_s)
+        return readings
+
+    # --- MachineLink --------------------------------------------------------------------
+    def snapshot(self) -> MachineSnapshot:
+        in_program = 0 <= self.run_time_s < self.program.duration_s
+        speed = self.commanded_speed_rpm()
+        return MachineSnapshot(
+            time_s=self.time_s,
+            channels=self.readings(),
+            actual_speed_rpm=speed,
+            commanded_speed_rpm=speed,
+            run_mode=RunMode.AUTO if in_program else RunMode.STOP,
+            macros=dict(self.macros),
+            probe_error_um=self.probe_error_um,
+        )
+
+    def write_macro(self, number: int, value: float) -> None:
+        check_macro_number(number)
+        if not math.isfinite(value):
+            raise ValueError(f"macro #{number}: a finite value was expected, got {value}")
+        self.macros[number] = float(value)
+        if number == self.params.compensation.macro:
+            self.compensation_log.append((self.time_s, float(value)))

@@ -1,0 +1,170 @@
+"""Machine parameters: the YAML schema, validated once, with units in every key.
+
+Defaults live in ``simulator/machine.yaml``; a config file may override any
+part of them (a deep merge). A bad value is refused with the key path.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+NODES = ("bearing", "shaft", "motor", "headstock", "column")
+DEFAULTS = Path(__file__).with_name("machine.yaml")
+EFFECTS = ("thermal_lag", "speed_direct", "ambient", "drift", "cooler")
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Convection(Strict):
+    base: float = Field(gt=0)
+    per_krpm: float = Field(ge=0)
+
+
+class BearingHeat(Strict):
+    coefficient_W: float = Field(ge=0)
+    exponent: float = Field(gt=0)
+
+
+class MotorHeat(Strict):
+    idle_W: float = Field(ge=0)
+    per_krpm_W: float = Field(ge=0)
+
+
+class Sensor(Strict):
+    location: str
+    mix: dict[str, float]
+    lag_s: float = Field(gt=0)
+    offset_C: float = 0.0
+
+    @field_validator("mix")
+    @classmethod
+    def _weights(cls, mix: dict[str, float]) -> dict[str, float]:
+        unknown = set(mix) - set(NODES)
+        if unknown:
+            raise ValueError(f"unknown node(s) {sorted(unknown)}; nodes are {list(NODES)}")
+        if abs(sum(mix.values()) - 1.0) > 1e-9 or min(mix.values()) < 0:
+            raise ValueError(f"weights must be ≥ 0 and sum to 1, got {mix}")
+        return mix
+
+
+class AmbientSensor(Strict):
+    location: str
+    lag_s: float = Field(gt=0)
+
+
+class Probe(Strict):
+    noise_um: float = Field(ge=0)
+    period_s: float = Field(gt=0)
+    macro: int = Field(ge=500, le=999)
+
+
+class Compensation(Strict):
+    macro: int = Field(ge=500, le=999)
+    unit: Literal["mm", "um"]
+    sign: Literal[1, -1]
+
+    @property
+    def um_per_unit(self) -> float:
+        return 1000.0 if self.unit == "mm" else 1.0
+
+
+class ThermalLag(Strict):
+    share: float = Field(gt=0, le=1)
+    tau_s: float = Field(gt=0)
+
+
+class SpeedDirect(Strict):
+    um_per_krpm: float
+    um_per_krpm2: float
+
+
+class AmbientCycle(Strict):
+    amplitude_C: float = Field(ge=0)
+    period_s: float = Field(gt=0)
+
+
+class Drift(Strict):
+    um_per_h: float
+
+
+class Cooler(Strict):
+    amplitude_C: float = Field(ge=0)
+    period_s: float = Field(gt=0)
+    conductance_W_per_K: float = Field(gt=0)
+    offset_C: float
+
+
+class Effects(Strict):
+    thermal_lag: ThermalLag
+    speed_direct: SpeedDirect
+    ambient: AmbientCycle
+    drift: Drift
+    cooler: Cooler
+
+
+class MachineParams(Strict):
+    name: str
+    max_speed_rpm: float = Field(gt=0)
+    ambient_C: float
+    heat_capacity_J_per_K: dict[str, float]
+    conductance_W_per_K: dict[str, float]
+    convection_W_per_K: dict[str, Convection]
+    bearing_heat: BearingHeat
+    motor_heat: MotorHeat
+    growth_um_per_K: dict[str, float]
+    sensors: dict[str, Sensor]
+    sensor_noise_C: float = Field(ge=0)
+    ambient_sensor: AmbientSensor
+    probe: Probe
+    compensation: Compensation
+    effects: Effects
+    sub_step_s: float = Field(gt=0, le=60)
+
+    @model_validator(mode="after")
+    def _nodes_known(self) -> MachineParams:
+        if set(self.heat_capacity_J_per_K) != set(NODES):
+            raise ValueError(f"heat_capacity_J_per_K needs exactly the nodes {list(NODES)}")
+        if set(self.convection_W_per_K) != set(NODES):
+            raise ValueError(f"convection_W_per_K needs exactly the nodes {list(NODES)}")
+        if any(c <= 0 for c in self.heat_capacity_J_per_K.values()):
+            raise ValueError("heat capacities must be > 0")
+        for pair, g in self.conductance_W_per_K.items():
+            a, _, b = pair.partition("-")
+            if a not in NODES or b not in NODES or a == b or g < 0:
+                raise ValueError(f"conductance '{pair}': expected 'node-node' with g ≥ 0")
+        if set(self.growth_um_per_K) - set(NODES):
+            raise ValueError(
+                f"growth_um_per_K: unknown nodes {set(self.growth_um_per_K) - set(NODES)}"
+            )
+        return self
+
+
+def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def load_params(
+    overrides: dict[str, Any] | None = None, source: str = "machine parameters"
+) -> MachineParams:
+    """The defaults, with ``overrides`` merged in, validated."""
+    raw = yaml.safe_load(DEFAULTS.read_text(encoding="utf-8"))
+    if overrides:
+        raw = deep_merge(raw, overrides)
+    try:
+        return MachineParams.model_validate(raw)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ValueError(f"{source}: '{where}': {first['msg']}") from None

@@ -236,6 +236,14 @@ def significance(
     type=click.Path(path_type=Path),
     help="YAML overriding the machine's default parameters (simulator/machine.yaml).",
 )
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(path_type=Path),
+    default=Path("config.yaml"),
+    show_default=True,
+    help="Without --record: serve the machine its 'simulator' section describes.",
+)
 @input_errors_exit
 def simulate(
     record_path: Path | None,
@@ -244,16 +252,16 @@ def simulate(
     seed: int,
     sample_s: float,
     params_file: Path | None,
+    config_path: Path,
 ) -> None:
-    """Run the simulated machine: record measured runs offline (--record)."""
+    """Run the simulated machine: serve it over its protocols, or record runs (--record)."""
     from simulator.programs import program_by_name
     from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 
-    params = load_machine_params(params_file)
     if record_path is None:
-        raise click.UsageError(
-            "serving the simulated machine over its protocols comes with the runtime; use --record"
-        )
+        serve_simulator(config_path)
+        return
+    params = load_machine_params(params_file)
     chosen = [program_by_name(name) for name in (programs or DEFAULT_PROGRAMS)]
     recording = record(params, chosen, effects or ("none",), seed=seed, sample_s=sample_s)
     write_recording(record_path, recording)
@@ -280,3 +288,30 @@ def load_machine_params(params_file: Path | None):
     if not isinstance(overrides, dict):
         raise ValueError(f"{params_file}: a mapping of machine parameters was expected")
     return load_params(overrides, source=str(params_file))
+
+
+def serve_simulator(config_path: Path) -> None:
+    import asyncio
+
+    from simulator.serve import SimulatedPlant, load_simulator_config
+
+    config = load_simulator_config(config_path)
+    plant = SimulatedPlant(config)
+    click.echo(
+        f"serving simulated machine '{plant.machine.params.name}' (programme {config.program}, "
+        f"×{config.speedup:g} machine time); Ctrl-C stops"
+    )
+    for endpoint in plant.endpoints:
+        click.echo(f"  {type(endpoint).__name__}: {describe_endpoint(endpoint)}")
+    try:
+        asyncio.run(plant.serve_forever())
+    except KeyboardInterrupt:
+        click.echo("stopped")
+
+
+def describe_endpoint(endpoint: object) -> str:
+    for attribute in ("endpoint", "address", "serial_port"):
+        value = getattr(endpoint, attribute, None)
+        if value:
+            return str(value)
+    return ""

@@ -1,0 +1,177 @@
+"""Serving the simulated machine over its protocols, as ``config.yaml`` describes.
+
+One machine per config: temperature transmitters on a Modbus RTU bus (a serial
+port, e.g. one end of a ``socat`` pty pair) and/or Modbus TCP, and the CNC over
+OPC UA and/or Modbus TCP. A single loop advances the machine to the clock's
+time and republishes every endpoint; client writes of macro variables reach
+the machine as they arrive, so the compensation closes the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from drivers.clock import AcceleratedClock, Clock
+from drivers.servers.modbus_cnc import CncModbusServer
+from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
+from drivers.servers.opcua_cnc import CncOpcUaServer
+from simulator.effects import parse_effects
+from simulator.machine import SimulatedMachine
+from simulator.params import load_params
+from simulator.programs import program_by_name
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class DeviceConfig(Strict):
+    device_id: int = Field(ge=1, le=247)
+    channels: list[str | None] = Field(min_length=1, max_length=8)
+
+
+class RtuBusConfig(Strict):
+    port: str
+    baudrate: int = 19200
+    parity: str = "N"
+    devices: list[DeviceConfig] = Field(min_length=1)
+
+
+class TcpBusConfig(Strict):
+    host: str = "127.0.0.1"
+    port: int = Field(ge=1, le=65535)
+    devices: list[DeviceConfig] = Field(min_length=1)
+
+
+class TransmittersConfig(Strict):
+    rtu: RtuBusConfig | None = None
+    tcp: TcpBusConfig | None = None
+
+
+class EndpointConfig(Strict):
+    host: str = "127.0.0.1"
+    port: int = Field(ge=1, le=65535)
+
+
+class CncConfig(Strict):
+    opcua: EndpointConfig | None = None
+    modbus: EndpointConfig | None = None
+
+
+class SimulatorConfig(Strict):
+    program: str = "iso230-spectrum"
+    effects: list[str] = Field(default_factory=list)
+    seed: int = 0
+    speedup: float = Field(default=60.0, gt=0)
+    publish_period_s: float = Field(default=0.2, gt=0)
+    machine: dict[str, Any] = Field(default_factory=dict)
+    transmitters: TransmittersConfig = TransmittersConfig()
+    cnc: CncConfig = CncConfig()
+
+
+def load_simulator_config(path: Path) -> SimulatorConfig:
+    """The ``simulator`` section of a config file, validated (errors name the key path)."""
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except FileNotFoundError:
+        raise ValueError(f"{path}: file not found") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not valid YAML ({exc})") from None
+    section = raw.get("simulator") if isinstance(raw, dict) else None
+    if section is None:
+        raise ValueError(f"{path}: no 'simulator' section to serve")
+    try:
+        return SimulatorConfig.model_validate(section)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in ("simulator", *first["loc"]))
+        raise ValueError(f"{path}: '{where}': {first['msg']}") from None
+
+
+class SimulatedPlant:
+    """The machine and its endpoints, run together on one clock."""
+
+    def __init__(self, config: SimulatorConfig, clock: Clock | None = None) -> None:
+        self.config = config
+        self.clock = clock or AcceleratedClock(config.speedup)
+        params = load_params(config.machine, source="simulator.machine")
+        self.machine = SimulatedMachine(
+            params,
+            program_by_name(config.program),
+            parse_effects(config.effects),
+            seed=config.seed,
+            start_s=self.clock.now(),
+        )
+        self.endpoints: list[Any] = []
+        buses = config.transmitters
+        if buses.rtu is not None:
+            self.endpoints.append(
+                TransmitterServer(
+                    self.machine,
+                    [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.rtu.devices],
+                    serial_port=buses.rtu.port,
+                    baudrate=buses.rtu.baudrate,
+                    parity=buses.rtu.parity,
+                )
+            )
+        if buses.tcp is not None:
+            self.endpoints.append(
+                TransmitterServer(
+                    self.machine,
+                    [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.tcp.devices],
+                    tcp=(buses.tcp.host, buses.tcp.port),
+                )
+            )
+        if config.cnc.opcua is not None:
+            self.endpoints.append(
+                CncOpcUaServer(self.machine, host=config.cnc.opcua.host, port=config.cnc.opcua.port)
+            )
+        if config.cnc.modbus is not None:
+            self.endpoints.append(
+                CncModbusServer(
+                    self.machine, host=config.cnc.modbus.host, port=config.cnc.modbus.port
+                )
+            )
+        self._task: asyncio.Task[None] | None = None
+
+    async def start(self) -> None:
+        for endpoint in self.endpoints:
+            await endpoint.start()
+        await self.update()
+        self._task = asyncio.create_task(self._run())
+
+    async def update(self) -> None:
+        """Advance the machine to now and republish every endpoint."""
+        self.machine.advance_to(self.clock.now())
+        for endpoint in self.endpoints:
+            await endpoint.publish()
+
+    async def _run(self) -> None:
+        while True:
+            await asyncio.sleep(self.config.publish_period_s)
+            await self.update()
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+        for endpoint in reversed(self.endpoints):
+            await endpoint.stop()
+
+    async def __aenter__(self) -> SimulatedPlant:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    async def serve_forever(self) -> None:
+        async with self:
+            await asyncio.Event().wait()

@@ -108,37 +108,45 @@ class SimulatedPlant:
             seed=config.seed,
             start_s=self.clock.now(),
         )
-        self.endpoints: list[Any] = []
         buses = config.transmitters
-        if buses.rtu is not None:
-            self.endpoints.append(
-                TransmitterServer(
-                    self.machine,
-                    [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.rtu.devices],
-                    serial_port=buses.rtu.port,
-                    baudrate=buses.rtu.baudrate,
-                    parity=buses.rtu.parity,
-                )
+        self.rtu_transmitters = (
+            None
+            if buses.rtu is None
+            else TransmitterServer(
+                self.machine,
+                [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.rtu.devices],
+                serial_port=buses.rtu.port,
+                baudrate=buses.rtu.baudrate,
+                parity=buses.rtu.parity,
             )
-        if buses.tcp is not None:
-            self.endpoints.append(
-                TransmitterServer(
-                    self.machine,
-                    [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.tcp.devices],
-                    tcp=(buses.tcp.host, buses.tcp.port),
-                )
+        )
+        self.tcp_transmitters = (
+            None
+            if buses.tcp is None
+            else TransmitterServer(
+                self.machine,
+                [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.tcp.devices],
+                tcp=(buses.tcp.host, buses.tcp.port),
             )
-        if config.cnc.opcua is not None:
-            self.endpoints.append(
-                CncOpcUaServer(self.machine, host=config.cnc.opcua.host, port=config.cnc.opcua.port)
-            )
-        if config.cnc.modbus is not None:
-            self.endpoints.append(
-                CncModbusServer(
-                    self.machine, host=config.cnc.modbus.host, port=config.cnc.modbus.port
-                )
-            )
+        )
+        cnc = config.cnc
+        self.cnc_opcua = (
+            None
+            if cnc.opcua is None
+            else CncOpcUaServer(self.machine, host=cnc.opcua.host, port=cnc.opcua.port)
+        )
+        self.cnc_modbus = (
+            None
+            if cnc.modbus is None
+            else CncModbusServer(self.machine, host=cnc.modbus.host, port=cnc.modbus.port)
+        )
         self._task: asyncio.Task[None] | None = None
+
+    @property
+    def endpoints(self) -> list[Any]:
+        """The configured endpoints, transmitters first."""
+        candidates = (self.rtu_transmitters, self.tcp_transmitters, self.cnc_opcua, self.cnc_modbus)
+        return [endpoint for endpoint in candidates if endpoint is not None]
 
     async def start(self) -> None:
         for endpoint in self.endpoints:

@@ -125,3 +125,109 @@ def test_plant_serves_the_machine_and_closes_the_loop(tmp_path: Path) -> None:
     assert abs(found["error_after_um"]) < 0.1
     assert [value for _, value in found["macro_log"]] == [found["compensation_mm"]]
     assert found["macro_read_back"] == found["compensation_mm"]
+
+
+async def node_opcua_compensates(tmp_path: Path) -> dict[str, float]:
+    from tests.test_opcua_cnc import run_node_client
+
+    clock = ManualClock()
+    config = SimulatorConfig.model_validate(
+        {"program": "const6000", "seed": 2, "cnc": {"opcua": {"port": free_tcp_port()}}}
+    )
+    async with SimulatedPlant(config, clock=clock) as plant:
+        clock.advance(2 * 3600.0)
+        await plant.update()
+        before = plant.machine.true_error_um()
+        compensation_mm = round(plant.machine.growth_um() / 1000.0, 4)
+        result = await run_node_client(
+            plant.cnc_opcua.endpoint,
+            [{"write": "Macro.500", "value": compensation_mm}, {"read": "Macro.500"}],
+            tmp_path / "pki",
+        )
+        return {
+            "before_um": before,
+            "after_um": plant.machine.true_error_um(),
+            "compensation_mm": compensation_mm,
+            "write_status": result["results"][0]["status"],
+            "read_back": result["results"][1]["value"],
+        }
+
+
+def test_node_opcua_write_is_applied_to_the_measured_error(tmp_path: Path) -> None:
+    found = asyncio.run(node_opcua_compensates(tmp_path))
+    assert found["write_status"] == "Good"
+    assert found["read_back"] == found["compensation_mm"]
+    assert found["before_um"] > 15.0
+    assert found["after_um"] == pytest.approx(
+        found["before_um"] - 1000.0 * found["compensation_mm"], abs=1e-9
+    )
+
+
+def test_simulate_serves_config_yaml_until_interrupted(tmp_path: Path) -> None:
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+
+    bus_port, cnc_port = free_tcp_port(), free_tcp_port()
+    config = tmp_path / "config.yaml"
+    config.write_text(
+        yaml.safe_dump(
+            {
+                "simulator": {
+                    "program": "const4000",
+                    "speedup": 600,
+                    "transmitters": {
+                        "tcp": {
+                            "port": bus_port,
+                            "devices": [{"device_id": 1, "channels": ["T1", "T2"]}],
+                        }
+                    },
+                    "cnc": {"modbus": {"port": cnc_port}},
+                }
+            }
+        )
+    )
+    root = Path(__file__).resolve().parent.parent
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway", "simulate", "--config", str(config)],
+        cwd=root,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            with socket.socket() as probe:
+                if probe.connect_ex(("127.0.0.1", cnc_port)) == 0:
+                    break
+            time.sleep(0.1)
+        mbpoll = ["mbpoll", "-m", "tcp", "-a", "1", "-1", "-r", "1"]
+        speed = subprocess.run(
+            [*mbpoll, "-p", str(cnc_port), "-t", "4:float", "-B", "-c", "1", "127.0.0.1"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+        temps = subprocess.run(
+            [*mbpoll, "-p", str(bus_port), "-t", "3", "-c", "2", "127.0.0.1"],
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    assert speed.returncode == 0, speed.stderr
+    assert (
+        "[1]: \t4000" in speed.stdout.replace(" ", "\t").replace("\t\t", "\t")
+        or "4000" in speed.stdout
+    )
+    values = [int(line.split(":")[1]) for line in temps.stdout.splitlines() if line.startswith("[")]
+    assert len(values) == 2 and all(180 <= v <= 400 for v in values)  # 18–40 °C in 0.1 °C
+    assert "serving simulated machine 'vmc-8000'" in out
+    assert proc.returncode in (0, -signal.SIGINT), err

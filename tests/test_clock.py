@@ -1,0 +1,39 @@
+"""Machine time: wall, accelerated and manual clocks."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+
+from drivers.clock import AcceleratedClock, ManualClock, WallClock
+
+
+def test_accelerated_clock_runs_speedup_times_faster() -> None:
+    clock = AcceleratedClock(speedup=1000.0, origin_s=50.0)
+    wall_start, machine_start = time.monotonic(), clock.now()
+    asyncio.run(clock.sleep(100.0))  # 100 machine seconds = 0.1 wall seconds
+    wall, machine = time.monotonic() - wall_start, clock.now() - machine_start
+    assert machine_start >= 50.0
+    assert machine >= 100.0
+    assert machine == pytest.approx(1000.0 * wall, rel=0.05)
+    with pytest.raises(ValueError, match="speedup must be > 0"):
+        AcceleratedClock(0)
+
+
+def test_manual_clock_moves_only_when_told() -> None:
+    clock = ManualClock(origin_s=10.0)
+    assert clock.now() == 10.0
+    assert clock.advance(5.0) == 15.0
+    asyncio.run(clock.sleep(30.0))
+    assert clock.now() == 45.0
+    with pytest.raises(ValueError, match="backwards"):
+        clock.advance(-1.0)
+
+
+def test_wall_clock_follows_the_wall() -> None:
+    clock = WallClock(origin_s=0.0)
+    first = clock.now()
+    asyncio.run(clock.sleep(0.05))
+    assert 0.04 <= clock.now() - first <= 1.0

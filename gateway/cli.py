@@ -315,3 +315,129 @@ def describe_endpoint(endpoint: object) -> str:
         if value:
             return str(value)
     return ""
+
+
+def setup_logging(level: str) -> None:
+    import logging
+
+    logging.basicConfig(
+        level=getattr(logging, level.upper()),
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    quiet_protocol_libraries()
+
+
+def quiet_protocol_libraries() -> None:
+    """The drivers report every link failure themselves, once, with the device named."""
+    import logging
+
+    for name in ("pymodbus", "asyncua"):
+        logging.getLogger(name).setLevel(logging.CRITICAL)
+
+
+@main.command("check-config")
+@click.option(
+    "--config", "config_path", type=click.Path(path_type=Path), default=Path("config.yaml")
+)
+@click.option("--connect", is_flag=True, help="Also try every CNC and transmitter once.")
+@input_errors_exit
+def check_config(config_path: Path, connect: bool) -> None:
+    """Validate the configuration (and the model stores it names) without running."""
+    import asyncio
+
+    from gateway.app import check_connections, load_bank
+    from gateway.config import load_config
+
+    quiet_protocol_libraries()
+    config = load_config(config_path)
+    for machine in config.machines:
+        bank = load_bank(machine)
+        click.echo(
+            f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
+            f"{len(bank.models)} models in {machine.models.store}, "
+            f"compensation → #{machine.compensation.macro} ({machine.compensation.unit})"
+        )
+    if connect:
+        problems = asyncio.run(check_connections(config))
+        if problems:
+            raise ValueError("; ".join(problems))
+        click.echo("every CNC and transmitter answered")
+    click.echo(f"{config_path}: ok")
+
+
+@main.command()
+@click.option(
+    "--config", "config_path", type=click.Path(path_type=Path), default=Path("config.yaml")
+)
+@click.option(
+    "--log-level", default="info", type=click.Choice(["debug", "info", "warning", "error"])
+)
+@input_errors_exit
+def run(config_path: Path, log_level: str) -> None:
+    """Run the compensation loop for every machine in the configuration."""
+    import asyncio
+    import signal
+
+    from gateway.app import Gateway
+    from gateway.config import load_config
+
+    setup_logging(log_level)
+    config = load_config(config_path)
+    gateway_app = Gateway(config)
+
+    async def serve() -> None:
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        await gateway_app.run(stop)
+
+    click.echo(
+        f"running {len(config.machines)} machine(s): {', '.join(m.id for m in config.machines)}"
+    )
+    asyncio.run(serve())
+    click.echo("stopped")
+
+
+@main.command()
+@click.option(
+    "--json", "json_out", type=click.Path(path_type=Path), help="Write the figures as JSON."
+)
+@click.option("--program", default="production-7", show_default=True, help="The unseen programme.")
+@click.option("--seed", type=int, default=1, show_default=True)
+@click.option("--speedup", type=click.FloatRange(min=1), default=400.0, show_default=True)
+@click.option("--cycle-s", type=click.FloatRange(min=0.1), default=15.0, show_default=True)
+@click.option(
+    "--workdir", type=click.Path(path_type=Path), default=Path(".cache/demo"), show_default=True
+)
+@click.option(
+    "--log-level", default="warning", type=click.Choice(["debug", "info", "warning", "error"])
+)
+@input_errors_exit
+def demo(
+    json_out: Path | None,
+    program: str,
+    seed: int,
+    speedup: float,
+    cycle_s: float,
+    workdir: Path,
+    log_level: str,
+) -> None:
+    """Simulate a machine, fit its models, compensate an unseen programme, show the gain."""
+    import asyncio
+
+    from gateway.demo import demo as run_demo
+
+    setup_logging(log_level)
+    result = asyncio.run(
+        run_demo(
+            workdir,
+            program=program,
+            seed=seed,
+            speedup=speedup,
+            cycle_s=cycle_s,
+            version=__version__,
+            say=click.echo,
+        )
+    )
+    write_json(json_out, result)

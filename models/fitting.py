@@ -113,3 +113,44 @@ def _validation_record(
     # A per-run model is validated by how it predicts every other run (paper 002 Table 3).
     others = {r.data: r.sigma_um for r in sigma_rows if r.model == group and r.data != group}
     return {"scheme": "cross-evaluation on the other runs", "sigma_um_by_run": others}
+
+
+def fit_sensor_fallbacks(
+    prepared: Prepared,
+    method: str,
+    store: ModelStore,
+    sensors: Sequence[str] | None = None,
+    software_version: str = "unknown",
+) -> dict[str, Path]:
+    """For each declared sensor, a model fitted without it (regime ``all``).
+
+    The runtime switches to one of these when a sensor its model needs goes bad
+    (open circuit, stuck, out of range), instead of losing compensation.
+    """
+    declared = list(sensors) if sensors is not None else list(prepared.inputs.sensors)
+    saved: dict[str, Path] = {}
+    for left_out in declared:
+        remaining = [s for s in declared if s != left_out]
+        if not remaining:
+            continue
+
+        def factory(remaining=remaining):
+            return make_model(method, remaining)
+
+        validation = cross_validate(factory, prepared)
+        model = factory().fit(prepared.inputs, prepared.error_um)
+        document = build_document(
+            model,
+            model_id=model_id_for(method, prepared.data.target, f"all-without-{left_out}"),
+            inputs=prepared.inputs,
+            error_um=prepared.error_um,
+            target=prepared.data.target,
+            source_file=prepared.data.source,
+            runs=list(prepared.data.run_ids),
+            reference=prepared.plan.describe(),
+            regime="all",
+            validation=validation.as_dict(),
+            software_version=software_version,
+        )
+        saved[document["model_id"]] = store.save(document)
+    return saved

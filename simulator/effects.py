@@ -98,5 +98,6 @@ class HiddenEffects:
                 self.p.speed_direct.um_per_krpm * krpm + self.p.speed_direct.um_per_krpm2 * krpm**2
             )
         if "drift" in self:
-            total += self.p.drift.um_per_h * run_time_s / 3600.0
+            # creep starts with the run
+            total += self.p.drift.um_per_h * max(0.0, run_time_s) / 3600.0
         return total

@@ -72,6 +72,12 @@ class SimulatedMachine:
         self.compensation_log: list[tuple[float, float]] = []
 
     # --- time -------------------------------------------------------------------------
+    def schedule_program(self, start_s: float) -> None:
+        """Press cycle start at machine time ``start_s``; until then the spindle rests."""
+        if start_s < self.time_s:
+            raise ValueError(f"cannot start the programme in the past ({start_s} < {self.time_s})")
+        self.program_start_s = start_s
+
     @property
     def run_time_s(self) -> float:
         return self.time_s - self.program_start_s

@@ -1,0 +1,206 @@
+"""The CNC over Modbus TCP: spindle state in holding registers, macros as float32.
+
+For controllers reached through an option board or a PLC gateway. The register
+addresses are configurable; the defaults are the simulator's map (MODBUS.md):
+float32 values in big-endian word order (high word at the lower address), the run
+mode as uint16, macro #n at ``macro_base + 2·(n − macro_first)``, written with FC16.
+
+The connection is :class:`drivers.transmitters.ModbusConnection` (the gateway's one
+pymodbus client, with a life cycle the gateway owns); the reconnect policy is
+:class:`drivers.cnc.ReconnectingSession`, shared with the OPC UA driver.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import struct
+import time
+from collections.abc import Awaitable, Callable
+from typing import TypeVar
+
+from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
+from drivers.link_health import Backoff
+from drivers.transmitters import (
+    ModbusConnection,
+    ModbusLinkLostError,
+    ModbusNoResponseError,
+    ModbusRefusedError,
+)
+
+T = TypeVar("T")
+
+_FLOAT32_MAX = 3.4028234663852886e38
+
+
+def float32_to_registers(value: float) -> list[int]:
+    """IEEE-754 float32, high word first (big-endian word order)."""
+    high, low = struct.unpack(">HH", struct.pack(">f", value))
+    return [high, low]
+
+
+def registers_to_float32(high: int, low: int) -> float:
+    """Two registers, high word first → the shortest decimal with the same float32 bits.
+
+    A written 0.0125 comes back as 0x3C4CCCCD, which widens to 0.012500000186264515;
+    the shortest decimal that encodes to the same bits is what the writer meant, so a
+    read-back compares equal to the value written.
+    """
+    raw = struct.pack(">HH", high, low)
+    value: float = struct.unpack(">f", raw)[0]
+    if not math.isfinite(value):
+        return value
+    for digits in range(1, 10):
+        candidate = float(f"{value:.{digits}g}")
+        if struct.pack(">f", candidate) == raw:
+            return candidate
+    return value
+
+
+class ModbusCnc(ReconnectingSession[ModbusConnection]):
+    """A CNC reached over Modbus TCP; implements :class:`drivers.cnc.CncClient`.
+
+    Connects on the first call. A request without an answer means the link is dead
+    (the CNC is the only device behind the port), so it drops the connection and
+    reconnects after the backoff; a Modbus exception reply is :class:`CncRefusedError`.
+    """
+
+    link_errors = (ModbusLinkLostError, ModbusNoResponseError, OSError, TimeoutError)
+
+    def __init__(
+        self,
+        host: str,
+        port: int,
+        device_id: int = 1,
+        speed_register: int = 0,
+        commanded_register: int = 2,
+        run_mode_register: int | None = 4,
+        macro_base_register: int = 1000,
+        macro_first: int = 500,
+        timeout_s: float = 1.0,
+        *,
+        backoff: Backoff | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not 0 <= device_id <= 247:
+            raise ValueError(f"device id {device_id} is outside the Modbus range 0–247")
+        super().__init__(
+            f"Modbus TCP {host}:{port} device {device_id}",
+            timeout_s=timeout_s,
+            backoff=backoff,
+            clock=clock,
+        )
+        self.host = host
+        self.port = port
+        self.device_id = device_id
+        self._speed_register = speed_register
+        self._commanded_register = commanded_register
+        self._run_mode_register = run_mode_register
+        self._macro_base = macro_base_register
+        self._macro_first = macro_first
+        #: (start register, count) of each value read by read_speed.
+        self._items = [(speed_register, 2), (commanded_register, 2)]
+        if run_mode_register is not None:
+            self._items.append((run_mode_register, 1))
+        self._span = _contiguous_span(self._items)
+
+    def macro_register(self, number: int) -> int:
+        """First (high-word) register of macro #number."""
+        if number < self._macro_first:
+            raise ValueError(f"macro #{number} is below the mapped range from #{self._macro_first}")
+        register = self._macro_base + 2 * (number - self._macro_first)
+        if register + 1 > 0xFFFF:
+            raise ValueError(f"macro #{number} maps beyond register 65535")
+        return register
+
+    # -- CncClient ----------------------------------------------------------------
+
+    async def read_speed(self) -> SpeedReading:
+        """Actual and commanded speed and run mode; one request when they are adjacent."""
+
+        async def read(link: ModbusConnection) -> SpeedReading:
+            words = await self._read_items(link)
+            run_mode = None
+            if self._run_mode_register is not None:
+                run_mode = words[self._run_mode_register][0]
+            return SpeedReading(
+                actual_rpm=registers_to_float32(*words[self._speed_register]),
+                commanded_rpm=registers_to_float32(*words[self._commanded_register]),
+                run_mode=run_mode,
+            )
+
+        return await self._call("reading spindle speed", read)
+
+    async def write_macro(self, number: int, value: float) -> None:
+        """FC16 write of macro #number as float32.
+
+        Non-finite values and values beyond float32 raise ``ValueError`` before any
+        I/O: a NaN or a saturated value must never reach a machine offset.
+        """
+        register = self.macro_register(number)
+        if not math.isfinite(value) or abs(value) > _FLOAT32_MAX:
+            raise ValueError(f"macro #{number}: {value!r} is not a finite float32")
+        words = float32_to_registers(value)
+
+        async def write(link: ModbusConnection) -> None:
+            await _refusals_as_cnc(link.write_registers(register, words, self.device_id))
+
+        await self._call(f"writing macro #{number} (register {register})", write)
+
+    async def read_macro(self, number: int) -> float:
+        """Read macro #number back (NaN for a vacant variable, as the CNC reports it)."""
+        register = self.macro_register(number)
+
+        async def read(link: ModbusConnection) -> float:
+            high, low = await _refusals_as_cnc(
+                link.read_holding_registers(register, 2, self.device_id)
+            )
+            return registers_to_float32(high, low)
+
+        return await self._call(f"reading macro #{number} (register {register})", read)
+
+    # -- session life cycle ---------------------------------------------------------
+
+    async def _open(self) -> ModbusConnection:
+        link = ModbusConnection(tcp=(self.host, self.port), timeout_s=self._timeout_s, retries=0)
+        await link.open()
+        return link
+
+    async def _discard(self, session: ModbusConnection) -> None:
+        session.close()
+
+    async def _read_items(self, link: ModbusConnection) -> dict[int, list[int]]:
+        """The registers of speed, commanded speed and run mode, by start address."""
+        if self._span is not None:
+            start, count = self._span
+            registers = await _refusals_as_cnc(
+                link.read_holding_registers(start, count, self.device_id)
+            )
+            return {a: registers[a - start : a - start + n] for a, n in self._items}
+        return {
+            a: await _refusals_as_cnc(link.read_holding_registers(a, n, self.device_id))
+            for a, n in self._items
+        }
+
+
+async def _refusals_as_cnc(request: Awaitable[T]) -> T:
+    """Await a Modbus request; an exception reply becomes :class:`CncRefusedError`."""
+    try:
+        return await request
+    except ModbusRefusedError as exc:
+        raise CncRefusedError(str(exc)) from exc
+
+
+def _contiguous_span(blocks: list[tuple[int, int]]) -> tuple[int, int] | None:
+    """(start, count) when the register blocks tile one range without gaps, else None.
+
+    Reading them in one request gives values from the same instant; a gap could be
+    unmapped on the CNC (an exception for the whole request), so then each is read
+    on its own.
+    """
+    ordered = sorted(blocks)
+    for (start, count), (next_start, _) in itertools.pairwise(ordered):
+        if start + count != next_start:
+            return None
+    first, last = ordered[0], ordered[-1]
+    return first[0], last[0] + last[1] - first[0]

@@ -1,0 +1,237 @@
+"""The CNC over OPC UA (asyncua 2.1): spindle speed, run mode, macro variables.
+
+Real controllers do not standardise their node ids, so every node is a configurable
+string id in a namespace given by URI. The namespace index is looked up in the
+server's NamespaceArray at every connect: it may change when the server restarts.
+
+asyncua does not rebuild a session reliably after a server restart (asyncua #1660),
+and its own auto-reconnect would keep stale node ids. So this driver never reuses a
+``Client``: on any link failure it disconnects and drops it, and after the backoff
+it connects a new ``Client`` and resolves the namespace again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, field
+from typing import TypeVar
+
+from asyncua import Client, Node, ua
+
+from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
+from drivers.link_health import Backoff
+
+T = TypeVar("T")
+
+DEFAULT_NAMESPACE = "urn:spindle-gateway:simulated-cnc"
+
+#: Status codes with which a working server refuses one request; anything else
+#: (session or channel invalid, timeouts, shutdown) means the session is unusable.
+_REFUSALS = frozenset(
+    {
+        ua.StatusCodes.BadNodeIdUnknown,
+        ua.StatusCodes.BadNodeIdInvalid,
+        ua.StatusCodes.BadAttributeIdInvalid,
+        ua.StatusCodes.BadTypeMismatch,
+        ua.StatusCodes.BadOutOfRange,
+        ua.StatusCodes.BadUserAccessDenied,
+        ua.StatusCodes.BadNotWritable,
+        ua.StatusCodes.BadNotReadable,
+        ua.StatusCodes.BadWriteNotSupported,
+        ua.StatusCodes.BadIndexRangeInvalid,
+    }
+)
+
+
+@dataclass
+class _Session:
+    """One connected asyncua Client and the node ids resolved for it."""
+
+    client: Client
+    namespace_index: int
+    speed: Node
+    commanded: Node
+    run_mode: Node | None
+    macros: dict[int, Node] = field(default_factory=dict)
+
+
+class OpcUaCnc(ReconnectingSession[_Session]):
+    """A CNC reached over OPC UA; implements :class:`drivers.cnc.CncClient`.
+
+    ``macro_node`` is a template with ``{n}`` for the macro number. Connects on the
+    first call; ``timeout_s`` bounds each request (a connect: three times that).
+    """
+
+    link_errors = (OSError, TimeoutError, ua.UaError)
+
+    def __init__(
+        self,
+        endpoint: str,
+        namespace: str = DEFAULT_NAMESPACE,
+        speed_node: str = "Spindle.ActualSpeed",
+        commanded_node: str = "Spindle.CommandedSpeed",
+        run_mode_node: str | None = "Cnc.RunMode",
+        macro_node: str = "Macro.{n}",
+        timeout_s: float = 2.0,
+        username: str | None = None,
+        password: str | None = None,
+        *,
+        backoff: Backoff | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if "{n}" not in macro_node:
+            raise ValueError(f"macro_node must contain '{{n}}', got {macro_node!r}")
+        super().__init__(f"OPC UA {endpoint}", timeout_s=timeout_s, backoff=backoff, clock=clock)
+        self.endpoint = endpoint
+        self.namespace = namespace
+        self._speed_node = speed_node
+        self._commanded_node = commanded_node
+        self._run_mode_node = run_mode_node
+        self._macro_node = macro_node
+        self._username = username
+        self._password = password
+
+    @property
+    def namespace_index(self) -> int | None:
+        """Index of ``namespace`` on the connected server; None while not connected."""
+        return self._session.namespace_index if self._session is not None else None
+
+    # -- CncClient ----------------------------------------------------------------
+
+    async def read_speed(self) -> SpeedReading:
+        """Actual and commanded speed and run mode, in one Read request."""
+
+        async def read(session: _Session) -> SpeedReading:
+            nodes = [session.speed, session.commanded]
+            if session.run_mode is not None:
+                nodes.append(session.run_mode)
+            values = await session.client.read_attributes(nodes)
+            actual = _number(values[0], self._speed_node)
+            commanded = _number(values[1], self._commanded_node)
+            run_mode = None
+            if session.run_mode is not None:
+                run_mode = int(_number(values[2], str(self._run_mode_node)))
+            return SpeedReading(actual_rpm=actual, commanded_rpm=commanded, run_mode=run_mode)
+
+        return await self._call("reading spindle speed", _refusals_as_cnc(read))
+
+    async def write_macro(self, number: int, value: float) -> None:
+        """Write macro #number as a Double (asyncua would send a bare int as Int64).
+
+        A non-finite value raises ``ValueError`` before any I/O: a NaN must never
+        reach a machine offset.
+        """
+        if not math.isfinite(value):
+            raise ValueError(f"macro #{number}: refusing to write non-finite value {value!r}")
+        datavalue = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
+
+        async def write(session: _Session) -> None:
+            await self._macro(session, number).write_value(datavalue)
+
+        await self._call(
+            f"writing macro #{number} ({self._macro_id(number)})", _refusals_as_cnc(write)
+        )
+
+    async def read_macro(self, number: int) -> float:
+        """Read macro #number back from the controller."""
+
+        async def read(session: _Session) -> float:
+            datavalue = await self._macro(session, number).read_data_value()
+            return _number(datavalue, self._macro_id(number))
+
+        return await self._call(
+            f"reading macro #{number} ({self._macro_id(number)})", _refusals_as_cnc(read)
+        )
+
+    # -- session life cycle ---------------------------------------------------------
+
+    async def _open(self) -> _Session:
+        client = Client(self.endpoint, timeout=self._timeout_s)
+        if self._username is not None:
+            client.set_user(self._username)
+        if self._password is not None:
+            client.set_password(self._password)
+        connected = False
+        try:
+            await client.connect()
+            connected = True
+            namespaces = await client.get_namespace_array()
+            if self.namespace not in namespaces:
+                raise ConnectionError(
+                    f"namespace {self.namespace!r} is not on the server (it has {namespaces})"
+                )
+            ns = namespaces.index(self.namespace)
+        except BaseException:
+            # Also on cancellation (the connect timeout): never leave a socket or
+            # asyncua's supervisor tasks behind.
+            if connected:
+                await _disconnect_quietly(client, self._timeout_s)
+            else:
+                client.disconnect_socket()
+            raise
+
+        def node(identifier: str) -> Node:
+            return client.get_node(ua.NodeId(identifier, ns))
+
+        return _Session(
+            client=client,
+            namespace_index=ns,
+            speed=node(self._speed_node),
+            commanded=node(self._commanded_node),
+            run_mode=node(self._run_mode_node) if self._run_mode_node is not None else None,
+        )
+
+    async def _discard(self, session: _Session) -> None:
+        await _disconnect_quietly(session.client, self._timeout_s)
+
+    def _macro_id(self, number: int) -> str:
+        """String node id of macro #number, e.g. ``Macro.500``."""
+        return self._macro_node.format(n=number)
+
+    def _macro(self, session: _Session, number: int) -> Node:
+        node = session.macros.get(number)
+        if node is None:
+            nodeid = ua.NodeId(self._macro_id(number), session.namespace_index)
+            node = session.macros[number] = session.client.get_node(nodeid)
+        return node
+
+
+def _refusals_as_cnc(
+    operation: Callable[[_Session], Awaitable[T]],
+) -> Callable[[_Session], Awaitable[T]]:
+    """Turn a server's refusal of one request into :class:`CncRefusedError` (link kept)."""
+
+    async def run(session: _Session) -> T:
+        try:
+            return await operation(session)
+        except ua.UaStatusCodeError as exc:
+            if exc.code in _REFUSALS:
+                raise CncRefusedError(ua.StatusCode(exc.code).name) from exc
+            raise
+
+    return run
+
+
+def _number(datavalue: ua.DataValue, node: str) -> float:
+    """The numeric value of a read result, or :class:`CncRefusedError` naming the node."""
+    status = datavalue.StatusCode
+    if status is not None and not status.is_good():
+        if status.value in _REFUSALS:
+            raise CncRefusedError(f"{node}: {status.name}")
+        raise ua.UaStatusCodeError(status.value)
+    variant = datavalue.Value
+    value = variant.Value if variant is not None else None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise CncRefusedError(f"{node}: not a number ({value!r})")
+    return float(value)
+
+
+async def _disconnect_quietly(client: Client, timeout_s: float) -> None:
+    """Close session, channel and socket; on a dead link this only stops the tasks."""
+    try:
+        await asyncio.wait_for(client.disconnect(), timeout_s)
+    except (OSError, TimeoutError, ua.UaError):
+        client.disconnect_socket()

@@ -1,0 +1,149 @@
+"""Building and running the gateway from its configuration: one loop per machine."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Sequence
+from pathlib import Path
+
+from drivers.clock import Clock, WallClock
+from drivers.cnc import CncClient, CncError
+from drivers.cnc_modbus import ModbusCnc
+from drivers.cnc_opcua import OpcUaCnc
+from drivers.transmitters import DeviceMap, TransmitterBus
+from gateway.config import GatewayConfig, MachineSection
+from gateway.model_bank import ModelBank
+from gateway.runtime import MachineLoop, Sink
+
+log = logging.getLogger(__name__)
+
+
+def build_buses(machine: MachineSection) -> list[TransmitterBus]:
+    buses = []
+    for bus in machine.transmitters:
+        devices = [DeviceMap(d.device_id, tuple(d.channels)) for d in bus.devices]
+        if bus.tcp is not None:
+            buses.append(
+                TransmitterBus(
+                    devices,
+                    tcp=(bus.tcp.host, bus.tcp.port),
+                    timeout_s=bus.timeout_s,
+                    name=bus.name,
+                )
+            )
+        else:
+            assert bus.rtu is not None
+            buses.append(
+                TransmitterBus(
+                    devices,
+                    serial_port=bus.rtu.port,
+                    baudrate=bus.rtu.baudrate,
+                    parity=bus.rtu.parity,
+                    timeout_s=bus.timeout_s,
+                    name=bus.name,
+                )
+            )
+    return buses
+
+
+def build_cnc(machine: MachineSection) -> CncClient:
+    cnc = machine.cnc
+    if cnc.opcua is not None:
+        o = cnc.opcua
+        return OpcUaCnc(
+            o.endpoint,
+            namespace=o.namespace,
+            speed_node=o.speed_node,
+            commanded_node=o.commanded_node,
+            run_mode_node=o.run_mode_node,
+            macro_node=o.macro_node,
+            timeout_s=o.timeout_s,
+            username=o.username,
+            password=o.password(),
+        )
+    assert cnc.modbus is not None
+    m = cnc.modbus
+    return ModbusCnc(
+        m.host,
+        m.port,
+        device_id=m.device_id,
+        speed_register=m.speed_register,
+        commanded_register=m.commanded_register,
+        run_mode_register=m.run_mode_register,
+        macro_base_register=m.macro_base_register,
+        timeout_s=m.timeout_s,
+    )
+
+
+def load_bank(machine: MachineSection) -> ModelBank:
+    """The machine's models, checked against its sensors and its regime rules."""
+    bank = ModelBank.from_store(machine.models.store)
+    bank.check_sensors(machine.sensor_names)
+    rules = machine.models.regimes
+    for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
+        if model_id is not None and model_id not in bank:
+            raise ValueError(
+                f"machine {machine.id}: regime '{regime}' names model '{model_id}', "
+                f"which is not in {machine.models.store} (have: {sorted(bank.models)})"
+            )
+    return bank
+
+
+class Gateway:
+    def __init__(
+        self,
+        config: GatewayConfig,
+        clock: Clock | None = None,
+        sinks: Sequence[Sink] = (),
+    ) -> None:
+        self.config = config
+        self.clock = clock or WallClock()
+        self.loops = [
+            MachineLoop(
+                machine,
+                self.clock,
+                build_buses(machine),
+                build_cnc(machine),
+                load_bank(machine),
+                state_dir=Path(config.state_dir),
+                sinks=sinks,
+            )
+            for machine in config.machines
+        ]
+
+    async def run(self, stop: asyncio.Event | None = None) -> None:
+        stop = stop or asyncio.Event()
+        tasks = [asyncio.create_task(loop.run(stop)) for loop in self.loops]
+        try:
+            await asyncio.gather(*tasks)
+        finally:
+            for task in tasks:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+            for loop in self.loops:
+                await loop.close()
+
+
+async def check_connections(config: GatewayConfig) -> list[str]:
+    """Try every machine's CNC and transmitters once; the problems found, in words."""
+    problems = []
+    for machine in config.machines:
+        cnc = build_cnc(machine)
+        try:
+            await cnc.read_speed()
+        except CncError as exc:
+            problems.append(f"machine {machine.id}: CNC unreachable: {exc}")
+        finally:
+            await cnc.close()
+        for bus in build_buses(machine):
+            try:
+                results = await bus.read_all(0.0)
+                # status None: no answer at all (a sensor fault still means the device answered)
+                failed = sorted({r.error for r in results.values() if r.error and r.status is None})
+                problems.extend(f"machine {machine.id}: {error}" for error in failed)
+            finally:
+                await bus.close()
+    return problems

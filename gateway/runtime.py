@@ -1,0 +1,285 @@
+"""The per-machine compensation loop: read, check, select, predict, write safely.
+
+Once per ``cycle_s`` of machine time:
+
+1. read every transmitter bus and the spindle speed, concurrently; a silent
+   device or a dead link becomes missing values and a health record, never an
+   exception through the loop;
+2. flag each sensor's quality (range, rate, stuck, stale, transmitter fault);
+3. classify the speed regime (with hysteresis) and take its model from the bank,
+   or a fallback fitted without a bad sensor, or none;
+4. predict the error rise (µm) from the temperature rises above the cold reference;
+5. let the compensation policy decide the value (clamp, slew, deadband; with no
+   prediction it holds and ramps to zero), write it to the CNC macro, read it
+   back, and only then count it as applied; then bump the handshake counter.
+
+Nothing is written before the loop has read what the CNC macro holds, so the
+slew limit starts from the value the machine really applies. Every cycle ends as
+a :class:`CycleRecord` handed to the sinks (logging, SCADA, tests).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from drivers.clock import Clock
+from drivers.cnc import CncClient, CncError
+from drivers.transmitters import ChannelResult, TransmitterBus
+from gateway.compensation import CompensationPolicy
+from gateway.config import MachineSection
+from gateway.model_bank import BankedModel, ModelBank
+from gateway.quality import Quality, QualityMonitor
+from gateway.reference import TemperatureReference
+from models.base import ModelInputs
+from models.regime_rules import RegimeSelector
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CycleRecord:
+    """Everything one cycle measured and decided (units in the names)."""
+
+    machine: str
+    time_s: float
+    temperatures_C: dict[str, float | None]
+    quality: dict[str, str]
+    quality_reasons: dict[str, str]
+    speed_rpm: float | None
+    regime: str | None
+    model_id: str | None
+    predicted_um: float | None
+    target_um: float | None
+    applied_um: float | None
+    written_cnc: float | None
+    write_status: str
+    link_errors: list[str] = field(default_factory=list)
+
+
+Sink = Callable[[CycleRecord], None]
+
+
+class MachineLoop:
+    def __init__(
+        self,
+        config: MachineSection,
+        clock: Clock,
+        buses: Sequence[TransmitterBus],
+        cnc: CncClient,
+        bank: ModelBank,
+        state_dir: Path | None = None,
+        sinks: Sequence[Sink] = (),
+    ) -> None:
+        self.config = config
+        self.clock = clock
+        self.buses = list(buses)
+        self.cnc = cnc
+        self.bank = bank
+        self.sinks = list(sinks)
+        self.sensors = config.sensor_names
+        self.quality = QualityMonitor(self.sensors, config.quality_limits())
+        self.selector = RegimeSelector(config.models.regimes.rules())
+        reference = config.models.reference
+        state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
+        self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
+        self.policy: CompensationPolicy | None = None
+        self.compensation_enabled = config.compensation.enabled
+        self.handshake = 0
+        self.failed_writes = 0
+        self.cycles = 0
+        self._link_down: set[str] = set()
+
+    # --- one cycle ----------------------------------------------------------------------
+    async def run_cycle(self) -> CycleRecord:
+        now = self.clock.now()
+        results, speed_rpm, errors = await self._read_inputs(now)
+        readings = {
+            name: (results[name].value_C, results[name].status) if name in results else (None, None)
+            for name in self.sensors
+        }
+        checks = self.quality.check(now, readings)
+        good = {n for n, c in checks.items() if c.quality is Quality.GOOD}
+        good_values = {n: readings[n][0] for n in good if readings[n][0] is not None}
+        self.reference.observe(good_values)
+
+        selection = self.selector.update(now, speed_rpm) if speed_rpm is not None else None
+        if selection is not None and selection.switched:
+            log.info(
+                "%s: regime %s → model %s (%s)",
+                self.config.id,
+                selection.regime,
+                selection.model_id,
+                selection.reason,
+            )
+        banked = self.bank.usable(selection.model_id if selection else None, good)
+        predicted = self._predict(banked, good_values, speed_rpm)
+
+        record = CycleRecord(
+            machine=self.config.id,
+            time_s=now,
+            temperatures_C={n: readings[n][0] for n in self.sensors},
+            quality={n: c.quality.value for n, c in checks.items()},
+            quality_reasons={n: c.reason for n, c in checks.items() if c.reason},
+            speed_rpm=speed_rpm,
+            regime=selection.regime if selection else None,
+            model_id=banked.model_id if banked else None,
+            predicted_um=predicted,
+            target_um=None,
+            applied_um=None,
+            written_cnc=None,
+            write_status="",
+            link_errors=errors,
+        )
+        await self._compensate(now, predicted, record)
+        self.cycles += 1
+        for sink in self.sinks:
+            sink(record)
+        return record
+
+    async def _read_inputs(
+        self, now: float
+    ) -> tuple[dict[str, ChannelResult], float | None, list[str]]:
+        bus_reads = [bus.read_all(now) for bus in self.buses]
+        outcomes = await asyncio.gather(*bus_reads, self.cnc.read_speed(), return_exceptions=True)
+        results: dict[str, ChannelResult] = {}
+        errors: list[str] = []
+        for bus, outcome in zip(self.buses, outcomes[:-1], strict=True):
+            if isinstance(outcome, BaseException):
+                errors.append(f"bus {bus!r}: {outcome}")
+                continue
+            results.update(outcome)
+            errors.extend(r.error for r in outcome.values() if r.error)
+        speed = outcomes[-1]
+        speed_rpm = None
+        if isinstance(speed, BaseException):
+            errors.append(f"CNC: {speed}")
+        elif math.isfinite(speed.actual_rpm):
+            speed_rpm = float(speed.actual_rpm)
+        else:
+            errors.append(f"CNC: spindle speed is not a number ({speed.actual_rpm})")
+        self._log_link_changes(errors)
+        return results, speed_rpm, errors
+
+    def _log_link_changes(self, errors: list[str]) -> None:
+        """Log a failure once when it appears and once when it clears, not every cycle."""
+        now_down = set(errors)
+        for error in sorted(now_down - self._link_down):
+            log.error("%s: %s", self.config.id, error)
+        for error in sorted(self._link_down - now_down):
+            log.info("%s: recovered from: %s", self.config.id, error)
+        self._link_down = now_down
+
+    def _predict(
+        self, banked: BankedModel | None, good_values: dict[str, float], speed_rpm: float | None
+    ) -> float | None:
+        if banked is None:
+            return None
+        sensors = tuple(banked.model.sensors_used_)
+        rises = self.reference.rises_C(good_values, sensors)
+        if rises is None or (banked.model.uses_speed and speed_rpm is None):
+            return None
+        inputs = ModelInputs(
+            rise_C=np.array([rises]),
+            sensors=sensors,
+            speed_rpm=np.array([speed_rpm if speed_rpm is not None else 0.0]),
+        )
+        value = float(banked.model.predict(inputs)[0])
+        return value if math.isfinite(value) else None
+
+    # --- the write path -----------------------------------------------------------------
+    async def _compensate(self, now: float, predicted: float | None, record: CycleRecord) -> None:
+        comp = self.config.compensation
+        if self.policy is None and not await self._start_policy(record):
+            return
+        assert self.policy is not None
+        decision = self.policy.decide(now, predicted)
+        record.target_um = decision.target_um
+        record.applied_um = self.policy.applied_um
+        if not self.compensation_enabled:
+            record.write_status = "disabled"
+            return
+        if not decision.write:
+            record.write_status = f"no write: {decision.reason}"
+            return
+        try:
+            await self.cnc.write_macro(comp.macro, decision.value_cnc)
+            read_back = await self.cnc.read_macro(comp.macro)
+        except CncError as exc:
+            self._write_failed(now, f"write failed: {exc}", record)
+            return
+        tolerance = 0.5 * 10.0 ** (-comp.decimals) + 1e-6 * abs(decision.value_cnc)
+        if not math.isfinite(read_back) or abs(read_back - decision.value_cnc) > tolerance:
+            self._write_failed(
+                now,
+                f"read-back mismatch: wrote {decision.value_cnc}, CNC holds {read_back}",
+                record,
+            )
+            return
+        self.policy.confirm(now, self.policy.from_cnc(read_back))
+        record.applied_um = self.policy.applied_um
+        record.written_cnc = decision.value_cnc
+        record.write_status = f"ok: {decision.reason}"
+        if comp.handshake_macro is not None:
+            self.handshake += 1
+            try:
+                await self.cnc.write_macro(comp.handshake_macro, float(self.handshake))
+            except CncError as exc:
+                record.write_status += f"; handshake failed: {exc}"
+
+    async def _start_policy(self, record: CycleRecord) -> bool:
+        """Read what the CNC applies now; only then may the loop write."""
+        try:
+            held = await self.cnc.read_macro(self.config.compensation.macro)
+        except CncError as exc:
+            record.write_status = f"waiting for the CNC: {exc}"
+            return False
+        limits = self.config.compensation.limits()
+        probe = CompensationPolicy(limits)
+        start_um = probe.from_cnc(held) if math.isfinite(held) else 0.0
+        start_um = max(-limits.clamp_um, min(limits.clamp_um, start_um))
+        self.policy = CompensationPolicy(limits, start_um=start_um)
+        log.info(
+            "%s: CNC macro #%d holds %s; compensation starts from %.2f µm",
+            self.config.id,
+            self.config.compensation.macro,
+            held,
+            start_um,
+        )
+        return True
+
+    def _write_failed(self, now: float, reason: str, record: CycleRecord) -> None:
+        assert self.policy is not None
+        self.policy.reject(now, reason)
+        self.failed_writes += 1
+        record.applied_um = self.policy.applied_um
+        record.write_status = reason
+        log.warning("%s: %s (failed writes: %d)", self.config.id, reason, self.failed_writes)
+
+    # --- running ------------------------------------------------------------------------
+    async def run(self, stop: asyncio.Event | None = None, cycles: int | None = None) -> None:
+        """Cycle every ``cycle_s`` of machine time until ``stop`` is set or ``cycles`` ran."""
+        stop = stop or asyncio.Event()
+        next_due = self.clock.now()
+        done = 0
+        while not stop.is_set() and (cycles is None or done < cycles):
+            await self.run_cycle()
+            done += 1
+            next_due += self.config.cycle_s
+            wait = next_due - self.clock.now()
+            if wait > 0:
+                await self.clock.sleep(wait)
+            else:
+                next_due = self.clock.now()  # overrun: do not try to catch up in a burst
+                await asyncio.sleep(0)
+
+    async def close(self) -> None:
+        for bus in self.buses:
+            await bus.close()
+        await self.cnc.close()

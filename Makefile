@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: main fit test lint bench clean
+.PHONY: main demo fit test lint bench clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
@@ -12,8 +12,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# The main job on embedded data: fit every method on the bundled real 46-hour test.
-main fit: $(STAMP)
+# The main job on embedded defaults: simulated machine + gateway, compensated vs not.
+main demo: $(STAMP)
+	$(PY) -m gateway demo
+
+# Fit a model on the bundled real 46-hour spindle test.
+fit: $(STAMP)
 	$(PY) -m gateway fit data/fl_thermal.csv --method mlr --target ch5_um --store .cache/models
 
 test: $(STAMP)

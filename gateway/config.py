@@ -251,8 +251,6 @@ class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
     state_dir: Path = Path(".cache/state")
     simulator: dict[str, Any] | None = None  # checked by simulator.serve
-    model_store: dict[str, Any] | None = None  # informational (offline tools)
-    fitting: dict[str, Any] | None = None  # informational (offline tools)
 
     @model_validator(mode="after")
     def _unique_ids(self) -> GatewayConfig:

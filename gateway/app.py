@@ -48,8 +48,10 @@ def build_buses(machine: MachineSection) -> list[TransmitterBus]:
     return buses
 
 
-def build_cnc(machine: MachineSection) -> CncClient:
+def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
+    """The CNC client; its reconnect back-off runs on the gateway's clock."""
     cnc = machine.cnc
+    now = (clock or WallClock()).now
     if cnc.opcua is not None:
         o = cnc.opcua
         return OpcUaCnc(
@@ -62,6 +64,7 @@ def build_cnc(machine: MachineSection) -> CncClient:
             timeout_s=o.timeout_s,
             username=o.username,
             password=o.password(),
+            clock=now,
         )
     assert cnc.modbus is not None
     m = cnc.modbus
@@ -74,6 +77,7 @@ def build_cnc(machine: MachineSection) -> CncClient:
         run_mode_register=m.run_mode_register,
         macro_base_register=m.macro_base_register,
         timeout_s=m.timeout_s,
+        clock=now,
     )
 
 
@@ -105,7 +109,7 @@ class Gateway:
                 machine,
                 self.clock,
                 build_buses(machine),
-                build_cnc(machine),
+                build_cnc(machine, self.clock),
                 load_bank(machine),
                 state_dir=Path(config.state_dir),
                 sinks=sinks,

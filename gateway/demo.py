@@ -69,15 +69,16 @@ def machine_config(
     store_dir: Path,
     *,
     transmitters: list[dict[str, Any]],
-    opcua_endpoint: str,
+    cnc: dict[str, Any],
     cycle_s: float,
 ) -> MachineSection:
+    """The demo machine: per-regime models with the whole-run model as fallback."""
     return MachineSection.model_validate(
         {
             "id": "vmc-demo",
             "cycle_s": cycle_s,
             "transmitters": transmitters,
-            "cnc": {"opcua": {"endpoint": opcua_endpoint, "timeout_s": 2.0}},
+            "cnc": cnc,
             "compensation": {"macro": 500, "unit": "mm", "clamp_um": 50.0, "slew_um_per_min": 20.0},
             "models": {
                 "store": str(store_dir),
@@ -153,7 +154,9 @@ class ClosedLoop:
 
 async def open_loop(plant: SimulatedPlant, machine: MachineSection, clock: Clock) -> ClosedLoop:
     await plant.start()
-    loop = MachineLoop(machine, clock, build_buses(machine), build_cnc(machine), load_bank(machine))
+    loop = MachineLoop(
+        machine, clock, build_buses(machine), build_cnc(machine, clock), load_bank(machine)
+    )
     return ClosedLoop(plant, loop)
 
 
@@ -224,7 +227,7 @@ async def demo(
                 ],
             }
         ],
-        opcua_endpoint=plant.cnc_opcua.endpoint,
+        cnc={"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 2.0}},
         cycle_s=cycle_s,
     )
     hours = unseen.duration_s / 3600.0

@@ -149,32 +149,31 @@ class MachineLoop:
         bus_reads = [bus.read_all(now) for bus in self.buses]
         outcomes = await asyncio.gather(*bus_reads, self.cnc.read_speed(), return_exceptions=True)
         results: dict[str, ChannelResult] = {}
-        errors: list[str] = []
-        for bus, outcome in zip(self.buses, outcomes[:-1], strict=True):
+        failures: dict[str, str] = {}  # source → what failed
+        for bus_config, outcome in zip(self.config.transmitters, outcomes[:-1], strict=True):
             if isinstance(outcome, BaseException):
-                errors.append(f"bus {bus!r}: {outcome}")
+                failures[f"bus {bus_config.name}"] = str(outcome)
                 continue
             results.update(outcome)
-            errors.extend(r.error for r in outcome.values() if r.error)
+            failures.update({f"sensor {r.sensor}": r.error for r in outcome.values() if r.error})
         speed = outcomes[-1]
         speed_rpm = None
         if isinstance(speed, BaseException):
-            errors.append(f"CNC: {speed}")
+            failures["CNC"] = str(speed)
         elif math.isfinite(speed.actual_rpm):
             speed_rpm = float(speed.actual_rpm)
         else:
-            errors.append(f"CNC: spindle speed is not a number ({speed.actual_rpm})")
-        self._log_link_changes(errors)
-        return results, speed_rpm, errors
+            failures["CNC"] = f"spindle speed is not a number ({speed.actual_rpm})"
+        self._log_link_changes(failures)
+        return results, speed_rpm, [f"{source}: {error}" for source, error in failures.items()]
 
-    def _log_link_changes(self, errors: list[str]) -> None:
-        """Log a failure once when it appears and once when it clears, not every cycle."""
-        now_down = set(errors)
-        for error in sorted(now_down - self._link_down):
-            log.error("%s: %s", self.config.id, error)
-        for error in sorted(self._link_down - now_down):
-            log.info("%s: recovered from: %s", self.config.id, error)
-        self._link_down = now_down
+    def _log_link_changes(self, failures: dict[str, str]) -> None:
+        """Log a source's failure once when it starts and once when it clears, not every cycle."""
+        for source in sorted(failures.keys() - self._link_down):
+            log.error("%s: %s: %s", self.config.id, source, failures[source])
+        for source in sorted(self._link_down - failures.keys()):
+            log.info("%s: %s: recovered", self.config.id, source)
+        self._link_down = set(failures)
 
     def _predict(
         self, banked: BankedModel | None, good_values: dict[str, float], speed_rpm: float | None

@@ -108,39 +108,63 @@ class SimulatedPlant:
             seed=config.seed,
             start_s=self.clock.now(),
         )
-        buses = config.transmitters
-        self.rtu_transmitters = (
-            None
-            if buses.rtu is None
-            else TransmitterServer(
-                self.machine,
-                [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.rtu.devices],
-                serial_port=buses.rtu.port,
-                baudrate=buses.rtu.baudrate,
-                parity=buses.rtu.parity,
-            )
-        )
-        self.tcp_transmitters = (
-            None
-            if buses.tcp is None
-            else TransmitterServer(
-                self.machine,
-                [TransmitterDevice(d.device_id, list(d.channels)) for d in buses.tcp.devices],
-                tcp=(buses.tcp.host, buses.tcp.port),
-            )
-        )
-        cnc = config.cnc
-        self.cnc_opcua = (
-            None
-            if cnc.opcua is None
-            else CncOpcUaServer(self.machine, host=cnc.opcua.host, port=cnc.opcua.port)
-        )
-        self.cnc_modbus = (
-            None
-            if cnc.modbus is None
-            else CncModbusServer(self.machine, host=cnc.modbus.host, port=cnc.modbus.port)
-        )
+        self._factories = self._endpoint_factories(config)
+        self.rtu_transmitters = self._make("rtu_transmitters")
+        self.tcp_transmitters = self._make("tcp_transmitters")
+        self.cnc_opcua = self._make("cnc_opcua")
+        self.cnc_modbus = self._make("cnc_modbus")
         self._task: asyncio.Task[None] | None = None
+
+    def _endpoint_factories(self, config: SimulatorConfig) -> dict[str, Any]:
+        buses, cnc, machine = config.transmitters, config.cnc, self.machine
+
+        def devices(bus: RtuBusConfig | TcpBusConfig) -> list[TransmitterDevice]:
+            return [TransmitterDevice(d.device_id, list(d.channels)) for d in bus.devices]
+
+        factories: dict[str, Any] = {}
+        if buses.rtu is not None:
+            rtu = buses.rtu
+            factories["rtu_transmitters"] = lambda: TransmitterServer(
+                machine,
+                devices(rtu),
+                serial_port=rtu.port,
+                baudrate=rtu.baudrate,
+                parity=rtu.parity,
+            )
+        if buses.tcp is not None:
+            tcp = buses.tcp
+            factories["tcp_transmitters"] = lambda: TransmitterServer(
+                machine, devices(tcp), tcp=(tcp.host, tcp.port)
+            )
+        if cnc.opcua is not None:
+            opcua = cnc.opcua
+            factories["cnc_opcua"] = lambda: CncOpcUaServer(
+                machine, host=opcua.host, port=opcua.port
+            )
+        if cnc.modbus is not None:
+            modbus = cnc.modbus
+            factories["cnc_modbus"] = lambda: CncModbusServer(
+                machine, host=modbus.host, port=modbus.port
+            )
+        return factories
+
+    def _make(self, name: str) -> Any:
+        factory = self._factories.get(name)
+        return None if factory is None else factory()
+
+    async def take_down(self, name: str) -> None:
+        """Stop one endpoint (``cnc_opcua``, ``cnc_modbus``, …): a server or link outage."""
+        endpoint = getattr(self, name)
+        if endpoint is not None:
+            setattr(self, name, None)
+            await endpoint.stop()
+
+    async def bring_up(self, name: str) -> None:
+        """Start a fresh server for an endpoint that was taken down (a restart)."""
+        if getattr(self, name) is None and name in self._factories:
+            endpoint = self._make(name)
+            await endpoint.start()
+            setattr(self, name, endpoint)
 
     @property
     def endpoints(self) -> list[Any]:

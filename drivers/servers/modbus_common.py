@@ -135,18 +135,22 @@ def is_internal_write(function_code: int, values: object) -> bool:
     return values is not None and function_code in (3, 4)
 
 
-def known_devices_only(device_ids: Collection[int]) -> Callable[[bool, ModbusPDU], ModbusPDU]:
+def known_devices_only(
+    device_ids: Collection[int], silenced: Collection[int] = frozenset()
+) -> Callable[[bool, ModbusPDU], ModbusPDU]:
     """A pymodbus ``trace_pdu`` hook that drops requests for device ids nobody has.
 
     On an RS-485 bus a request to an absent slave (or a broadcast to read-only modules)
     gets no answer at all; pymodbus would instead answer with an exception and log a
     traceback. Returning no PDU makes the request handler skip the request, so clients
-    see the same timeout as on a real bus.
+    see the same timeout as on a real bus. ``silenced`` (a live collection the
+    caller may change) makes present devices fall silent too, as a slave that lost
+    power or its cable does.
     """
     known = frozenset(device_ids)
 
     def trace_pdu(sending: bool, pdu: ModbusPDU) -> ModbusPDU:
-        if not sending and pdu.dev_id not in known:
+        if not sending and (pdu.dev_id not in known or pdu.dev_id in silenced):
             return cast(ModbusPDU, None)
         return pdu
 

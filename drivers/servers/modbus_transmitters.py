@@ -103,6 +103,7 @@ class TransmitterServer(ModbusEndpoint):
             raise ValueError(f"parity must be one of {PARITIES}, got {parity!r}")
         self._link = link
         self._devices = tuple(devices)
+        self.silenced: set[int] = set()  # device ids that do not answer (a dead slave)
         self._tcp = tcp
         self._serial_port = serial_port
         self._baudrate = baudrate
@@ -132,7 +133,9 @@ class TransmitterServer(ModbusEndpoint):
             SimDevice(id=device.device_id, simdata=_register_tables(), action=_module_action)
             for device in self._devices
         ]
-        trace_pdu = known_devices_only([device.device_id for device in self._devices])
+        trace_pdu = known_devices_only(
+            [device.device_id for device in self._devices], self.silenced
+        )
         if self._tcp is not None:
             return ModbusTcpServer(sim_devices, address=self._tcp, trace_pdu=trace_pdu)
         assert self._serial_port is not None

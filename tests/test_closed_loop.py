@@ -1,0 +1,279 @@
+"""The gateway compensating the simulated machine over real protocols, through faults.
+
+Transmitters on an RTU bus (socat pty pair), the CNC over OPC UA or Modbus TCP,
+the gateway's own loop, all on one manual clock stepped cycle by cycle. The
+models are fitted on recorded training runs; every programme here is one the
+fit never saw. After every scenario, every value the simulated CNC received
+is checked against the clamp and the slew limit.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import math
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from drivers.clock import ManualClock
+from gateway.demo import ClosedLoop, fit_models, machine_config, open_loop, write_training_data
+from simulator.faults import SensorFault
+from simulator.programs import SpeedProgram, production_program
+from simulator.serve import SimulatedPlant, SimulatorConfig
+from tests.ports import free_tcp_port
+from tests.serial_pty import socat_pty_pair
+
+CYCLE_S = 30.0
+CLAMP_UM = 50.0
+SLEW_UM_PER_MIN = 20.0
+CNC_STEP_UM = 0.1  # 4 decimals of mm
+RESUME_CYCLES = 6  # quality recovery (3 good checks) + reconnect back-off + one write
+# Half an hour at 6000 r/min, then the speed changes every 20 minutes, so the
+# machine keeps heating and cooling (a stuck sensor only shows while others move).
+FAULT_PROGRAM = SpeedProgram(
+    "busy-day",
+    (
+        (1800.0, 6000.0),
+        *((1200.0, float(s)) for s in (2000, 7000, 1500, 6500, 3000, 7500, 2000, 6000)),
+        (3600.0, 4000.0),
+    ),
+)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("closed-loop")
+    write_training_data(folder / "training.csv", seed=1)
+    fit_models(folder / "training.csv", folder / "models", "test")
+    return folder / "models"
+
+
+@contextlib.asynccontextmanager
+async def closed_loop(
+    tmp_path: Path, store: Path, program: SpeedProgram, cnc: str = "opcua"
+) -> AsyncIterator[tuple[ClosedLoop, ManualClock]]:
+    clock = ManualClock()
+    with socat_pty_pair(tmp_path) as pty:
+        devices = [
+            {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
+            {"device_id": 2, "channels": ["T9", "ambient"]},
+        ]
+        plant = SimulatedPlant(
+            SimulatorConfig.model_validate(
+                {
+                    "seed": 5,
+                    "transmitters": {"rtu": {"port": pty.server_port, "devices": devices}},
+                    "cnc": {
+                        "opcua": {"port": free_tcp_port()},
+                        "modbus": {"port": free_tcp_port()},
+                    },
+                }
+            ),
+            clock=clock,
+        )
+        plant.machine.program = program
+        plant.machine.schedule_program(math.inf)  # cycle start comes once the gateway runs
+        assert plant.cnc_opcua is not None and plant.cnc_modbus is not None
+        link = (
+            {"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 1.0}}
+            if cnc == "opcua"
+            else {
+                "modbus": {
+                    "host": "127.0.0.1",
+                    "port": plant.cnc_modbus.address[1],
+                    "timeout_s": 0.5,
+                }
+            }
+        )
+        gateway_devices = [devices[0], {"device_id": 2, "channels": ["T9", None]}]
+        machine = machine_config(
+            store,
+            transmitters=[
+                {
+                    "name": "rtu1",
+                    "rtu": {"port": pty.client_port},
+                    "timeout_s": 0.2,
+                    "devices": gateway_devices,
+                }
+            ],
+            cnc=link,
+            cycle_s=CYCLE_S,
+        )
+        closed = await open_loop(plant, machine, clock)
+        try:
+            await closed.loop.run_cycle()
+            plant.machine.schedule_program(plant.machine.time_s + CYCLE_S)
+            yield closed, clock
+        finally:
+            await closed.loop.close()
+            await plant.stop()
+
+
+async def run_for(closed: ClosedLoop, clock: ManualClock, seconds: float) -> None:
+    for _ in range(int(seconds // CYCLE_S)):
+        await closed.step(clock)
+
+
+def assert_every_write_was_safe(closed: ClosedLoop) -> None:
+    """Every value the CNC received: within the clamp, and no faster than the slew limit."""
+    log = closed.plant.machine.compensation_log
+    assert log, "the gateway never wrote"
+    times = np.array([t for t, _ in log])
+    values_um = np.array([v for _, v in log]) * 1000.0
+    assert np.all(np.abs(values_um) <= CLAMP_UM + 1e-9)
+    steps = np.abs(np.diff(np.r_[0.0, values_um]))
+    allowed = SLEW_UM_PER_MIN * np.diff(np.r_[0.0, times]) / 60.0 + CNC_STEP_UM + 1e-9
+    assert np.all(steps <= allowed), (steps - allowed).max()
+
+
+def test_unseen_programme_compensated_peak_at_most_20_percent(tmp_path: Path, store: Path) -> None:
+    program = production_program(seed=31, duration_s=5 * 3600.0)
+
+    async def scenario() -> dict[str, float]:
+        async with closed_loop(tmp_path, store, program) as (closed, clock):
+            await run_for(closed, clock, program.duration_s)
+            assert_every_write_was_safe(closed)
+            return closed.trace.summary()
+
+    summary = asyncio.run(scenario())
+    assert summary["uncompensated_peak_um"] > 15.0
+    assert summary["compensated_peak_um"] <= 0.2 * summary["uncompensated_peak_um"], summary
+    assert summary["compensated_rmse_um"] <= 0.2 * summary["uncompensated_rmse_um"], summary
+
+
+def records_between(closed: ClosedLoop, start_s: float, end_s: float) -> list:
+    return [r for r in closed.trace.records if start_s <= r.time_s < end_s]
+
+
+def resumed_within(closed: ClosedLoop, cleared_s: float, cycles: int) -> bool:
+    """Normal compensation: a regime model, a prediction and a confirmed write or deadband."""
+    after = records_between(closed, cleared_s, math.inf)[:cycles]
+    return any(
+        r.model_id in ("mlr-error_um-variable", "mlr-error_um-constant")
+        and r.predicted_um is not None
+        and (r.write_status.startswith("ok") or "deadband" in r.write_status)
+        for r in after
+    )
+
+
+SENSOR_FAULTS = [
+    ("T1", "open_circuit", "mlr-error_um-all-without-T1", "transmitter fault code 1"),
+    ("T5", "stuck", "mlr-error_um-all-without-T5", "stuck at"),
+]
+
+
+@pytest.mark.parametrize(("sensor", "kind", "fallback", "reason"), SENSOR_FAULTS)
+def test_sensor_fault_switches_to_a_model_without_it(
+    tmp_path: Path, store: Path, sensor: str, kind: str, fallback: str, reason: str
+) -> None:
+    program = FAULT_PROGRAM
+
+    async def scenario() -> ClosedLoop:
+        async with closed_loop(tmp_path, store, program) as (closed, clock):
+            await run_for(closed, clock, 3600.0)
+            start = clock.now()
+            closed.plant.machine.add_fault(
+                SensorFault(sensor, kind, start_s=start, end_s=start + 3600.0)
+            )
+            await run_for(closed, clock, 3600.0 + 300.0)
+            closed.fault_window = (start, start + 3600.0)  # type: ignore[attr-defined]
+            await run_for(closed, clock, 1800.0)
+            assert_every_write_was_safe(closed)
+            return closed
+
+    closed = asyncio.run(scenario())
+    start, cleared = closed.fault_window  # type: ignore[attr-defined]
+    during = records_between(closed, start + 1200.0, cleared)  # stuck needs 900 s to show
+    assert during and all(r.quality[sensor] == "bad" for r in during)
+    assert all(r.model_id == fallback for r in during)
+    assert any(reason in r.quality_reasons.get(sensor, "") for r in during)
+    assert all(r.predicted_um is not None for r in during)  # compensation carried on
+    assert resumed_within(closed, cleared, RESUME_CYCLES)
+
+
+def test_silent_rtu_slave_does_not_stall_the_others(tmp_path: Path, store: Path) -> None:
+    program = FAULT_PROGRAM
+
+    async def scenario() -> tuple[ClosedLoop, float, float]:
+        async with closed_loop(tmp_path, store, program) as (closed, clock):
+            await run_for(closed, clock, 3600.0)
+            start = clock.now()
+            assert closed.plant.rtu_transmitters is not None
+            closed.plant.rtu_transmitters.silenced.add(2)  # the module with T9 loses power
+            await run_for(closed, clock, 1800.0)
+            closed.plant.rtu_transmitters.silenced.clear()
+            cleared = clock.now()
+            await run_for(closed, clock, 1800.0)
+            assert_every_write_was_safe(closed)
+            return closed, start, cleared
+
+    closed, start, cleared = asyncio.run(scenario())
+    during = records_between(closed, start + CYCLE_S, cleared)
+    assert during and all(r.temperatures_C["T9"] is None for r in during)
+    assert all(r.temperatures_C["T1"] is not None for r in during)  # device 1 still read
+    assert all(any("no response from device 2" in e for e in r.link_errors) for r in during)
+    assert all(r.model_id == "mlr-error_um-all-without-T9" for r in during[2:])
+    assert resumed_within(closed, cleared, RESUME_CYCLES)
+
+
+@pytest.mark.parametrize("cnc", ["opcua", "modbus"])
+def test_cnc_server_restart_and_connection_drop(tmp_path: Path, store: Path, cnc: str) -> None:
+    program = FAULT_PROGRAM
+
+    async def scenario() -> tuple[ClosedLoop, float, float, int]:
+        async with closed_loop(tmp_path, store, program, cnc=cnc) as (closed, clock):
+            plant = closed.plant
+            await run_for(closed, clock, 3600.0)
+            start = clock.now()
+            writes_before = len(plant.machine.compensation_log)
+            name = f"cnc_{cnc}"
+            await plant.take_down(name)  # OPC UA: server restart; Modbus: connection drop
+            await run_for(closed, clock, 900.0)
+            await plant.bring_up(name)
+            cleared = clock.now()
+            outage_writes = len(plant.machine.compensation_log) - writes_before
+            await run_for(closed, clock, 1800.0)
+            assert_every_write_was_safe(closed)
+            return closed, start, cleared, outage_writes
+
+    closed, start, cleared, outage_writes = asyncio.run(scenario())
+    during = records_between(closed, start + CYCLE_S, cleared)
+    assert outage_writes == 0
+    assert during and all(r.speed_rpm is None for r in during)
+    assert all(r.link_errors for r in during)
+    assert closed.loop.failed_writes >= 1  # the loop tried, failed, counted it
+    assert all(not r.write_status.startswith("ok") for r in during)
+    assert resumed_within(closed, cleared, RESUME_CYCLES)
+
+
+def test_variable_to_constant_switches_model_once(
+    tmp_path: Path, store: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    spectrum = tuple(
+        (600.0, float(s)) for s in (2000, 6000, 3000, 7000, 1000, 5000, 2500, 6500, 4000)
+    )
+    program = SpeedProgram("variable-then-constant", (*spectrum, (4 * 3600.0, 6000.0)))
+
+    async def scenario() -> ClosedLoop:
+        async with closed_loop(tmp_path, store, program) as (closed, clock):
+            await run_for(closed, clock, program.duration_s)
+            return closed
+
+    with caplog.at_level(logging.INFO, logger="gateway.runtime"):
+        closed = asyncio.run(scenario())
+    switches = closed.loop.selector.switches
+    assert len(switches) == 1, switches
+    _, before, after = switches[0]
+    assert (before, after) == ("variable", "constant")
+    logged = [
+        r.getMessage() for r in caplog.records if "→ model mlr-error_um-constant" in r.getMessage()
+    ]
+    assert len(logged) == 1
+    models = [r.model_id for r in closed.trace.records if r.model_id]
+    changes = sum(1 for a, b in itertools.pairwise(models) if a != b)
+    assert changes == 1

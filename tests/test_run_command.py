@@ -1,0 +1,111 @@
+"""`python -m gateway run` and `simulate` as two processes, one config file, as on a bench."""
+
+from __future__ import annotations
+
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import yaml
+from pymodbus.client import ModbusTcpClient
+
+from gateway.demo import fit_models, write_training_data
+from tests.ports import free_tcp_port
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def wait_for_port(port: int, timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with socket.socket() as probe:
+            if probe.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.1)
+    raise AssertionError(f"nothing listens on port {port}")
+
+
+def read_macro_mm(port: int, number: int = 500) -> float:
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+    assert client.connect()
+    try:
+        rr = client.read_holding_registers(1000 + 2 * (number - 500), count=2, device_id=1)
+        assert not rr.isError(), rr
+        return float(
+            client.convert_from_registers(rr.registers, client.DATATYPE.FLOAT32, word_order="big")
+        )
+    finally:
+        client.close()
+
+
+def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path) -> None:
+    write_training_data(tmp_path / "training.csv", seed=1)
+    fit_models(tmp_path / "training.csv", tmp_path / "models", "test")
+    bus, cnc = free_tcp_port(), free_tcp_port()
+    devices = [
+        {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
+        {"device_id": 2, "channels": ["T9", "ambient"]},
+    ]
+    config = {
+        "state_dir": str(tmp_path / "state"),
+        "simulator": {
+            "program": "const8000",
+            "speedup": 120,
+            "transmitters": {"tcp": {"port": bus, "devices": devices}},
+            "cnc": {"modbus": {"port": cnc}},
+        },
+        "machines": [
+            {
+                "id": "bench-1",
+                "cycle_s": 0.5,
+                "transmitters": [
+                    {
+                        "name": "bus1",
+                        "tcp": {"host": "127.0.0.1", "port": bus},
+                        "devices": [devices[0], {"device_id": 2, "channels": ["T9", None]}],
+                    }
+                ],
+                "sensors": {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)},
+                "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
+                "compensation": {"slew_um_per_min": 2000.0},
+                "models": {
+                    "store": str(tmp_path / "models"),
+                    "regimes": {
+                        "models": {"variable": "mlr-error_um-variable"},
+                        "fallback_model": "mlr-error_um-all",
+                    },
+                },
+            }
+        ],
+    }
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(config))
+    command = [sys.executable, "-m", "gateway"]
+    pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    simulator = subprocess.Popen([*command, "simulate", "--config", str(path)], **pipes)
+    gateway = None
+    try:
+        wait_for_port(cnc)
+        gateway = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
+        # ×120: 20 s of wall time are 40 min at 8000 r/min; the spindle grows > 10 µm.
+        values = []
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (values and values[-1] > 0.005):
+            time.sleep(1.0)
+            values.append(read_macro_mm(cnc))
+        assert values and values[-1] > 0.005, values  # > 5 µm of compensation written
+        assert all(abs(v) <= 0.050 for v in values)  # within the ±50 µm clamp
+        gateway.send_signal(signal.SIGTERM)
+        out, err = gateway.communicate(timeout=30)
+        assert gateway.returncode == 0, err
+        assert "running 1 machine(s): bench-1" in out and "stopped" in out
+        assert "CNC macro #500 holds" in err  # the loop read the macro before writing
+        assert (tmp_path / "state" / "bench-1-reference.json").exists()
+    finally:
+        if gateway is not None and gateway.poll() is None:
+            gateway.kill()
+        simulator.send_signal(signal.SIGINT)
+        simulator.communicate(timeout=30)

@@ -129,6 +129,8 @@ class _SensorState:
     run_start_s: float | None = None
     run_min_C: float = 0.0
     run_max_C: float = 0.0
+    # run_start_s of the run found stuck: it stays stuck until the value moves.
+    stuck_run_s: float | None = None
     # Plausible values (passed status, range and rate) kept for the "others moved" test.
     history: deque[tuple[float, float]] = field(default_factory=deque)
 
@@ -236,15 +238,23 @@ class QualityMonitor:
     def _stuck_reason(
         self, name: str, state: _SensorState, now_s: float, value: float
     ) -> str | None:
-        """BAD if the value has not moved for stuck_s while another sensor did."""
+        """BAD if the value has not moved for stuck_s while another sensor did.
+
+        Once found stuck, a sensor stays stuck until its own value moves: the other
+        sensors settling later does not make a frozen reading trustworthy again.
+        """
         if state.run_start_s is None:
             return None
         held_s = now_s - state.run_start_s
+        reason = f"stuck at {value:.1f} °C for {held_s:.0f} s"
+        if state.stuck_run_s == state.run_start_s:
+            return reason
         if held_s < state.limits.stuck_s:
             return None
         for other, other_state in self._states.items():
             if other != name and _moved_since(other_state, state.run_start_s) > OTHERS_MOVED_C:
-                return f"stuck at {value:.1f} °C for {held_s:.0f} s"
+                state.stuck_run_s = state.run_start_s
+                return reason
         return None
 
     def _missed_read(self, state: _SensorState, now_s: float) -> SensorCheck:

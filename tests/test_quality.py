@@ -291,6 +291,19 @@ def test_stuck_sensor_that_moves_again_recovers():
     assert monitor.last_good("T_stuck") == pytest.approx(25.6)
 
 
+def test_stuck_sensor_stays_bad_after_the_others_settle():
+    monitor, now = trusted_monitor({"T_stuck": 25.3, "T_heat": 30.0})
+    out = run_heating(monitor, now, 1000, 25.3)  # found stuck after 900 s
+    assert out[1000]["T_stuck"].quality is BAD
+    # The machine then sits still for an hour: nothing moves, the reading is still frozen.
+    t = now + 1000
+    later = [
+        monitor.check(t + k, {"T_stuck": ok(25.3), "T_heat": ok(40.0)}) for k in range(1, 3601)
+    ]
+    assert all(c["T_stuck"].quality is BAD for c in later)
+    assert later[-1]["T_stuck"].reason.startswith("stuck at 25.3 °C for ")
+
+
 def test_stuck_band_tolerates_a_last_digit_wobble():
     limits = QualityLimits(stuck_band_C=0.1)
     monitor, now = trusted_monitor({"T_stuck": 25.3, "T_heat": 30.0}, limits)

@@ -2,28 +2,17 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
 from gateway.config import ConfigError, load_config
+from tests.cli import gateway
 from tests.ports import free_tcp_port
 from tests.synthetic import write_runs_csv
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def gateway(*args: str | Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "gateway", *map(str, args)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
 
 
 @pytest.fixture(scope="module")

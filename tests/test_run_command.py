@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -13,19 +12,9 @@ import yaml
 from pymodbus.client import ModbusTcpClient
 
 from gateway.demo import fit_models, write_training_data
-from tests.ports import free_tcp_port
+from tests.ports import free_tcp_port, wait_for_port
 
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def wait_for_port(port: int, timeout_s: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with socket.socket() as probe:
-            if probe.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.1)
-    raise AssertionError(f"nothing listens on port {port}")
 
 
 def read_macro_mm(port: int, number: int = 500) -> float:

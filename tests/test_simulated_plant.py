@@ -18,7 +18,7 @@ from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 
 from drivers.clock import ManualClock
 from simulator.serve import SimulatedPlant, SimulatorConfig
-from tests.ports import free_tcp_port
+from tests.ports import free_tcp_port, wait_for_port
 from tests.serial_pty import socat_pty_pair
 
 NAMESPACE = "urn:spindle-gateway:simulated-cnc"
@@ -165,10 +165,8 @@ def test_node_opcua_write_is_applied_to_the_measured_error(tmp_path: Path) -> No
 
 def test_simulate_serves_config_yaml_until_interrupted(tmp_path: Path) -> None:
     import signal
-    import socket
     import subprocess
     import sys
-    import time
 
     import yaml
 
@@ -200,12 +198,7 @@ def test_simulate_serves_config_yaml_until_interrupted(tmp_path: Path) -> None:
         text=True,
     )
     try:
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            with socket.socket() as probe:
-                if probe.connect_ex(("127.0.0.1", cnc_port)) == 0:
-                    break
-            time.sleep(0.1)
+        wait_for_port(cnc_port, timeout_s=20)
         mbpoll = ["mbpoll", "-m", "tcp", "-a", "1", "-1", "-r", "1"]
         speed = subprocess.run(
             [*mbpoll, "-p", str(cnc_port), "-t", "4:float", "-B", "-c", "1", "127.0.0.1"],

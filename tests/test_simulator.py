@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,20 +15,11 @@ from simulator.machine import SimulatedMachine
 from simulator.params import load_params
 from simulator.programs import SpeedProgram, load_programs, production_program, program_by_name
 from simulator.record import record
+from tests.cli import gateway
 
 ROOT = Path(__file__).resolve().parent.parent
 PARAMS = load_params()
 PROGRAMS = load_programs()
-
-
-def gateway(*args: str | Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "gateway", *map(str, args)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
 
 
 def table(program: str, effect: str = "none", seed: int = 1) -> dict[str, np.ndarray]:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -304,6 +304,3 @@ def write_trace(path: Path, trace: Trace) -> None:
                 ]
             )
 
-
-def as_json(result: dict[str, Any]) -> dict[str, Any]:
-    return {k: (asdict(v) if hasattr(v, "__dataclass_fields__") else v) for k, v in result.items()}

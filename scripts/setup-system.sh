@@ -3,6 +3,7 @@
 #   socat  (a serial pty pair for Modbus RTU without hardware)
 #   mbpoll (an independent libmodbus-based Modbus master)
 #   node-opcua (an independent OPC UA client, pinned in tests/node/package-lock.json)
+#   influxd 1.8.10 (a real time-series server; built once with Go into .cache/bin)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -24,4 +25,17 @@ if [ -f tests/node/package-lock.json ]; then
         (cd tests/node && npm ci --no-audit --no-fund --loglevel=error)
         touch tests/node/node_modules
     fi
+fi
+
+# InfluxDB 1.8.10 serves the v2 write API and Flux queries influxdb-client uses;
+# Debian's influxdb (1.6) does not. Built from source with Go, cached (git-ignored).
+INFLUXD=.cache/bin/influxd
+if [ ! -x "$INFLUXD" ]; then
+    command -v go >/dev/null || export PATH="$PATH:/usr/local/go/bin"
+    command -v go >/dev/null || { echo "Go is needed to build influxd 1.8.10 for the tests"; exit 1; }
+    echo "building influxd 1.8.10 into .cache/bin (a few minutes, once)"
+    mkdir -p .cache/bin
+    GOBIN="$PWD/.cache/bin" go install -trimpath \
+        -ldflags "-s -w -X main.version=1.8.10" \
+        github.com/influxdata/influxdb/cmd/influxd@v1.8.10
 fi

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -15,7 +16,9 @@ from drivers.cnc_opcua import OpcUaCnc
 from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.config import GatewayConfig, MachineSection
 from gateway.model_bank import ModelBank
-from gateway.runtime import MachineLoop, Sink
+from gateway.outputs import Outputs
+from gateway.runtime import CycleRecord, MachineLoop, Sink
+from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +106,13 @@ class Gateway:
         sinks: Sequence[Sink] = (),
     ) -> None:
         self.config = config
-        self.clock = clock or WallClock()
+        # In the plant machine time is Unix time, so logged points carry real timestamps.
+        self.clock = clock or WallClock(origin_s=time.time())
+        self.outputs = Outputs(config)
+        sinks = [self.outputs.sink, *sinks]
+        self.scada = self._build_scada()
+        if self.scada is not None:
+            sinks = [*sinks, self._publish_to_scada]
         self.loops = [
             MachineLoop(
                 machine,
@@ -117,8 +126,43 @@ class Gateway:
             for machine in config.machines
         ]
 
+    def _build_scada(self) -> ScadaServer | None:
+        section = self.config.scada
+        if section is None:
+            return None
+        users = tuple(ScadaUser(u.username, u.password() or "", u.role) for u in section.users)
+        settings = ScadaSettings(
+            port=section.port,
+            pki_dir=section.pki_dir,
+            users=users,
+            host=section.host,
+            allow_anonymous=section.allow_anonymous,
+        )
+        machines = {m.id: m.sensor_names for m in self.config.machines}
+        return ScadaServer(settings, machines, self._set_enabled)
+
+    def _loop_of(self, machine_id: str) -> MachineLoop:
+        return next(loop for loop in self.loops if loop.config.id == machine_id)
+
+    def _set_enabled(self, machine_id: str, enabled: bool) -> None:
+        """An authorised SCADA user switched compensation on or off."""
+        loop = self._loop_of(machine_id)
+        if loop.compensation_enabled != enabled:
+            log.warning(
+                "%s: compensation %s from SCADA", machine_id, "enabled" if enabled else "disabled"
+            )
+        loop.compensation_enabled = enabled
+
+    def _publish_to_scada(self, record: CycleRecord) -> None:
+        assert self.scada is not None
+        self.scada.publish_soon(record, health_of(self._loop_of(record.machine)))
+
     async def run(self, stop: asyncio.Event | None = None) -> None:
         stop = stop or asyncio.Event()
+        self.outputs.start()
+        if self.scada is not None:
+            await self.scada.start()
+            log.info("SCADA server at %s", self.scada.endpoint)
         tasks = [asyncio.create_task(loop.run(stop)) for loop in self.loops]
         try:
             await asyncio.gather(*tasks)
@@ -129,6 +173,9 @@ class Gateway:
                     await task
             for loop in self.loops:
                 await loop.close()
+            if self.scada is not None:
+                await self.scada.stop()
+            await self.outputs.stop()
 
 
 async def check_connections(config: GatewayConfig) -> list[str]:

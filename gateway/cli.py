@@ -441,3 +441,76 @@ def demo(
         )
     )
     write_json(json_out, result)
+
+
+def parse_time_s(value: str | None) -> float | None:
+    """An ISO 8601 date/time (UTC unless it says otherwise) or Unix seconds."""
+    from datetime import UTC, datetime
+
+    if value is None:
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        pass
+    try:
+        moment = datetime.fromisoformat(value)
+    except ValueError:
+        raise click.BadParameter(f"'{value}': expected an ISO 8601 time or Unix seconds") from None
+    if moment.tzinfo is None:
+        moment = moment.replace(tzinfo=UTC)
+    return moment.timestamp()
+
+
+@main.command()
+@click.argument("out_csv", type=click.Path(path_type=Path))
+@click.option("--from", "start", help="Start (ISO 8601 or Unix s); default: the beginning.")
+@click.option("--to", "stop", help="End, exclusive (ISO 8601 or Unix s); default: now.")
+@click.option("--machine", help="Machine id (default: the only machine in the config).")
+@click.option(
+    "--config", "config_path", type=click.Path(path_type=Path), default=Path("config.yaml")
+)
+@input_errors_exit
+def export(
+    out_csv: Path, start: str | None, stop: str | None, machine: str | None, config_path: Path
+) -> None:
+    """Write logged data as a measured-run CSV (for fit and analyze)."""
+    from gateway.config import load_config
+    from gateway.export import ExportError, export_runs
+    from gateway.influx_writer import InfluxReader
+    from gateway.local_store import LocalStore
+
+    config = load_config(config_path)
+    ids = [m.id for m in config.machines]
+    if machine is None:
+        if len(ids) != 1:
+            raise click.UsageError(f"--machine is needed: the config has {', '.join(ids)}")
+        machine = ids[0]
+    elif machine not in ids:
+        raise click.UsageError(
+            f"no machine '{machine}' in {config_path} (machines: {', '.join(ids)})"
+        )
+    influx = config.logging.influxdb
+    if influx is not None:
+        source = InfluxReader(
+            influx.url, influx.token(), influx.org, influx.bucket, influx.timeout_s
+        )
+        where = f"InfluxDB {influx.url} bucket {influx.bucket}"
+    else:
+        if not config.logging.local_store.exists():
+            raise ValueError(
+                f"{config.logging.local_store}: no local store yet (has the gateway run?)"
+            )
+        source = LocalStore(config.logging.local_store)
+        where = f"local store {config.logging.local_store}"
+    try:
+        result = export_runs(source, machine, parse_time_s(start), parse_time_s(stop), out_csv)
+    except ExportError as exc:
+        raise ValueError(str(exc)) from None
+    finally:
+        source.close()
+    click.echo(f"wrote {out_csv} from {where}: {result.rows} rows in {len(result.runs)} run(s)")
+    if result.rows_without_probe:
+        click.echo(
+            f"note: {result.rows_without_probe} cycles had no probe measurement and were left out"
+        )

@@ -148,7 +148,7 @@ class CompensationSection(Strict):
     deadband_um: float = Field(default=0.5, ge=0)
     decimals: int = Field(default=4, ge=0, le=8)
     handshake_macro: int | None = Field(default=None, ge=500, le=999)
-    probe_macro: int | None = Field(default=None, ge=500, le=999)
+    probe_macro: int | None = Field(default=None, ge=500, le=999)  # measured error, µm
 
     def limits(self) -> CompensationLimits:
         return CompensationLimits(
@@ -247,9 +247,69 @@ class MachineSection(Strict):
         return limits
 
 
+class InfluxSection(Strict):
+    """An InfluxDB 2.x/3.x (or 1.8 with the v2 API) to log to; the token never in the file."""
+
+    url: str
+    org: str = "-"
+    bucket: str
+    token_env: str | None = None
+    token_file: Path | None = None
+    timeout_s: float = Field(default=10.0, gt=0)
+
+    def token(self) -> str:
+        if self.token_env:
+            value = os.environ.get(self.token_env)
+            if value is None:
+                raise ConfigError(f"environment variable {self.token_env} (token_env) is not set")
+            return value
+        if self.token_file:
+            try:
+                return self.token_file.read_text(encoding="utf-8").strip()
+            except OSError as exc:
+                raise ConfigError(f"token_file {self.token_file}: {exc.strerror}") from None
+        return "-"  # InfluxDB 1.8 without authentication accepts any token
+
+
+class LoggingSection(Strict):
+    """Where every cycle is logged.
+
+    With ``influxdb``: points go to a disk buffer first (``buffer_path``, at most
+    ``buffer_max_points``; when full the oldest are dropped, counted and reported)
+    and are forwarded in order; a database outage or a gateway restart loses
+    nothing. Without it: points go to the embedded ``local_store`` (SQLite).
+    """
+
+    influxdb: InfluxSection | None = None
+    local_store: Path = Path(".cache/data/points.sqlite")
+    buffer_path: Path = Path(".cache/data/buffer.sqlite")
+    buffer_max_points: int = Field(default=2_000_000, ge=1000)
+
+
+class ScadaUserSection(Credentials):
+    username: str  # type: ignore[assignment]
+    role: Literal["operator", "viewer"] = "viewer"
+
+
+class ScadaSection(Strict):
+    """The gateway's own OPC UA server for SCADA (Basic256Sha256 SignAndEncrypt only).
+
+    ``host`` 0.0.0.0 serves every interface (a container); client certificates
+    must be copied into ``<pki_dir>/trusted`` (see gateway/SCADA.md).
+    """
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=4841, ge=1, le=65535)
+    pki_dir: Path = Path(".cache/state/pki")
+    allow_anonymous: bool = False
+    users: list[ScadaUserSection] = Field(default_factory=list)
+
+
 class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
     state_dir: Path = Path(".cache/state")
+    logging: LoggingSection = LoggingSection()
+    scada: ScadaSection | None = None
     simulator: dict[str, Any] | None = None  # checked by simulator.serve
 
     @model_validator(mode="after")

@@ -303,4 +303,3 @@ def write_trace(path: Path, trace: Trace) -> None:
                     rec.write_status,
                 ]
             )
-

@@ -61,6 +61,7 @@ class CycleRecord:
     written_cnc: float | None
     write_status: str
     link_errors: list[str] = field(default_factory=list)
+    probe_error_um: float | None = None  # a new probe measurement of the real error, µm
 
 
 Sink = Callable[[CycleRecord], None]
@@ -94,6 +95,7 @@ class MachineLoop:
         self.handshake = 0
         self.failed_writes = 0
         self.cycles = 0
+        self._last_probe_um: float | None = None
         self._link_down: set[str] = set()
 
     # --- one cycle ----------------------------------------------------------------------
@@ -138,6 +140,7 @@ class MachineLoop:
             link_errors=errors,
         )
         await self._compensate(now, predicted, record)
+        await self._read_probe(record)
         self.cycles += 1
         for sink in self.sinks:
             sink(record)
@@ -231,6 +234,19 @@ class MachineLoop:
                 await self.cnc.write_macro(comp.handshake_macro, float(self.handshake))
             except CncError as exc:
                 record.write_status += f"; handshake failed: {exc}"
+
+    async def _read_probe(self, record: CycleRecord) -> None:
+        """The CNC's probe macro (µm): a new value is a measurement of the real error."""
+        macro = self.config.compensation.probe_macro
+        if macro is None:
+            return
+        try:
+            value = await self.cnc.read_macro(macro)
+        except CncError:
+            return  # the CNC link failure is already recorded for this cycle
+        if math.isfinite(value) and value != self._last_probe_um:
+            self._last_probe_um = value
+            record.probe_error_um = value
 
     async def _start_policy(self, record: CycleRecord) -> bool:
         """Read what the CNC applies now; only then may the loop write."""

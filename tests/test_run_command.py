@@ -12,6 +12,8 @@ import yaml
 from pymodbus.client import ModbusTcpClient
 
 from gateway.demo import fit_models, write_training_data
+from models.dataset import load_runs
+from tests.cli import gateway as gateway_cli
 from tests.ports import free_tcp_port, wait_for_port
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -40,6 +42,7 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
     ]
     config = {
         "state_dir": str(tmp_path / "state"),
+        "logging": {"local_store": str(tmp_path / "data" / "points.sqlite")},
         "simulator": {
             "program": "const8000",
             "speedup": 120,
@@ -59,7 +62,7 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
                 ],
                 "sensors": {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)},
                 "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
-                "compensation": {"slew_um_per_min": 2000.0},
+                "compensation": {"slew_um_per_min": 2000.0, "probe_macro": 600},
                 "models": {
                     "store": str(tmp_path / "models"),
                     "regimes": {
@@ -86,6 +89,7 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
             time.sleep(1.0)
             values.append(read_macro_mm(cnc))
         assert values and values[-1] > 0.005, values  # > 5 µm of compensation written
+        time.sleep(25)  # ×120: another 50 min of machine time, 10 more probe measurements
         assert all(abs(v) <= 0.050 for v in values)  # within the ±50 µm clamp
         gateway.send_signal(signal.SIGTERM)
         out, err = gateway.communicate(timeout=30)
@@ -93,6 +97,18 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
         assert "running 1 machine(s): bench-1" in out and "stopped" in out
         assert "CNC macro #500 holds" in err  # the loop read the macro before writing
         assert (tmp_path / "state" / "bench-1-reference.json").exists()
+        assert (tmp_path / "state" / "bench-1-heartbeat.json").exists()
+        # Everything measured and decided was logged: export it and fit on it again.
+        exported = tmp_path / "exported.csv"
+        result = gateway_cli("export", exported, "--config", path)
+        assert result.returncode == 0, result.stderr
+        assert "from local store" in result.stdout
+        data = load_runs(exported)
+        assert data.n_samples >= 10  # one row per probe measurement (every 300 s)
+        assert data.sensors == tuple(f"T{i}" for i in range(1, 10))
+        fitted = gateway_cli("fit", exported, "--store", tmp_path / "refit")
+        assert fitted.returncode == 0, fitted.stderr
+        assert "pooled" in fitted.stdout
     finally:
         if gateway is not None and gateway.poll() is None:
             gateway.kill()

@@ -1,0 +1,233 @@
+"""Export logged time series to the measured-run CSV (contract §1).
+
+Reads the ``spindle_cycle``, ``spindle_temperature`` and ``spindle_probe`` points
+of one machine from a :class:`PointSource` — the embedded
+:class:`~gateway.local_store.LocalStore` or InfluxDB through
+:class:`~gateway.influx_writer.InfluxReader` (Flux) — and writes::
+
+    run,time_s,speed_rpm,T1,…,Tn,[ambient_C],error_um
+
+* one row per cycle (a time stamp of the machine's cycle or temperature points);
+* ``time_s`` is machine time: the point's Unix time minus ``epoch_s``;
+* ``run``: the cycles are cut into runs where the time between two cycles is
+  more than ``gap_factor`` (10) × the cycle time (the median spacing unless
+  given); a run is named ``<machine>-<UTC start, YYYYmmddTHHMMSSZ>``;
+* ``T<n>`` from the sensors named ``T`` + digits, ``ambient_C`` from a sensor
+  named ``ambient`` or ``ambient_C``; other sensors are not exported (listed in
+  the result). With ``good_only`` (default) a reading whose quality tag is not
+  ``good`` is left empty, so a faulty sensor never reaches a model fit;
+* ``error_um`` is the measured error: the probe point that falls in the cycle
+  (from the cycle's time stamp up to the next cycle, less than one cycle time
+  later; the last one when several do). Rows without a probe value are left out
+  and counted (:attr:`ExportResult.rows_without_probe`);
+* a row with a missing temperature or speed keeps an empty cell; ``load_runs``
+  skips such rows and says how many, and the result counts them too.
+
+The file passes :func:`models.dataset.load_runs`.
+"""
+
+from __future__ import annotations
+
+import bisect
+import csv
+import itertools
+import re
+import statistics
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Protocol
+
+from gateway.timeseries import (
+    CYCLE_MEASUREMENT,
+    NS_PER_S,
+    PROBE_MEASUREMENT,
+    TEMPERATURE_MEASUREMENT,
+    Point,
+    to_time_ns,
+)
+
+SENSOR_PATTERN = re.compile(r"^T(\d+)$")
+AMBIENT_SENSORS = ("ambient_C", "ambient")
+
+
+class PointSource(Protocol):
+    """Where points are read from: ``LocalStore`` or ``InfluxReader``."""
+
+    def query(
+        self,
+        measurement: str,
+        machine: str | None = None,
+        start_ns: int | None = None,
+        stop_ns: int | None = None,
+    ) -> list[Point]: ...
+
+
+class ExportError(ValueError):
+    """Nothing to export (no cycles, or no cycle with a probe value, in the window)."""
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    path: Path
+    columns: tuple[str, ...]
+    runs: tuple[str, ...]
+    rows: int  # rows written
+    rows_without_probe: int  # cycles left out: no probe value in their cycle
+    rows_incomplete: int  # rows written with an empty temperature or speed cell
+    cycle_s: float
+    ignored_sensors: tuple[str, ...] = ()
+
+
+def export_runs(
+    points_source: PointSource,
+    machine: str,
+    start_s: float | None,
+    stop_s: float | None,
+    out_csv: str | Path,
+    epoch_s: float = 0.0,
+    cycle_s: float | None = None,
+    gap_factor: float = 10.0,
+    good_only: bool = True,
+) -> ExportResult:
+    """Write the measured-run CSV of ``machine`` for machine time ``start_s ≤ t < stop_s``.
+
+    ``start_s``/``stop_s`` are machine seconds (``None``: unbounded); ``epoch_s``
+    must be the one the points were made with (:func:`gateway.timeseries.to_time_ns`).
+    """
+    out_csv = Path(out_csv)
+    start_ns = None if start_s is None else to_time_ns(start_s, epoch_s)
+    stop_ns = None if stop_s is None else to_time_ns(stop_s, epoch_s)
+
+    def read(measurement: str) -> list[Point]:
+        return points_source.query(measurement, machine=machine, start_ns=start_ns, stop_ns=stop_ns)
+
+    cycles = read(CYCLE_MEASUREMENT)
+    temperatures = read(TEMPERATURE_MEASUREMENT)
+    probes = read(PROBE_MEASUREMENT)
+
+    speed: dict[int, float] = {}
+    for point in cycles:
+        value = point.fields.get("speed_rpm")
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            speed[point.time_ns] = float(value)
+    readings: dict[int, dict[str, float | None]] = {}
+    sensors: set[str] = set()
+    for point in temperatures:
+        sensor = point.tags.get("sensor")
+        value = point.fields.get("value_C")
+        if sensor is None or not isinstance(value, int | float) or isinstance(value, bool):
+            continue
+        sensors.add(sensor)
+        good = point.tags.get("quality", "good") == "good"
+        readings.setdefault(point.time_ns, {})[sensor] = (
+            float(value) if good or not good_only else None
+        )
+
+    times = sorted({p.time_ns for p in cycles} | set(readings))
+    if not times:
+        raise ExportError(f"no cycles of machine '{machine}' in the time window")
+    cycle_ns = _cycle_ns(times, cycle_s)
+    run_of = _runs(times, cycle_ns, gap_factor, machine)
+
+    error: dict[int, float] = {}  # row index → probe value
+    for point in sorted(probes, key=lambda p: p.time_ns):
+        value = point.fields.get("error_um")
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            continue
+        row = bisect.bisect_right(times, point.time_ns) - 1
+        if row >= 0 and point.time_ns - times[row] < cycle_ns:
+            error[row] = float(value)  # the last probe of the cycle wins
+
+    t_sensors = sorted((s for s in sensors if SENSOR_PATTERN.match(s)), key=_sensor_number)
+    ambient = next((s for s in AMBIENT_SENSORS if s in sensors), None)
+    exported = [*t_sensors, *([ambient] if ambient else [])]
+    ignored = tuple(sorted(sensors - set(exported)))
+    # A column with no value in any exported row would make every row unusable.
+    exported = [
+        s for s in exported if any(readings.get(times[r], {}).get(s) is not None for r in error)
+    ]
+    t_columns = [s for s in exported if s != ambient]
+    columns = (
+        "run",
+        "time_s",
+        "speed_rpm",
+        *t_columns,
+        *(["ambient_C"] if ambient in exported else []),
+        "error_um",
+    )
+
+    if not error:
+        raise ExportError(
+            f"none of the {len(times)} cycle(s) of machine '{machine}' in the time window "
+            "has a probe (spindle_probe error_um) value"
+        )
+    incomplete = 0
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    with out_csv.open("w", newline="", encoding="utf-8") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for row, time_ns in enumerate(times):
+            if row not in error:
+                continue
+            values = readings.get(time_ns, {})
+            cells = [speed.get(time_ns), *(values.get(s) for s in exported)]
+            if any(cell is None for cell in cells):
+                incomplete += 1
+            writer.writerow(
+                [
+                    run_of[row],
+                    _number(round(time_ns / NS_PER_S - epoch_s, 6)),
+                    *(_number(cell) for cell in cells),
+                    _number(error[row]),
+                ]
+            )
+    return ExportResult(
+        path=out_csv,
+        columns=columns,
+        runs=tuple(dict.fromkeys(run_of[r] for r in sorted(error))),
+        rows=len(error),
+        rows_without_probe=len(times) - len(error),
+        rows_incomplete=incomplete,
+        cycle_s=cycle_ns / NS_PER_S,
+        ignored_sensors=ignored,
+    )
+
+
+def _number(value: float | None) -> str:
+    return "" if value is None else repr(float(value))
+
+
+def _sensor_number(name: str) -> int:
+    match = SENSOR_PATTERN.match(name)
+    assert match is not None
+    return int(match.group(1))
+
+
+def _cycle_ns(times: Sequence[int], cycle_s: float | None) -> int:
+    if cycle_s is not None:
+        if cycle_s <= 0:
+            raise ValueError(f"cycle_s must be positive, got {cycle_s}")
+        return round(cycle_s * NS_PER_S)
+    if len(times) < 2:
+        return NS_PER_S  # a single cycle: assume the usual 1 s
+    return max(1, round(statistics.median(b - a for a, b in itertools.pairwise(times))))
+
+
+def _runs(times: Sequence[int], cycle_ns: int, gap_factor: float, machine: str) -> list[str]:
+    """The run name of every cycle: a new run after a gap of more than gap_factor cycles."""
+    names: list[str] = []
+    used: set[str] = set()
+    current = ""
+    for i, time_ns in enumerate(times):
+        if i == 0 or time_ns - times[i - 1] > gap_factor * cycle_ns:
+            start = datetime.fromtimestamp(time_ns / NS_PER_S, UTC)
+            current = base = f"{machine}-{start:%Y%m%dT%H%M%SZ}"
+            suffix = 2
+            while current in used:
+                current = f"{base}-{suffix}"
+                suffix += 1
+            used.add(current)
+        names.append(current)
+    return names

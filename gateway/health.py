@@ -1,0 +1,135 @@
+"""Liveness of the compensation loops, for a container health check.
+
+Each machine loop calls :func:`write_heartbeat` once a cycle; it replaces
+``<state_dir>/<machine>-heartbeat.json`` atomically with::
+
+    {"machine": "vmc-1", "wall_time": 1732370000.25, "time_s": 8113.0, "cycles": 8113}
+
+``wall_time`` is the wall clock (``time.time()``, s since the epoch) of the
+process that wrote it, so another process (the checker) can compare it with its
+own clock; ``time_s`` is the loop's machine time, kept for the record only.
+
+:func:`check` is healthy when every heartbeat file in the state directory is
+younger than ``max_age_s``. ``python -m gateway.health --state-dir DIR
+--max-age-s N`` runs it, prints one line and exits 0 (healthy) or 1
+(unhealthy), as Docker's ``HEALTHCHECK`` expects. It imports nothing but the
+standard library, so it starts fast even on a small edge box.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import NoReturn
+
+SUFFIX = "-heartbeat.json"
+MACHINE_ID = re.compile(r"^[A-Za-z0-9_.-]+$")  # as gateway.config checks machine ids
+
+
+def heartbeat_path(state_dir: str | Path, machine_id: str) -> Path:
+    if not MACHINE_ID.match(machine_id):
+        raise ValueError(f"machine id '{machine_id}' is not a plain name ([A-Za-z0-9_.-]+)")
+    return Path(state_dir) / f"{machine_id}{SUFFIX}"
+
+
+def write_heartbeat(
+    state_dir: str | Path,
+    machine_id: str,
+    time_s: float,
+    cycles: int = 0,
+    *,
+    wall_time: float | None = None,
+) -> Path:
+    """Record that ``machine_id``'s loop completed a cycle at machine time ``time_s``.
+
+    The file is written to a temporary name in the same directory and renamed
+    over the old one, so a reader sees the old or the new heartbeat, never half
+    of one. No fsync: a heartbeat lost in a power cut does not matter.
+    """
+    path = heartbeat_path(state_dir, machine_id)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "machine": machine_id,
+        "wall_time": time.time() if wall_time is None else float(wall_time),
+        "time_s": float(time_s),
+        "cycles": int(cycles),
+    }
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            json.dump(payload, handle)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def check(state_dir: str | Path, max_age_s: float, now: float | None = None) -> tuple[bool, str]:
+    """(healthy, one-line message): every heartbeat in ``state_dir`` younger than ``max_age_s``."""
+    state_dir = Path(state_dir)
+    now = time.time() if now is None else now
+    try:
+        files = sorted(p for p in state_dir.iterdir() if p.name.endswith(SUFFIX))
+    except OSError as exc:
+        return False, f"unhealthy: state dir {state_dir}: {exc.strerror or exc}"
+    if not files:
+        return False, f"unhealthy: no heartbeat in {state_dir} (no machine loop has run a cycle)"
+    stale: list[str] = []
+    fresh: list[str] = []
+    for path in files:
+        name = path.name.removesuffix(SUFFIX)
+        try:
+            beat = json.loads(path.read_text(encoding="utf-8"))
+            name = str(beat.get("machine", name))
+            wall_time = float(beat["wall_time"])
+            if not math.isfinite(wall_time):
+                raise ValueError("wall_time is not a number")
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+            stale.append(f"machine {name}: unreadable heartbeat {path.name} ({exc})")
+            continue
+        age_s = now - wall_time
+        if age_s > max_age_s:
+            stale.append(f"machine {name}: last heartbeat {age_s:.1f} s ago (max {max_age_s:g} s)")
+        else:
+            fresh.append(f"{name} {max(age_s, 0.0):.1f} s ago")
+    if stale:
+        return False, "unhealthy: " + "; ".join(stale)
+    return True, "healthy: " + ", ".join(fresh)
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> NoReturn:
+        # Docker reserves health-check exit status 2; a usage error is "unhealthy" (1).
+        self.print_usage(sys.stderr)
+        self.exit(1, f"{self.prog}: error: {message}\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = _Parser(
+        prog="python -m gateway.health",
+        description="Exit 0 when every machine loop wrote a heartbeat within --max-age-s, else 1.",
+    )
+    parser.add_argument("--state-dir", type=Path, required=True, help="the config's state_dir")
+    parser.add_argument(
+        "--max-age-s", type=float, required=True, help="oldest acceptable heartbeat, s"
+    )
+    args = parser.parse_args(argv)
+    if not args.max_age_s > 0:
+        parser.error("--max-age-s must be > 0")
+    healthy, message = check(args.state_dir, args.max_age_s)
+    print(message, file=sys.stdout if healthy else sys.stderr)
+    return 0 if healthy else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,351 @@
+"""Sending points to InfluxDB, and the store-and-forward task that does it.
+
+:class:`InfluxWriter` writes a batch with influxdb-client's synchronous write API
+(the async client needs aiohttp, which the gateway does not ship), run in a
+worker thread so the event loop never waits for the network. Only the write and
+query APIs are used, so InfluxDB 1.8 (its v2 compatibility API; bucket
+``"db/retention"``, org ``"-"``), 2.x and 3.x all work.
+
+:class:`Forwarder` is the asyncio task between the :class:`PointBuffer` on disk
+and the writer::
+
+    peek the oldest batch → write it → remove it from the buffer → next batch
+
+On a failure it waits (exponential back-off from ``retry_s`` up to
+``max_retry_s``) and retries the *same* batch, so points reach InfluxDB in
+buffer order and none is skipped, however long the outage.
+
+Why there are no duplicates: a batch is removed from the buffer only after
+InfluxDB acknowledged it (HTTP 204). If the gateway dies after the
+acknowledgement but before the removal, the same batch is sent again after the
+restart — with the same measurement, tags and timestamp for every point, since
+points are stored with their final timestamps. InfluxDB identifies a point by its
+series (measurement + tag set) and time; a second write of the same point
+overwrites the first with identical field values, so it is stored once. The same
+holds for a write that timed out on the gateway's side although the server
+stored it.
+
+A batch the server refuses as invalid (HTTP 400/422, e.g. a field whose type
+conflicts with what the bucket holds) would fail for ever: it is removed, logged
+at ERROR with the server's reason and counted in :meth:`Forwarder.health`
+``rejected``, so it cannot block the points behind it. Such a refusal is
+usually a partial write: the server kept the valid points of the batch and
+dropped the others; ``rejected`` counts the points it says it dropped
+(``dropped=N`` in its reason), or the whole batch when it does not say.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import re
+import time
+from collections.abc import Sequence
+from typing import Protocol
+
+from influxdb_client import InfluxDBClient, WritePrecision
+from influxdb_client import Point as InfluxPoint
+from influxdb_client.client.write_api import SYNCHRONOUS
+from influxdb_client.rest import ApiException
+
+from gateway.point_buffer import PointBuffer
+from gateway.timeseries import Point
+
+log = logging.getLogger(__name__)
+
+REJECTED_STATUS = {400, 422}  # the request itself is wrong: retrying cannot help
+MAX_TIME_NS = 9_223_372_036_854_775_806  # the largest time InfluxDB stores
+
+
+class WriteError(RuntimeError):
+    """A write did not reach InfluxDB (server down, timeout, 5xx, auth): retry later."""
+
+
+class WriteRejectedError(WriteError):
+    """InfluxDB refused the points themselves (HTTP 400/422): retrying cannot help.
+
+    ``dropped`` is how many points of the batch the server dropped, when it says
+    (a partial write: it stored the others); ``None`` when it does not.
+    """
+
+    def __init__(self, message: str, dropped: int | None = None) -> None:
+        super().__init__(message)
+        self.dropped = dropped
+
+
+def to_influx(point: Point) -> InfluxPoint:
+    influx = InfluxPoint(point.measurement)
+    for key, value in point.tags.items():
+        influx.tag(key, value)
+    for key, value in point.fields.items():
+        influx.field(key, value)
+    return influx.time(point.time_ns, WritePrecision.NS)
+
+
+def _describe(exc: BaseException) -> str:
+    if isinstance(exc, ApiException):
+        reason = exc.headers.get("X-Influxdb-Error") if exc.headers else None
+        return f"HTTP {exc.status}: {reason or exc.reason or exc.body}"
+    return f"{type(exc).__name__}: {exc}"
+
+
+class InfluxWriter:
+    """Writes points to one InfluxDB bucket; :meth:`write` raises :class:`WriteError`."""
+
+    def __init__(
+        self, url: str, token: str, org: str, bucket: str, timeout_s: float = 10.0
+    ) -> None:
+        self.url = url
+        self.org = org
+        self.bucket = bucket
+        self.timeout_s = timeout_s
+        # retries=False: no hidden urllib3 retries; the Forwarder decides when to retry.
+        self._client = InfluxDBClient(
+            url=url, token=token, org=org, timeout=int(timeout_s * 1000), retries=False
+        )
+        self._write_api = self._client.write_api(write_options=SYNCHRONOUS)
+
+    def write_sync(self, points: Sequence[Point]) -> None:
+        """Write a batch, blocking; return only once InfluxDB acknowledged it."""
+        if not points:
+            return
+        records = [to_influx(p) for p in points]
+        try:
+            self._write_api.write(
+                bucket=self.bucket, org=self.org, record=records, write_precision=WritePrecision.NS
+            )
+        except ApiException as exc:
+            message = f"InfluxDB {self.url} refused {len(points)} point(s): {_describe(exc)}"
+            if exc.status in REJECTED_STATUS:
+                found = re.search(r"dropped=(\d+)", message)
+                dropped = int(found.group(1)) if found else None
+                raise WriteRejectedError(message, dropped) from exc
+            raise WriteError(message) from exc
+        except Exception as exc:  # urllib3 connection errors, timeouts, …
+            raise WriteError(
+                f"InfluxDB {self.url} unreachable ({len(points)} point(s)): {_describe(exc)}"
+            ) from exc
+
+    async def write(self, points: Sequence[Point]) -> None:
+        """:meth:`write_sync` in a worker thread."""
+        await asyncio.to_thread(self.write_sync, list(points))
+
+    def close(self) -> None:
+        self._write_api.close()
+        self._client.close()
+
+
+class InfluxReader:
+    """Reads points back with Flux (the ``query`` of :class:`gateway.export.PointSource`)."""
+
+    def __init__(
+        self, url: str, token: str, org: str, bucket: str, timeout_s: float = 30.0
+    ) -> None:
+        self.bucket = bucket
+        self.org = org
+        self._client = InfluxDBClient(url=url, token=token, org=org, timeout=int(timeout_s * 1000))
+        self._query_api = self._client.query_api()
+
+    def flux(
+        self,
+        measurement: str,
+        machine: str | None = None,
+        start_ns: int | None = None,
+        stop_ns: int | None = None,
+    ) -> str:
+        start = 0 if start_ns is None else int(start_ns)
+        stop = MAX_TIME_NS if stop_ns is None else int(stop_ns)
+        machine_filter = (
+            ""
+            if machine is None
+            else f"\n  |> filter(fn: (r) => r.machine == {_flux_string(machine)})"
+        )
+        # int(v: r._time) keeps the nanoseconds (the client parses _time to µs datetimes).
+        return (
+            f"from(bucket: {_flux_string(self.bucket)})\n"
+            f"  |> range(start: time(v: {start}), stop: time(v: {stop}))\n"
+            f"  |> filter(fn: (r) => r._measurement == {_flux_string(measurement)})"
+            f"{machine_filter}\n"
+            '  |> pivot(rowKey: ["_time"], columnKey: ["_field"], valueColumn: "_value")\n'
+            "  |> map(fn: (r) => ({r with _time_ns: int(v: r._time)}))"
+        )
+
+    def query(
+        self,
+        measurement: str,
+        machine: str | None = None,
+        start_ns: int | None = None,
+        stop_ns: int | None = None,
+    ) -> list[Point]:
+        """Points of ``measurement`` (of ``machine``), ``start_ns ≤ time < stop_ns``, by time."""
+        tables = self._query_api.query(
+            self.flux(measurement, machine, start_ns, stop_ns), org=self.org
+        )
+        points = []
+        for table in tables:
+            tag_names = [
+                c.label
+                for c in table.columns
+                if c.group and not c.label.startswith("_") and c.label not in ("result", "table")
+            ]
+            for record in table.records:
+                values = record.values
+                tags = {
+                    name: str(values[name]) for name in tag_names if values.get(name) is not None
+                }
+                fields = {
+                    k: v
+                    for k, v in values.items()
+                    if v is not None
+                    and not k.startswith("_")
+                    and k not in ("result", "table")
+                    and k not in tag_names
+                }
+                points.append(Point(measurement, tags, fields, int(values["_time_ns"])))
+        points.sort(key=lambda p: (p.time_ns, sorted(p.tags.items())))
+        return points
+
+    def close(self) -> None:
+        self._client.close()
+
+
+def _flux_string(text: str) -> str:
+    escaped = text.replace("\\", "\\\\").replace('"', '\\"').replace("${", "\\${")
+    return f'"{escaped}"'
+
+
+class PointWriter(Protocol):
+    async def write(self, points: Sequence[Point]) -> None: ...
+
+
+class Forwarder:
+    """Moves points from a :class:`PointBuffer` to a writer, in order, until stopped.
+
+    Args:
+        buffer: the store-and-forward buffer.
+        writer: anything with ``async write(points)`` that raises on failure
+            (:class:`InfluxWriter`); :class:`WriteRejectedError` drops the batch.
+        batch: the most points per write.
+        retry_s: the first wait after a failure; doubled per failure up to
+            ``max_retry_s``; back to ``retry_s`` after a success.
+        idle_s: how often an empty buffer is looked at (or call :meth:`wake`).
+    """
+
+    def __init__(
+        self,
+        buffer: PointBuffer,
+        writer: PointWriter,
+        batch: int = 5000,
+        retry_s: float = 1.0,
+        max_retry_s: float = 60.0,
+        idle_s: float = 1.0,
+    ) -> None:
+        if batch < 1:
+            raise ValueError(f"batch must be at least 1, got {batch}")
+        self.buffer = buffer
+        self.writer = writer
+        self.batch = batch
+        self.retry_s = retry_s
+        self.max_retry_s = max_retry_s
+        self.idle_s = idle_s
+        self.sent = 0
+        self.rejected = 0
+        self.failures = 0
+        self.last_error: str | None = None
+        self.last_error_time: float | None = None
+        self.last_success_time: float | None = None
+        self._wake = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self._down = False
+
+    # --- lifecycle ----------------------------------------------------------------------
+    def start(self) -> asyncio.Task[None]:
+        if self._task is None or self._task.done():
+            self._task = asyncio.create_task(self.run(), name="influx-forwarder")
+        return self._task
+
+    async def stop(self) -> None:
+        """Cancel the task; an unacknowledged batch stays in the buffer for the next start."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    def wake(self) -> None:
+        """Look at the buffer now (e.g. after an append) instead of after ``idle_s``."""
+        self._wake.set()
+
+    async def flush(self, timeout: float) -> bool:
+        """Wait until the buffer is empty; False after ``timeout`` seconds (nothing lost)."""
+        deadline = time.monotonic() + timeout
+        while len(self.buffer):
+            if self._task is None or self._task.done():
+                raise RuntimeError("the forwarder is not running")
+            if time.monotonic() >= deadline:
+                return False
+            self.wake()
+            await asyncio.sleep(min(0.05, max(0.0, deadline - time.monotonic())))
+        return True
+
+    def health(self) -> dict:
+        return {
+            "running": self._task is not None and not self._task.done(),
+            "connected": not self._down,
+            "buffered": len(self.buffer),
+            "dropped": self.buffer.dropped,
+            "rejected": self.rejected,
+            "sent": self.sent,
+            "failures": self.failures,
+            "last_error": self.last_error,
+            "last_error_time": self.last_error_time,
+            "last_success_time": self.last_success_time,
+        }
+
+    # --- the task -----------------------------------------------------------------------
+    async def run(self) -> None:
+        wait_s = self.retry_s
+        while True:
+            batch = self.buffer.peek(self.batch)
+            if not batch:
+                await self._idle(self.idle_s)
+                continue
+            points = [point for _, point in batch]
+            try:
+                await self.writer.write(points)
+            except WriteRejectedError as exc:
+                self.rejected += len(points) if exc.dropped is None else exc.dropped
+                self._record_error(exc)
+                log.error("dropping %d point(s) InfluxDB refused: %s", len(points), exc)
+                self.buffer.remove_through(batch[-1][0])
+                continue
+            except Exception as exc:
+                self.failures += 1
+                self._record_error(exc)
+                if not self._down:
+                    log.warning(
+                        "InfluxDB write failed, keeping %d point(s) buffered, retrying: %s",
+                        len(self.buffer),
+                        exc,
+                    )
+                self._down = True
+                await asyncio.sleep(wait_s)  # not cut short by wake(): back-off holds
+                wait_s = min(self.max_retry_s, wait_s * 2)
+                continue
+            self.buffer.remove_through(batch[-1][0])
+            self.sent += len(points)
+            self.last_success_time = time.time()
+            wait_s = self.retry_s
+            if self._down:
+                log.info("InfluxDB writes succeed again; %d point(s) buffered", len(self.buffer))
+                self._down = False
+
+    def _record_error(self, exc: BaseException) -> None:
+        self.last_error = str(exc)
+        self.last_error_time = time.time()
+
+    async def _idle(self, seconds: float) -> None:
+        self._wake.clear()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._wake.wait(), timeout=seconds)

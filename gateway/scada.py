@@ -1,0 +1,650 @@
+"""The gateway's OPC UA server for the plant's SCADA: live values out, one switch in.
+
+Per machine, SCADA reads what the compensation loop measured and decided (the
+temperatures with their quality, speed, regime, model, predicted and applied
+compensation, health counters) and may switch the compensation on or off. The
+address space, units and examples are in ``gateway/SCADA.md``.
+
+Security (asyncua's defaults are open, so every layer is set explicitly):
+
+* one endpoint, Basic256Sha256 SignAndEncrypt; no ``None`` endpoint. asyncua
+  still answers GetEndpoints on an unsecured channel (discovery needs that), but
+  a session on such a channel is never activated: the user manager requires the
+  client certificate of the secure channel;
+* client certificates: a self-signed server certificate is created in
+  ``pki_dir`` on first start and reused afterwards. A client's certificate must
+  be in ``pki_dir/trusted`` (``.der`` or ``.pem``; checked at every
+  CreateSession, so copying one there needs no restart) unless
+  ``trust_all_clients``; an untrusted one is refused (BadCertificateUntrusted) and
+  saved in ``pki_dir/rejected`` for an engineer to review and move;
+* identity: user name and password checked against :class:`ScadaUser` (constant-
+  time compare); anonymous only if ``allow_anonymous``, and then read-only;
+* authorisation: only operators may send Write requests (viewers and anonymous
+  get BadUserAccessDenied and nothing changes); the only writable node is each
+  machine's ``CompensationEnabled``. An operator's write calls
+  ``on_enable(machine, enabled)`` inside the Write service: the client's ``Good``
+  means the gateway has taken it.
+
+Life cycle: construct (no I/O), ``await start()``, ``await publish(record,
+health)`` after every cycle (or ``publish_soon`` from a synchronous sink),
+``await stop()``; or ``async with``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import logging
+import math
+import re
+import socket
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from types import TracebackType
+from typing import Any, Literal
+
+from asyncua import Node, Server, ua
+from asyncua.common.utils import ServiceError
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from asyncua.crypto.permission_rules import USER_TYPES, PermissionRuleset, User, UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+from asyncua.server.address_space import NodeData
+from asyncua.server.user_managers import UserManager
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.serialization import Encoding
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from gateway.runtime import CycleRecord
+
+_logger = logging.getLogger(__name__)
+
+NAMESPACE = "urn:spindle-gateway:scada"
+
+SERVER_CERT = "server_cert.der"
+SERVER_KEY = "server_key.pem"
+TRUSTED_DIR = "trusted"
+REJECTED_DIR = "rejected"
+CRL_DIR = "crl"
+
+# -- units (UNECE Rec. 20 codes as OPC UA EUInformation, Part 8 §5.6.3) ---------------
+_UNECE = "http://www.opcfoundation.org/UA/units/un/cefact"
+
+
+def _eu(code: str, symbol: str, description: str) -> ua.EUInformation:
+    unit_id = 0
+    for char in code:
+        unit_id = (unit_id << 8) | ord(char)
+    return ua.EUInformation(
+        NamespaceUri=_UNECE,
+        UnitId=unit_id,
+        DisplayName=ua.LocalizedText(symbol),
+        Description=ua.LocalizedText(description),
+    )
+
+
+_CELSIUS = _eu("CEL", "°C", "degree Celsius")
+_RPM = _eu("RPM", "r/min", "revolutions per minute")
+_MICROMETRE = _eu("4H", "µm", "micrometre")
+
+
+# -- settings -------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ScadaUser:
+    """A SCADA account: operators may switch compensation on/off, viewers only read."""
+
+    username: str
+    password: str = field(repr=False)
+    role: Literal["operator", "viewer"]
+
+    def __post_init__(self) -> None:
+        if not self.username:
+            raise ValueError("username must not be empty")
+        if not self.password:
+            raise ValueError(f"user {self.username!r} needs a password")
+        if self.role not in ("operator", "viewer"):
+            raise ValueError(f"role of {self.username!r} must be 'operator' or 'viewer'")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ScadaSettings:
+    """Where and how the SCADA server listens (see the module docstring for security).
+
+    ``pki_dir`` keeps the server certificate (``server_cert.der``) and key
+    (``server_key.pem``), the trusted client certificates (``trusted/``), refused
+    ones (``rejected/``) and optional revocation lists (``crl/``).
+    """
+
+    port: int
+    pki_dir: Path
+    users: tuple[ScadaUser, ...] = ()
+    host: str = "127.0.0.1"
+    allow_anonymous: bool = False
+    application_uri: str = NAMESPACE
+    trust_all_clients: bool = False
+
+    def __post_init__(self) -> None:
+        if not 0 < self.port < 65536:
+            raise ValueError(f"port {self.port} is not a TCP port")
+        object.__setattr__(self, "pki_dir", Path(self.pki_dir))
+        object.__setattr__(self, "users", tuple(self.users))
+        names = [u.username for u in self.users]
+        if len(set(names)) != len(names):
+            raise ValueError(f"user names must be unique, got {names}")
+
+
+def health_of(loop: Any) -> dict[str, int | bool]:
+    """The ``health`` mapping for :meth:`ScadaServer.publish` from a ``MachineLoop``."""
+    return {
+        "failed_writes": int(loop.failed_writes),
+        "cycles": int(loop.cycles),
+        "compensation_enabled": bool(loop.compensation_enabled),
+    }
+
+
+# -- identities and permissions -------------------------------------------------------
+
+
+@dataclass
+class _SessionUser(User):
+    """asyncua's session user plus whether this identity may write."""
+
+    may_write: bool = False
+
+
+_NO_VIEWER = {
+    ua.ObjectIds.WriteRequest_Encoding_DefaultBinary,
+    ua.ObjectIds.CallRequest_Encoding_DefaultBinary,
+}
+_OPERATOR_REQUESTS = frozenset(ua.NodeId(t) for t in USER_TYPES)
+_VIEWER_REQUESTS = frozenset(ua.NodeId(t) for t in USER_TYPES if t not in _NO_VIEWER)
+
+
+class _RoleRuleset(PermissionRuleset):
+    """Per request type: operators may read, subscribe and write; others only read."""
+
+    def check_validity(self, user: Any, action_type_id: ua.NodeId, body: Any) -> bool:
+        if not isinstance(user, _SessionUser):  # a session that was never activated
+            return False
+        allowed = _OPERATOR_REQUESTS if user.may_write else _VIEWER_REQUESTS
+        return action_type_id in allowed
+
+
+class _ClientTrust:
+    """Certificate check at CreateSession (asyncua's certificate validator hook).
+
+    Remembers the certificates it admitted, so the user manager can refuse a
+    session whose secure channel was opened with any other one (or none).
+    """
+
+    def __init__(self, pki_dir: Path, trust_all: bool) -> None:
+        self._trusted = pki_dir / TRUSTED_DIR
+        self._rejected = pki_dir / REJECTED_DIR
+        self._crl = pki_dir / CRL_DIR
+        self._trust_all = trust_all
+        self._admitted: set[bytes] = set()
+
+    def admitted(self, certificate_der: bytes) -> bool:
+        return bytes(certificate_der) in self._admitted
+
+    async def __call__(self, cert: x509.Certificate, app: ua.ApplicationDescription) -> None:
+        der = cert.public_bytes(Encoding.DER)
+        self._admitted.discard(der)
+        options = CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.URI
+        store: TrustStore | None = None
+        if not self._trust_all:
+            options |= CertificateValidatorOptions.TRUSTED | CertificateValidatorOptions.REVOKED
+            # Reloaded at every session: a certificate copied into trusted/ counts at once.
+            if any(self._trusted.glob("*.*")):
+                store = TrustStore([self._trusted], [self._crl])
+                await store.load()
+        try:
+            if not self._trust_all and store is None:
+                raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
+            await CertificateValidator(options, store).validate(cert, app)
+        except ServiceError as err:
+            name = ua.StatusCode(err.code).name
+            subject = _common_name(cert)
+            if err.code == ua.StatusCodes.BadCertificateUntrusted:
+                path = self._save_rejected(cert, der)
+                _logger.warning(
+                    "SCADA client %r (%s) refused: certificate not trusted, saved as %s; "
+                    "move it to %s to trust it",
+                    subject,
+                    app.ApplicationUri,
+                    path,
+                    self._trusted,
+                )
+            else:
+                _logger.warning("SCADA client %r refused: %s", subject, name)
+            raise
+        self._admitted.add(der)
+
+    def _save_rejected(self, cert: x509.Certificate, der: bytes) -> Path:
+        # The SHA-1 thumbprint is how OPC UA tools name a certificate (an id, not a hash).
+        thumbprint = cert.fingerprint(hashes.SHA1()).hex()
+        label = re.sub(r"[^A-Za-z0-9_.-]+", "_", _common_name(cert))[:60]
+        path = self._rejected / f"{label}_{thumbprint}.der"
+        path.write_bytes(der)
+        return path
+
+
+def _common_name(cert: x509.Certificate) -> str:
+    names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    return str(names[0].value) if names else "?"
+
+
+class _UserManager(UserManager):
+    """asyncua user manager: secure channel + trusted certificate + password → role."""
+
+    def __init__(self, users: Sequence[ScadaUser], allow_anonymous: bool, trust: _ClientTrust):
+        self._users = {u.username: u for u in users}
+        self._allow_anonymous = allow_anonymous
+        self._trust = trust
+
+    def get_user(
+        self,
+        iserver: Any,
+        username: str | None = None,
+        password: str | None = None,
+        certificate: Any = None,
+    ) -> User | None:
+        if certificate is None or not self._trust.admitted(certificate):
+            # An unsecured channel (no certificate) or one that CreateSession did not admit.
+            _logger.warning("SCADA session refused: no admitted client certificate on the channel")
+            return None
+        if username is None:  # anonymous token (offered only when allow_anonymous)
+            if self._allow_anonymous:
+                return _SessionUser(role=UserRole.Anonymous, name="anonymous", may_write=False)
+            return None
+        user = self._users.get(username)
+        expected = (user.password if user is not None else "\0 no such user").encode()
+        given = (password or "").encode()
+        if user is None or not hmac.compare_digest(given, expected):
+            _logger.warning("SCADA login refused for user %r", username)
+            return None
+        return _SessionUser(
+            role=UserRole.User, name=user.username, may_write=user.role == "operator"
+        )
+
+
+# -- the server -----------------------------------------------------------------------
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def _dv(variant: ua.Variant, status: int = ua.StatusCodes.Good) -> ua.DataValue:
+    now = _now()
+    return ua.DataValue(
+        variant, StatusCode=ua.StatusCode(status), SourceTimestamp=now, ServerTimestamp=now
+    )
+
+
+def _double(value: float | None, missing: int = ua.StatusCodes.BadNoData) -> ua.DataValue:
+    if value is None or not math.isfinite(value):
+        return _dv(ua.Variant(math.nan, ua.VariantType.Double), missing)
+    return _dv(ua.Variant(float(value), ua.VariantType.Double))
+
+
+def _string(value: str | None) -> ua.DataValue:
+    return _dv(ua.Variant(value or "", ua.VariantType.String))
+
+
+def _uint32(value: float | int | str) -> ua.DataValue:
+    count = min(max(int(value), 0), 2**32 - 1)
+    return _dv(ua.Variant(count, ua.VariantType.UInt32))
+
+
+def _temperature(value: float | None, quality: str | None, reason: str | None) -> ua.DataValue:
+    """A temperature with its quality as the StatusCode (Bad values read as null)."""
+    if value is None or not math.isfinite(value):
+        status = ua.StatusCodes.BadSensorFailure if quality == "bad" else ua.StatusCodes.BadNoData
+    elif quality == "good":
+        status = ua.StatusCodes.Good
+    elif reason is not None and reason.startswith("recovering"):
+        status = ua.StatusCodes.Uncertain  # plausible again, not yet trusted
+    else:
+        status = ua.StatusCodes.BadSensorFailure
+    shown = value if value is not None else math.nan
+    return _dv(ua.Variant(float(shown), ua.VariantType.Double), status)
+
+
+class ScadaServer:
+    """The secured OPC UA server SCADA connects to (address space in ``SCADA.md``).
+
+    ``machines`` lists the machine ids, or maps each id to its sensor names so the
+    temperature nodes exist from the start (a sensor first seen in a record gets
+    its node then). ``on_enable(machine, enabled)`` is called for every write to a
+    ``CompensationEnabled`` node that an operator makes; if it raises, the write
+    fails (BadInternalError) and the node keeps its value.
+    """
+
+    def __init__(
+        self,
+        settings: ScadaSettings,
+        machines: Sequence[str] | Mapping[str, Sequence[str]],
+        on_enable: Callable[[str, bool], None],
+    ) -> None:
+        if isinstance(machines, Mapping):
+            sensors = {str(m): tuple(s) for m, s in machines.items()}
+        else:
+            sensors = {str(m): () for m in machines}
+        if not sensors:
+            raise ValueError("at least one machine is needed")
+        if len(sensors) != len(machines):
+            raise ValueError(f"machine ids must be unique, got {list(machines)}")
+        if any(not m or m == "Machines" for m in sensors):
+            raise ValueError(f"invalid machine id in {list(sensors)}")
+        self._settings = settings
+        self._sensors = sensors
+        self._on_enable = on_enable
+        self._server: Server | None = None
+        self._ns: int | None = None
+        self._nodeids: dict[str, ua.NodeId] = {}
+        self._temperature_parent: dict[str, Node] = {}
+        self._machine_of_switch: dict[ua.NodeId, str] = {}
+        # The DataValue publish() is writing right now: the switch's setter sees it
+        # synchronously and must not take it for a client's write.
+        self._publishing: ua.DataValue | None = None
+        self._lock = asyncio.Lock()
+        self._tasks: set[asyncio.Task[None]] = set()
+
+    # -- public API -------------------------------------------------------------------
+
+    @property
+    def endpoint(self) -> str:
+        return f"opc.tcp://{self._settings.host}:{self._settings.port}/scada"
+
+    @property
+    def namespace_index(self) -> int:
+        if self._ns is None:
+            raise RuntimeError("the namespace index is known only after start()")
+        return self._ns
+
+    @property
+    def certificate_file(self) -> Path:
+        return self._settings.pki_dir / SERVER_CERT
+
+    @staticmethod
+    def node_id(machine: str, name: str) -> str:
+        """String node id of a machine variable, e.g. ``vmc-1.SpeedRpm``."""
+        return f"{machine}.{name}"
+
+    async def start(self) -> None:
+        """Create or load the certificate, build the address space, then listen."""
+        if self._server is not None:
+            raise RuntimeError("server already started")
+        settings = self._settings
+        trust = _ClientTrust(settings.pki_dir, settings.trust_all_clients)
+        await self._ensure_certificate()
+        server = Server(user_manager=_UserManager(settings.users, settings.allow_anonymous, trust))
+        await server.init()
+        server.set_endpoint(self.endpoint)
+        server.set_server_name("Spindle thermal compensation gateway (SCADA)")
+        server.application_type = ua.ApplicationType.Server
+        await server.set_application_uri(settings.application_uri)
+        await server.load_certificate(str(settings.pki_dir / SERVER_CERT))
+        await server.load_private_key(str(settings.pki_dir / SERVER_KEY))
+        server.set_security_policy(
+            [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt],
+            permission_ruleset=_RoleRuleset(),  # type: ignore[arg-type]
+        )
+        tokens: list[type] = [ua.UserNameIdentityToken]
+        if settings.allow_anonymous:
+            tokens.append(ua.AnonymousIdentityToken)
+        server.set_identity_tokens(tokens)
+        server.allow_remote_admin(False)
+        server.set_certificate_validator(trust)
+        self._ns = await server.register_namespace(NAMESPACE)
+        self._server = server
+        try:
+            await self._build_address_space(server)
+            await server.start()
+        except BaseException:
+            self._server = None
+            await server.stop()
+            raise
+        _logger.info("SCADA OPC UA server on %s", self.endpoint)
+
+    async def stop(self) -> None:
+        """Close client connections and the listening socket (idempotent)."""
+        server, self._server = self._server, None
+        for task in list(self._tasks):
+            task.cancel()
+        if server is not None:
+            await server.stop()
+
+    async def publish(self, record: CycleRecord, health: Mapping[str, float | int | str]) -> None:
+        """Show one cycle's record and the loop's health counters.
+
+        ``health`` keys: ``failed_writes`` and ``cycles`` (counts) and
+        ``compensation_enabled`` (the loop's current switch state); see
+        :func:`health_of`. Missing keys leave their nodes as they are.
+        """
+        server = self._require_started()
+        machine = record.machine
+        if machine not in self._sensors:
+            raise KeyError(f"machine {machine!r} is not served (known: {list(self._sensors)})")
+        async with self._lock:
+            for sensor in record.temperatures_C:
+                if self.node_id(machine, f"Temperatures.{sensor}") not in self._nodeids:
+                    await self._add_temperature(machine, sensor)
+            values: list[tuple[str, ua.DataValue]] = [
+                (
+                    f"Temperatures.{sensor}",
+                    _temperature(
+                        value, record.quality.get(sensor), record.quality_reasons.get(sensor)
+                    ),
+                )
+                for sensor, value in record.temperatures_C.items()
+            ]
+            values += [
+                ("SpeedRpm", _double(record.speed_rpm, ua.StatusCodes.BadNoCommunication)),
+                ("Regime", _string(record.regime)),
+                ("ModelId", _string(record.model_id)),
+                ("PredictedUm", _double(record.predicted_um)),
+                ("CompensationUm", _double(record.applied_um)),
+                ("LastWriteStatus", _string(record.write_status)),
+                ("Health.LinkErrors", _uint32(len(record.link_errors))),
+            ]
+            if "failed_writes" in health:
+                values.append(("Health.FailedWrites", _uint32(health["failed_writes"])))
+            if "cycles" in health:
+                values.append(("Health.Cycles", _uint32(health["cycles"])))
+            for name, datavalue in values:
+                await server.write_attribute_value(
+                    self._nodeids[self.node_id(machine, name)], datavalue
+                )
+            if "compensation_enabled" in health:
+                await self._show_enabled(machine, bool(health["compensation_enabled"]))
+
+    def publish_soon(
+        self, record: CycleRecord, health: Mapping[str, float | int | str]
+    ) -> asyncio.Task[None]:
+        """Schedule :meth:`publish` from synchronous code (a loop sink) on the running loop."""
+        task = asyncio.get_running_loop().create_task(self.publish(record, dict(health)))
+        self._tasks.add(task)
+        task.add_done_callback(self._publish_done)
+        return task
+
+    async def __aenter__(self) -> ScadaServer:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()
+
+    # -- internals --------------------------------------------------------------------
+
+    def _require_started(self) -> Server:
+        if self._server is None:
+            raise RuntimeError("server not started")
+        return self._server
+
+    def _publish_done(self, task: asyncio.Task[None]) -> None:
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            _logger.error("SCADA publish failed", exc_info=task.exception())
+
+    async def _ensure_certificate(self) -> None:
+        """Create the PKI folders and, on first start (or expiry), the server certificate."""
+        pki = self._settings.pki_dir
+        pki.mkdir(parents=True, exist_ok=True, mode=0o700)
+        for sub in (TRUSTED_DIR, REJECTED_DIR, CRL_DIR):
+            (pki / sub).mkdir(exist_ok=True, mode=0o700)
+        key_file = pki / SERVER_KEY
+        await setup_self_signed_certificate(
+            key_file,
+            pki / SERVER_CERT,
+            self._settings.application_uri,
+            socket.gethostname(),
+            [ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH],
+            {"organizationName": "spindle-gateway"},
+        )
+        key_file.chmod(0o600)
+
+    async def _build_address_space(self, server: Server) -> None:
+        machines = await self._object(server.nodes.objects, "Machines", "Machines", "CNC machines")
+        for machine, sensors in self._sensors.items():
+            obj = await self._object(machines, machine, machine, f"Machine {machine}")
+            temps = await self._object(
+                obj, f"{machine}.Temperatures", "Temperatures", "Spindle temperatures (°C)"
+            )
+            health = await self._object(
+                obj, f"{machine}.Health", "Health", "Gateway health counters"
+            )
+            self._temperature_parent[machine] = temps
+            for sensor in sensors:
+                await self._add_temperature(machine, sensor)
+
+            nan = ua.Variant(math.nan, ua.VariantType.Double)
+            text = ua.Variant("", ua.VariantType.String)
+            zero = ua.Variant(0, ua.VariantType.UInt32)
+            for parent, name, initial, description, unit in (
+                (obj, "SpeedRpm", nan, "Actual spindle speed", _RPM),
+                (obj, "Regime", text, "Speed regime (empty: none yet)", None),
+                (obj, "ModelId", text, "Model in use (empty: none)", None),
+                (obj, "PredictedUm", nan, "Predicted thermal Z error rise", _MICROMETRE),
+                (obj, "CompensationUm", nan, "Compensation applied by the CNC", _MICROMETRE),
+                (obj, "LastWriteStatus", text, "Outcome of the last CNC write", None),
+                (health, "Health.FailedWrites", zero, "CNC writes that failed", None),
+                (health, "Health.Cycles", zero, "Cycles run since start", None),
+                (health, "Health.LinkErrors", zero, "Link errors in the last cycle", None),
+            ):
+                await self._variable(parent, machine, name, initial, description, unit)
+
+            switch = await self._variable(
+                obj,
+                machine,
+                "CompensationEnabled",
+                ua.Variant(False, ua.VariantType.Boolean),
+                "Compensation on (true) or off (false); operators may write it",
+                None,
+            )
+            await switch.set_writable()
+            self._machine_of_switch[switch.nodeid] = machine
+            # asyncua calls the setter after its own checks (access level, Boolean type)
+            # in place of storing the value, synchronously within the Write service.
+            server.set_attribute_value_setter(switch.nodeid, self._set_enabled)
+
+    async def _object(self, parent: Node, nodeid: str, browse: str, description: str) -> Node:
+        node = await parent.add_object(
+            ua.NodeId(nodeid, self.namespace_index), ua.QualifiedName(browse, self.namespace_index)
+        )
+        await node.write_attribute(
+            ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+        )
+        return node
+
+    async def _variable(
+        self,
+        parent: Node,
+        machine: str,
+        name: str,
+        initial: ua.Variant,
+        description: str,
+        unit: ua.EUInformation | None,
+    ) -> Node:
+        ns = self.namespace_index
+        nodeid = self.node_id(machine, name)
+        node = await parent.add_variable(
+            ua.NodeId(nodeid, ns), ua.QualifiedName(name.rsplit(".", 1)[-1], ns), initial
+        )
+        await node.write_attribute(
+            ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+        )
+        if unit is not None:
+            await node.add_property(
+                ua.NodeId(f"{nodeid}.EngineeringUnits", ns),
+                ua.QualifiedName("EngineeringUnits", 0),
+                ua.Variant(unit, ua.VariantType.ExtensionObject),
+                datatype=ua.NodeId(ua.ObjectIds.EUInformation),
+            )
+        # No value until the first publish(): SCADA sees "waiting", not a fake zero.
+        await node.write_value(_dv(initial, ua.StatusCodes.BadWaitingForInitialData))
+        self._nodeids[nodeid] = node.nodeid
+        return node
+
+    async def _add_temperature(self, machine: str, sensor: str) -> None:
+        await self._variable(
+            self._temperature_parent[machine],
+            machine,
+            f"Temperatures.{sensor}",
+            ua.Variant(math.nan, ua.VariantType.Double),
+            f"Temperature {sensor}; StatusCode: Good, Uncertain (recovering) or Bad",
+            _CELSIUS,
+        )
+
+    async def _show_enabled(self, machine: str, enabled: bool) -> None:
+        server = self._require_started()
+        nodeid = self._nodeids[self.node_id(machine, "CompensationEnabled")]
+        current = server.read_attribute_value(nodeid)
+        if (
+            current.StatusCode is not None
+            and current.StatusCode.is_good()
+            and current.Value is not None
+            and current.Value.Value == enabled
+        ):
+            return  # unchanged: no needless data-change notification
+        datavalue = _dv(ua.Variant(enabled, ua.VariantType.Boolean))
+        self._publishing = datavalue
+        try:
+            await server.write_attribute_value(nodeid, datavalue)
+        finally:
+            self._publishing = None
+
+    def _set_enabled(self, node: NodeData, attr: ua.AttributeIds, value: ua.DataValue) -> None:
+        """Store the switch's new value; an operator's write goes to ``on_enable`` first.
+
+        Only operators reach this (the ruleset refuses other users' Write requests).
+        Raising a ``UaStatusCodeError`` makes asyncua answer the Write request with
+        that status, and the node keeps its old value.
+        """
+        attval = node.attributes[attr]
+        if value is self._publishing:
+            attval.value = value
+            return
+        variant = value.Value
+        if variant is None or variant.VariantType != ua.VariantType.Boolean:
+            raise ua.uaerrors.BadTypeMismatch()
+        machine = self._machine_of_switch[node.nodeid]
+        enabled = bool(variant.Value)
+        try:
+            self._on_enable(machine, enabled)
+        except Exception as err:
+            _logger.exception("on_enable(%r, %r) failed", machine, enabled)
+            raise ua.uaerrors.BadInternalError() from err
+        _logger.info("SCADA operator set %s compensation %s", machine, "on" if enabled else "off")
+        attval.value = _dv(ua.Variant(enabled, ua.VariantType.Boolean))

@@ -327,3 +327,69 @@ def test_export_from_influxdb_matches_the_local_store(
     assert text == (tmp_path / "local.csv").read_text(encoding="utf-8")
     runs = load_runs(tmp_path / "influx.csv")
     assert len(runs.run_ids) == 2 and runs.time_s[0] == 50.0
+
+
+KILLED_WRITER = """
+import sys
+sys.path.insert(0, {root!r})
+from gateway.point_buffer import PointBuffer
+from gateway.timeseries import points_from_record
+from tests.test_timeseries import EPOCH_S, make_records
+
+buffer = PointBuffer({path!r}, max_points=1_000_000)
+for i, record in enumerate(make_records("vmc-1", 5000, cycle_s=0.2)):
+    buffer.append(points_from_record(record, EPOCH_S))
+    print(i, flush=True)  # this cycle's points are in the buffer file
+"""
+
+
+def test_gateway_killed_during_outage_loses_nothing(
+    server: InfluxServer, bucket: str, tmp_path: Path
+) -> None:
+    """SIGKILL the process that buffers points (no clean shutdown), then replay."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    path = tmp_path / "buffer.sqlite"
+    root = str(Path(__file__).resolve().parent.parent)
+    child = subprocess.Popen(
+        [sys.executable, "-c", KILLED_WRITER.format(root=root, path=str(path))],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    acknowledged = -1
+    assert child.stdout is not None
+    for line in child.stdout:
+        acknowledged = int(line)
+        if acknowledged >= 400:
+            os.kill(child.pid, signal.SIGKILL)  # mid-stream: no close, no flush
+            break
+    child.wait(timeout=10)
+    assert child.returncode == -signal.SIGKILL
+
+    records = make_records("vmc-1", 5000, cycle_s=0.2)
+    buffer = PointBuffer(path, max_points=1_000_000)
+    kept = [p for _, p in buffer.peek(1_000_000)]
+    # Every acknowledged cycle survived the kill; at most the one in flight more.
+    counts = [
+        sum(len(points_from_record(r, EPOCH_S)) for r in records[:n])
+        for n in (acknowledged + 1, acknowledged + 2)
+    ]
+    assert len(kept) in counts
+    expected = [p for r in records for p in points_from_record(r, EPOCH_S)][: len(kept)]
+    assert kept == expected
+
+    async def replay() -> None:
+        writer = writer_for(server, bucket)
+        forwarder = forwarder_for(buffer, writer)
+        forwarder.start()
+        assert await forwarder.flush(timeout=30)
+        await forwarder.stop()
+        writer.close()
+
+    asyncio.run(replay())
+    assert len(buffer) == 0
+    buffer.close()
+    assert_stored_exactly(server, bucket, kept)

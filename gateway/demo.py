@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,8 +30,9 @@ import numpy as np
 
 from drivers.clock import AcceleratedClock, Clock, ManualClock
 from gateway.app import build_buses, build_cnc, load_bank
-from gateway.config import MachineSection
-from gateway.runtime import CycleRecord, MachineLoop
+from gateway.config import GatewayConfig, LoggingSection, MachineSection
+from gateway.outputs import Outputs
+from gateway.runtime import CycleRecord, MachineLoop, Sink
 from models.dataset import load_runs
 from models.features import prepare
 from models.fitting import fit_and_store, fit_sensor_fallbacks
@@ -152,10 +154,17 @@ class ClosedLoop:
         await asyncio.gather(self.loop.run(stop), watch())
 
 
-async def open_loop(plant: SimulatedPlant, machine: MachineSection, clock: Clock) -> ClosedLoop:
+async def open_loop(
+    plant: SimulatedPlant, machine: MachineSection, clock: Clock, sinks: Sequence[Sink] = ()
+) -> ClosedLoop:
     await plant.start()
     loop = MachineLoop(
-        machine, clock, build_buses(machine), build_cnc(machine, clock), load_bank(machine)
+        machine,
+        clock,
+        build_buses(machine),
+        build_cnc(machine, clock),
+        load_bank(machine),
+        sinks=sinks,
     )
     return ClosedLoop(plant, loop)
 
@@ -238,7 +247,15 @@ async def demo(
     # As on a real machine: the gateway is up and has its cold reference before the
     # operator presses cycle start (starting the servers takes minutes of machine time).
     plant.machine.schedule_program(float("inf"))
-    closed = await open_loop(plant, machine, clock)
+    # Logged as `run` logs, into the embedded local store (no server needed).
+    outputs = Outputs(
+        GatewayConfig(
+            machines=[machine],
+            state_dir=workdir / "state",
+            logging=LoggingSection(local_store=workdir / "points.sqlite"),
+        )
+    )
+    closed = await open_loop(plant, machine, clock, sinks=[outputs.sink])
     try:
         await closed.loop.run_cycle()
         plant.machine.schedule_program(plant.machine.time_s + machine.cycle_s)
@@ -246,6 +263,7 @@ async def demo(
     finally:
         await closed.loop.close()
         await plant.stop()
+        await outputs.stop()
     result = closed.trace.summary()
     result.update(
         {
@@ -266,6 +284,7 @@ async def demo(
         say(f"    {label:22s} peak {peak:6.2f}   RMSE {rmse:6.2f}")
     say(f"    peak reduced by {result['reduction_pct']:.1f} % over {result['cycles']} cycles")
     say(f"    per-cycle trace: {workdir / 'trace.csv'}")
+    say(f"    every cycle logged to the local store {workdir / 'points.sqlite'}")
     return result
 
 

@@ -42,7 +42,6 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
-from types import TracebackType
 from typing import Any, Literal
 
 from asyncua import Node, Server, ua
@@ -58,6 +57,7 @@ from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from drivers.opcua_common import CELSIUS, MICROMETRE, RPM, ServerLifecycle
 from gateway.runtime import CycleRecord
 
 _logger = logging.getLogger(__name__)
@@ -69,27 +69,6 @@ SERVER_KEY = "server_key.pem"
 TRUSTED_DIR = "trusted"
 REJECTED_DIR = "rejected"
 CRL_DIR = "crl"
-
-# -- units (UNECE Rec. 20 codes as OPC UA EUInformation, Part 8 §5.6.3) ---------------
-_UNECE = "http://www.opcfoundation.org/UA/units/un/cefact"
-
-
-def _eu(code: str, symbol: str, description: str) -> ua.EUInformation:
-    unit_id = 0
-    for char in code:
-        unit_id = (unit_id << 8) | ord(char)
-    return ua.EUInformation(
-        NamespaceUri=_UNECE,
-        UnitId=unit_id,
-        DisplayName=ua.LocalizedText(symbol),
-        Description=ua.LocalizedText(description),
-    )
-
-
-_CELSIUS = _eu("CEL", "°C", "degree Celsius")
-_RPM = _eu("RPM", "r/min", "revolutions per minute")
-_MICROMETRE = _eu("4H", "µm", "micrometre")
-
 
 # -- settings -------------------------------------------------------------------------
 
@@ -316,7 +295,7 @@ def _temperature(value: float | None, quality: str | None, reason: str | None) -
     return _dv(ua.Variant(float(shown), ua.VariantType.Double), status)
 
 
-class ScadaServer:
+class ScadaServer(ServerLifecycle):
     """The secured OPC UA server SCADA connects to (address space in ``SCADA.md``).
 
     ``machines`` lists the machine ids, or maps each id to its sensor names so the
@@ -379,8 +358,7 @@ class ScadaServer:
 
     async def start(self) -> None:
         """Create or load the certificate, build the address space, then listen."""
-        if self._server is not None:
-            raise RuntimeError("server already started")
+        self._refuse_second_start()
         settings = self._settings
         trust = _ClientTrust(settings.pki_dir, settings.trust_all_clients)
         await self._ensure_certificate()
@@ -403,23 +381,14 @@ class ScadaServer:
         server.allow_remote_admin(False)
         server.set_certificate_validator(trust)
         self._ns = await server.register_namespace(NAMESPACE)
-        self._server = server
-        try:
-            await self._build_address_space(server)
-            await server.start()
-        except BaseException:
-            self._server = None
-            await server.stop()
-            raise
+        await self._listen(server, self._build_address_space)
         _logger.info("SCADA OPC UA server on %s", self.endpoint)
 
     async def stop(self) -> None:
-        """Close client connections and the listening socket (idempotent)."""
-        server, self._server = self._server, None
+        """Cancel pending publishes, then close connections and the socket (idempotent)."""
         for task in list(self._tasks):
             task.cancel()
-        if server is not None:
-            await server.stop()
+        await super().stop()
 
     async def publish(self, record: CycleRecord, health: Mapping[str, float | int | str]) -> None:
         """Show one cycle's record and the loop's health counters.
@@ -474,24 +443,7 @@ class ScadaServer:
         task.add_done_callback(self._publish_done)
         return task
 
-    async def __aenter__(self) -> ScadaServer:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.stop()
-
     # -- internals --------------------------------------------------------------------
-
-    def _require_started(self) -> Server:
-        if self._server is None:
-            raise RuntimeError("server not started")
-        return self._server
 
     def _publish_done(self, task: asyncio.Task[None]) -> None:
         self._tasks.discard(task)
@@ -533,11 +485,11 @@ class ScadaServer:
             text = ua.Variant("", ua.VariantType.String)
             zero = ua.Variant(0, ua.VariantType.UInt32)
             for parent, name, initial, description, unit in (
-                (obj, "SpeedRpm", nan, "Actual spindle speed", _RPM),
+                (obj, "SpeedRpm", nan, "Actual spindle speed", RPM),
                 (obj, "Regime", text, "Speed regime (empty: none yet)", None),
                 (obj, "ModelId", text, "Model in use (empty: none)", None),
-                (obj, "PredictedUm", nan, "Predicted thermal Z error rise", _MICROMETRE),
-                (obj, "CompensationUm", nan, "Compensation applied by the CNC", _MICROMETRE),
+                (obj, "PredictedUm", nan, "Predicted thermal Z error rise", MICROMETRE),
+                (obj, "CompensationUm", nan, "Compensation applied by the CNC", MICROMETRE),
                 (obj, "LastWriteStatus", text, "Outcome of the last CNC write", None),
                 (health, "Health.FailedWrites", zero, "CNC writes that failed", None),
                 (health, "Health.Cycles", zero, "Cycles run since start", None),
@@ -604,7 +556,7 @@ class ScadaServer:
             f"Temperatures.{sensor}",
             ua.Variant(math.nan, ua.VariantType.Double),
             f"Temperature {sensor}; StatusCode: Good, Uncertain (recovering) or Bad",
-            _CELSIUS,
+            CELSIUS,
         )
 
     async def _show_enabled(self, machine: str, enabled: bool) -> None:

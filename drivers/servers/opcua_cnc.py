@@ -20,11 +20,11 @@ from __future__ import annotations
 import logging
 import math
 from datetime import UTC, datetime
-from types import TracebackType
 
 from asyncua import Node, Server, ua
 from asyncua.server.address_space import NodeData
 
+from drivers.opcua_common import MICROMETRE, RPM, SECOND, ServerLifecycle
 from simulator.link import MACRO_FIRST, MACRO_LAST, MachineLink, MachineSnapshot
 
 _logger = logging.getLogger(__name__)
@@ -38,31 +38,6 @@ RUN_MODE = "Cnc.RunMode"
 MACHINE_TIME = "Cnc.MachineTime"
 PROBE_ERROR = "Probe.Error"
 
-# UNECE Recommendation 20 unit codes, encoded as OPC UA EUInformation.UnitId
-# (Part 8, 5.6.3: the code's ASCII bytes packed into an Int32).
-_UNECE = "http://www.opcfoundation.org/UA/units/un/cefact"
-
-
-def _unece_id(code: str) -> int:
-    unit_id = 0
-    for char in code:
-        unit_id = (unit_id << 8) | ord(char)
-    return unit_id
-
-
-def _eu(code: str, symbol: str, description: str) -> ua.EUInformation:
-    return ua.EUInformation(
-        NamespaceUri=_UNECE,
-        UnitId=_unece_id(code),
-        DisplayName=ua.LocalizedText(symbol),
-        Description=ua.LocalizedText(description),
-    )
-
-
-_RPM = _eu("RPM", "r/min", "revolutions per minute")
-_SECOND = _eu("SEC", "s", "second")
-_MICROMETRE = _eu("4H", "µm", "micrometre")
-
 
 def _double(value: float) -> ua.Variant:
     return ua.Variant(float(value), ua.VariantType.Double)
@@ -73,7 +48,7 @@ def _same(a: float, b: float) -> bool:
     return a == b or (math.isnan(a) and math.isnan(b))
 
 
-class CncOpcUaServer:
+class CncOpcUaServer(ServerLifecycle):
     """An OPC UA server publishing one machine's state and taking macro writes.
 
     Life cycle: construct (no I/O), ``await start()``, call ``await publish()``
@@ -135,8 +110,7 @@ class CncOpcUaServer:
 
     async def start(self) -> None:
         """Build the address space, publish the first snapshot, then listen."""
-        if self._server is not None:
-            raise RuntimeError("server already started")
+        self._refuse_second_start()
         server = Server()
         await server.init()
         server.set_endpoint(self.endpoint)
@@ -149,22 +123,13 @@ class CncOpcUaServer:
         # read-only must stay read-only for every client.
         server.allow_remote_admin(False)
         self._ns = await server.register_namespace(self._namespace)
-        self._server = server
-        try:
+
+        async def prepare(server: Server) -> None:
             await self._build_address_space(server)
             await self.publish()
-            await server.start()
-        except BaseException:
-            self._server = None
-            await server.stop()
-            raise
-        _logger.info("simulated CNC OPC UA server on %s", self.endpoint)
 
-    async def stop(self) -> None:
-        """Close client connections and the listening socket (idempotent)."""
-        server, self._server = self._server, None
-        if server is not None:
-            await server.stop()
+        await self._listen(server, prepare)
+        _logger.info("simulated CNC OPC UA server on %s", self.endpoint)
 
     async def publish(self) -> None:
         """Copy the link's snapshot into the nodes.
@@ -197,24 +162,7 @@ class CncOpcUaServer:
             finally:
                 self._publishing = None
 
-    async def __aenter__(self) -> CncOpcUaServer:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.stop()
-
     # -- internals ----------------------------------------------------------------
-
-    def _require_started(self) -> Server:
-        if self._server is None:
-            raise RuntimeError("server not started")
-        return self._server
 
     @staticmethod
     def _datavalue(variant: ua.Variant) -> ua.DataValue:
@@ -273,17 +221,17 @@ class CncOpcUaServer:
         macros = await folder(cnc, "Macros", "Custom macro variables (retained common)")
 
         zero, nan = _double(0.0), _double(math.nan)
-        await variable(spindle, ACTUAL_SPEED, zero, "Actual spindle speed", _RPM)
-        await variable(spindle, COMMANDED_SPEED, zero, "Commanded spindle speed (S)", _RPM)
+        await variable(spindle, ACTUAL_SPEED, zero, "Actual spindle speed", RPM)
+        await variable(spindle, COMMANDED_SPEED, zero, "Commanded spindle speed (S)", RPM)
         await variable(
             control,
             RUN_MODE,
             ua.Variant(0, ua.VariantType.Int32),
             "Run mode: 0 STOP, 1 AUTO, 2 MDI, 3 JOG",
         )
-        await variable(control, MACHINE_TIME, zero, "Machine time since start", _SECOND)
+        await variable(control, MACHINE_TIME, zero, "Machine time since start", SECOND)
         await variable(
-            probe, PROBE_ERROR, nan, "Last probed Z error (NaN: no measurement)", _MICROMETRE
+            probe, PROBE_ERROR, nan, "Last probed Z error (NaN: no measurement)", MICROMETRE
         )
 
         for number in self._macro_numbers:

@@ -1,0 +1,95 @@
+"""What this project's OPC UA servers share: engineering units and the server life cycle.
+
+Used by the simulated CNC (``drivers.servers.opcua_cnc``) and the gateway's SCADA
+server (``gateway.scada``), so both encode units the same way and start, fail
+and stop the same way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+from types import TracebackType
+from typing import Self
+
+from asyncua import Server, ua
+
+# UNECE Recommendation 20 unit codes, encoded as OPC UA EUInformation.UnitId
+# (OPC UA Part 8, 5.6.3: the code's ASCII bytes packed into an Int32).
+UNECE_NAMESPACE = "http://www.opcfoundation.org/UA/units/un/cefact"
+
+
+def unece_unit_id(code: str) -> int:
+    unit_id = 0
+    for char in code:
+        unit_id = (unit_id << 8) | ord(char)
+    return unit_id
+
+
+def engineering_units(code: str, symbol: str, description: str) -> ua.EUInformation:
+    return ua.EUInformation(
+        NamespaceUri=UNECE_NAMESPACE,
+        UnitId=unece_unit_id(code),
+        DisplayName=ua.LocalizedText(symbol),
+        Description=ua.LocalizedText(description),
+    )
+
+
+CELSIUS = engineering_units("CEL", "°C", "degree Celsius")
+RPM = engineering_units("RPM", "r/min", "revolutions per minute")
+SECOND = engineering_units("SEC", "s", "second")
+MICROMETRE = engineering_units("4H", "µm", "micrometre")
+
+
+class ServerLifecycle:
+    """Start once, roll back a failed start, stop idempotently, ``async with``.
+
+    Subclasses configure an asyncua ``Server`` in their own ``start`` and hand it
+    to :meth:`_listen` with the code that fills its address space.
+    """
+
+    _server: Server | None = None
+
+    def _refuse_second_start(self) -> None:
+        if self._server is not None:
+            raise RuntimeError("server already started")
+
+    async def _listen(self, server: Server, prepare: Callable[[Server], Awaitable[None]]) -> None:
+        """Keep ``server``, run ``prepare`` (address space, first values), then listen.
+
+        If anything fails the server is stopped and forgotten, so nothing is left
+        half-started and ``start`` may be tried again.
+        """
+        self._server = server
+        try:
+            await prepare(server)
+            await server.start()
+        except BaseException:
+            self._server = None
+            await server.stop()
+            raise
+
+    async def stop(self) -> None:
+        """Close client connections and the listening socket (idempotent)."""
+        server, self._server = self._server, None
+        if server is not None:
+            await server.stop()
+
+    def _require_started(self) -> Server:
+        if self._server is None:
+            raise RuntimeError("server not started")
+        return self._server
+
+    async def start(self) -> None:
+        raise NotImplementedError
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()

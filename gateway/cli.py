@@ -514,3 +514,109 @@ def export(
         click.echo(
             f"note: {result.rows_without_probe} cycles had no probe measurement and were left out"
         )
+
+
+@main.command()
+@click.argument("data_csv", type=click.Path(path_type=Path))
+@click.option(
+    "--model",
+    "method",
+    type=click.Choice(sorted(METHODS)),
+    default="mlr",
+    show_default=True,
+    help="The declared model whose residual is analysed.",
+)
+@click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
+@click.option(
+    "--sensors", help="The model's declared temperature inputs, e.g. T1,T7 (default: every T<n>)."
+)
+@click.option(
+    "--reference",
+    type=click.Choice(POLICIES),
+    default="auto",
+    show_default=True,
+    help="Where rises are taken from (see models/references.py).",
+)
+@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@click.option(
+    "--report",
+    "report_dir",
+    type=click.Path(path_type=Path),
+    help="Write an HTML report with plots into this folder.",
+)
+@click.option(
+    "--store",
+    "store_dir",
+    type=click.Path(path_type=Path),
+    help="Save the augmented model here (sub-folder augmented/).",
+)
+@click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
+@input_errors_exit
+def analyze(
+    data_csv: Path,
+    method: str,
+    target: str,
+    sensors: str | None,
+    reference: str,
+    json_out: Path | None,
+    report_dir: Path | None,
+    store_dir: Path | None,
+    progress: bool | None,
+) -> None:
+    """Fit the model, trace its held-out residual to the effect it lacks, add it, compare."""
+    from dataclasses import replace
+
+    from models import augmented
+    from models.analysis import analyze as run_analysis
+    from models.store import data_fingerprint
+
+    sensor_list = parse_sensors(sensors)
+    data = load_runs(data_csv, target=target, sensors=sensor_list)
+    report_skipped(data)
+    prepared = prepare(data, sensor_list, reference)
+    show_progress = sys.stderr.isatty() if progress is None else progress
+    click.echo(
+        f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, "
+        f"{len(prepared.plan.recording_runs)} recording(s), target {target} (µm), "
+        f"model {method} on {','.join(prepared.inputs.sensors)} (°C)"
+    )
+    result, accepted, analysis = run_analysis(prepared, method, sensor_list, show_progress)
+    result = replace(
+        result,
+        data_fingerprint=data_fingerprint(prepared.inputs, prepared.error_um),
+        skipped_rows="; ".join(s.describe() for s in data.skipped) or None,
+    )
+    click.echo(f"validation: {result.validation}")
+    for step in result.steps:
+        click.echo(f"\nround {step.number}: held-out RMSE before {step.before.rmse_um:.3f} µm")
+        for c in sorted(step.candidates, key=lambda c: c.rmse_um):
+            params = ", ".join(f"{k}={v}" for k, v in c.params.items()) or "-"
+            mark = "*" if c.believed else " "
+            click.echo(
+                f" {mark} {c.effect:<14} {params:<22} RMSE {c.rmse_um:7.3f} µm  "
+                f"gain {c.gain_pct:6.1f} %  folds {c.folds_improved}/{c.folds}  "
+                f"p {c.p_value:9.3g}  {c.reason}"
+            )
+        click.echo(f" → {step.effect}" + (f" {step.params}" if step.params else ""))
+    gain = (
+        100.0 * (1 - result.after.rmse_um / result.before.rmse_um) if result.before.rmse_um else 0
+    )
+    click.echo(
+        f"\neffect: {result.effect}; steps: {' → '.join(result.effects) or 'none'}\n"
+        f"held-out RMSE {result.before.rmse_um:.3f} → {result.after.rmse_um:.3f} µm "
+        f"({gain:.1f} % less), max |e| {result.before.max_abs_um:.2f} → "
+        f"{result.after.max_abs_um:.2f} µm"
+    )
+    if store_dir is not None:
+        model_id = f"{method}-{target}-" + ("-".join(result.effects) or "none")
+        document = augmented.build_augmented_document(
+            analysis, accepted, result, model_id, __version__
+        )
+        path = augmented.save(document, store_dir)
+        result = replace(result, stored_model={"model_id": document["model_id"], "path": str(path)})
+        click.echo(f"saved {document['model_id']} → {path}")
+    if report_dir is not None:
+        from gateway.analysis_report import write_report
+
+        click.echo(f"wrote {write_report(result, report_dir)}")
+    write_json(json_out, result.as_dict())

@@ -92,6 +92,10 @@ class ThermalModel(ABC):
     """
 
     method: ClassVar[str]
+    #: True when ``design_matrix`` does not depend on the data the model was
+    #: fitted on (plain regression on declared inputs), so residual analysis can
+    #: share one design across validation folds.
+    fixed_design: ClassVar[bool] = False
 
     sensors_used_: tuple[str, ...]
 
@@ -139,6 +143,15 @@ class ThermalModel(ABC):
 
     @abstractmethod
     def _load_params(self, params: dict[str, Any]) -> None: ...
+
+    def design_matrix(self, inputs: ModelInputs) -> np.ndarray:
+        """(n, k) regression terms of the fitted model, without the intercept.
+
+        Every method here is linear in its coefficients once its structure
+        (chosen sensors, principal components) is fitted; residual analysis
+        refits those coefficients jointly with the terms of a candidate effect.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no linear design matrix")
 
     def input_units(self) -> dict[str, str]:
         """Unit of every input the fitted model reads (sensor rises and speed)."""

@@ -25,6 +25,7 @@ from models.sensor_selection import SensorSelection, select_sensors
 
 class GreyMlrModel(MlrModel):
     method = "grey-mlr"
+    fixed_design = False  # the chosen sensors depend on the data
 
     def __init__(
         self,

@@ -29,6 +29,7 @@ class MlrModel(ThermalModel):
     """Linear in the rises of the declared sensors (default: every input sensor)."""
 
     method = "mlr"
+    fixed_design = True
 
     def __init__(self, sensors: Sequence[str] | None = None) -> None:
         self.sensors = None if sensors is None else list(sensors)
@@ -45,6 +46,9 @@ class MlrModel(ThermalModel):
 
     def _predict(self, inputs: ModelInputs) -> np.ndarray:
         return self.intercept_um_ + inputs.columns(self.sensors_used_) @ self.coef_um_per_C_
+
+    def design_matrix(self, inputs: ModelInputs) -> np.ndarray:
+        return inputs.columns(self.sensors_used_)
 
     def fitted_params(self) -> dict[str, Any]:
         return {

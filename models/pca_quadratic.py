@@ -103,6 +103,9 @@ class PcaQuadraticModel(ThermalModel):
     def _predict(self, inputs: ModelInputs) -> np.ndarray:
         return quadratic_design(self._regressors(inputs)) @ self.coef_
 
+    def design_matrix(self, inputs: ModelInputs) -> np.ndarray:
+        return quadratic_design(self._regressors(inputs))[:, 1:]
+
     def fitted_params(self) -> dict[str, Any]:
         pca = self.pca_
         units = {name: SCORE_DESCRIPTION for name in self.input_names[:-1]}

@@ -1,0 +1,458 @@
+"""Residual analysis: which effect does the fitted model lack, and how much does adding it remove?
+
+The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
+
+1. Fit and validate on data the fit did not see (leave-one-run-out; one run is
+   cut into contiguous blocks, :func:`models.crossval.fold_labels`).
+2. Try every candidate family of :mod:`models.effect_terms`: its terms are added
+   to the model's own regression terms and all coefficients are refitted
+   jointly. A family's parameter (τ, sensor, origin) is chosen *inside* each
+   fold by an inner leave-one-out over that fold's training runs, so the
+   held-out run never steers the choice.
+3. A candidate is believed only when all of these hold (``RULES``):
+   - the pooled held-out RMSE falls by at least ``MIN_GAIN_PCT`` (10 %);
+   - the held-out RMSE falls in at least ``MIN_FOLD_SHARE`` (half) of the folds;
+   - on *every* training fold the partial F-test of its terms gives
+     p < ``ALPHA`` / (number of families tried in that round), Bonferroni.
+     Residuals of thermal data are strongly autocorrelated, so the F-test runs
+     on the prewhitened regression (Cochrane–Orcutt with ρ, the lag-1
+     autocorrelation of the held-out residuals). Without that correction
+     every candidate would look significant on a slow signal.
+   The believed candidate with the lowest held-out RMSE is added; the loop
+   repeats (each family once, ``unused_sensor`` once per sensor) until no
+   candidate is believed or ``MAX_STEPS`` effects are in.
+4. Nothing believed in the first round means the model lacks nothing this data
+   can show: ``none``, and the figures after equal those before.
+
+All the fitting is ordinary least squares from per-fold Gram matrices
+(ZᵀZ, Zᵀy), so trying a candidate costs one pass over the data however many
+folds and inner folds there are.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy import stats
+from tqdm import tqdm
+
+from models.analysis_result import AnalysisResult, CandidateResult, StepResult
+from models.crossval import fold_labels
+from models.effect_terms import EffectFamily, Variant, candidate_families
+from models.features import Prepared
+from models.metrics import accuracy
+from models.registry import make_model
+
+MIN_GAIN_PCT = 10.0
+MIN_FOLD_SHARE = 0.5
+ALPHA = 0.01
+MAX_STEPS = 4
+
+RULES = {
+    "min_gain_pct": MIN_GAIN_PCT,
+    "min_fold_share": MIN_FOLD_SHARE,
+    "alpha": ALPHA,
+    "alpha_correction": "Bonferroni over the families tried in a round",
+    "significance_test": (
+        "partial F-test of the added terms on every training fold, on the prewhitened "
+        "regression (Cochrane-Orcutt, rho = lag-1 autocorrelation of the held-out residuals)"
+    ),
+    "parameter_choice": "inner leave-one-out on each fold's training runs",
+    "max_steps": MAX_STEPS,
+}
+
+
+@dataclass(frozen=True)
+class Folds:
+    scheme: str
+    index: np.ndarray  # (n,) fold number of each row
+    names: tuple[str, ...]
+    rows: tuple[np.ndarray, ...]  # row indices of each fold
+
+    @classmethod
+    def of(cls, prepared: Prepared) -> Folds:
+        scheme, labels = fold_labels(prepared)
+        names = tuple(dict.fromkeys(labels))
+        number = {name: i for i, name in enumerate(names)}
+        index = np.array([number[label] for label in labels], dtype=int)
+        rows = tuple(np.flatnonzero(index == i) for i in range(len(names)))
+        return cls(scheme, index, names, rows)
+
+    @property
+    def count(self) -> int:
+        return len(self.names)
+
+
+@dataclass
+class Accepted:
+    """An effect in the model: its family, the variant each fold chose, the overall choice."""
+
+    family: EffectFamily
+    per_fold: list[int]
+    overall: int
+
+    @property
+    def params(self) -> dict[str, Any]:
+        return self.family.variants[self.overall].params
+
+
+@dataclass
+class Evaluation:
+    """Held-out result of the current model plus (optionally) one candidate family."""
+
+    predicted_um: np.ndarray
+    per_fold_sse: np.ndarray  # held-out SSE per fold
+    train_sse: np.ndarray  # training SSE per fold
+    train_n: np.ndarray  # training rows per fold
+    chosen: list[int]  # variant index per fold
+    n_columns: int  # columns of the full design (with intercept)
+    n_added: int  # columns the candidate adds
+
+
+class BaseDesigns:
+    """The declared model's regression terms, fitted per fold (or once, when fixed)."""
+
+    def __init__(
+        self, method: str, sensors: Sequence[str] | None, prepared: Prepared, folds: Folds
+    ):
+        self.method = method
+        self.sensors = None if sensors is None else list(sensors)
+        self.prepared = prepared
+        self.folds = folds
+        probe = make_model(method, self.sensors)
+        self.fixed = type(probe).fixed_design
+        if self.fixed:
+            self.models = [probe.fit(prepared.inputs, prepared.error_um)]
+        else:
+            self.models = []
+            for rows in folds.rows:
+                train = np.ones(prepared.data.n_samples, dtype=bool)
+                train[rows] = False
+                model = make_model(method, self.sensors)
+                self.models.append(model.fit(prepared.inputs.take(train), prepared.error_um[train]))
+        self._cache: dict[int, np.ndarray] = {}
+
+    @property
+    def used_sensors(self) -> tuple[str, ...]:
+        """Sensors any fold's model uses, in input order (lag candidates build on them)."""
+        used = {name for model in self.models for name in model.sensors_used_}
+        return tuple(name for name in self.prepared.inputs.sensors if name in used)
+
+    def group_of(self, fold: int) -> int:
+        return 0 if self.fixed else fold
+
+    def design(self, group: int) -> np.ndarray:
+        if group not in self._cache:
+            self._cache = {group: self.models[group].design_matrix(self.prepared.inputs)}
+        return self._cache[group]
+
+
+class ResidualAnalysis:
+    """Runs the loop of the module docstring on one prepared data set."""
+
+    def __init__(
+        self,
+        prepared: Prepared,
+        method: str = "mlr",
+        sensors: Sequence[str] | None = None,
+        progress: bool = False,
+    ) -> None:
+        self.prepared = prepared
+        self.method = method
+        self.y = prepared.error_um
+        self.folds = Folds.of(prepared)
+        self.progress = progress
+        self.base = BaseDesigns(method, sensors, prepared, self.folds)
+        self.families = candidate_families(prepared, self.base.used_sensors)
+
+    # ---- the loop -----------------------------------------------------------------
+
+    def run(self) -> tuple[list[StepResult], list[Accepted]]:
+        accepted: list[Accepted] = []
+        current = self.evaluate(accepted, None)
+        steps: list[StepResult] = []
+        while len(accepted) < MAX_STEPS:
+            families = self._open_families(accepted)
+            if not families:
+                break
+            tried = [(family, self.evaluate(accepted, family)) for family in self._bar(families)]
+            candidates = [
+                self._judge(family, ev, current, accepted, len(families)) for family, ev in tried
+            ]
+            believed = [i for i, c in enumerate(candidates) if c.believed]
+            before = accuracy(self.y, current.predicted_um)
+            if not believed:
+                steps.append(
+                    StepResult(
+                        len(steps) + 1,
+                        "none",
+                        {},
+                        before,
+                        before,
+                        tuple(candidates),
+                        current.predicted_um,
+                        current.predicted_um,
+                    )
+                )
+                break
+            best = min(believed, key=lambda i: candidates[i].rmse_um)
+            family, ev = tried[best]
+            overall = candidates[best]
+            choice = _overall_choice(ev, family)
+            variant = family.variants[choice]
+            accepted.append(Accepted(family, ev.chosen, choice))
+            steps.append(
+                StepResult(
+                    len(steps) + 1,
+                    family.effect,
+                    overall.params,
+                    before,
+                    accuracy(self.y, ev.predicted_um),
+                    tuple(candidates),
+                    current.predicted_um,
+                    ev.predicted_um,
+                    signal=_first_column(variant),
+                    signal_label=variant.signal_label,
+                )
+            )
+            current = ev
+        return steps, accepted
+
+    def _open_families(self, accepted: list[Accepted]) -> list[EffectFamily]:
+        """Families not yet in the model (``unused_sensor`` keeps its sensors not yet added)."""
+        done = {a.family.effect for a in accepted if a.family.effect != "unused_sensor"}
+        added_sensors = {
+            a.params.get("sensor") for a in accepted if a.family.effect == "unused_sensor"
+        }
+        open_: list[EffectFamily] = []
+        for family in self.families:
+            if family.effect in done:
+                continue
+            if family.effect == "unused_sensor":
+                variants = tuple(
+                    v for v in family.variants if v.params["sensor"] not in added_sensors
+                )
+                if not variants:
+                    continue
+                family = EffectFamily(family.effect, family.label, variants)
+            open_.append(family)
+        return open_
+
+    def _bar(self, families: list[EffectFamily]):
+        return tqdm(families, desc="candidate effects", disable=not self.progress, leave=False)
+
+    # ---- judging --------------------------------------------------------------------
+
+    def _judge(
+        self,
+        family: EffectFamily,
+        ev: Evaluation,
+        current: Evaluation,
+        accepted: list[Accepted],
+        n_families: int,
+    ) -> CandidateResult:
+        before = float(np.sqrt(current.per_fold_sse.sum() / self.y.size))
+        after = float(np.sqrt(ev.per_fold_sse.sum() / self.y.size))
+        gain = 100.0 * (1.0 - after / before) if before > 0 else 0.0
+        improved = int(np.sum(ev.per_fold_sse < current.per_fold_sse))
+        p_value = self._p_value(family, ev, accepted)
+        alpha = ALPHA / n_families
+        failures = []
+        if gain < MIN_GAIN_PCT:
+            failures.append(f"held-out RMSE falls {gain:.1f} % < {MIN_GAIN_PCT:g} %")
+        if improved < MIN_FOLD_SHARE * self.folds.count:
+            failures.append(f"improves {improved}/{self.folds.count} held-out folds")
+        if not p_value < alpha:
+            failures.append(f"p = {p_value:.3g} ≥ {alpha:.3g} on a training fold")
+        believed = not failures
+        reason = (
+            f"held-out RMSE −{gain:.1f} %, {improved}/{self.folds.count} folds better, "
+            f"p = {p_value:.3g} < {alpha:.3g}"
+            if believed
+            else "; ".join(failures)
+        )
+        choice = _overall_choice(ev, family)
+        return CandidateResult(
+            effect=family.effect,
+            params=family.variants[choice].params,
+            label=family.label,
+            rmse_um=after,
+            gain_pct=gain,
+            folds_improved=improved,
+            folds=self.folds.count,
+            p_value=p_value,
+            believed=believed,
+            reason=reason,
+            n_terms=ev.n_added,
+        )
+
+    def _p_value(self, family: EffectFamily, ev: Evaluation, accepted: list[Accepted]) -> float:
+        """Largest p over the training folds of the partial F-test of the added terms.
+
+        Thermal residuals are strongly autocorrelated, so the test is run on the
+        prewhitened regression (Cochrane–Orcutt): every column and the target
+        become x_t − ρ x_{t−1} within a fold, ρ the lag-1 autocorrelation of the
+        held-out residuals with the candidate. On the transformed rows the
+        classical F-test holds again.
+        """
+        rho = _lag1_autocorrelation(self.y - ev.predicted_um, self.folds.index)
+        keep = np.flatnonzero(self.folds.index[1:] == self.folds.index[:-1]) + 1
+        y_w = self.y[keep] - rho * self.y[keep - 1]
+        fold_w = self.folds.index[keep]
+        rows_w = [np.flatnonzero(fold_w == f) for f in range(self.folds.count)]
+        worst = 0.0
+        for f in range(self.folds.count):
+            z = self._design(accepted, f, family.variants[ev.chosen[f]])
+            z_w = z[keep] - rho * z[keep - 1]
+            train = np.concatenate([rows_w[s] for s in range(self.folds.count) if s != f])
+            full, restricted = z_w[train], z_w[train][:, : z.shape[1] - ev.n_added]
+            sse1 = _least_squares_sse(full, y_w[train])
+            sse0 = _least_squares_sse(restricted, y_w[train])
+            df2 = train.size - z.shape[1]
+            if df2 < 1 or sse1 <= 0 or ev.n_added == 0:
+                return 1.0
+            statistic = max(sse0 - sse1, 0.0) / ev.n_added / (sse1 / df2)
+            worst = max(worst, float(stats.f.sf(statistic, ev.n_added, df2)))
+        return worst
+
+    def _design(self, accepted: list[Accepted], fold: int, variant: Variant | None) -> np.ndarray:
+        columns = [np.ones((self.y.size, 1)), self.base.design(self.base.group_of(fold))]
+        columns += [a.family.variants[a.per_fold[fold]].build() for a in accepted]
+        if variant is not None:
+            columns.append(variant.build())
+        return np.column_stack(columns)
+
+    # ---- fitting from Gram matrices --------------------------------------------------
+
+    def evaluate(self, accepted: list[Accepted], family: EffectFamily | None) -> Evaluation:
+        """Held-out predictions of the model with ``accepted`` effects (+ ``family``)."""
+        k = self.folds.count
+        variants: tuple[Variant | None, ...] = family.variants if family else (None,)
+        n_variants = len(variants)
+        heldout = np.full((n_variants, k), np.inf)
+        inner = np.full((n_variants, k), np.inf)
+        train = np.zeros((n_variants, k))
+        predicted = np.zeros((n_variants, self.y.size))
+        n_columns = n_added = 0
+        groups: dict[tuple, list[int]] = {}
+        for f in range(k):
+            key = (self.base.group_of(f), *(a.per_fold[f] for a in accepted))
+            groups.setdefault(key, []).append(f)
+        for key, folds_in_group in groups.items():
+            fixed = [np.ones((self.y.size, 1)), self.base.design(key[0])]
+            fixed += [a.family.variants[v].build() for a, v in zip(accepted, key[1:], strict=True)]
+            for vi, variant in enumerate(variants):
+                extra = variant.build() if variant is not None else np.empty((self.y.size, 0))
+                z = np.column_stack([*fixed, extra])
+                n_columns, n_added = z.shape[1], extra.shape[1]
+                gram, cross, yy = self._grams(z)
+                for f in folds_in_group:
+                    beta = _solve(gram, cross, exclude=[f])
+                    heldout[vi, f] = _sse(gram[f], cross[f], yy[f], beta)
+                    train[vi, f] = _sse(
+                        gram.sum(0) - gram[f], cross.sum(0) - cross[f], yy.sum() - yy[f], beta
+                    )
+                    predicted[vi, self.folds.rows[f]] = z[self.folds.rows[f]] @ beta
+                    if n_variants > 1:
+                        inner[vi, f] = sum(
+                            _sse(gram[s], cross[s], yy[s], _solve(gram, cross, exclude=[f, s]))
+                            for s in range(k)
+                            if s != f
+                        )
+        chosen = [int(np.argmin(inner[:, f])) if n_variants > 1 else 0 for f in range(k)]
+        result = np.empty(self.y.size)
+        for f, vi in enumerate(chosen):
+            result[self.folds.rows[f]] = predicted[vi, self.folds.rows[f]]
+        return Evaluation(
+            predicted_um=result,
+            per_fold_sse=np.array([heldout[vi, f] for f, vi in enumerate(chosen)]),
+            train_sse=np.array([train[vi, f] for f, vi in enumerate(chosen)]),
+            train_n=np.array([self.y.size - rows.size for rows in self.folds.rows]),
+            chosen=chosen,
+            n_columns=n_columns,
+            n_added=n_added,
+        )
+
+    def _grams(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per fold: ZᵀZ, Zᵀy and yᵀy."""
+        gram = np.stack([z[rows].T @ z[rows] for rows in self.folds.rows])
+        cross = np.stack([z[rows].T @ self.y[rows] for rows in self.folds.rows])
+        yy = np.array([self.y[rows] @ self.y[rows] for rows in self.folds.rows])
+        return gram, cross, yy
+
+
+def _solve(gram: np.ndarray, cross: np.ndarray, exclude: list[int]) -> np.ndarray:
+    """Least-squares coefficients on every fold but ``exclude``, from the Gram sums."""
+    g = gram.sum(0) - gram[exclude].sum(0)
+    c = cross.sum(0) - cross[exclude].sum(0)
+    beta, *_ = np.linalg.lstsq(g, c, rcond=1e-12)
+    return beta
+
+
+def _least_squares_sse(z: np.ndarray, y: np.ndarray) -> float:
+    gram, cross = z.T @ z, z.T @ y
+    beta, *_ = np.linalg.lstsq(gram, cross, rcond=1e-12)
+    return _sse(gram, cross, float(y @ y), beta)
+
+
+def _sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray) -> float:
+    return float(max(yy - 2.0 * beta @ cross + beta @ gram @ beta, 0.0))
+
+
+def _overall_choice(ev: Evaluation, family: EffectFamily) -> int:
+    """The variant most folds chose (ties: the first in the family's grid)."""
+    counts = Counter(ev.chosen)
+    top = max(counts.values())
+    return min(v for v, c in counts.items() if c == top)
+
+
+def _first_column(variant: Variant) -> np.ndarray:
+    return np.asarray(variant.build(), dtype=float)[:, 0]
+
+
+def _lag1_autocorrelation(residual: np.ndarray, fold_index: np.ndarray) -> float:
+    """Lag-1 autocorrelation of the residual, pairs taken within folds only, in [0, 1)."""
+    same = fold_index[1:] == fold_index[:-1]
+    a, b = residual[1:][same], residual[:-1][same]
+    if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
+        return 0.0
+    rho = float(np.corrcoef(a, b)[0, 1])
+    return min(max(rho, 0.0), 0.999)
+
+
+def analyze(
+    prepared: Prepared,
+    method: str = "mlr",
+    sensors: Sequence[str] | None = None,
+    progress: bool = False,
+) -> tuple[AnalysisResult, list[Accepted], ResidualAnalysis]:
+    """Run the residual analysis; return the result, the effects added and the analysis."""
+    analysis = ResidualAnalysis(prepared, method, sensors, progress)
+    steps, accepted = analysis.run()
+    first = steps[0]
+    last = steps[-1]
+    return (
+        AnalysisResult(
+            model=method,
+            target=prepared.data.target,
+            sensors=tuple(sensors) if sensors is not None else prepared.inputs.sensors,
+            validation=analysis.folds.scheme,
+            reference=prepared.plan.describe(),
+            rules=RULES,
+            before=first.before,
+            after=last.after,
+            steps=tuple(steps),
+            time_s=prepared.data.time_s,
+            run=prepared.data.run,
+            measured_um=prepared.error_um,
+            predicted_before_um=first.predicted_before_um,
+            predicted_after_um=last.predicted_after_um,
+            source=prepared.data.source,
+        ),
+        accepted,
+        analysis,
+    )

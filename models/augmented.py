@@ -1,0 +1,153 @@
+"""The model a residual analysis ends with: the declared model plus the effects it added.
+
+Stored as its own JSON document (``<store>/augmented/<model_id>.json``) next to
+the plain models, with its provenance: the base model, the effects in the
+order they were added with their parameters, the data fingerprint and the
+held-out error before and after. It is kept in a sub-folder because its effect
+terms need time and filter states (lags since the reference), so the runtime's
+model bank, which predicts from one cycle's rises, does not load it by mistake.
+
+``predict`` rebuilds every term from a prepared data set exactly as the
+analysis did, so a stored document can be checked against fresh data.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.analysis import Accepted, ResidualAnalysis
+from models.analysis_result import AnalysisResult
+from models.base import ThermalModel
+from models.effect_terms import candidate_families
+from models.features import Prepared
+from models.registry import METHODS, make_model
+from models.store import StoreError, data_fingerprint, safe_model_id
+
+FORMAT = "thermal-gateway-augmented-model"
+FORMAT_VERSION = 1
+FOLDER = "augmented"
+
+
+def fit_augmented(
+    analysis: ResidualAnalysis, accepted: list[Accepted]
+) -> tuple[ThermalModel, np.ndarray, list[dict[str, Any]]]:
+    """Base model fitted on all rows, then every coefficient refitted jointly with the effects.
+
+    Returns the base model (its structure), the coefficients (intercept, base
+    terms, effect terms) and the effects as stored.
+    """
+    prepared = analysis.prepared
+    base = make_model(analysis.method, analysis.base.sensors).fit(
+        prepared.inputs, prepared.error_um
+    )
+    columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]
+    effects = []
+    for a in accepted:
+        block = a.family.variants[a.overall].build()
+        columns.append(block)
+        effects.append({"effect": a.family.effect, "params": a.params, "terms": block.shape[1]})
+    coef, *_ = np.linalg.lstsq(np.column_stack(columns), prepared.error_um, rcond=None)
+    return base, coef, effects
+
+
+def build_augmented_document(
+    analysis: ResidualAnalysis,
+    accepted: list[Accepted],
+    result: AnalysisResult,
+    model_id: str,
+    software_version: str,
+) -> dict[str, Any]:
+    base, coef, effects = fit_augmented(analysis, accepted)
+    prepared = analysis.prepared
+    document: dict[str, Any] = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "model_id": safe_model_id(model_id),
+        "base": {
+            "method": base.method,
+            "hyperparams": base.hyperparams(),
+            "params": base.fitted_params(),
+        },
+        "effects": effects,
+        "effect_sensors": list(analysis.base.used_sensors),
+        "coefficients": {
+            "intercept_um": float(coef[0]),
+            "all_um_per_unit": [float(c) for c in coef],
+            "order": "intercept, the base model's terms, then each effect's terms in order",
+        },
+        "target": {"name": prepared.data.target, "unit": "µm"},
+        "reference": prepared.plan.describe(),
+        "provenance": {
+            "base_model": base.method,
+            "effects_added": [e["effect"] for e in effects],
+            "source_file": Path(prepared.data.source).name,
+            "data_sha256": data_fingerprint(prepared.inputs, prepared.error_um),
+            "rows": prepared.data.n_samples,
+            "runs": list(prepared.data.run_ids),
+            "validation": result.validation,
+            "before": result.before.as_dict(),
+            "after": result.after.as_dict(),
+            "steps": [step.as_dict() | {"candidates": None} for step in result.steps],
+        },
+        "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "software_version": software_version,
+    }
+    document = json.loads(json.dumps(document, ensure_ascii=False))
+    document["sha256"] = _checksum(document)
+    return document
+
+
+def save(document: dict[str, Any], store_dir: str | Path) -> Path:
+    folder = Path(store_dir) / FOLDER
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{document['model_id']}.json"
+    path.write_text(json.dumps(document, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+    return path
+
+
+def load(path: str | Path) -> dict[str, Any]:
+    """Read a stored augmented model and check its format and checksum."""
+    try:
+        document = json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as err:
+        raise StoreError(f"{path}: cannot read an augmented model: {err}") from None
+    if document.get("format") != FORMAT:
+        raise StoreError(f"{path}: not an augmented model (format {document.get('format')!r})")
+    stored = document.pop("sha256", None)
+    if stored != _checksum(document):
+        raise StoreError(f"{path}: checksum mismatch: the file was changed after it was written")
+    document["sha256"] = stored
+    return document
+
+
+def predict(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
+    """Predicted error (µm) of a stored augmented model on prepared data."""
+    base_info = document["base"]
+    base = METHODS[base_info["method"]].from_params(base_info["hyperparams"], base_info["params"])
+    columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]
+    effect_sensors = tuple(document.get("effect_sensors", base.sensors_used_))
+    families = {f.effect: f for f in candidate_families(prepared, effect_sensors)}
+    for effect in document["effects"]:
+        family = families.get(effect["effect"])
+        if family is None:
+            raise StoreError(f"this data cannot provide the effect {effect['effect']!r}")
+        matches = [v for v in family.variants if v.params == effect["params"]]
+        if not matches:
+            raise StoreError(f"no {effect['effect']} term with parameters {effect['params']}")
+        columns.append(matches[0].build())
+    coef = np.asarray(document["coefficients"]["all_um_per_unit"], dtype=float)
+    design = np.column_stack(columns)
+    if design.shape[1] != coef.size:
+        raise StoreError(f"{coef.size} coefficients stored for {design.shape[1]} terms")
+    return design @ coef
+
+
+def _checksum(document: dict[str, Any]) -> str:
+    text = json.dumps(document, sort_keys=True, ensure_ascii=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()

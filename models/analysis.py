@@ -255,10 +255,11 @@ class ResidualAnalysis:
         accepted: list[Accepted],
         n_families: int,
     ) -> CandidateResult:
-        before = float(np.sqrt(current.per_fold_sse.sum() / self.y.size))
+        before_shape = self._shape_sse(current.predicted_um)
+        after_shape = self._shape_sse(ev.predicted_um)
         after = float(np.sqrt(ev.per_fold_sse.sum() / self.y.size))
-        gain = 100.0 * (1.0 - after / before) if before > 0 else 0.0
-        improved = int(np.sum(ev.per_fold_sse < current.per_fold_sse))
+        gain = 100.0 * (1.0 - np.sqrt(after_shape.sum() / before_shape.sum()))
+        improved = int(np.sum(after_shape < before_shape))
         p_value = self._p_value(family, ev, accepted)
         alpha = ALPHA / n_families
         failures = []
@@ -288,6 +289,19 @@ class ResidualAnalysis:
             believed=believed,
             reason=reason,
             n_terms=ev.n_added,
+        )
+
+    def _shape_sse(self, predicted: np.ndarray) -> np.ndarray:
+        """Per fold: SSE of the held-out residual about its own mean.
+
+        A held-out run's offset carries the noise of its single reference
+        sample, which no effect can predict; judging the shape of the residual
+        within each run keeps a candidate from being believed for fitting
+        offsets by chance.
+        """
+        residual = self.y - predicted
+        return np.array(
+            [np.sum((residual[rows] - residual[rows].mean()) ** 2) for rows in self.folds.rows]
         )
 
     def _p_value(self, family: EffectFamily, ev: Evaluation, accepted: list[Accepted]) -> float:

@@ -26,7 +26,8 @@ class CandidateResult:
         label: short human description of the term(s) it adds.
         rmse_um: held-out RMSE with the candidate added (parameters chosen
             inside each fold on that fold's training runs only).
-        gain_pct: 100 × (1 − rmse_um / the step's RMSE before).
+        gain_pct: 100 × (1 − after / before) of the held-out residual about each
+            fold's own mean (the shape within runs, see models.analysis).
         folds_improved: held-out folds whose RMSE went down, out of ``folds``.
         p_value: the weakest (largest) p of the partial F-test over the
             training folds, with autocorrelation-corrected degrees of freedom.

@@ -1,0 +1,177 @@
+"""Residual analysis: the effect each hidden physics leaves is named and removed on held-out runs.
+
+Data come from the project's simulator (``simulate --record`` physics) and from
+an independent generator with other physics, parameters and sensor layout
+(tests/independent_machine.py), plus the real fl_thermal.csv recording.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models import augmented
+from models.analysis import analyze
+from models.dataset import load_runs
+from models.effect_terms import first_order_lag
+from models.features import prepare
+from models.store import StoreError
+from simulator.params import load_params
+from simulator.programs import load_programs
+from simulator.record import DEFAULT_PROGRAMS, record, write_recording
+from tests import independent_machine
+from tests.cli import ROOT, gateway
+
+PARAMS = load_params()
+PROGRAMS = load_programs()
+EFFECTS = ("thermal_lag", "speed_direct", "ambient", "drift")
+FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
+
+
+def simulated(tmp_path: Path, effect: str, seed: int, programs=DEFAULT_PROGRAMS) -> Path:
+    path = tmp_path / f"sim-{effect}-{seed}.csv"
+    write_recording(path, record(PARAMS, [PROGRAMS[p] for p in programs], [effect], seed=seed))
+    return path
+
+
+def analysed(path: Path, target: str = "error_um", method: str = "mlr"):
+    result, _, _ = analyze(prepare(load_runs(path, target=target)), method)
+    return result
+
+
+@pytest.mark.parametrize("effect", EFFECTS)
+@pytest.mark.parametrize("seed", [1, 2])
+def test_simulator_effect_named_first_and_removed(tmp_path: Path, effect: str, seed: int) -> None:
+    result = analysed(simulated(tmp_path, effect, seed))
+    assert result.validation == "leave-one-run-out"
+    assert result.effect == effect, [c.as_dict() for c in result.steps[0].candidates]
+    assert result.after.rmse_um <= 0.7 * result.before.rmse_um
+
+
+def test_simulator_without_hidden_effect_gives_none_in_9_of_10_seeds(tmp_path: Path) -> None:
+    found = [analysed(simulated(tmp_path, "none", seed)).effect for seed in range(10)]
+    assert found.count("none") >= 9, found
+
+
+@pytest.mark.parametrize("effect", EFFECTS)
+def test_independent_generator_effect_named_first_and_removed(tmp_path: Path, effect: str) -> None:
+    path = independent_machine.write_csv(tmp_path / "indep.csv", effect=effect, seed=0)
+    result = analysed(path)
+    assert result.effect == effect, [c.as_dict() for c in result.steps[0].candidates]
+    assert result.after.rmse_um <= 0.7 * result.before.rmse_um
+
+
+def test_independent_generator_none_in_9_of_10_seeds(tmp_path: Path) -> None:
+    found = []
+    for seed in range(10):
+        path = independent_machine.write_csv(tmp_path / f"none-{seed}.csv", "none", seed)
+        found.append(analysed(path).effect)
+    assert found.count("none") >= 9, found
+
+
+def test_fl_thermal_ch1_held_out_rmse_at_most_2_5_um() -> None:
+    result = analysed(FL_THERMAL, target="ch1_um")
+    assert 6.0 < result.before.rmse_um < 7.5
+    assert result.effect != "none"
+    assert result.after.rmse_um <= 2.5
+
+
+@pytest.mark.parametrize("target", ["ch3_um", "ch5_um"])
+def test_fl_thermal_other_channels_never_worse(target: str) -> None:
+    result = analysed(FL_THERMAL, target=target)
+    assert result.after.rmse_um <= result.before.rmse_um
+    assert (result.effect == "none") == (result.after == result.before)
+
+
+@pytest.mark.parametrize("method", ["grey-mlr", "pca-quadratic"])
+def test_other_declared_models_find_the_drift(tmp_path: Path, method: str) -> None:
+    result = analysed(simulated(tmp_path, "drift", 1), method=method)
+    assert result.model == method
+    assert "drift" in result.effects
+    assert result.after.rmse_um < result.before.rmse_um
+
+
+def test_single_run_falls_back_to_a_blocked_split(tmp_path: Path) -> None:
+    result = analysed(simulated(tmp_path, "drift", 3, programs=("iso230-spectrum",)))
+    assert result.validation.startswith("leave-one-block-out")
+    assert result.steps[0].candidates[0].folds == 5
+
+
+def test_cli_contract_report_and_stored_model(tmp_path: Path) -> None:
+    data = simulated(tmp_path, "drift", 4)
+    out, report, store = tmp_path / "out.json", tmp_path / "report", tmp_path / "store"
+    done = gateway("analyze", data, "--json", out, "--report", report, "--store", store)
+    assert done.returncode == 0, done.stderr
+    payload = json.loads(out.read_text(encoding="utf-8"))
+    assert payload["model"] == "mlr"
+    assert payload["validation"] == "leave-one-run-out"
+    assert payload["effect"] == "drift"
+    for key in ("rmse_um", "sigma_um", "max_abs_um"):
+        assert payload["after"][key] < payload["before"][key]
+    first = payload["candidates"][0]
+    assert {"effect", "rmse_um", "p_value", "params"} <= first.keys()
+    assert payload["steps"][0]["effect"] == "drift"
+    assert payload["steps"][-1]["rmse_um"] == pytest.approx(payload["after"]["rmse_um"])
+    assert "drift" in (report / "index.html").read_text(encoding="utf-8")
+
+    stored = Path(payload["stored_model"]["path"])
+    document = augmented.load(stored)
+    assert document["provenance"]["effects_added"] == ["drift"]
+    assert document["provenance"]["base_model"] == "mlr"
+    prepared = prepare(load_runs(data))
+    fitted = augmented.predict(document, prepared)
+    in_sample = float(np.sqrt(np.mean((prepared.error_um - fitted) ** 2)))
+    assert in_sample <= payload["after"]["rmse_um"]
+
+    tampered = json.loads(stored.read_text(encoding="utf-8"))
+    tampered["coefficients"]["intercept_um"] += 1.0
+    stored.write_text(json.dumps(tampered), encoding="utf-8")
+    with pytest.raises(StoreError, match="checksum"):
+        augmented.load(stored)
+
+
+def test_cli_none_keeps_after_equal_to_before(tmp_path: Path) -> None:
+    out = tmp_path / "none.json"
+    done = gateway("analyze", simulated(tmp_path, "none", 3), "--json", out)
+    assert done.returncode == 0, done.stderr
+    payload = json.loads(out.read_text(encoding="utf-8"))
+    assert payload["effect"] == "none"
+    assert payload["after"] == payload["before"]
+    assert payload["steps"] == []
+
+
+@pytest.mark.parametrize(
+    ("content", "expected"),
+    [
+        ("run,time_s,speed_rpm,T1,error_um\na,0,0,20,0\na,60,0,x,0\n", ":3: column 'T1'"),
+        ("run,time_s,speed_rpm,T1,error_um\na,60,0,20,0\na,0,0,20,0\n", ":3: column 'time_s'"),
+        ("run,time_s,T1,error_um\na,0,20,0\n", "speed_rpm"),
+    ],
+)
+def test_bad_input_is_refused_with_file_line_and_column(
+    tmp_path: Path, content: str, expected: str
+) -> None:
+    path = tmp_path / "bad.csv"
+    path.write_text(content, encoding="utf-8")
+    done = gateway("analyze", path)
+    assert done.returncode == 2
+    assert "bad.csv" in done.stderr and expected in done.stderr
+
+
+def test_first_order_lag_steady_state_uneven_sampling_and_recordings() -> None:
+    time_s = np.r_[np.arange(0, 36000, 60.0), np.arange(0, 36000, 60.0)]
+    recording = np.r_[np.zeros(600, int), np.ones(600, int)]
+    step = np.where((time_s > 0), 1.0, 0.0)
+    lagged = first_order_lag(step, time_s, recording, 1800.0)
+    one_tau = np.flatnonzero(time_s[:600] >= 1800)[0]
+    assert lagged[one_tau] == pytest.approx(1 - np.exp(-1.0), abs=0.03)
+    assert lagged[599] == pytest.approx(1.0, abs=1e-6)
+    assert lagged[600] == 0.0  # the second recording starts its own state
+    uneven = np.sort(np.r_[time_s[:600], np.arange(30, 36000, 600.0)])
+    u = np.where(uneven > 0, 1.0, 0.0)
+    ragged = first_order_lag(u, uneven, np.zeros(uneven.size, int), 1800.0)
+    even = np.interp(uneven, time_s[:600], lagged[:600])
+    assert np.max(np.abs(ragged - even)) < 0.03

@@ -10,7 +10,10 @@ The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
    fold by an inner leave-one-out over that fold's training runs, so the
    held-out run never steers the choice.
 3. A candidate is believed only when all of these hold (``RULES``):
-   - the pooled held-out RMSE falls by at least ``MIN_GAIN_PCT`` (10 %);
+   - the pooled held-out RMSE of the residual's shape within each run (about
+     the run's own mean) falls by at least ``MIN_GAIN_PCT`` (10 %), and the
+     plain held-out RMSE falls too. A held-out run's offset carries the noise
+     of its one reference sample, which no effect can predict;
    - the held-out RMSE falls in at least ``MIN_FOLD_SHARE`` (half) of the folds;
    - on *every* training fold the partial F-test of its terms gives
      p < ``ALPHA`` / (number of families tried in that round), Bonferroni.
@@ -265,6 +268,8 @@ class ResidualAnalysis:
         failures = []
         if gain < MIN_GAIN_PCT:
             failures.append(f"held-out RMSE falls {gain:.1f} % < {MIN_GAIN_PCT:g} %")
+        if after >= float(np.sqrt(current.per_fold_sse.sum() / self.y.size)):
+            failures.append("held-out RMSE with offsets does not fall")
         if improved < MIN_FOLD_SHARE * self.folds.count:
             failures.append(f"improves {improved}/{self.folds.count} held-out folds")
         if not p_value < alpha:
@@ -318,19 +323,29 @@ class ResidualAnalysis:
         y_w = self.y[keep] - rho * self.y[keep - 1]
         fold_w = self.folds.index[keep]
         rows_w = [np.flatnonzero(fold_w == f) for f in range(self.folds.count)]
-        worst = 0.0
+        yy = np.array([y_w[rows] @ y_w[rows] for rows in rows_w])
+        groups: dict[tuple[int, int], list[int]] = {}
         for f in range(self.folds.count):
-            z = self._design(accepted, f, family.variants[ev.chosen[f]])
+            groups.setdefault((self.base.group_of(f), ev.chosen[f]), []).append(f)
+        worst = 0.0
+        for folds_in_group in groups.values():
+            z = self._design(
+                accepted, folds_in_group[0], family.variants[ev.chosen[folds_in_group[0]]]
+            )
             z_w = z[keep] - rho * z[keep - 1]
-            train = np.concatenate([rows_w[s] for s in range(self.folds.count) if s != f])
-            full, restricted = z_w[train], z_w[train][:, : z.shape[1] - ev.n_added]
-            sse1 = _least_squares_sse(full, y_w[train])
-            sse0 = _least_squares_sse(restricted, y_w[train])
-            df2 = train.size - z.shape[1]
-            if df2 < 1 or sse1 <= 0 or ev.n_added == 0:
-                return 1.0
-            statistic = max(sse0 - sse1, 0.0) / ev.n_added / (sse1 / df2)
-            worst = max(worst, float(stats.f.sf(statistic, ev.n_added, df2)))
+            gram = np.stack([z_w[rows].T @ z_w[rows] for rows in rows_w])
+            cross = np.stack([z_w[rows].T @ y_w[rows] for rows in rows_w])
+            k0 = z.shape[1] - ev.n_added
+            for f in folds_in_group:
+                g, c, t = gram.sum(0) - gram[f], cross.sum(0) - cross[f], yy.sum() - yy[f]
+                sse1 = _sse(g, c, t, np.linalg.lstsq(g, c, rcond=1e-12)[0])
+                g0, c0 = g[:k0, :k0], c[:k0]
+                sse0 = _sse(g0, c0, t, np.linalg.lstsq(g0, c0, rcond=1e-12)[0])
+                df2 = fold_w.size - rows_w[f].size - z.shape[1]
+                if df2 < 1 or sse1 <= 0 or ev.n_added == 0:
+                    return 1.0
+                statistic = max(sse0 - sse1, 0.0) / ev.n_added / (sse1 / df2)
+                worst = max(worst, float(stats.f.sf(statistic, ev.n_added, df2)))
         return worst
 
     def _design(self, accepted: list[Accepted], fold: int, variant: Variant | None) -> np.ndarray:
@@ -405,12 +420,6 @@ def _solve(gram: np.ndarray, cross: np.ndarray, exclude: list[int]) -> np.ndarra
     c = cross.sum(0) - cross[exclude].sum(0)
     beta, *_ = np.linalg.lstsq(g, c, rcond=1e-12)
     return beta
-
-
-def _least_squares_sse(z: np.ndarray, y: np.ndarray) -> float:
-    gram, cross = z.T @ z, z.T @ y
-    beta, *_ = np.linalg.lstsq(gram, cross, rcond=1e-12)
-    return _sse(gram, cross, float(y @ y), beta)
 
 
 def _sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray) -> float:

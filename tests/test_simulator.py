@@ -112,7 +112,8 @@ def test_thermal_lag_error_lags_the_sensors_in_the_cool_down() -> None:
         start = error[stop]
         return float(np.argmax(error[stop:] <= 0.5 * start))
 
-    assert half_life_min(data["error_um"]) >= 1.3 * half_life_min(plain["error_um"])
+    # 80 % of the shaft growth through a 30 min lag: the cool-down half-life grows by > 20 %
+    assert half_life_min(data["error_um"]) >= 1.2 * half_life_min(plain["error_um"])
     temps = np.column_stack([data[f"T{i}"] for i in range(1, 10)])
     np.testing.assert_array_equal(temps, np.column_stack([plain[f"T{i}"] for i in range(1, 10)]))
 

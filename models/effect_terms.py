@@ -42,7 +42,7 @@ from scipy.signal import lfilter
 
 from models.dataset import AMBIENT_COLUMN
 from models.features import Prepared
-from models.references import rises
+from models.references import first_rows, rises
 
 LAG_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0)
 HEAT_TAUS_S = (1200.0, 1800.0, 3600.0, 7200.0, 14400.0)
@@ -106,9 +106,7 @@ def first_order_lag(
 
 def hours_since_start(time_s: np.ndarray, group: np.ndarray) -> np.ndarray:
     """Hours since the first sample of each row's group (run or recording)."""
-    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
-    first = starts[np.searchsorted(starts, np.arange(group.size), side="right") - 1]
-    return (time_s - time_s[first]) / 3600.0
+    return (time_s - time_s[first_rows(group)]) / 3600.0
 
 
 def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> list[EffectFamily]:

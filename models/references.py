@@ -97,9 +97,13 @@ def _follows_on(time_s: np.ndarray, previous: slice, current: slice) -> bool:
     return bool(0 < gap <= CONTINUITY_FACTOR * interval)
 
 
+def first_rows(group: np.ndarray) -> np.ndarray:
+    """(n,) index of the first row of each row's contiguous group (recording or run)."""
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    return starts[np.searchsorted(starts, np.arange(group.size), side="right") - 1]
+
+
 def rises(values: np.ndarray, recording: np.ndarray) -> np.ndarray:
     """values − the first row of each row's recording (works for (n,) and (n, k))."""
     values = np.asarray(values, dtype=float)
-    starts = np.flatnonzero(np.r_[True, recording[1:] != recording[:-1]])
-    first_row = starts[np.searchsorted(starts, np.arange(recording.size), side="right") - 1]
-    return values - values[first_row]
+    return values - values[first_rows(recording)]

@@ -8,7 +8,8 @@ The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
    to the model's own regression terms and all coefficients are refitted
    jointly. A family's parameter (τ, sensor, origin) is chosen *inside* each
    fold by an inner leave-one-out over that fold's training runs, so the
-   held-out run never steers the choice.
+   held-out run never steers the choice. The inner score is the residual's
+   shape within each inner held-out run, as in the judging below.
 3. A candidate is believed only when all of these hold (``RULES``):
    - the pooled held-out RMSE of the residual's shape within each run (about
      the run's own mean) falls by at least ``MIN_GAIN_PCT`` (10 %), and the
@@ -22,8 +23,9 @@ The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
      autocorrelation of the held-out residuals). Without that correction
      every candidate would look significant on a slow signal.
    The believed candidate with the lowest held-out RMSE is added; the loop
-   repeats (each family once, ``unused_sensor`` once per sensor) until no
-   candidate is believed or ``MAX_STEPS`` effects are in.
+   repeats (each family once, a lag family twice with two different time
+   constants, ``unused_sensor`` once per sensor) until no candidate is
+   believed or ``MAX_STEPS`` effects are in.
 4. Nothing believed in the first round means the model lacks nothing this data
    can show: ``none``, and the figures after equal those before.
 
@@ -54,6 +56,8 @@ MIN_GAIN_PCT = 10.0
 MIN_FOLD_SHARE = 0.5
 ALPHA = 0.01
 MAX_STEPS = 4
+LAG_FAMILIES = ("thermal_lag", "unsensed_heat", "ambient")
+MAX_LAGS_PER_FAMILY = 2
 
 RULES = {
     "min_gain_pct": MIN_GAIN_PCT,
@@ -226,23 +230,26 @@ class ResidualAnalysis:
         return steps, accepted
 
     def _open_families(self, accepted: list[Accepted]) -> list[EffectFamily]:
-        """Families not yet in the model (``unused_sensor`` keeps its sensors not yet added)."""
-        done = {a.family.effect for a in accepted if a.family.effect != "unused_sensor"}
-        added_sensors = {
-            a.params.get("sensor") for a in accepted if a.family.effect == "unused_sensor"
-        }
+        """Families that may still enter the model.
+
+        A lag family (``LAG_FAMILIES``) may enter up to ``MAX_LAGS_PER_FAMILY``
+        times, each time with a time constant not yet in: a body heated through
+        two paths, or a fast and a slow part, needs two. ``unused_sensor`` keeps
+        its sensors not yet added; every other family enters once.
+        """
         open_: list[EffectFamily] = []
         for family in self.families:
-            if family.effect in done:
-                continue
+            mine = [a for a in accepted if a.family.effect == family.effect]
             if family.effect == "unused_sensor":
-                variants = tuple(
-                    v for v in family.variants if v.params["sensor"] not in added_sensors
-                )
-                if not variants:
-                    continue
-                family = EffectFamily(family.effect, family.label, variants)
-            open_.append(family)
+                taken = {a.params["sensor"] for a in mine}
+                variants = tuple(v for v in family.variants if v.params["sensor"] not in taken)
+            elif family.effect in LAG_FAMILIES and len(mine) < MAX_LAGS_PER_FAMILY:
+                taken_taus = {a.params["tau_s"] for a in mine}
+                variants = tuple(v for v in family.variants if v.params["tau_s"] not in taken_taus)
+            else:
+                variants = () if mine else family.variants
+            if variants:
+                open_.append(EffectFamily(family.effect, family.label, variants))
         return open_
 
     def _bar(self, families: list[EffectFamily]):
@@ -388,7 +395,9 @@ class ResidualAnalysis:
                     predicted[vi, self.folds.rows[f]] = z[self.folds.rows[f]] @ beta
                     if n_variants > 1:
                         inner[vi, f] = sum(
-                            _sse(gram[s], cross[s], yy[s], _solve(gram, cross, exclude=[f, s]))
+                            _shape_sse(
+                                gram[s], cross[s], yy[s], _solve(gram, cross, exclude=[f, s])
+                            )
                             for s in range(k)
                             if s != f
                         )
@@ -424,6 +433,13 @@ def _solve(gram: np.ndarray, cross: np.ndarray, exclude: list[int]) -> np.ndarra
 
 def _sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray) -> float:
     return float(max(yy - 2.0 * beta @ cross + beta @ gram @ beta, 0.0))
+
+
+def _shape_sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray) -> float:
+    """SSE of one fold's residual about its own mean (column 0 of the design is the intercept,
+    so ``gram[0]`` holds the column sums and ``cross[0]`` the sum of y)."""
+    mean_residual = (cross[0] - gram[0] @ beta) / gram[0, 0]
+    return max(_sse(gram, cross, yy, beta) - gram[0, 0] * mean_residual**2, 0.0)
 
 
 def _overall_choice(ev: Evaluation, family: EffectFamily) -> int:

@@ -10,15 +10,15 @@ would claim an error the target does not contain.
 The families:
 
 - ``thermal_lag``: first-order lags of the rises of the sensors the model
-  uses, τ from 5 min to 4 h. A part no sensor touches (tool holder, spindle
+  uses, τ from 5 min to 8 h. A part no sensor touches (tool holder, spindle
   nose, a thick casting) follows the measured temperatures with a delay.
 - ``speed_direct``: the speed n and n² (n in 1000 r/min): centrifugal and
   gyroscopic growth that appears with the speed, before any temperature moves.
-- ``unsensed_heat``: first-order lags of n and n², τ from 20 min to 4 h:
+- ``unsensed_heat``: first-order lags of n and n², τ from 10 min to 8 h:
   spindle heat reaching a part that no sensor measures, so only the heat input
   (the speed) tells how warm it is.
 - ``ambient``: the rise of ``ambient_C``, as it is (τ = 0) or through a
-  first-order lag up to 4 h (a big casting follows the hall slowly).
+  first-order lag up to 8 h (a big casting follows the hall slowly).
 - ``drift``: time since the run (or the recording) started, in hours: probe,
   fixture or foundation creep.
 - ``unused_sensor``: the rise of one measured column the model left out (a
@@ -44,9 +44,9 @@ from models.dataset import AMBIENT_COLUMN
 from models.features import Prepared
 from models.references import first_rows, rises
 
-LAG_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0)
-HEAT_TAUS_S = (1200.0, 1800.0, 3600.0, 7200.0, 14400.0)
-AMBIENT_TAUS_S = (0.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0)
+LAG_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
+HEAT_TAUS_S = (600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
+AMBIENT_TAUS_S = (0.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
 SPEED_SCALE_RPM = 1000.0
 DISPLACEMENT_SUFFIX = "_um"
 UNIFORM_TOLERANCE = 1e-3  # relative spread of dt under which a recording counts as evenly sampled

@@ -68,7 +68,11 @@ RULES = {
         "partial F-test of the added terms on every training fold, on the prewhitened "
         "regression (Cochrane-Orcutt, rho = lag-1 autocorrelation of the held-out residuals)"
     ),
-    "parameter_choice": "inner leave-one-out on each fold's training runs",
+    "parameter_choice": (
+        "inner leave-one-out on each fold's training runs, scored on the residual's shape "
+        "within each inner held-out run"
+    ),
+    "lag_families_twice": "thermal_lag, unsensed_heat, ambient may enter twice (two time constants)",
     "max_steps": MAX_STEPS,
 }
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from models import augmented
-from models.analysis import analyze
+from models.analysis import Accepted, ResidualAnalysis, _shape_sse, analyze
 from models.dataset import load_runs
 from models.effect_terms import first_order_lag
 from models.features import prepare
@@ -175,3 +175,29 @@ def test_first_order_lag_steady_state_uneven_sampling_and_recordings() -> None:
     ragged = first_order_lag(u, uneven, np.zeros(uneven.size, int), 1800.0)
     even = np.interp(uneven, time_s[:600], lagged[:600])
     assert np.max(np.abs(ragged - even)) < 0.03
+
+
+def test_inner_score_is_the_residual_shape_from_gram_sums() -> None:
+    rng = np.random.default_rng(3)
+    z = np.column_stack([np.ones(50), rng.normal(size=(50, 2))])
+    y = rng.normal(size=50) + 4.0
+    beta = np.array([1.0, 0.5, -0.2])
+    residual = y - z @ beta
+    expected = float(np.sum((residual - residual.mean()) ** 2))
+    assert _shape_sse(z.T @ z, z.T @ y, float(y @ y), beta) == pytest.approx(expected, rel=1e-9)
+
+
+def test_a_lag_family_may_enter_twice_with_another_time_constant(tmp_path: Path) -> None:
+    prepared = prepare(load_runs(simulated(tmp_path, "thermal_lag", 1), target="error_um"))
+    analysis = ResidualAnalysis(prepared, "mlr")
+    lag = next(f for f in analysis.families if f.effect == "thermal_lag")
+    drift = next(f for f in analysis.families if f.effect == "drift")
+    first = Accepted(lag, [3] * analysis.folds.count, 3)
+    again = {f.effect: f for f in analysis._open_families([first])}
+    assert [v.params["tau_s"] for v in again["thermal_lag"].variants] == [
+        v.params["tau_s"] for i, v in enumerate(lag.variants) if i != 3
+    ]
+    second = Accepted(again["thermal_lag"], [0] * analysis.folds.count, 0)
+    closed = {f.effect for f in analysis._open_families([first, second])}
+    assert "thermal_lag" not in closed
+    assert "drift" not in {f.effect for f in analysis._open_families([Accepted(drift, [0] * 6, 0)])}

@@ -41,8 +41,15 @@ def seconds(action: Callable[[], object], repeat: int) -> float:
     return statistics.median(times)
 
 
-def write_synthetic(path: Path, rows: int, seed: int = 0) -> None:
-    """Ten runs at 15 s sampling; sensors are first-order lags of a speed-driven heat input."""
+def write_synthetic(
+    path: Path, rows: int, seed: int = 0, hidden_lag_tau_s: float | None = None
+) -> None:
+    """Ten runs at 15 s sampling; sensors are first-order lags of a speed-driven heat input.
+
+    ``hidden_lag_tau_s`` adds an error term no sensor explains: 2 µm/°C times
+    T1's rise through a further first-order lag (a part heated through T1's
+    region), so ``analyze`` has an effect to find and goes through several rounds.
+    """
     rng = np.random.default_rng(seed)
     per_run = rows // 10
     run = np.repeat([f"r{i:02d}" for i in range(10)], per_run)
@@ -57,7 +64,11 @@ def write_synthetic(path: Path, rows: int, seed: int = 0) -> None:
         a = np.exp(-15.0 / (600.0 + 300.0 * i))
         temps.append(20.0 + 15.0 * lfilter([1 - a], [1, -a], drive) + rng.normal(0, 0.02, n))
         columns[f"T{i + 1}"] = temps[-1]
-    columns["error_um"] = 3.0 * (temps[0] - 20) - 1.5 * (temps[8] - 20) + rng.normal(0, 0.5, n)
+    error_um = 3.0 * (temps[0] - 20) - 1.5 * (temps[8] - 20) + rng.normal(0, 0.5, n)
+    if hidden_lag_tau_s is not None:
+        a = np.exp(-15.0 / hidden_lag_tau_s)
+        error_um += 2.0 * lfilter([1 - a], [1, -a], temps[0] - 20.0)
+    columns["error_um"] = error_um
     pd.DataFrame(columns).to_csv(path, index=False, float_format="%.4f")
 
 

@@ -15,7 +15,7 @@ from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.config import GatewayConfig, MachineSection
-from gateway.model_bank import ModelBank
+from gateway.model_bank import ModelBank, ambient_sensor_of
 from gateway.outputs import Outputs
 from gateway.runtime import CycleRecord, MachineLoop, Sink
 from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
@@ -86,7 +86,9 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
 
 def load_bank(machine: MachineSection) -> ModelBank:
     """The machine's models, checked against its sensors and its regime rules."""
-    bank = ModelBank.from_store(machine.models.store)
+    bank = ModelBank.from_store(
+        machine.models.store, ambient_sensor=ambient_sensor_of(machine.sensor_names)
+    )
     bank.check_sensors(machine.sensor_names)
     rules = machine.models.regimes
     for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():

@@ -155,7 +155,11 @@ class ClosedLoop:
 
 
 async def open_loop(
-    plant: SimulatedPlant, machine: MachineSection, clock: Clock, sinks: Sequence[Sink] = ()
+    plant: SimulatedPlant,
+    machine: MachineSection,
+    clock: Clock,
+    sinks: Sequence[Sink] = (),
+    state_dir: Path | None = None,
 ) -> ClosedLoop:
     await plant.start()
     loop = MachineLoop(
@@ -164,6 +168,7 @@ async def open_loop(
         build_buses(machine),
         build_cnc(machine, clock),
         load_bank(machine),
+        state_dir=state_dir,
         sinks=sinks,
     )
     return ClosedLoop(plant, loop)

@@ -1,10 +1,14 @@
 """The fitted models a machine can use, loaded and checked once at start-up.
 
 Every file of the store is loaded through :func:`models.store.load_file` (which
-refuses damaged or incompatible files). The regime rules name models by id;
-when a sensor a model needs goes bad, the bank offers a *fallback*: another
-stored model that does without that sensor, preferring one fitted for the same
-regime, then the one with the lowest held-out RMSE.
+refuses damaged or incompatible files). Augmented models (a declared model plus
+the effects residual analysis added, ``<store>/augmented/*.json``) are loaded
+through :func:`models.augmented.load` (format and checksum) and checked by
+building their sample-by-sample form (:mod:`models.effect_stream`); their lag
+states are carried by the machine loop, not here. The regime rules name models
+of both kinds by id; when a sensor a model needs goes bad, the bank offers a
+*fallback*: another stored model that does without that sensor, preferring one
+fitted for the same regime, then the one with the lowest held-out RMSE.
 """
 
 from __future__ import annotations
@@ -13,15 +17,25 @@ import logging
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from models.base import ThermalModel
+from models.dataset import AMBIENT_COLUMN
+from models.effect_stream import StreamingAugmented
 from models.store import StoredModel, load_file
 
 log = logging.getLogger(__name__)
 
+AUGMENTED_FOLDER = "augmented"  # as models.augmented.FOLDER
+# The sensor names gateway.export writes as the ambient_C column (not imported from
+# there: gateway.export imports the runtime, which imports this module).
+AMBIENT_SENSORS = ("ambient_C", "ambient")
+
 
 @dataclass(frozen=True)
 class BankedModel:
+    """A plain model: predicts from one cycle's rises."""
+
     model_id: str
     model: ThermalModel
     document: StoredModel
@@ -31,37 +45,111 @@ class BankedModel:
         return frozenset(self.model.sensors_used_)
 
     @property
+    def regime(self) -> str | None:
+        return self.document.regime
+
+    @property
     def held_out_rmse_um(self) -> float:
         pooled = self.document.validation.get("pooled") or {}
         return float(pooled.get("rmse_um", float("inf")))
 
 
-class ModelBank:
-    def __init__(self, models: Iterable[BankedModel]) -> None:
-        self.models = {m.model_id: m for m in models}
+@dataclass(frozen=True)
+class BankedAugmented:
+    """An augmented model: its prediction needs lag states carried from cycle to cycle.
+
+    ``sensors`` are the machine sensors it needs, the ambient sensor included
+    when it has an ``ambient`` term (``ambient_sensor`` names it).
+    """
+
+    model_id: str
+    document: dict[str, Any]
+    sensors: frozenset[str]
+    ambient_sensor: str | None
+    regime: str | None = None
 
     @classmethod
-    def from_store(cls, folder: Path) -> ModelBank:
+    def from_document(cls, document: dict[str, Any], ambient_sensor: str) -> BankedAugmented:
+        stream = StreamingAugmented(document)  # refuses effects or coefficients it cannot run
+        needed = set(stream.sensors)
+        if stream.uses_ambient:
+            needed.add(ambient_sensor)
+        return cls(
+            model_id=stream.model_id,
+            document=document,
+            sensors=frozenset(needed),
+            ambient_sensor=ambient_sensor if stream.uses_ambient else None,
+        )
+
+    @property
+    def held_out_rmse_um(self) -> float:
+        after = self.document.get("provenance", {}).get("after") or {}
+        return float(after.get("rmse_um", float("inf")))
+
+    def stream(self, speed_ref_rpm: float = 0.0) -> StreamingAugmented:
+        """A fresh sample-by-sample form of this model (no state yet)."""
+        return StreamingAugmented(self.document, speed_ref_rpm=speed_ref_rpm)
+
+
+Banked = BankedModel | BankedAugmented
+
+
+def ambient_sensor_of(sensor_names: Iterable[str]) -> str | None:
+    """The machine sensor that measures the hall (named as the CSV export expects)."""
+    names = set(sensor_names)
+    return next((name for name in AMBIENT_SENSORS if name in names), None)
+
+
+class ModelBank:
+    def __init__(self, models: Iterable[Banked]) -> None:
+        self.models: dict[str, Banked] = {}
+        for model in models:
+            if model.model_id in self.models:
+                raise ValueError(f"model id '{model.model_id}' is in the store twice")
+            self.models[model.model_id] = model
+
+    @classmethod
+    def from_store(cls, folder: Path, ambient_sensor: str | None = None) -> ModelBank:
+        """Plain models from ``folder/*.json``, augmented ones from ``folder/augmented/*.json``.
+
+        ``ambient_sensor``: the machine sensor feeding augmented models' ambient
+        terms (default ``ambient_C``, which a machine without such a sensor lacks).
+        """
         if not folder.is_dir():
             raise ValueError(f"model store {folder}: no such folder")
-        loaded = []
+        loaded: list[Banked] = []
         for path in sorted(folder.glob("*.json")):
             model, document = load_file(path)
             loaded.append(BankedModel(document.model_id, model, document))
+        augmented_paths = sorted((folder / AUGMENTED_FOLDER).glob("*.json"))
+        if augmented_paths:
+            from models import augmented  # residual-analysis code: only when there is one
+
+            for path in augmented_paths:
+                loaded.append(
+                    BankedAugmented.from_document(
+                        augmented.load(path), ambient_sensor or AMBIENT_COLUMN
+                    )
+                )
         if not loaded:
-            raise ValueError(f"model store {folder}: no model files (*.json)")
+            raise ValueError(
+                f"model store {folder}: no model files (*.json, {AUGMENTED_FOLDER}/*.json)"
+            )
         return cls(loaded)
 
     def __contains__(self, model_id: str) -> bool:
         return model_id in self.models
 
-    def get(self, model_id: str) -> BankedModel:
+    def get(self, model_id: str) -> Banked:
         try:
             return self.models[model_id]
         except KeyError:
             raise KeyError(
                 f"model '{model_id}' is not in the store (have: {sorted(self.models)})"
             ) from None
+
+    def augmented(self) -> list[BankedAugmented]:
+        return [m for m in self.models.values() if isinstance(m, BankedAugmented)]
 
     def check_sensors(self, available: Iterable[str]) -> None:
         """Refuse a store whose models need sensors the machine does not have."""
@@ -74,15 +162,13 @@ class ModelBank:
                     f"channel provides (channels: {sorted(available)})"
                 )
 
-    def usable(self, model_id: str | None, good: set[str]) -> BankedModel | None:
+    def usable(self, model_id: str | None, good: set[str]) -> Banked | None:
         """``model_id`` if all its sensors are good, else the best fallback, else None."""
         preferred = self.models.get(model_id) if model_id else None
         if preferred is not None and preferred.sensors <= good:
             return preferred
-        regime = preferred.document.regime if preferred is not None else None
+        regime = preferred.regime if preferred is not None else None
         candidates = [m for m in self.models.values() if m.sensors <= good]
         if not candidates:
             return None
-        return min(
-            candidates, key=lambda m: (m.document.regime != regime, m.held_out_rmse_um, m.model_id)
-        )
+        return min(candidates, key=lambda m: (m.regime != regime, m.held_out_rmse_um, m.model_id))

@@ -16,6 +16,7 @@ import os
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 
 class TemperatureReference:
@@ -44,11 +45,23 @@ class TemperatureReference:
             return None
         return [readings_C[s] - self.values_C[s] for s in sensors]
 
+    def available_rises_C(self, readings_C: Mapping[str, float]) -> dict[str, float]:
+        """Rises of every reading that has a reference, by sensor."""
+        return {s: v - self.values_C[s] for s, v in readings_C.items() if s in self.values_C}
+
     def _save(self) -> None:
-        if self.state_file is None:
-            return
-        self.state_file.parent.mkdir(parents=True, exist_ok=True)
-        handle, tmp = tempfile.mkstemp(dir=self.state_file.parent, suffix=".tmp")
+        if self.state_file is not None:
+            write_json_atomic(self.state_file, {"reference_C": self.values_C})
+
+
+def write_json_atomic(path: Path, payload: Mapping[str, Any]) -> None:
+    """Write to a temporary file, then rename: a crash never leaves half a state file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    try:
         with os.fdopen(handle, "w", encoding="utf-8") as out:
-            json.dump({"reference_C": self.values_C}, out, indent=2, sort_keys=True)
-        os.replace(tmp, self.state_file)
+            json.dump(payload, out, indent=2, sort_keys=True)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

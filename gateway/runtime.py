@@ -9,6 +9,9 @@ Once per ``cycle_s`` of machine time:
 3. classify the speed regime (with hysteresis) and take its model from the bank,
    or a fallback fitted without a bad sensor, or none;
 4. predict the error rise (µm) from the temperature rises above the cold reference;
+   every augmented model (lag terms, :mod:`gateway.effect_state`) is advanced
+   with this cycle's rises and speed whether it is selected or not, so a model
+   switched in mid-shift has a warm state;
 5. let the compensation policy decide the value (clamp, slew, deadband; with no
    prediction it holds and ramps to zero), write it to the CNC macro, read it
    back, and only then count it as applied; then bump the handshake counter.
@@ -23,7 +26,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -34,7 +37,8 @@ from drivers.cnc import CncClient, CncError
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.compensation import CompensationPolicy
 from gateway.config import MachineSection
-from gateway.model_bank import BankedModel, ModelBank
+from gateway.effect_state import EffectStates
+from gateway.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.quality import Quality, QualityMonitor
 from gateway.reference import TemperatureReference
 from models.base import ModelInputs
@@ -90,6 +94,8 @@ class MachineLoop:
         reference = config.models.reference
         state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
         self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
+        effect_file = None if state_dir is None else state_dir / f"{config.id}-effect-state.json"
+        self.effects = EffectStates(bank.augmented(), effect_file)
         self.policy: CompensationPolicy | None = None
         self.compensation_enabled = config.compensation.enabled
         self.handshake = 0
@@ -110,6 +116,9 @@ class MachineLoop:
         good = {n for n, c in checks.items() if c.quality is Quality.GOOD}
         good_values = {n: readings[n][0] for n in good if readings[n][0] is not None}
         self.reference.observe(good_values)
+        augmented_um = self.effects.advance(
+            now, self.reference.available_rises_C(good_values), speed_rpm
+        )
 
         selection = self.selector.update(now, speed_rpm) if speed_rpm is not None else None
         if selection is not None and selection.switched:
@@ -121,7 +130,7 @@ class MachineLoop:
                 selection.reason,
             )
         banked = self.bank.usable(selection.model_id if selection else None, good)
-        predicted = self._predict(banked, good_values, speed_rpm)
+        predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
 
         record = CycleRecord(
             machine=self.config.id,
@@ -179,10 +188,16 @@ class MachineLoop:
         self._link_down = set(failures)
 
     def _predict(
-        self, banked: BankedModel | None, good_values: dict[str, float], speed_rpm: float | None
+        self,
+        banked: Banked | None,
+        good_values: dict[str, float],
+        speed_rpm: float | None,
+        augmented_um: Mapping[str, float | None],
     ) -> float | None:
         if banked is None:
             return None
+        if isinstance(banked, BankedAugmented):
+            return augmented_um[banked.model_id]  # stepped with this cycle's inputs above
         sensors = tuple(banked.model.sensors_used_)
         rises = self.reference.rises_C(good_values, sensors)
         if rises is None or (banked.model.uses_speed and speed_rpm is None):
@@ -295,6 +310,7 @@ class MachineLoop:
                 await asyncio.sleep(0)
 
     async def close(self) -> None:
+        self.effects.save()
         for bus in self.buses:
             await bus.close()
         await self.cnc.close()

@@ -72,7 +72,9 @@ RULES = {
         "inner leave-one-out on each fold's training runs, scored on the residual's shape "
         "within each inner held-out run"
     ),
-    "lag_families_twice": "thermal_lag, unsensed_heat, ambient may enter twice (two time constants)",
+    "lag_families_twice": (
+        "thermal_lag, unsensed_heat, ambient may enter twice (two time constants)"
+    ),
     "max_steps": MAX_STEPS,
 }
 

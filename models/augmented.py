@@ -4,8 +4,9 @@ Stored as its own JSON document (``<store>/augmented/<model_id>.json``) next to
 the plain models, with its provenance: the base model, the effects in the
 order they were added with their parameters, the data fingerprint and the
 held-out error before and after. It is kept in a sub-folder because its effect
-terms need time and filter states (lags since the reference), so the runtime's
-model bank, which predicts from one cycle's rises, does not load it by mistake.
+terms need time and filter states (lags since the reference): the runtime's
+model bank loads it apart from the plain models, and the machine loop runs it
+sample by sample (:mod:`models.effect_stream`), carrying those states.
 
 ``predict`` rebuilds every term from a prepared data set exactly as the
 analysis did, so a stored document can be checked against fresh data.

@@ -12,19 +12,28 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import json
 import logging
 import math
+import shutil
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
 from drivers.clock import ManualClock
+from gateway.config import RegimeSection
 from gateway.demo import ClosedLoop, fit_models, machine_config, open_loop, write_training_data
+from models import augmented
+from models.effect_stream import StreamingAugmented
 from simulator.faults import SensorFault
-from simulator.programs import SpeedProgram, production_program
+from simulator.params import load_params
+from simulator.programs import SpeedProgram, production_program, program_by_name
+from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from simulator.serve import SimulatedPlant, SimulatorConfig
+from tests.cli import gateway
 from tests.ports import free_tcp_port
 from tests.serial_pty import socat_pty_pair
 
@@ -55,8 +64,14 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @contextlib.asynccontextmanager
 async def closed_loop(
-    tmp_path: Path, store: Path, program: SpeedProgram, cnc: str = "opcua"
+    tmp_path: Path,
+    store: Path,
+    program: SpeedProgram,
+    cnc: str = "opcua",
+    regimes: dict[str, Any] | None = None,
+    state_dir: Path | None = None,
 ) -> AsyncIterator[tuple[ClosedLoop, ManualClock]]:
+    """The plant and the gateway on a manual clock; ``regimes`` replaces the demo's rules."""
     clock = ManualClock()
     with socat_pty_pair(tmp_path) as pty:
         devices = [
@@ -104,7 +119,12 @@ async def closed_loop(
             cnc=link,
             cycle_s=CYCLE_S,
         )
-        closed = await open_loop(plant, machine, clock)
+        if regimes is not None:
+            models = machine.models.model_copy(
+                update={"regimes": RegimeSection.model_validate(regimes)}
+            )
+            machine = machine.model_copy(update={"models": models})
+        closed = await open_loop(plant, machine, clock, state_dir=state_dir)
         try:
             await closed.loop.run_cycle()
             plant.machine.schedule_program(plant.machine.time_s + CYCLE_S)
@@ -280,3 +300,79 @@ def test_variable_to_constant_switches_model_once(
     models = [r.model_id for r in closed.trace.records if r.model_id]
     changes = sum(1 for a, b in itertools.pairwise(models) if a != b)
     assert changes == 1
+
+
+@pytest.fixture(scope="module")
+def augmented_store(
+    tmp_path_factory: pytest.TempPathFactory, store: Path
+) -> tuple[Path, dict[str, Any]]:
+    """The plain models plus the augmented model ``analyze --store`` makes of simulator
+    data with a hidden thermal lag and a direct speed effect."""
+    folder = tmp_path_factory.mktemp("augmented-loop")
+    models = folder / "models"
+    shutil.copytree(store, models)
+    data = folder / "hidden.csv"
+    programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
+    write_recording(data, record(load_params(), programs, ["thermal_lag", "speed_direct"], seed=2))
+    done = gateway("analyze", data, "--store", models)
+    assert done.returncode == 0, done.stderr
+    (path,) = (models / augmented.FOLDER).glob("*.json")
+    return models, augmented.load(path)
+
+
+def test_augmented_model_switched_in_warm_compensates(
+    tmp_path: Path, augmented_store: tuple[Path, dict[str, Any]]
+) -> None:
+    store, document = augmented_store
+    model_id = document["model_id"]
+    assert document["effects"], "analyze found no effect in the simulator data"
+    assert not StreamingAugmented(document).uses_ambient  # the gateway reads no ambient here
+    regimes = {
+        "window_s": 1200,
+        "constant_tolerance_rpm": 100,
+        "min_dwell_s": 600,
+        "models": {"variable": "mlr-error_um-variable", "constant": model_id},
+        "fallback_model": "mlr-error_um-all",
+    }
+    spectrum = tuple((600.0, float(s)) for s in (2000, 6000, 3000, 7000, 1000, 5000, 2500))
+    program = SpeedProgram("variable-then-constant", (*spectrum, (2 * 3600.0, 6000.0)))
+    state_dir = tmp_path / "state"
+
+    async def scenario() -> ClosedLoop:
+        loop = closed_loop(tmp_path, store, program, regimes=regimes, state_dir=state_dir)
+        async with loop as (closed, clock):
+            await run_for(closed, clock, program.duration_s)
+            assert_every_write_was_safe(closed)
+            return closed
+
+    closed = asyncio.run(scenario())
+    records = closed.trace.records
+    assert closed.loop.selector.switches[0][1:] == ("variable", "constant")
+    switched = next(i for i, r in enumerate(records) if r.model_id == model_id)
+    assert switched > 100  # the plain model compensated the first hour and more
+
+    # The same cycles through the streaming model: every good rise above the gateway's
+    # cold reference and the speed, from the first cycle on, selected or not.
+    reference_C = closed.loop.reference.values_C
+    warm = StreamingAugmented(document)
+    cold = StreamingAugmented(document)  # started only when the model is switched in
+    warm_um, cold_um = [], []
+    for i, r in enumerate(records):
+        good = {n: t for n, t in r.temperatures_C.items() if t is not None}
+        good = {n: t for n, t in good.items() if r.quality[n] == "good"}
+        rises_C = {n: t - reference_C[n] for n, t in good.items()}
+        expected = warm.step(r.time_s, rises_C, r.speed_rpm)
+        if i >= switched:
+            assert r.model_id == model_id
+            assert r.predicted_um == expected, (r.time_s, r.predicted_um, expected)
+            warm_um.append(expected)
+            cold_um.append(cold.step(r.time_s, rises_C, r.speed_rpm))
+    # The state carried through the variable phase mattered.
+    assert np.max(np.abs(np.array(warm_um) - np.array(cold_um))) > 0.1
+    written = [r for r in records[switched:] if r.write_status.startswith("ok")]
+    assert written and all(r.written_cnc is not None for r in written)
+
+    # Closing the loop saved the states where a restarted gateway finds them.
+    saved = json.loads((state_dir / "vmc-demo-effect-state.json").read_text(encoding="utf-8"))
+    assert saved["models"][model_id]["sha256"] == document["sha256"]
+    assert saved["models"][model_id]["state"] == warm.export_state()

@@ -1,0 +1,121 @@
+"""The lag states of a machine's augmented models: advanced every cycle, kept across restarts.
+
+An augmented model's lag terms remember every sample since the cold reference
+(:mod:`models.effect_stream`), so they cannot be computed from one cycle's
+rises. The loop advances every augmented model in the bank each cycle, the
+selected one and the others alike, so a model the regime rules switch in
+mid-shift starts warm instead of from the present rises.
+
+The states are kept in ``<state_dir>/<machine>-effect-state.json``, next to the
+temperature reference, each with the checksum of the model it belongs to. The
+file is written atomically on the first cycle, then at most every
+``SAVE_EVERY_S`` of machine time and when the loop closes; a restarted gateway
+carries on from it, the first cycle's Δt spanning the downtime. A state saved
+for a model that has changed since, or one the model cannot take, is dropped
+(with a warning) and that model's lags start again from the present rises.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+from gateway.model_bank import BankedAugmented
+from gateway.reference import write_json_atomic
+
+log = logging.getLogger(__name__)
+
+SAVE_EVERY_S = 60.0
+
+
+class EffectStates:
+    """One :class:`~models.effect_stream.StreamingAugmented` per augmented model of the bank."""
+
+    def __init__(
+        self,
+        models: Iterable[BankedAugmented],
+        state_file: Path | None,
+        speed_ref_rpm: float = 0.0,
+        save_every_s: float = SAVE_EVERY_S,
+    ) -> None:
+        self.models = list(models)
+        self.streams = {m.model_id: m.stream(speed_ref_rpm) for m in self.models}
+        self.state_file = state_file
+        self.save_every_s = save_every_s
+        self._saved_s: float | None = None
+        self._restore()
+
+    def advance(
+        self, time_s: float, rises_C: Mapping[str, float], speed_rpm: float | None
+    ) -> dict[str, float | None]:
+        """Step every augmented model with this cycle's good rises; their predictions, µm.
+
+        A model whose inputs are incomplete this cycle predicts None and keeps
+        its state for the next complete cycle.
+        """
+        predicted: dict[str, float | None] = {}
+        for model in self.models:
+            stream = self.streams[model.model_id]
+            if stream.time_s is not None and time_s < stream.time_s:
+                log.warning(
+                    "%s: the clock (%.0f s) is before the saved lag state (%.0f s); "
+                    "its lags start again",
+                    model.model_id,
+                    time_s,
+                    stream.time_s,
+                )
+                stream.reset()
+            ambient_rise_C = rises_C.get(model.ambient_sensor) if model.ambient_sensor else None
+            value = stream.step(time_s, rises_C, speed_rpm, ambient_rise_C)
+            finite = value is not None and math.isfinite(value)
+            predicted[model.model_id] = value if finite else None
+        if self.models and (self._saved_s is None or time_s - self._saved_s >= self.save_every_s):
+            self.save()
+            self._saved_s = time_s
+        return predicted
+
+    def save(self) -> None:
+        if self.state_file is None or not self.models:
+            return
+        states = {
+            m.model_id: {
+                "sha256": m.document.get("sha256"),
+                "state": self.streams[m.model_id].export_state(),
+            }
+            for m in self.models
+        }
+        try:
+            write_json_atomic(self.state_file, {"models": states})
+        except OSError as exc:  # compensation goes on; a restart would start the lags again
+            log.warning("%s: cannot save the lag states: %s", self.state_file, exc)
+
+    def _restore(self) -> None:
+        if self.state_file is None or not self.state_file.exists():
+            return
+        try:
+            saved = json.loads(self.state_file.read_text(encoding="utf-8"))["models"]
+            if not isinstance(saved, dict):
+                raise TypeError("'models' is not an object")
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            log.warning("%s: unreadable (%s); every lag starts again", self.state_file, exc)
+            return
+        for model in self.models:
+            entry = saved.get(model.model_id)
+            if not isinstance(entry, dict):
+                continue
+            if entry.get("sha256") != model.document.get("sha256"):
+                log.warning(
+                    "%s: the saved lag state belongs to an earlier version of the model; "
+                    "its lags start again",
+                    model.model_id,
+                )
+                continue
+            try:
+                self.streams[model.model_id].import_state(entry["state"])
+            except (KeyError, TypeError, ValueError) as exc:
+                log.warning(
+                    "%s: saved lag state refused (%s); its lags start again", model.model_id, exc
+                )

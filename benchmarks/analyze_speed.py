@@ -3,8 +3,8 @@
 Three files: the real 46-hour test (``data/fl_thermal.csv``, target ``ch1_um``)
 and two synthetic files of ``--rows`` rows (default 1 000 000: ten runs, 16
 sensors, 15 s sampling, written by :func:`benchmarks.fit_speed.write_synthetic`):
-one the model explains (one round, ``none``), one with a hidden lag of 1 h the
-analysis has to find (several rounds).
+one the model explains (one round, ``none``), one with a direct speed effect (1 µm per
+1000 r/min) the analysis has to find (several rounds).
 Each figure is the wall time of one CLI subprocess (load, fit, every candidate,
 every round), the median of ``--repeat`` runs measured in this one process.
 Prints one JSON document.
@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.fit_speed import write_synthetic  # noqa: E402
 
-LIMITS_S = {"fl_thermal": 10.0, "synthetic": 60.0, "synthetic_hidden_lag": 60.0}
+LIMITS_S = {"fl_thermal": 10.0, "synthetic": 60.0, "synthetic_speed_effect": 60.0}
 
 
 def analyze_seconds(path: Path, target: str, repeat: int, out: Path) -> tuple[float, dict]:
@@ -69,12 +69,12 @@ def main() -> None:
         folder = Path(tmp)
         synthetic = folder / "synthetic.csv"
         write_synthetic(synthetic, args.rows)
-        hidden = folder / "synthetic_hidden_lag.csv"
-        write_synthetic(hidden, args.rows, hidden_lag_tau_s=3600.0)
+        speed_effect = folder / "synthetic_speed_effect.csv"
+        write_synthetic(speed_effect, args.rows, hidden_um_per_krpm=1.0)
         for name, path, target in (
             ("fl_thermal", ROOT / "data" / "fl_thermal.csv", "ch1_um"),
             ("synthetic", synthetic, "error_um"),
-            ("synthetic_hidden_lag", hidden, "error_um"),
+            ("synthetic_speed_effect", speed_effect, "error_um"),
         ):
             wall, payload = analyze_seconds(path, target, args.repeat, folder / f"{name}.json")
             results[name] = {

@@ -41,14 +41,12 @@ def seconds(action: Callable[[], object], repeat: int) -> float:
     return statistics.median(times)
 
 
-def write_synthetic(
-    path: Path, rows: int, seed: int = 0, hidden_lag_tau_s: float | None = None
-) -> None:
+def write_synthetic(path: Path, rows: int, seed: int = 0, hidden_um_per_krpm: float = 0.0) -> None:
     """Ten runs at 15 s sampling; sensors are first-order lags of a speed-driven heat input.
 
-    ``hidden_lag_tau_s`` adds an error term no sensor explains: 2 µm/°C times
-    T1's rise through a further first-order lag (a part heated through T1's
-    region), so ``analyze`` has an effect to find and goes through several rounds.
+    ``hidden_um_per_krpm`` adds an error term no temperature explains: growth
+    proportional to the speed itself (centrifugal), so ``analyze`` has an
+    effect to find and goes through more than one round.
     """
     rng = np.random.default_rng(seed)
     per_run = rows // 10
@@ -65,9 +63,7 @@ def write_synthetic(
         temps.append(20.0 + 15.0 * lfilter([1 - a], [1, -a], drive) + rng.normal(0, 0.02, n))
         columns[f"T{i + 1}"] = temps[-1]
     error_um = 3.0 * (temps[0] - 20) - 1.5 * (temps[8] - 20) + rng.normal(0, 0.5, n)
-    if hidden_lag_tau_s is not None:
-        a = np.exp(-15.0 / hidden_lag_tau_s)
-        error_um += 2.0 * lfilter([1 - a], [1, -a], temps[0] - 20.0)
+    error_um += hidden_um_per_krpm * speed / 1000.0
     columns["error_um"] = error_um
     pd.DataFrame(columns).to_csv(path, index=False, float_format="%.4f")
 

@@ -407,6 +407,9 @@ class ResidualAnalysis:
                             for s in range(k)
                             if s != f
                         )
+        if family is not None:
+            for f, vi in _taken_in_fold(family, accepted, k):
+                inner[vi, f] = np.inf  # that fold already has this time constant in
         chosen = [int(np.argmin(inner[:, f])) if n_variants > 1 else 0 for f in range(k)]
         result = np.empty(self.y.size)
         for f, vi in enumerate(chosen):
@@ -446,6 +449,19 @@ def _shape_sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray)
     so ``gram[0]`` holds the column sums and ``cross[0]`` the sum of y)."""
     mean_residual = (cross[0] - gram[0] @ beta) / gram[0, 0]
     return max(_sse(gram, cross, yy, beta) - gram[0, 0] * mean_residual**2, 0.0)
+
+
+def _taken_in_fold(family: EffectFamily, accepted: list[Accepted], k: int) -> list[tuple[int, int]]:
+    """(fold, variant) pairs of ``family`` that a fold already chose for an earlier entry
+    of the same family: a second lag must have another time constant in every fold."""
+    taken = []
+    for a in accepted:
+        if a.family.effect != family.effect:
+            continue
+        for f in range(k):
+            params = a.family.variants[a.per_fold[f]].params
+            taken += [(f, vi) for vi, v in enumerate(family.variants) if v.params == params]
+    return taken
 
 
 def _overall_choice(ev: Evaluation, family: EffectFamily) -> int:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from models import augmented
-from models.analysis import Accepted, ResidualAnalysis, _shape_sse, analyze
+from models.analysis import Accepted, ResidualAnalysis, _shape_sse, _taken_in_fold, analyze
 from models.dataset import load_runs
 from models.effect_terms import first_order_lag
 from models.features import prepare
@@ -201,3 +201,14 @@ def test_a_lag_family_may_enter_twice_with_another_time_constant(tmp_path: Path)
     closed = {f.effect for f in analysis._open_families([first, second])}
     assert "thermal_lag" not in closed
     assert "drift" not in {f.effect for f in analysis._open_families([Accepted(drift, [0] * 6, 0)])}
+
+
+def test_a_second_lag_never_repeats_the_time_constant_its_fold_already_has() -> None:
+    prepared = prepare(load_runs(FL_THERMAL, target="ch1_um"))
+    analysis = ResidualAnalysis(prepared, "mlr")
+    lag = next(f for f in analysis.families if f.effect == "thermal_lag")
+    per_fold = [0, 1, 2, 0, 1, 2]
+    first = Accepted(lag, per_fold, 0)
+    second = analysis.evaluate([first], lag)
+    assert all(chosen != per_fold[f] for f, chosen in enumerate(second.chosen))
+    assert sorted(_taken_in_fold(lag, [first], 6)) == list(enumerate(per_fold))

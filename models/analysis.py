@@ -85,6 +85,8 @@ class Folds:
     index: np.ndarray  # (n,) fold number of each row
     names: tuple[str, ...]
     rows: tuple[np.ndarray, ...]  # row indices of each fold
+    parts: tuple[slice | np.ndarray, ...]  # the same as slices where a fold is contiguous
+    pairs: tuple[tuple[slice | np.ndarray, slice | np.ndarray], ...]  # (row t, row t−1) in a fold
 
     @classmethod
     def of(cls, prepared: Prepared) -> Folds:
@@ -93,7 +95,12 @@ class Folds:
         number = {name: i for i, name in enumerate(names)}
         index = np.array([number[label] for label in labels], dtype=int)
         rows = tuple(np.flatnonzero(index == i) for i in range(len(names)))
-        return cls(scheme, index, names, rows)
+        parts = tuple(_as_slice(r) for r in rows)
+        pairs = []
+        for r in rows:
+            current = r[1:][np.diff(r) == 1]
+            pairs.append((_as_slice(current), _as_slice(current - 1)))
+        return cls(scheme, index, names, rows, parts, tuple(pairs))
 
     @property
     def count(self) -> int:
@@ -178,6 +185,7 @@ class ResidualAnalysis:
         self.method = method
         self.y = prepared.error_um
         self.folds = Folds.of(prepared)
+        self._yy = np.array([self.y[part] @ self.y[part] for part in self.folds.parts])
         self.progress = progress
         self.base = BaseDesigns(method, sensors, prepared, self.folds)
         self.families = candidate_families(prepared, self.base.used_sensors)
@@ -332,41 +340,39 @@ class ResidualAnalysis:
         classical F-test holds again.
         """
         rho = _lag1_autocorrelation(self.y - ev.predicted_um, self.folds.index)
-        keep = np.flatnonzero(self.folds.index[1:] == self.folds.index[:-1]) + 1
-        y_w = self.y[keep] - rho * self.y[keep - 1]
-        fold_w = self.folds.index[keep]
-        rows_w = [np.flatnonzero(fold_w == f) for f in range(self.folds.count)]
-        yy = np.array([y_w[rows] @ y_w[rows] for rows in rows_w])
-        groups: dict[tuple[int, int], list[int]] = {}
+        pairs = self.folds.pairs
+        whitened_y = [self.y[now] - rho * self.y[before] for now, before in pairs]
+        yy = np.array([w @ w for w in whitened_y])
+        n_pairs = np.array([w.size for w in whitened_y])
+        groups: dict[tuple, list[int]] = {}
         for f in range(self.folds.count):
-            groups.setdefault((self.base.group_of(f), ev.chosen[f]), []).append(f)
+            key = (self.base.group_of(f), *(a.per_fold[f] for a in accepted), ev.chosen[f])
+            groups.setdefault(key, []).append(f)
         worst = 0.0
-        for folds_in_group in groups.values():
-            z = self._design(
-                accepted, folds_in_group[0], family.variants[ev.chosen[folds_in_group[0]]]
+        for key, folds_in_group in groups.items():
+            z = np.column_stack(
+                [
+                    self._fixed_design(key[0], accepted, key[1:-1]),
+                    family.variants[key[-1]].build(),
+                ]
             )
-            z_w = z[keep] - rho * z[keep - 1]
-            gram = np.stack([z_w[rows].T @ z_w[rows] for rows in rows_w])
-            cross = np.stack([z_w[rows].T @ y_w[rows] for rows in rows_w])
+            gram = np.empty((self.folds.count, z.shape[1], z.shape[1]))
+            cross = np.empty((self.folds.count, z.shape[1]))
+            for f, (now, before) in enumerate(pairs):
+                z_w = z[now] - rho * z[before]
+                gram[f], cross[f] = z_w.T @ z_w, z_w.T @ whitened_y[f]
             k0 = z.shape[1] - ev.n_added
             for f in folds_in_group:
                 g, c, t = gram.sum(0) - gram[f], cross.sum(0) - cross[f], yy.sum() - yy[f]
                 sse1 = _sse(g, c, t, np.linalg.lstsq(g, c, rcond=1e-12)[0])
                 g0, c0 = g[:k0, :k0], c[:k0]
                 sse0 = _sse(g0, c0, t, np.linalg.lstsq(g0, c0, rcond=1e-12)[0])
-                df2 = fold_w.size - rows_w[f].size - z.shape[1]
+                df2 = int(n_pairs.sum() - n_pairs[f]) - z.shape[1]
                 if df2 < 1 or sse1 <= 0 or ev.n_added == 0:
                     return 1.0
                 statistic = max(sse0 - sse1, 0.0) / ev.n_added / (sse1 / df2)
                 worst = max(worst, float(stats.f.sf(statistic, ev.n_added, df2)))
         return worst
-
-    def _design(self, accepted: list[Accepted], fold: int, variant: Variant | None) -> np.ndarray:
-        columns = [np.ones((self.y.size, 1)), self.base.design(self.base.group_of(fold))]
-        columns += [a.family.variants[a.per_fold[fold]].build() for a in accepted]
-        if variant is not None:
-            columns.append(variant.build())
-        return np.column_stack(columns)
 
     # ---- fitting from Gram matrices --------------------------------------------------
 
@@ -385,20 +391,23 @@ class ResidualAnalysis:
             key = (self.base.group_of(f), *(a.per_fold[f] for a in accepted))
             groups.setdefault(key, []).append(f)
         for key, folds_in_group in groups.items():
-            fixed = [np.ones((self.y.size, 1)), self.base.design(key[0])]
-            fixed += [a.family.variants[v].build() for a, v in zip(accepted, key[1:], strict=True)]
+            fixed = self._fixed_design(key[0], accepted, key[1:])
+            fixed_gram = self._grams(fixed, fixed)
+            fixed_cross = self._grams(fixed, self.y)
             for vi, variant in enumerate(variants):
                 extra = variant.build() if variant is not None else np.empty((self.y.size, 0))
-                z = np.column_stack([*fixed, extra])
-                n_columns, n_added = z.shape[1], extra.shape[1]
-                gram, cross, yy = self._grams(z)
+                n_columns, n_added = fixed.shape[1] + extra.shape[1], extra.shape[1]
+                gram, cross = self._joined(fixed, extra, fixed_gram, fixed_cross)
+                yy = self._yy
                 for f in folds_in_group:
                     beta = _solve(gram, cross, exclude=[f])
                     heldout[vi, f] = _sse(gram[f], cross[f], yy[f], beta)
                     train[vi, f] = _sse(
                         gram.sum(0) - gram[f], cross.sum(0) - cross[f], yy.sum() - yy[f], beta
                     )
-                    predicted[vi, self.folds.rows[f]] = z[self.folds.rows[f]] @ beta
+                    part = self.folds.parts[f]
+                    predicted[vi, part] = fixed[part] @ beta[: fixed.shape[1]]
+                    predicted[vi, part] += extra[part] @ beta[fixed.shape[1] :]
                     if n_variants > 1:
                         inner[vi, f] = sum(
                             _shape_sse(
@@ -424,12 +433,37 @@ class ResidualAnalysis:
             n_added=n_added,
         )
 
-    def _grams(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per fold: ZᵀZ, Zᵀy and yᵀy."""
-        gram = np.stack([z[rows].T @ z[rows] for rows in self.folds.rows])
-        cross = np.stack([z[rows].T @ self.y[rows] for rows in self.folds.rows])
-        yy = np.array([self.y[rows] @ self.y[rows] for rows in self.folds.rows])
-        return gram, cross, yy
+    def _fixed_design(
+        self, base_group: int, accepted: list[Accepted], choices: Sequence[int]
+    ) -> np.ndarray:
+        """Intercept, the model's own terms and the accepted effects (each fold's variant)."""
+        columns = [np.ones((self.y.size, 1)), self.base.design(base_group)]
+        columns += [a.family.variants[v].build() for a, v in zip(accepted, choices, strict=True)]
+        return np.column_stack(columns)
+
+    def _grams(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Per fold: aᵀb (fold rows as views where the fold is contiguous)."""
+        return np.stack([a[part].T @ b[part] for part in self.folds.parts])
+
+    def _joined(
+        self,
+        fixed: np.ndarray,
+        extra: np.ndarray,
+        fixed_gram: np.ndarray,
+        fixed_cross: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Per-fold ZᵀZ and Zᵀy of Z = [fixed, extra], reusing the fixed block's products:
+        a candidate costs only its own columns' products, not a new design matrix."""
+        fixed_extra = self._grams(fixed, extra)
+        gram = np.concatenate(
+            [
+                np.concatenate([fixed_gram, fixed_extra], axis=2),
+                np.concatenate([fixed_extra.transpose(0, 2, 1), self._grams(extra, extra)], axis=2),
+            ],
+            axis=1,
+        )
+        cross = np.concatenate([fixed_cross, self._grams(extra, self.y)], axis=1)
+        return gram, cross
 
 
 def _solve(gram: np.ndarray, cross: np.ndarray, exclude: list[int]) -> np.ndarray:
@@ -449,6 +483,13 @@ def _shape_sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray)
     so ``gram[0]`` holds the column sums and ``cross[0]`` the sum of y)."""
     mean_residual = (cross[0] - gram[0] @ beta) / gram[0, 0]
     return max(_sse(gram, cross, yy, beta) - gram[0, 0] * mean_residual**2, 0.0)
+
+
+def _as_slice(rows: np.ndarray) -> slice | np.ndarray:
+    """A slice (a view, no copy) when ``rows`` are consecutive, else the indices themselves."""
+    if rows.size and rows[-1] - rows[0] + 1 == rows.size:
+        return slice(int(rows[0]), int(rows[-1]) + 1)
+    return rows
 
 
 def _taken_in_fold(family: EffectFamily, accepted: list[Accepted], k: int) -> list[tuple[int, int]]:

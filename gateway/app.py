@@ -15,10 +15,11 @@ from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.config import GatewayConfig, MachineSection
-from gateway.model_bank import ModelBank, ambient_sensor_of
+from gateway.model_bank import ModelBank
 from gateway.outputs import Outputs
 from gateway.runtime import CycleRecord, MachineLoop, Sink
 from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
+from models.dataset import ambient_sensor_of
 
 log = logging.getLogger(__name__)
 

@@ -38,11 +38,10 @@ class EffectStates:
         self,
         models: Iterable[BankedAugmented],
         state_file: Path | None,
-        speed_ref_rpm: float = 0.0,
         save_every_s: float = SAVE_EVERY_S,
     ) -> None:
         self.models = list(models)
-        self.streams = {m.model_id: m.stream(speed_ref_rpm) for m in self.models}
+        self.streams = {m.model_id: m.stream() for m in self.models}
         self.state_file = state_file
         self.save_every_s = save_every_s
         self._saved_s: float | None = None

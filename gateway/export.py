@@ -47,9 +47,9 @@ from gateway.timeseries import (
     Point,
     to_time_ns,
 )
+from models.dataset import ambient_sensor_of
 
 SENSOR_PATTERN = re.compile(r"^T(\d+)$")
-AMBIENT_SENSORS = ("ambient_C", "ambient")
 
 
 class PointSource(Protocol):
@@ -141,7 +141,7 @@ def export_runs(
             error[row] = float(value)  # the last probe of the cycle wins
 
     t_sensors = sorted((s for s in sensors if SENSOR_PATTERN.match(s)), key=_sensor_number)
-    ambient = next((s for s in AMBIENT_SENSORS if s in sensors), None)
+    ambient = ambient_sensor_of(sensors)
     exported = [*t_sensors, *([ambient] if ambient else [])]
     ignored = tuple(sorted(sensors - set(exported)))
     # A column with no value in any exported row would make every row unusable.

@@ -19,17 +19,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from models import augmented
 from models.base import ThermalModel
 from models.dataset import AMBIENT_COLUMN
 from models.effect_stream import StreamingAugmented
 from models.store import StoredModel, load_file
 
 log = logging.getLogger(__name__)
-
-AUGMENTED_FOLDER = "augmented"  # as models.augmented.FOLDER
-# The sensor names gateway.export writes as the ambient_C column (not imported from
-# there: gateway.export imports the runtime, which imports this module).
-AMBIENT_SENSORS = ("ambient_C", "ambient")
 
 
 @dataclass(frozen=True)
@@ -86,18 +82,12 @@ class BankedAugmented:
         after = self.document.get("provenance", {}).get("after") or {}
         return float(after.get("rmse_um", float("inf")))
 
-    def stream(self, speed_ref_rpm: float = 0.0) -> StreamingAugmented:
+    def stream(self) -> StreamingAugmented:
         """A fresh sample-by-sample form of this model (no state yet)."""
-        return StreamingAugmented(self.document, speed_ref_rpm=speed_ref_rpm)
+        return StreamingAugmented(self.document)
 
 
 Banked = BankedModel | BankedAugmented
-
-
-def ambient_sensor_of(sensor_names: Iterable[str]) -> str | None:
-    """The machine sensor that measures the hall (named as the CSV export expects)."""
-    names = set(sensor_names)
-    return next((name for name in AMBIENT_SENSORS if name in names), None)
 
 
 class ModelBank:
@@ -121,19 +111,15 @@ class ModelBank:
         for path in sorted(folder.glob("*.json")):
             model, document = load_file(path)
             loaded.append(BankedModel(document.model_id, model, document))
-        augmented_paths = sorted((folder / AUGMENTED_FOLDER).glob("*.json"))
-        if augmented_paths:
-            from models import augmented  # residual-analysis code: only when there is one
-
-            for path in augmented_paths:
-                loaded.append(
-                    BankedAugmented.from_document(
-                        augmented.load(path), ambient_sensor or AMBIENT_COLUMN
-                    )
+        for path in sorted((folder / augmented.FOLDER).glob("*.json")):
+            loaded.append(
+                BankedAugmented.from_document(
+                    augmented.load(path), ambient_sensor or AMBIENT_COLUMN
                 )
+            )
         if not loaded:
             raise ValueError(
-                f"model store {folder}: no model files (*.json, {AUGMENTED_FOLDER}/*.json)"
+                f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"
             )
         return cls(loaded)
 

@@ -346,7 +346,7 @@ class ResidualAnalysis:
         n_pairs = np.array([w.size for w in whitened_y])
         groups: dict[tuple, list[int]] = {}
         for f in range(self.folds.count):
-            key = (self.base.group_of(f), *(a.per_fold[f] for a in accepted), ev.chosen[f])
+            key = (*self._fold_design(f, accepted), ev.chosen[f])
             groups.setdefault(key, []).append(f)
         worst = 0.0
         for key, folds_in_group in groups.items():
@@ -388,7 +388,7 @@ class ResidualAnalysis:
         n_columns = n_added = 0
         groups: dict[tuple, list[int]] = {}
         for f in range(k):
-            key = (self.base.group_of(f), *(a.per_fold[f] for a in accepted))
+            key = self._fold_design(f, accepted)
             groups.setdefault(key, []).append(f)
         for key, folds_in_group in groups.items():
             fixed = self._fixed_design(key[0], accepted, key[1:])
@@ -432,6 +432,11 @@ class ResidualAnalysis:
             n_columns=n_columns,
             n_added=n_added,
         )
+
+    def _fold_design(self, fold: int, accepted: list[Accepted]) -> tuple[int, ...]:
+        """What fixes a fold's design: its base-model group and each accepted effect's variant
+        (folds with the same key share one design matrix)."""
+        return (self.base.group_of(fold), *(a.per_fold[fold] for a in accepted))
 
     def _fixed_design(
         self, base_group: int, accepted: list[Accepted], choices: Sequence[int]

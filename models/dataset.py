@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import csv
 import re
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -31,6 +31,7 @@ RUN_COLUMN = "run"
 TIME_COLUMN = "time_s"
 SPEED_COLUMN = "speed_rpm"
 AMBIENT_COLUMN = "ambient_C"
+AMBIENT_SENSORS = ("ambient_C", "ambient")  # machine sensor names that feed AMBIENT_COLUMN
 DEFAULT_TARGET = "error_um"
 HEADER_LINE = 1
 
@@ -381,3 +382,9 @@ def _check_runs(path: Path, run: np.ndarray, time_s: np.ndarray, lines: np.ndarr
             f"time does not increase within run '{run[row]}': {time_s[row]:g} s after "
             f"{time_s[row - 1]:g} s at line {int(lines[row - 1])}",
         )
+
+
+def ambient_sensor_of(sensor_names: Iterable[str]) -> str | None:
+    """The machine sensor that measures the hall, if any (``AMBIENT_SENSORS``, in order)."""
+    names = set(sensor_names)
+    return next((name for name in AMBIENT_SENSORS if name in names), None)

@@ -39,7 +39,6 @@ sys.path.insert(0, str(ROOT))
 from models.dataset import load_runs  # noqa: E402
 from models.effect_terms import first_order_lag, hours_since_start  # noqa: E402
 from models.features import prepare  # noqa: E402
-from models.references import rises  # noqa: E402
 
 SENSOR_TAUS_S = (0.0, 300.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
 SPEED_TAUS_S = (0.0, 300.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
@@ -53,7 +52,7 @@ def term_library(path: Path, target: str) -> tuple[list[str], np.ndarray, np.nda
     recording = prepared.plan.recording
     sensor_rises = prepared.inputs.rise_C
     speed_krpm = data.speed_rpm / 1000.0
-    speed_rises = rises(np.column_stack([speed_krpm, speed_krpm**2]), recording)
+    speed_rises = prepared.plan.rises(np.column_stack([speed_krpm, speed_krpm**2]))
     names: list[str] = []
     columns: list[np.ndarray] = []
     for tau in SENSOR_TAUS_S:

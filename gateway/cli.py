@@ -117,7 +117,7 @@ def fit(
     )
     click.echo(
         f"references ({reference}): {len(recordings)} recording(s); rises are taken from the "
-        "first sample of each recording: " + " | ".join(" ".join(r) for r in recordings)
+        "leading at-rest samples of each recording: " + " | ".join(" ".join(r) for r in recordings)
     )
     outcome = fit_and_store(
         prepared,

@@ -14,7 +14,7 @@ The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
    - the pooled held-out RMSE of the residual's shape within each run (about
      the run's own mean) falls by at least ``MIN_GAIN_PCT`` (10 %), and the
      plain held-out RMSE falls too. A held-out run's offset carries the noise
-     of its one reference sample, which no effect can predict;
+     of its reference readings, which no effect can predict;
    - the held-out RMSE falls in at least ``MIN_FOLD_SHARE`` (half) of the folds;
    - on *every* training fold the partial F-test of its terms gives
      p < ``ALPHA`` / (number of families tried in that round), Bonferroni.

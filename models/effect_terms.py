@@ -3,7 +3,7 @@
 Every candidate is a *family*: one physical effect with a small grid of
 parameter values (a time constant, a sensor name, a time origin). The analysis
 picks the value inside each validation fold, on that fold's training runs only.
-Every term is a *rise from the same reference sample* as the temperatures and
+Every term is a *rise from the same reference* as the temperatures and
 the error (:mod:`models.references`): a term that is not zero at the reference
 would claim an error the target does not contain.
 
@@ -26,9 +26,8 @@ The families:
   displacement — columns ending in ``_um`` are measured errors, which a
   gateway without a probe does not have).
 
-Lag states start at the recording's reference sample and carry across runs of
-one continuous recording; a recording that starts cold starts the filter at
-its first sample.
+Lag states start at the recording's first sample and carry across runs of one
+continuous recording; each recording that starts cold starts its filter afresh.
 """
 
 from __future__ import annotations
@@ -42,7 +41,7 @@ from scipy.signal import lfilter
 
 from models.dataset import AMBIENT_COLUMN
 from models.features import Prepared
-from models.references import first_rows, rises
+from models.references import first_rows
 
 LAG_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
 HEAT_TAUS_S = (600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
@@ -116,7 +115,7 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
     time_s = data.time_s
     used_rises = prepared.inputs.columns(used_sensors) if used_sensors else None
     speed_krpm = data.speed_rpm / SPEED_SCALE_RPM
-    speed_terms = rises(np.column_stack([speed_krpm, speed_krpm**2]), recording)
+    speed_terms = prepared.plan.rises(np.column_stack([speed_krpm, speed_krpm**2]))
 
     def lagged(values: np.ndarray, tau: float) -> Callable[[], np.ndarray]:
         return lambda: np.atleast_2d(first_order_lag(values, time_s, recording, tau).T).T
@@ -161,7 +160,7 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
         )
     ambient = data.ambient_C
     if ambient is not None and np.ptp(ambient) > 0:
-        ambient_rise = rises(ambient, recording)
+        ambient_rise = prepared.plan.rises(ambient)
         families.append(
             EffectFamily(
                 "ambient",
@@ -219,4 +218,4 @@ def unused_columns(prepared: Prepared, used_sensors: tuple[str, ...]) -> list[st
 
 def _column_rise(prepared: Prepared, name: str) -> Callable[[], np.ndarray]:
     values = prepared.data.numeric[name]
-    return lambda: rises(values, prepared.plan.recording)[:, None]
+    return lambda: prepared.plan.rises(values)[:, None]

@@ -9,7 +9,7 @@ import numpy as np
 
 from models.base import ModelInputs
 from models.dataset import MeasuredRuns
-from models.references import ReferencePlan, plan_references, rises
+from models.references import ReferencePlan, plan_references
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,7 @@ def prepare(
     names = tuple(sensors) if sensors is not None else data.sensors
     plan = plan_references(data, reference)
     inputs = ModelInputs(
-        rise_C=rises(data.temperatures(names), plan.recording),
+        rise_C=plan.rises(data.temperatures(names)),
         sensors=names,
         speed_rpm=data.speed_rpm,
         run_index=data.run_index,
@@ -45,6 +45,6 @@ def prepare(
     return Prepared(
         data=data,
         inputs=inputs,
-        error_um=rises(data.error_um, plan.recording),
+        error_um=plan.rises(data.error_um),
         plan=plan,
     )

@@ -5,12 +5,12 @@ Every model works on *rises*: ΔT = T − T_ref and Δe = e − e_ref (paper 002
 which sample is the reference.
 
 - A run that starts cold (its own experiment, the machine at rest and at room
-  temperature) is its own reference: its first sample.
+  temperature) is its own reference: its first samples (see below).
 - A run that is one part of a continuous recording (the heating–cooling cycles of
   ``fl_thermal.csv``) does *not* start cold: the machine is still warm from the
   cycle before, and the displacement probe was not re-zeroed. Taking that run's
-  first sample as reference would claim zero error in a warm machine. Its
-  reference is the first sample of the recording it belongs to, so the rises
+  first samples as reference would claim zero error in a warm machine. Its
+  reference is the start of the recording it belongs to, so the rises
   carry across cycles exactly as the machine carried its heat.
 
 Policies (``--reference``):
@@ -23,7 +23,14 @@ Policies (``--reference``):
   i.e. the clock ran on without a break. Otherwise (time restarts, or a gap) it
   starts a new recording and is taken to start cold.
 
-The reference is ``REFERENCE_SAMPLES`` (1) sample, the first of the recording.
+The reference of a recording is the mean of its leading samples taken *at rest*
+(``speed_rpm`` = 0) within its first ``REFERENCE_WINDOW_S`` (600 s): a thermal
+test zeroes its probes on the cold machine before the spindle starts (ISO 230-3;
+``fl_thermal.csv`` opens with 7.5 min at rest). One probe reading carries the
+probe's noise into every later rise of its run as a constant offset; the mean of
+several at-rest readings does not. A recording whose first sample is already at
+speed has its first sample as reference. The speed's own reference is then 0
+whenever the recording starts at rest, the convention the runtime uses too.
 """
 
 from __future__ import annotations
@@ -36,7 +43,7 @@ from models.dataset import MeasuredRuns
 
 POLICIES = ("auto", "run-start", "recording-start")
 CONTINUITY_FACTOR = 3.0
-REFERENCE_SAMPLES = 1
+REFERENCE_WINDOW_S = 600.0
 
 
 @dataclass(frozen=True)
@@ -46,12 +53,20 @@ class ReferencePlan:
     policy: str
     recording: np.ndarray  # (n,) recording number of each row
     recording_runs: tuple[tuple[str, ...], ...]  # run ids of each recording
+    reference_rows: np.ndarray  # (n,) bool: the rows each recording's reference is the mean of
+
+    def rises(self, values: np.ndarray) -> np.ndarray:
+        """``values`` above each recording's reference (see :func:`rises`)."""
+        return rises(values, self.recording, self.reference_rows)
 
     def describe(self) -> dict[str, object]:
         """The plan as stored with a model (how references are taken)."""
         return {
             "policy": self.policy,
-            "reference_sample": "first sample of the recording",
+            "reference_sample": (
+                "mean of the recording's leading samples at rest (speed_rpm 0) within its first "
+                f"{REFERENCE_WINDOW_S:g} s; its first sample if the spindle is already turning"
+            ),
             "continuity_rule": (
                 f"a run continues the previous run's recording when its first time_s follows "
                 f"the previous last time_s by >0 and <= {CONTINUITY_FACTOR:g} x the median "
@@ -87,7 +102,24 @@ def plan_references(data: MeasuredRuns, policy: str = "auto") -> ReferencePlan:
         policy=policy,
         recording=recording,
         recording_runs=tuple(tuple(groups[k]) for k in sorted(groups)),
+        reference_rows=reference_rows(recording, data.time_s, data.speed_rpm),
     )
+
+
+def reference_rows(recording: np.ndarray, time_s: np.ndarray, speed_rpm: np.ndarray) -> np.ndarray:
+    """Each recording's first sample, and the at-rest samples that follow it without a break
+    within ``REFERENCE_WINDOW_S``."""
+    chosen = np.zeros(recording.size, dtype=bool)
+    starts = np.flatnonzero(np.r_[True, recording[1:] != recording[:-1]])
+    ends = np.r_[starts[1:], recording.size]
+    for start, end in zip(starts, ends, strict=True):
+        chosen[start] = True
+        if speed_rpm[start] != 0:
+            continue
+        window = np.searchsorted(time_s[start:end], time_s[start] + REFERENCE_WINDOW_S, "right")
+        moving = np.flatnonzero(speed_rpm[start : start + window] != 0)
+        chosen[start : start + (moving[0] if moving.size else window)] = True
+    return chosen
 
 
 def _follows_on(time_s: np.ndarray, previous: slice, current: slice) -> bool:
@@ -103,7 +135,20 @@ def first_rows(group: np.ndarray) -> np.ndarray:
     return starts[np.searchsorted(starts, np.arange(group.size), side="right") - 1]
 
 
-def rises(values: np.ndarray, recording: np.ndarray) -> np.ndarray:
-    """values − the first row of each row's recording (works for (n,) and (n, k))."""
+def rises(
+    values: np.ndarray, recording: np.ndarray, reference: np.ndarray | None = None
+) -> np.ndarray:
+    """values − their mean over the ``reference`` rows of each row's recording.
+
+    Works for (n,) and (n, k). Without ``reference``, each recording's first row
+    alone. Recordings are numbered 0, 1, … as :func:`plan_references` numbers them.
+    """
     values = np.asarray(values, dtype=float)
-    return values - values[first_rows(recording)]
+    if reference is None:
+        return values - values[first_rows(recording)]
+    labels = recording[reference]
+    counts = np.bincount(labels, minlength=int(recording.max()) + 1).astype(float)
+    sums = np.zeros((counts.size, *values.shape[1:]))
+    np.add.at(sums, labels, values[reference])
+    means = sums / counts.reshape(-1, *([1] * (values.ndim - 1)))
+    return values - means[recording]

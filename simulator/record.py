@@ -2,9 +2,11 @@
 
 No servers, as fast as the CPU allows. Each programme is one run on a machine
 that starts cold (at room temperature), with ``time_s`` from 0, as separate
-test days would be. Rows are sampled every ``sample_s`` seconds; temperatures
-are written at the transmitters' register resolution (0.1 °C) and the error at
-0.01 µm. The same seed gives the same bytes.
+test days would be. Like a real thermal test, every run opens with
+``REST_BEFORE_S`` (10 min) at rest, the spindle stopped, before the programme
+starts: the readings the probe is zeroed on. Rows are sampled every
+``sample_s`` seconds; temperatures are written at the transmitters' register
+resolution (0.1 °C) and the error at 0.01 µm. The same seed gives the same bytes.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from simulator.machine import AMBIENT_CHANNEL, SimulatedMachine
 from simulator.params import MachineParams
 from simulator.programs import SpeedProgram
 
+REST_BEFORE_S = 600.0
 DEFAULT_PROGRAMS = (
     "iso230-spectrum",
     "spectrum-swapped",
@@ -84,7 +87,8 @@ def record(
     sensors = tuple(params.sensors)
     header = ("run", "time_s", "speed_rpm", *sensors, "ambient_C", "error_um")
     rows: list[tuple] = []
-    for run, program, child in zip(run_ids(programs), programs, seeds, strict=True):
+    for run, programme, child in zip(run_ids(programs), programs, seeds, strict=True):
+        program = SpeedProgram(programme.name, ((REST_BEFORE_S, 0.0), *programme.segments))
         machine = SimulatedMachine(params, program, active, seed=int(child.generate_state(1)[0]))
         steps = int(program.duration_s // sample_s)
         for k in range(steps + 1):

@@ -24,7 +24,7 @@ from models import augmented
 from models.dataset import load_runs
 from models.effect_stream import StreamingAugmented
 from models.features import Prepared, prepare
-from models.references import first_rows, rises
+from models.references import first_rows
 from models.store import StoreError
 from simulator.params import load_params
 from simulator.programs import load_programs
@@ -75,8 +75,8 @@ class Row:
 def rows_of(prepared: Prepared, sensors: tuple[str, ...]) -> Iterator[Row]:
     """The file's samples as the gateway would see them: rises above each recording's start."""
     data, recording = prepared.data, prepared.plan.recording
-    columns = {name: rises(data.numeric[name], recording) for name in sensors}
-    ambient = None if data.ambient_C is None else rises(data.ambient_C, recording)
+    columns = {name: prepared.plan.rises(data.numeric[name]) for name in sensors}
+    ambient = None if data.ambient_C is None else prepared.plan.rises(data.ambient_C)
     recording_first, run_first = first_rows(recording), first_rows(data.run_index)
     for k in range(data.n_samples):
         yield Row(

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from models.dataset import load_runs
-from models.references import plan_references, rises
+from models.references import REFERENCE_WINDOW_S, plan_references, reference_rows, rises
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 
@@ -56,8 +56,34 @@ def test_rises_subtract_the_first_sample_of_each_recording() -> None:
     np.testing.assert_array_equal(rises(values[:, 1], recording), expected[:, 1])
 
 
+def test_the_reference_is_the_mean_of_the_leading_samples_at_rest() -> None:
+    values = np.array([[20.0, 0.2], [20.2, -0.2], [20.1, 0.3], [23.0, 4.0], [24.0, 5.0]])
+    recording = np.array([0, 0, 0, 0, 0])
+    time_s = np.arange(5) * 60.0
+    speed_rpm = np.array([0.0, 0.0, 0.0, 3000.0, 3000.0])
+    rows = reference_rows(recording, time_s, speed_rpm)
+    np.testing.assert_array_equal(rows, [True, True, True, False, False])
+    reference = values[:3].mean(axis=0)
+    np.testing.assert_allclose(rises(values, recording, rows), values - reference)
+
+
+def test_reference_rows_stop_at_the_window_and_at_a_spindle_already_turning() -> None:
+    # Recording 0 rests for 20 min: only its first REFERENCE_WINDOW_S count.
+    # Recording 1 starts at speed: its first sample alone, even after a later stop.
+    time_s = np.r_[np.arange(21) * 60.0, np.arange(4) * 60.0]
+    speed_rpm = np.r_[np.zeros(21), [2000.0, 0.0, 0.0, 0.0]]
+    recording = np.r_[np.zeros(21, dtype=int), np.ones(4, dtype=int)]
+    rows = reference_rows(recording, time_s, speed_rpm)
+    assert rows[:21].sum() == int(REFERENCE_WINDOW_S // 60) + 1
+    np.testing.assert_array_equal(rows[21:], [True, False, False, False])
+
+
 def test_fl_thermal_cycles_are_one_recording() -> None:
     data = load_runs(DATA / "fl_thermal.csv", target="ch5_um")
     plan = plan_references(data, "auto")
     assert plan.recording_runs == (data.run_ids,)
     assert len(data.run_ids) == 6
+    # The spindle starts after 7.5 min (31 samples at rest): those are the reference.
+    moving = int(np.argmax(data.speed_rpm > 0))
+    assert moving == 31
+    np.testing.assert_array_equal(np.flatnonzero(plan.reference_rows), np.arange(moving))

@@ -14,7 +14,7 @@ from simulator.link import ChannelStatus
 from simulator.machine import SimulatedMachine
 from simulator.params import load_params
 from simulator.programs import SpeedProgram, load_programs, production_program, program_by_name
-from simulator.record import record
+from simulator.record import REST_BEFORE_S, record
 from tests.cli import gateway
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -93,7 +93,10 @@ def effect_difference(program: str, effect: str) -> tuple[dict, dict, np.ndarray
 
 def test_speed_direct_error_jumps_at_a_speed_step_before_temperatures_move() -> None:
     plain, data, _ = effect_difference("iso230-spectrum", "speed_direct")
-    step = int(np.flatnonzero(np.diff(data["speed_rpm"]) != 0)[0]) + 1  # 2000 → 6000 r/min
+    changes = np.flatnonzero(np.diff(data["speed_rpm"]) != 0) + 1
+    start, step = int(changes[0]), int(changes[1])  # rest → 2000, then 2000 → 6000 r/min
+    assert data["time_s"][start] == REST_BEFORE_S
+    assert np.all(data["speed_rpm"][:start] == 0)
     assert (data["speed_rpm"][step - 1], data["speed_rpm"][step]) == (2000.0, 6000.0)
     jump = data["error_um"][step] - data["error_um"][step - 1]
     plain_jump = plain["error_um"][step] - plain["error_um"][step - 1]

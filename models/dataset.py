@@ -109,8 +109,7 @@ class MeasuredRuns:
 
     def run_slices(self) -> list[tuple[str, slice]]:
         """(run id, row slice) per run, in file order (runs are contiguous)."""
-        starts = np.flatnonzero(np.r_[True, self.run[1:] != self.run[:-1]])
-        ends = np.r_[starts[1:], self.n_samples]
+        starts, ends = group_bounds(self.run)
         return [
             (str(self.run[s]), slice(int(s), int(e))) for s, e in zip(starts, ends, strict=True)
         ]
@@ -356,9 +355,15 @@ def _to_numbers(path: Path, cells: pd.Series, name: str, lines: np.ndarray) -> n
     return values
 
 
+def group_bounds(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First row and end row (exclusive) of each contiguous block of equal labels."""
+    starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
+    return starts, np.r_[starts[1:], labels.size]
+
+
 def _check_runs(path: Path, run: np.ndarray, time_s: np.ndarray, lines: np.ndarray) -> None:
     """Runs must be contiguous blocks with strictly increasing time."""
-    starts = np.flatnonzero(np.r_[True, run[1:] != run[:-1]])
+    starts, _ = group_bounds(run)
     seen: dict[str, int] = {}
     for start in starts:
         run_id = str(run[start])

@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from scipy.signal import lfilter
 
-from models.dataset import AMBIENT_COLUMN
+from models.dataset import AMBIENT_COLUMN, group_bounds
 from models.features import Prepared
 from models.references import first_rows
 
@@ -82,9 +82,7 @@ def first_order_lag(
     squeeze = u.ndim == 1
     u2 = u[:, None] if squeeze else u
     out = np.empty_like(u2)
-    starts = np.flatnonzero(np.r_[True, recording[1:] != recording[:-1]])
-    ends = np.r_[starts[1:], recording.size]
-    for s, e in zip(starts, ends, strict=True):
+    for s, e in zip(*group_bounds(recording), strict=True):
         segment = u2[s:e]
         dt = np.diff(time_s[s:e])
         if dt.size == 0:

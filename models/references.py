@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from models.dataset import MeasuredRuns
+from models.dataset import MeasuredRuns, group_bounds
 
 POLICIES = ("auto", "run-start", "recording-start")
 CONTINUITY_FACTOR = 3.0
@@ -110,9 +110,7 @@ def reference_rows(recording: np.ndarray, time_s: np.ndarray, speed_rpm: np.ndar
     """Each recording's first sample, and the at-rest samples that follow it without a break
     within ``REFERENCE_WINDOW_S``."""
     chosen = np.zeros(recording.size, dtype=bool)
-    starts = np.flatnonzero(np.r_[True, recording[1:] != recording[:-1]])
-    ends = np.r_[starts[1:], recording.size]
-    for start, end in zip(starts, ends, strict=True):
+    for start, end in zip(*group_bounds(recording), strict=True):
         chosen[start] = True
         if speed_rpm[start] != 0:
             continue
@@ -131,21 +129,17 @@ def _follows_on(time_s: np.ndarray, previous: slice, current: slice) -> bool:
 
 def first_rows(group: np.ndarray) -> np.ndarray:
     """(n,) index of the first row of each row's contiguous group (recording or run)."""
-    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    starts, _ = group_bounds(group)
     return starts[np.searchsorted(starts, np.arange(group.size), side="right") - 1]
 
 
-def rises(
-    values: np.ndarray, recording: np.ndarray, reference: np.ndarray | None = None
-) -> np.ndarray:
+def rises(values: np.ndarray, recording: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """values − their mean over the ``reference`` rows of each row's recording.
 
-    Works for (n,) and (n, k). Without ``reference``, each recording's first row
-    alone. Recordings are numbered 0, 1, … as :func:`plan_references` numbers them.
+    Works for (n,) and (n, k). Recordings are numbered 0, 1, … as
+    :func:`plan_references` numbers them.
     """
     values = np.asarray(values, dtype=float)
-    if reference is None:
-        return values - values[first_rows(recording)]
     labels = recording[reference]
     counts = np.bincount(labels, minlength=int(recording.max()) + 1).astype(float)
     sums = np.zeros((counts.size, *values.shape[1:]))

@@ -51,9 +51,10 @@ def test_explicit_policies(tmp_path: Path) -> None:
 def test_rises_subtract_the_first_sample_of_each_recording() -> None:
     values = np.array([[20.0, 1.0], [21.0, 3.0], [22.5, 4.0], [30.0, 7.0], [31.0, 9.0]])
     recording = np.array([0, 0, 0, 1, 1])
+    first = np.array([True, False, False, True, False])
     expected = np.array([[0.0, 0.0], [1.0, 2.0], [2.5, 3.0], [0.0, 0.0], [1.0, 2.0]])
-    np.testing.assert_array_equal(rises(values, recording), expected)
-    np.testing.assert_array_equal(rises(values[:, 1], recording), expected[:, 1])
+    np.testing.assert_array_equal(rises(values, recording, first), expected)
+    np.testing.assert_array_equal(rises(values[:, 1], recording, first), expected[:, 1])
 
 
 def test_the_reference_is_the_mean_of_the_leading_samples_at_rest() -> None:

@@ -91,7 +91,20 @@ def load_bank(machine: MachineSection) -> ModelBank:
         machine.models.store, ambient_sensor=ambient_sensor_of(machine.sensor_names)
     )
     bank.check_sensors(machine.sensor_names)
+    limits = machine.models
+    refused = bank.refuse_sensitive(limits.sensor_accuracy_C, limits.max_bias_error_um)
+    for model_id, reason in refused.items():
+        log.warning("machine %s: model %s refused: %s", machine.id, model_id, reason)
     rules = machine.models.regimes
+    for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
+        if model_id in refused:
+            raise ValueError(
+                f"machine {machine.id}: regime '{regime}' names model '{model_id}', which is "
+                f"refused: {refused[model_id]}; refit it (fit --method ridge or pls) or raise "
+                "the limit knowingly"
+            )
+    if not bank.models:
+        raise ValueError(f"machine {machine.id}: every model in {machine.models.store} is refused")
     for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
         if model_id is not None and model_id not in bank:
             raise ValueError(

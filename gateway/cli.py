@@ -18,6 +18,7 @@ import click
 
 from gateway import __version__
 from gateway.tables import accuracy_table, sigma_matrix_table
+from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
 from models.dataset import DataError, load_runs
 from models.features import prepare
 from models.fitting import fit_and_store
@@ -88,6 +89,21 @@ def main() -> None:
 @click.option("--store", "store_dir", type=click.Path(path_type=Path), required=True)
 @click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
+@click.option(
+    "--sensor-accuracy-C",
+    "sensor_accuracy_C",
+    type=click.FloatRange(min=0, min_open=True),
+    default=DEFAULT_SENSOR_ACCURACY_C,
+    show_default=True,
+    help="Stated accuracy of the temperature sensors, ± °C, for the bias sensitivity.",
+)
+@click.option(
+    "--max-bias-error-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=DEFAULT_MAX_BIAS_ERROR_UM,
+    show_default=True,
+    help="Warn when one sensor off by its accuracy moves the compensation by more (µm).",
+)
 @input_errors_exit
 def fit(
     data_csv: Path,
@@ -100,6 +116,8 @@ def fit(
     store_dir: Path,
     json_out: Path | None,
     progress: bool | None,
+    sensor_accuracy_C: float,
+    max_bias_error_um: float,
 ) -> None:
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
@@ -128,6 +146,7 @@ def fit(
         regime_column=regime_column,
         progress=show_progress,
         software_version=__version__,
+        sensor_accuracy_C=sensor_accuracy_C,
     )
     for group, validation in outcome.validations.items():
         click.echo(f"\n{method} [{group}] — {validation.scheme}")
@@ -139,6 +158,16 @@ def fit(
         click.echo("\n" + format_report(outcome.ranking))
     for model_id, text in outcome.summaries.items():
         click.echo(f"\n{model_id}: {text}")
+    for model_id, conditioning in outcome.conditioning.items():
+        click.echo(f"\n{model_id} {conditioning.table()}")
+        if conditioning.worst_single_um > max_bias_error_um:
+            click.echo(
+                f"warning: {model_id}: a bias of ±{sensor_accuracy_C:g} °C on "
+                f"{conditioning.worst_sensor} moves the compensation by "
+                f"{conditioning.worst_single_um:.1f} µm (limit {max_bias_error_um:g} µm): "
+                "the inputs are collinear; try --method ridge or pls, or fewer --sensors",
+                err=True,
+            )
     for model_id, path in outcome.saved.items():
         click.echo(f"saved {model_id} → {path}")
     write_json(
@@ -151,6 +180,7 @@ def fit(
             "sigma": [row.__dict__ for row in outcome.sigma_rows],
             "ranking": outcome.ranking.as_json() if outcome.ranking else None,
             "saved": {k: str(v) for k, v in outcome.saved.items()},
+            "conditioning": {k: c.as_dict() for k, c in outcome.conditioning.items()},
         },
     )
 

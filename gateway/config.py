@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from gateway.compensation import CompensationLimits
 from gateway.quality import QualityLimits
+from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
 from models.regime_rules import RegimeRules, SpeedBand
 
 
@@ -203,6 +204,10 @@ class ModelsSection(Strict):
     store: Path
     reference: ReferenceSection = ReferenceSection()
     regimes: RegimeSection = RegimeSection()
+    #: stated accuracy of the temperature sensors, ± °C (models.conditioning)
+    sensor_accuracy_C: float = Field(default=DEFAULT_SENSOR_ACCURACY_C, gt=0, le=10)
+    #: a model that one sensor off by its accuracy would move by more is refused, µm
+    max_bias_error_um: float = Field(default=DEFAULT_MAX_BIAS_ERROR_UM, gt=0, le=1000)
 
 
 class MachineSection(Strict):

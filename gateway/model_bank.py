@@ -21,9 +21,10 @@ from typing import Any
 
 from models import augmented
 from models.base import ThermalModel
+from models.conditioning import bias_sensitivity
 from models.dataset import AMBIENT_COLUMN
 from models.effect_stream import StreamingAugmented
-from models.store import StoredModel, load_file
+from models.store import StoredModel, load_file, probe_inputs
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +49,10 @@ class BankedModel:
     def held_out_rmse_um(self) -> float:
         pooled = self.document.validation.get("pooled") or {}
         return float(pooled.get("rmse_um", float("inf")))
+
+    def bias_sensitivity_um_per_C(self) -> dict[str, float]:
+        """µm per °C of bias on each sensor, from the model itself on its probe rows."""
+        return bias_sensitivity(self.model, probe_inputs(self.document))
 
 
 @dataclass(frozen=True)
@@ -147,6 +152,31 @@ class ModelBank:
                     f"model '{banked.model_id}' needs sensor(s) {missing} that no transmitter "
                     f"channel provides (channels: {sorted(available)})"
                 )
+
+    def refuse_sensitive(self, sensor_accuracy_C: float, limit_um: float) -> dict[str, str]:
+        """Drop plain models that one sensor off by ``sensor_accuracy_C`` moves beyond ``limit_um``.
+
+        A bias that small passes every range, rate and stuck check, so such a
+        model would put an error of that size into the part unnoticed
+        (:mod:`models.conditioning`). Returns the refused ids with the reason.
+        Augmented models are judged by the residual analysis that made them.
+        """
+        refused: dict[str, str] = {}
+        for model_id, banked in list(self.models.items()):
+            if not isinstance(banked, BankedModel):
+                continue
+            sensitivity = banked.bias_sensitivity_um_per_C()
+            if not sensitivity:
+                continue
+            worst = max(sensitivity, key=lambda s: abs(sensitivity[s]))
+            error_um = sensor_accuracy_C * abs(sensitivity[worst])
+            if error_um > limit_um:
+                refused[model_id] = (
+                    f"a bias of ±{sensor_accuracy_C:g} °C on {worst} moves it by "
+                    f"{error_um:.1f} µm (limit models.max_bias_error_um {limit_um:g} µm)"
+                )
+                del self.models[model_id]
+        return refused
 
     def usable(self, model_id: str | None, good: set[str]) -> Banked | None:
         """``model_id`` if all its sensors are good, else the best fallback, else None."""

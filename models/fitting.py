@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from models.conditioning import DEFAULT_SENSOR_ACCURACY_C, Conditioning, assess
 from models.crossval import Validation, cross_evaluate, cross_validate
 from models.features import Prepared
 from models.regimes import RegimeReport, SigmaRow, rank_regimes
@@ -36,6 +37,7 @@ class FitOutcome:
     sigma_rows: list[SigmaRow] = field(default_factory=list)
     ranking: RegimeReport | None = None
     summaries: dict[str, str] = field(default_factory=dict)
+    conditioning: dict[str, Conditioning] = field(default_factory=dict)  # model id → figures
 
 
 def model_id_for(method: str, target: str, group: str) -> str:
@@ -51,6 +53,7 @@ def fit_and_store(
     regime_column: str | None = None,
     progress: bool = False,
     software_version: str = "unknown",
+    sensor_accuracy_C: float = DEFAULT_SENSOR_ACCURACY_C,
 ) -> FitOutcome:
     def factory():
         return make_model(method, sensors)
@@ -86,6 +89,8 @@ def fit_and_store(
         summary = getattr(model, "summary", None)
         if callable(summary):
             outcome.summaries[model_id] = summary()
+        conditioning = assess(model, part.inputs, sensor_accuracy_C)
+        outcome.conditioning[model_id] = conditioning
         if store is None:
             continue
         document = build_document(
@@ -100,6 +105,7 @@ def fit_and_store(
             regime=regime_of_run[group] if per_run else group,
             validation=_validation_record(validation, outcome.sigma_rows, group, per_run),
             software_version=software_version,
+            conditioning=conditioning.as_dict(),
         )
         outcome.saved[document["model_id"]] = store.save(document)
     return outcome
@@ -151,6 +157,7 @@ def fit_sensor_fallbacks(
             regime="all",
             validation=validation.as_dict(),
             software_version=software_version,
+            conditioning=assess(model, prepared.inputs).as_dict(),
         )
         saved[document["model_id"]] = store.save(document)
     return saved

@@ -8,11 +8,14 @@ from models.base import ThermalModel
 from models.grey_mlr import GreyMlrModel
 from models.mlr import MlrModel
 from models.pca_quadratic import PcaQuadraticModel
+from models.penalised import PlsModel, RidgeModel
 
 METHODS: dict[str, type[ThermalModel]] = {
     MlrModel.method: MlrModel,
     GreyMlrModel.method: GreyMlrModel,
     PcaQuadraticModel.method: PcaQuadraticModel,
+    RidgeModel.method: RidgeModel,
+    PlsModel.method: PlsModel,
 }
 
 

@@ -82,6 +82,9 @@ class StoredModel(BaseModel):
     software_version: str
     probe: Probe
     sha256: str
+    #: conditioning and bias sensitivity at fit time (:mod:`models.conditioning`);
+    #: absent in files written before it was recorded.
+    conditioning: dict[str, Any] | None = None
 
 
 def data_fingerprint(inputs: ModelInputs, error_um: np.ndarray) -> str:
@@ -131,6 +134,7 @@ def build_document(
     regime: str,
     validation: dict[str, Any],
     software_version: str,
+    conditioning: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The JSON document for a fitted model (checksum included)."""
     document: dict[str, Any] = {
@@ -160,6 +164,8 @@ def build_document(
         "software_version": software_version,
         "probe": _probe(model, inputs).model_dump(),
     }
+    if conditioning is not None:
+        document["conditioning"] = conditioning
     # Round-trip through JSON so the checksum covers exactly what is written.
     document = json.loads(json.dumps(document, ensure_ascii=False))
     document["sha256"] = _checksum(document)
@@ -242,13 +248,7 @@ def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
             f"{path}: fitted numbers do not fit method '{document.method}': {exc}"
         ) from None
     probe = document.probe
-    replay = model.predict(
-        ModelInputs(
-            rise_C=np.asarray(probe.rise_C, dtype=float).reshape(-1, len(probe.sensors)),
-            sensors=tuple(probe.sensors),
-            speed_rpm=np.asarray(probe.speed_rpm, dtype=float),
-        )
-    )
+    replay = model.predict(probe_inputs(document))
     if not np.array_equal(replay, np.asarray(probe.predicted_um, dtype=float)):
         raise StoreError(
             f"{path}: the model does not reproduce its saved probe predictions "
@@ -256,3 +256,13 @@ def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
             "incompatible version"
         )
     return model, document
+
+
+def probe_inputs(document: StoredModel) -> ModelInputs:
+    """The saved probe rows as model inputs (a few training rows the model was fitted on)."""
+    probe = document.probe
+    return ModelInputs(
+        rise_C=np.asarray(probe.rise_C, dtype=float).reshape(-1, len(probe.sensors)),
+        sensors=tuple(probe.sensors),
+        speed_rpm=np.asarray(probe.speed_rpm, dtype=float),
+    )

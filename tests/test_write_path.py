@@ -168,6 +168,7 @@ class Bench:
         self.relay: SlowRelay | None = None
         self.loop: MachineLoop | None = None
         self.records: list[CycleRecord] = []
+        self._due = clock.now()  # start of the latest cycle, on the loop's schedule
 
     @staticmethod
     def _snapshot(temperatures_C: dict[str, float], faults: dict[str, ChannelStatus] | None = None):
@@ -252,9 +253,14 @@ class Bench:
         await self.transmitters.stop()
 
     async def cycle(self) -> CycleRecord:
-        """One cycle: machine time moves on, the devices publish, the gateway runs once."""
+        """One cycle: machine time moves on, the devices publish, the gateway runs once.
+
+        Cycles start on the loop's schedule (every ``CYCLE_S`` from the first, as
+        :meth:`MachineLoop.run` keeps them), so a late cycle is followed by one on time.
+        """
         assert self.loop is not None
-        self.clock.advance(CYCLE_S)
+        self._due += CYCLE_S
+        self.clock.advance(max(0.0, self._due - self.clock.now()))
         await self.transmitters.publish()
         if self.server is not None:
             await self.server.publish()
@@ -408,10 +414,12 @@ def test_slew_as_received_holds_when_one_write_is_late(cnc_kind: str, store: Pat
     async def body() -> tuple[Bench, float]:
         async with bench(cnc_kind, store, {"deadband_um": 0.0}, slow=True) as b:
             assert b.relay is not None
-            await b.cycles(4)  # warm-up: the sensors prove themselves, first write of 0
+            b.temperatures.set_snapshot(b._snapshot({**HOT_C, "T1": 32.0}))  # ≈ 48 µm
+            await b.cycles(3)  # the sensors prove themselves, first write of 0, ramp starts
             b.relay.delay_next_s = 0.6  # one transmitter answer comes 0.6 s late
             late = await b.cycle()
             on_time = await b.cycle()
+            assert "slew-limited" in late.write_status and "slew-limited" in on_time.write_status
             await b.cycles(4)
             received = b.cnc.received
             times = [t for t, _ in received]
@@ -420,7 +428,8 @@ def test_slew_as_received_holds_when_one_write_is_late(cnc_kind: str, store: Pat
 
     b, worst = run(body)
     assert worst <= SLEW_UM_PER_MIN + 1e-6
-    assert b.cnc.held_um > 35.0
+    predicted = b.records[-1].predicted_um
+    assert predicted is not None and b.cnc.held_um == pytest.approx(predicted, abs=0.6)
 
 
 # --- (d) no prediction: hold, then ramp ----------------------------------------------------

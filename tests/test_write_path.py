@@ -30,7 +30,7 @@ from drivers.servers.modbus_common import float32_to_registers
 from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from drivers.servers.opcua_cnc import CncOpcUaServer
 from gateway.app import build_buses, build_cnc, load_bank
-from gateway.config import MachineSection
+from gateway.config import ConfigError, MachineSection, load_config
 from gateway.runtime import CycleRecord, MachineLoop
 from models.dataset import load_runs
 from models.features import prepare
@@ -520,3 +520,57 @@ def test_disabled_with_hold_leaves_the_cnc_untouched(cnc_kind: str, store: Path)
             return b
 
     run(body)
+
+
+# --- the configuration of the write path ---------------------------------------------------
+
+CONFIG = """\
+machines:
+  - id: vmc-1
+    cycle_s: 30
+    transmitters:
+      - name: bus1
+        tcp: {host: 127.0.0.1, port: 5020}
+        devices:
+          - {device_id: 1, channels: [T1]}
+    cnc:
+      modbus: {host: 127.0.0.1, port: 5021}
+    compensation:
+      slew_um_per_min: 20
+      SETTING
+    models:
+      store: models
+"""
+
+
+def test_write_path_settings_and_their_defaults(tmp_path: Path) -> None:
+    path = tmp_path / "config.yaml"
+    path.write_text(CONFIG.replace("SETTING", "deadband_um: 0.5"), encoding="utf-8")
+    defaults = load_config(path).machines[0].compensation
+    assert (defaults.on_disable, defaults.hold_on_loss_s) == ("ramp", 60.0)
+    assert defaults.limits().ramp_um_per_min == 20.0  # the fallback ramp: the slew rate
+    setting = "hold_on_loss_s: 120\n      fallback_ramp_um_per_min: 5\n      on_disable: hold"
+    path.write_text(CONFIG.replace("SETTING", setting), encoding="utf-8")
+    section = load_config(path).machines[0].compensation
+    assert section.on_disable == "hold"
+    limits = section.limits()
+    assert (limits.hold_on_loss_s, limits.ramp_um_per_min) == (120.0, 5.0)
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("on_disable: freeze", "on_disable: Input should be 'ramp' or 'hold'"),
+        ("hold_on_loss_s: -1", "hold_on_loss_s: Input should be greater than or equal to 0"),
+        ("hold_on_loss_s: .inf", "hold_on_loss_s: Input should be a finite number"),
+        ("fallback_ramp_um_per_min: 0", "fallback_ramp_um_per_min: Input should be greater than 0"),
+    ],
+)
+def test_bad_write_path_settings_are_refused_with_their_line(
+    tmp_path: Path, setting: str, message: str
+) -> None:
+    path = tmp_path / "config.yaml"
+    path.write_text(CONFIG.replace("SETTING", setting), encoding="utf-8")
+    with pytest.raises(ConfigError) as refused:
+        load_config(path)
+    assert str(refused.value) == f"{path}:13: machines[0].compensation.{message}"

@@ -19,8 +19,9 @@ Once per ``cycle_s`` of machine time:
    back, and only then count it as applied; then bump the handshake counter.
 
 Nothing is written before the loop has read what the CNC macro holds, in the
-same cycle, so the slew limit starts from the value the machine really applies. Every cycle ends as
-a :class:`CycleRecord` handed to the sinks (logging, SCADA, tests).
+same cycle, so the slew limit starts from the value the machine really applies.
+Every cycle ends as a :class:`CycleRecord` handed to the sinks (logging, SCADA,
+tests).
 """
 
 from __future__ import annotations

@@ -374,6 +374,7 @@ def test_macro_cleared_at_the_cnc_is_detected_counted_once_and_ramped_from(
     after = [r for r in b.records if r.time_s > b.records[9].time_s]
     assert sum("external change" in r.write_status for r in after) == 1
     gateway_writes = b.cnc.received[before + 1 :]
+    print(f"{cnc_kind}: cleared at {b.cnc.received[before][0]:.0f} s, then {gateway_writes}")
     assert gateway_writes and gateway_writes[0][1] <= 10.0 + 1e-9  # never a jump to 40 µm
     assert worst == pytest.approx(SLEW_UM_PER_MIN)
 
@@ -398,6 +399,7 @@ def test_cnc_restart_holding_zero_ramps_up_from_zero(cnc_kind: str, store: Path)
             return b, after, restarted_s
 
     b, after, _ = run(body)
+    print(f"{cnc_kind}: after the restart the CNC received {b.cnc.received}")
     first_read = next(r for r in after if r.applied_um is not None)
     assert first_read.applied_um == 0.0 and "external change" in first_read.write_status
     values = [v for _, v in b.cnc.received]
@@ -427,6 +429,7 @@ def test_slew_as_received_holds_when_one_write_is_late(cnc_kind: str, store: Pat
             return b, assert_slew_as_received(received)
 
     b, worst = run(body)
+    print(f"{cnc_kind}: writes as received {b.cnc.received}; fastest {worst:.3f} µm/min")
     assert worst <= SLEW_UM_PER_MIN + 1e-6
     predicted = b.records[-1].predicted_um
     assert predicted is not None and b.cnc.held_um == pytest.approx(predicted, abs=0.6)
@@ -464,6 +467,8 @@ def test_loss_of_prediction_holds_then_ramps_at_the_configured_rate(
         assert v2 < v1 and v1 - v2 <= ramp_um_per_min * (t2 - t1) / 60.0 + 1e-9
     ramp_s = writes[-1][0] - (last_prediction_s + hold_s)
     expected_s = held_um / ramp_um_per_min * 60.0
+    first_s = writes[0][0] - last_prediction_s
+    print(f"{cnc_kind}: {held_um} µm held {first_s:.0f} s, then to 0 in {ramp_s:.0f} s: {writes}")
     assert expected_s <= ramp_s <= expected_s + CYCLE_S  # the configured rate, to a cycle
 
 
@@ -494,6 +499,7 @@ def test_disabled_with_ramp_goes_to_zero_at_the_slew_limit_then_stops(
             return b, len(writes), held
 
     b, n_writes, held = run(body)
+    print(f"{cnc_kind}: switched off at {held} µm: {n_writes} writes to 0")
     assert n_writes >= math.ceil(held / 10.6)  # ≤ 10 µm a cycle (+ the deadband): a ramp
     assert b.cnc.held_um > 35.0
 

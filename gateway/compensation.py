@@ -7,9 +7,13 @@ and must not chatter the CNC with changes below its precision (``deadband_um``).
 Each cycle :meth:`CompensationPolicy.decide` turns a prediction into a
 :class:`Decision` in this order:
 
-1. no usable prediction (None, NaN, inf): aim for 0 µm at the fallback ramp
-   rate. The last applied value is held and wound down slowly rather than
-   dropped, because a jump back to zero is as bad for the part as any jump;
+1. no usable prediction (None, NaN, inf): hold the applied value for
+   ``hold_on_loss_s`` after the last cycle that had one (a missed transmitter
+   read must not move the tool), then aim for 0 µm at the fallback ramp rate.
+   The value is wound down slowly rather than dropped, because a jump back to
+   zero is as bad for the part as any jump. With ``enabled=False`` (the
+   operator switched compensation off and chose ``ramp``) the aim is 0 µm at
+   the slew rate, at once;
 2. clamp the aim to ±clamp_um;
 3. limit the change from the last *applied* (confirmed) value to the slew rate
    times the minutes since it was applied. Measuring from the applied value
@@ -19,14 +23,29 @@ Each cycle :meth:`CompensationPolicy.decide` turns a prediction into a
    step plus one cycle's worth, though: otherwise a long hold inside the
    deadband would bank minutes of slew and release them as one step the
    moment the prediction jumps (e.g. at a model switch);
-4. round to the CNC's precision; the clamp is taken to the largest CNC step
-   inside it, so rounding can never carry a value past it;
+4. round to the CNC's precision, never past the slew budget (the step is taken
+   to the CNC grid point on the applied value's side); the clamp is taken to
+   the largest CNC step inside it, so rounding can never carry a value past it;
 5. write only if the rounded target differs from the applied value, by at least
-   the deadband. The very first decision always writes (the clamped start
-   value, unchanged): it puts the CNC in a state the gateway knows.
+   the deadband (a ramp to zero always writes its final 0). The very first
+   decision always writes (the clamped start value, unchanged): it puts the
+   CNC in a state the gateway knows.
+
+The slew is what the CNC feels between two writes, so the caller passes the
+time of the write to :meth:`decide` (taken right before writing) and the time
+of the read-back to :meth:`confirm`: the budget of the next step then counts
+from a moment after the CNC had the previous value, however late a slow link
+made either write.
+
+The CNC's macro is the truth. Before deciding, the caller reads it and hands it
+to :meth:`observe`; a value the gateway did not write (an operator cleared it,
+the CNC restarted holding 0) becomes the applied value, with the slew budget
+restarting from the moment it was seen, so the compensation moves on from what
+the CNC holds at the slew limit and never steps back to the old value.
 
 The caller writes, reads back, and reports with :meth:`confirm` (the read-back
-value becomes the applied value) or :meth:`reject` (nothing changes). Times are
+value becomes the applied value) or :meth:`reject` (nothing changes; a write
+that did land after all is recognised by the next :meth:`observe`). Times are
 machine seconds passed in by the caller; no I/O happens here.
 """
 
@@ -36,9 +55,10 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-__all__ = ["CompensationLimits", "CompensationPolicy", "Decision"]
+__all__ = ["CompensationLimits", "CompensationPolicy", "Decision", "ExternalChange"]
 
 _UM_PER_UNIT = {"mm": 1000.0, "um": 1.0}
+_EPS_UM = 1e-9  # float noise allowed when comparing µm values against a budget
 
 
 @dataclass(frozen=True)
@@ -55,6 +75,8 @@ class CompensationLimits:
             written value is rounded to them.
         fallback_ramp_um_per_min: rate of the ramp to zero when there is no
             prediction (None: ``slew_um_per_min``).
+        hold_on_loss_s: how long the applied value is held after the last cycle
+            with a prediction before the ramp to zero starts (s, >= 0).
     """
 
     clamp_um: float = 50.0
@@ -64,6 +86,7 @@ class CompensationLimits:
     sign: Literal[1, -1] = 1
     decimals: int = 4
     fallback_ramp_um_per_min: float | None = None
+    hold_on_loss_s: float = 60.0
 
     def __post_init__(self) -> None:
         if self.unit not in _UM_PER_UNIT:
@@ -94,6 +117,11 @@ class CompensationLimits:
         if ramp is not None and not (math.isfinite(ramp) and ramp > 0):
             raise ValueError(
                 f"CompensationLimits.fallback_ramp_um_per_min must be > 0 or None, got {ramp}"
+            )
+        if not (math.isfinite(self.hold_on_loss_s) and self.hold_on_loss_s >= 0):
+            raise ValueError(
+                f"CompensationLimits.hold_on_loss_s must be >= 0 and finite, "
+                f"got {self.hold_on_loss_s}"
             )
 
     @property
@@ -127,6 +155,21 @@ class Decision:
     reason: str
 
 
+@dataclass(frozen=True)
+class ExternalChange:
+    """The CNC held a value the gateway did not write (seen by :meth:`CompensationPolicy.observe`).
+
+    Attributes:
+        believed_um: what the gateway had applied (µm, predicted-error sign).
+        held_um: what the CNC holds, on its grid (µm); now the applied value.
+        held_cnc: the raw value read, in the CNC's unit and sign (NaN: a vacant macro).
+    """
+
+    believed_um: float
+    held_um: float
+    held_cnc: float
+
+
 class CompensationPolicy:
     """Turns predictions into CNC writes (see the module docstring)."""
 
@@ -136,18 +179,22 @@ class CompensationPolicy:
             raise ValueError(f"start_um must be finite, got {start_um}")
         self.limits = limits
         self.failed_writes = 0
+        self.external_changes = 0
         self.last_failure: str | None = None
         self._applied_um = float(start_um)
         self._applied_s: float | None = None  # the slew budget starts at the first decision
         self._last_decision_s: float | None = None
+        self._last_usable_s: float | None = None  # last decision with a prediction
         self._last_s: float | None = None
         self._confirmed_once = False
+        self._proposed_um: float | None = None  # target of the latest decision
+        self._pending_um: float | None = None  # a rejected write that may have landed
         steps = math.floor(limits.clamp_um / limits.step_um + 1e-9)
         self._clamp_um = self._round_um(steps * limits.step_um)
 
     @property
     def applied_um(self) -> float:
-        """The value the CNC holds, as last confirmed (or ``start_um``), µm."""
+        """The value the CNC holds, as last confirmed or observed (or ``start_um``), µm."""
         return self._applied_um
 
     def to_cnc(self, um: float) -> float:
@@ -160,8 +207,56 @@ class CompensationPolicy:
         lim = self.limits
         return self._round_um(lim.sign * value * _UM_PER_UNIT[lim.unit])
 
-    def decide(self, now_s: float, predicted_um: float | None) -> Decision:
-        """The value to apply at ``now_s`` for this prediction (None: no prediction)."""
+    def same_on_cnc(self, read_cnc: float, expected_cnc: float) -> bool:
+        """Whether a value read from the CNC is ``expected_cnc`` within the CNC's rounding.
+
+        Half a step of the CNC's precision, plus a relative part for a macro
+        carried as float32 (Modbus) rather than as a double.
+        """
+        tolerance = 0.5 * 10.0 ** (-self.limits.decimals) + 1e-6 * abs(expected_cnc)
+        return math.isfinite(read_cnc) and abs(read_cnc - expected_cnc) <= tolerance
+
+    def observe(self, now_s: float, held_cnc: float) -> ExternalChange | None:
+        """What the CNC holds at ``now_s`` (its unit and sign), read before deciding.
+
+        The same as the applied value (within the CNC's rounding): nothing
+        changes. The value of a write reported as failed: it did land, and
+        counts as applied from ``now_s``. Anything else was written by someone
+        else; it becomes the applied value, the slew budget restarts at
+        ``now_s`` and the change is returned (and counted in
+        ``external_changes``). A vacant macro (NaN) acts as 0, as on the CNC.
+        """
+        self._advance(now_s)
+        value = held_cnc if math.isfinite(held_cnc) else 0.0
+        pending, self._pending_um = self._pending_um, None
+        if self.same_on_cnc(value, self.to_cnc(self._applied_um)):
+            return None
+        if pending is not None and self.same_on_cnc(value, self.to_cnc(pending)):
+            self._set_applied(now_s, pending)
+            self._confirmed_once = True
+            return None
+        change = ExternalChange(self._applied_um, self.from_cnc(value), float(held_cnc))
+        self._set_applied(now_s, change.held_um)
+        self.external_changes += 1
+        return change
+
+    def hold(self, now_s: float) -> None:
+        """The gateway leaves the CNC alone this cycle (compensation off, ``hold``).
+
+        The slew budget restarts at ``now_s``, so nothing is banked while the
+        gateway does not write: switched on again, it moves at the slew rate.
+        """
+        self._advance(now_s)
+        self._applied_s = now_s
+        self._last_decision_s = now_s
+
+    def decide(self, now_s: float, predicted_um: float | None, *, enabled: bool = True) -> Decision:
+        """The value to write at ``now_s`` for this prediction (None: no prediction).
+
+        ``now_s`` is the time of the write (taken right before it). With
+        ``enabled=False`` the aim is 0 µm at the slew rate (compensation
+        switched off, ``on_disable: ramp``).
+        """
         self._advance(now_s)
         lim = self.limits
         if self._applied_s is None:
@@ -173,49 +268,78 @@ class CompensationPolicy:
 
         reasons = ["first write"] if first else []
         usable = predicted_um is not None and math.isfinite(predicted_um)
-        if usable:
+        if usable or self._last_usable_s is None:
+            self._last_usable_s = now_s  # with no prediction ever, the loss starts now
+        budget_from_s = self._applied_s
+        to_zero = True
+        if not enabled:
+            aim_um, rate = 0.0, lim.slew_um_per_min
+            reasons.append("compensation disabled: ramping to zero")
+        elif usable:
             assert predicted_um is not None
-            aim_um, rate = predicted_um, lim.slew_um_per_min
+            aim_um, rate, to_zero = predicted_um, lim.slew_um_per_min, False
         else:
-            aim_um, rate = 0.0, lim.ramp_um_per_min
             got = "" if predicted_um is None else f" ({predicted_um})"
-            reasons.append(f"no prediction{got}: ramping to zero")
+            ramp_from_s = self._last_usable_s + lim.hold_on_loss_s
+            if now_s < ramp_from_s:
+                aim_um, rate, to_zero = applied, lim.ramp_um_per_min, False
+                lost_s = now_s - self._last_usable_s
+                held = f"holding for {lim.hold_on_loss_s:g} s ({lost_s:g} s so far)"
+                reasons.append(f"no prediction{got}: {held}")
+            else:
+                aim_um, rate = 0.0, lim.ramp_um_per_min
+                budget_from_s = max(budget_from_s, ramp_from_s)
+                reasons.append(f"no prediction{got}: ramping to zero")
 
         clamped = self._clamp(aim_um)
         if clamped != aim_um:
             reasons.append(f"clamped at {clamped:+.1f} µm")
-        banked_um = rate * (now_s - self._applied_s) / 60.0
+        banked_um = rate * max(0.0, now_s - budget_from_s) / 60.0
         cap_um = rate * (now_s - previous_s) / 60.0 + lim.deadband_um + lim.step_um
         budget_um = min(banked_um, cap_um)
         limited = applied + max(-budget_um, min(budget_um, clamped - applied))
-        if usable and limited != clamped:
+        if usable and enabled and limited != clamped:
             reasons.append("slew-limited")
-        # The applied value may lie outside the clamp (start_um): the clamp wins.
-        value_cnc = self.to_cnc(self._clamp(limited))
+        # The applied value may lie outside the clamp (start_um, an external change):
+        # the clamp wins over the slew budget.
+        grid_um = self._clamp(self._grid_within(limited, applied - budget_um, applied + budget_um))
+        value_cnc = self.to_cnc(grid_um)
         target_um = self.from_cnc(value_cnc)
 
         change_um = abs(target_um - applied)
-        write = first or (change_um > 0.0 and change_um >= lim.deadband_um)
+        worth = change_um >= lim.deadband_um or (to_zero and target_um == 0.0)
+        write = first or (change_um > 0.0 and worth)
         if not write:
             reasons.append("within deadband")
         if not reasons:
             reasons.append("tracking")
+        self._proposed_um = target_um
         return Decision(target_um, write, value_cnc, ", ".join(reasons))
 
     def confirm(self, now_s: float, applied_um: float) -> None:
-        """A write succeeded and read back ``applied_um`` (µm): it is now applied."""
+        """A write succeeded and read back ``applied_um`` (µm) at ``now_s``: it is now applied."""
         self._advance(now_s)
         if not math.isfinite(applied_um):
             raise ValueError(f"applied_um must be finite, got {applied_um}")
-        self._applied_um = float(applied_um)
-        self._applied_s = now_s
+        self._set_applied(now_s, float(applied_um))
         self._confirmed_once = True
+        self._pending_um = None
 
     def reject(self, now_s: float, reason: str) -> None:
-        """A write failed: the applied value stays the last confirmed one."""
+        """A write failed: the applied value stays the last confirmed one.
+
+        The write may still have reached the CNC (a reply lost on the way back):
+        the next :meth:`observe` that finds its value takes it as applied rather
+        than as an external change.
+        """
         self._advance(now_s)
         self.failed_writes += 1
         self.last_failure = reason
+        self._pending_um = self._proposed_um
+
+    def _set_applied(self, now_s: float, applied_um: float) -> None:
+        self._applied_um = applied_um
+        self._applied_s = now_s
 
     def _advance(self, now_s: float) -> None:
         if not math.isfinite(now_s):
@@ -226,6 +350,24 @@ class CompensationPolicy:
 
     def _clamp(self, um: float) -> float:
         return min(max(um, -self._clamp_um), self._clamp_um)
+
+    def _grid_within(self, um: float, low_um: float, high_um: float) -> float:
+        """``um`` on the CNC grid: the nearest point, or the nearest one inside [low, high].
+
+        Rounding to the nearest point could carry a slew-limited step past its
+        budget by half a step; the point on the applied value's side is taken
+        then. When no grid point lies inside (a budget below one step around an
+        off-grid start value), the nearest one is returned.
+        """
+        nearest = self._round_um(um)
+        if low_um - _EPS_UM <= nearest <= high_um + _EPS_UM:
+            return nearest
+        step = self.limits.step_um
+        if nearest > high_um:
+            inside = self._round_um(math.floor(high_um / step + 1e-9) * step)
+        else:
+            inside = self._round_um(math.ceil(low_um / step - 1e-9) * step)
+        return inside if low_um - _EPS_UM <= inside <= high_um + _EPS_UM else nearest
 
     def _round_um(self, um: float) -> float:
         """Round µm to the CNC's grid (decimals in its unit)."""

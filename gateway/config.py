@@ -150,6 +150,11 @@ class CompensationSection(Strict):
     decimals: int = Field(default=4, ge=0, le=8)
     handshake_macro: int | None = Field(default=None, ge=500, le=999)
     probe_macro: int | None = Field(default=None, ge=500, le=999)  # measured error, µm
+    # No prediction: hold the value this long after the last prediction, then ramp to 0.
+    hold_on_loss_s: float = Field(default=60.0, ge=0, allow_inf_nan=False)
+    fallback_ramp_um_per_min: float | None = Field(default=None, gt=0, allow_inf_nan=False)
+    # Switched off (here or from SCADA): ramp #macro to 0 at the slew limit, or hold it.
+    on_disable: Literal["ramp", "hold"] = "ramp"
 
     def limits(self) -> CompensationLimits:
         return CompensationLimits(
@@ -159,6 +164,8 @@ class CompensationSection(Strict):
             unit=self.unit,
             sign=self.sign,
             decimals=self.decimals,
+            fallback_ramp_um_per_min=self.fallback_ramp_um_per_min,
+            hold_on_loss_s=self.hold_on_loss_s,
         )
 
 

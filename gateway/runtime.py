@@ -12,13 +12,16 @@ Once per ``cycle_s`` of machine time:
    every augmented model (lag terms, :mod:`gateway.effect_state`) is advanced
    with this cycle's rises and speed whether it is selected or not, so a model
    switched in mid-shift has a warm state;
-5. let the compensation policy decide the value (clamp, slew, deadband; with no
-   prediction it holds and ramps to zero), write it to the CNC macro, read it
+5. read what the CNC macro holds (a value the gateway did not write is an
+   external change: logged, counted, and the policy moves on from it), let the
+   compensation policy decide the value (clamp, slew, deadband; with no
+   prediction it holds, then ramps to zero), write it to the CNC macro, read it
    back, and only then count it as applied; then bump the handshake counter.
 
-Nothing is written before the loop has read what the CNC macro holds, so the
-slew limit starts from the value the machine really applies. Every cycle ends as
-a :class:`CycleRecord` handed to the sinks (logging, SCADA, tests).
+Nothing is written before the loop has read what the CNC macro holds, in the
+same cycle, so the slew limit starts from the value the machine really applies.
+Every cycle ends as a :class:`CycleRecord` handed to the sinks (logging, SCADA,
+tests).
 """
 
 from __future__ import annotations
@@ -100,9 +103,11 @@ class MachineLoop:
         self.compensation_enabled = config.compensation.enabled
         self.handshake = 0
         self.failed_writes = 0
+        self.external_changes = 0
         self.cycles = 0
         self._last_probe_um: float | None = None
         self._link_down: set[str] = set()
+        self._external_note = ""  # this cycle's external change, for the write status
 
     # --- one cycle ----------------------------------------------------------------------
     async def run_cycle(self) -> CycleRecord:
@@ -212,43 +217,101 @@ class MachineLoop:
 
     # --- the write path -----------------------------------------------------------------
     async def _compensate(self, now: float, predicted: float | None, record: CycleRecord) -> None:
+        """Read the macro, decide, write, read back: one macro read before any write.
+
+        Times given to the policy are taken at the CNC (after the read, right before
+        the write, after the read-back), not at the cycle start, so the slew limit
+        holds between writes as the CNC receives them, however late a slow
+        transmitter or link made a write.
+        """
         comp = self.config.compensation
-        if self.policy is None and not await self._start_policy(record):
+        held, read_error = await self._read_held(comp.macro)
+        if self.policy is None:
+            if held is None:
+                record.write_status = f"waiting for the CNC: {read_error}"
+                return
+            self._start_policy(held)
+        elif held is not None:
+            self._observe_cnc(held, record)
+        policy = self.policy
+        assert policy is not None
+        record.applied_um = policy.applied_um
+        if not self.compensation_enabled and comp.on_disable == "hold":
+            policy.hold(self.clock.now())
+            held_text = "unknown" if held is None else f"{policy.applied_um:.1f} µm"
+            record.write_status = self._status(f"disabled: #{comp.macro} held at {held_text}")
             return
-        assert self.policy is not None
-        decision = self.policy.decide(now, predicted)
+        write_s = self.clock.now()
+        decision = policy.decide(write_s, predicted, enabled=self.compensation_enabled)
         record.target_um = decision.target_um
-        record.applied_um = self.policy.applied_um
-        if not self.compensation_enabled:
-            record.write_status = "disabled"
-            return
         if not decision.write:
-            record.write_status = f"no write: {decision.reason}"
+            record.write_status = self._status(f"no write: {decision.reason}")
+            return
+        if held is None:  # what the CNC holds is unknown: never write blind
+            self._write_failed(write_s, f"not written: {read_error}", record)
             return
         try:
             await self.cnc.write_macro(comp.macro, decision.value_cnc)
             read_back = await self.cnc.read_macro(comp.macro)
         except CncError as exc:
-            self._write_failed(now, f"write failed: {exc}", record)
+            self._write_failed(self.clock.now(), f"write failed: {exc}", record)
             return
-        tolerance = 0.5 * 10.0 ** (-comp.decimals) + 1e-6 * abs(decision.value_cnc)
-        if not math.isfinite(read_back) or abs(read_back - decision.value_cnc) > tolerance:
+        confirmed_s = self.clock.now()
+        if not policy.same_on_cnc(read_back, decision.value_cnc):
             self._write_failed(
-                now,
+                confirmed_s,
                 f"read-back mismatch: wrote {decision.value_cnc}, CNC holds {read_back}",
                 record,
             )
+            if math.isfinite(read_back):  # the CNC holds something else: that is the truth
+                self._observe_cnc((confirmed_s, read_back), record)
+                record.write_status = self._status(record.write_status)
             return
-        self.policy.confirm(now, self.policy.from_cnc(read_back))
-        record.applied_um = self.policy.applied_um
+        policy.confirm(confirmed_s, policy.from_cnc(read_back))
+        record.applied_um = policy.applied_um
         record.written_cnc = decision.value_cnc
-        record.write_status = f"ok: {decision.reason}"
+        record.write_status = self._status(f"ok: {decision.reason}")
         if comp.handshake_macro is not None:
             self.handshake += 1
             try:
                 await self.cnc.write_macro(comp.handshake_macro, float(self.handshake))
             except CncError as exc:
                 record.write_status += f"; handshake failed: {exc}"
+
+    def _status(self, text: str) -> str:
+        """``text``, prefixed with this cycle's external change if there was one."""
+        prefix, self._external_note = self._external_note, ""
+        return f"{prefix}; {text}" if prefix else text
+
+    async def _read_held(self, macro: int) -> tuple[tuple[float, float] | None, str]:
+        """(time read, value) of what the CNC macro holds, or None and why not."""
+        try:
+            value = await self.cnc.read_macro(macro)
+        except CncError as exc:
+            return None, f"CNC macro #{macro} not read: {exc}"
+        return (self.clock.now(), value), ""
+
+    def _observe_cnc(self, held: tuple[float, float], record: CycleRecord) -> None:
+        """Compare what the CNC holds with what the gateway applied; log a change once."""
+        assert self.policy is not None
+        read_s, value = held
+        change = self.policy.observe(read_s, value)
+        record.applied_um = self.policy.applied_um
+        if change is None:
+            return
+        self.external_changes += 1
+        note = (
+            f"external change: CNC macro #{self.config.compensation.macro} holds {value} "
+            f"({change.held_um:.1f} µm), the gateway had applied {change.believed_um:.1f} µm"
+        )
+        self._external_note = note
+        log.warning(
+            "%s: %s; compensation moves on from the CNC's value at the slew limit "
+            "(external changes: %d)",
+            self.config.id,
+            note,
+            self.external_changes,
+        )
 
     async def _read_probe(self, record: CycleRecord) -> None:
         """The CNC's probe macro (µm): a new value is a measurement of the real error."""
@@ -263,33 +326,27 @@ class MachineLoop:
             self._last_probe_um = value
             record.probe_error_um = value
 
-    async def _start_policy(self, record: CycleRecord) -> bool:
-        """Read what the CNC applies now; only then may the loop write."""
-        try:
-            held = await self.cnc.read_macro(self.config.compensation.macro)
-        except CncError as exc:
-            record.write_status = f"waiting for the CNC: {exc}"
-            return False
+    def _start_policy(self, held: tuple[float, float]) -> None:
+        """The policy starts from what the CNC applies now (a vacant macro: 0)."""
+        _, value = held
         limits = self.config.compensation.limits()
         probe = CompensationPolicy(limits)
-        start_um = probe.from_cnc(held) if math.isfinite(held) else 0.0
-        start_um = max(-limits.clamp_um, min(limits.clamp_um, start_um))
+        start_um = probe.from_cnc(value) if math.isfinite(value) else 0.0
         self.policy = CompensationPolicy(limits, start_um=start_um)
         log.info(
             "%s: CNC macro #%d holds %s; compensation starts from %.2f µm",
             self.config.id,
             self.config.compensation.macro,
-            held,
+            value,
             start_um,
         )
-        return True
 
     def _write_failed(self, now: float, reason: str, record: CycleRecord) -> None:
         assert self.policy is not None
         self.policy.reject(now, reason)
         self.failed_writes += 1
         record.applied_um = self.policy.applied_um
-        record.write_status = reason
+        record.write_status = self._status(reason)
         log.warning("%s: %s (failed writes: %d)", self.config.id, reason, self.failed_writes)
 
     # --- running ------------------------------------------------------------------------

@@ -7,9 +7,15 @@ import math
 import numpy as np
 import pytest
 
-from gateway.compensation import CompensationLimits, CompensationPolicy, Decision
+from gateway.compensation import (
+    CompensationLimits,
+    CompensationPolicy,
+    Decision,
+    ExternalChange,
+)
 
 DEFAULT = CompensationLimits()  # ±50 µm, 20 µm/min, deadband 0.5 µm, mm with 4 decimals
+NO_HOLD = CompensationLimits(hold_on_loss_s=0.0)  # no prediction: ramp to zero at once
 
 
 def write_ok(policy: CompensationPolicy, now_s: float, decision: Decision) -> None:
@@ -49,6 +55,8 @@ def settle(policy: CompensationPolicy, start_s: float, predicted_um: float | Non
         ({"decimals": -1}, "decimals"),
         ({"decimals": 2.5}, "decimals"),
         ({"fallback_ramp_um_per_min": 0.0}, "fallback_ramp_um_per_min"),
+        ({"hold_on_loss_s": -1.0}, "hold_on_loss_s"),
+        ({"hold_on_loss_s": math.inf}, "hold_on_loss_s"),
     ],
 )
 def test_invalid_limits_name_the_field(kwargs, field):
@@ -139,7 +147,11 @@ def test_slew_20_um_per_min_with_3_s_cycles_steps_1_um():
 
 
 def test_slew_with_1_s_cycles_writes_every_other_cycle():
-    """A step (0.33 µm) smaller than the deadband: the budget grows until it is worth writing."""
+    """A step (0.33 µm) smaller than the deadband: the budget grows until it is worth writing.
+
+    After 2 s the budget is 0.67 µm: the CNC grid point inside it (0.6 µm) is written,
+    never the nearest one (0.7 µm), which would exceed the slew limit.
+    """
     policy = CompensationPolicy(DEFAULT)
     written = []
     for k in range(13):
@@ -147,7 +159,7 @@ def test_slew_with_1_s_cycles_writes_every_other_cycle():
         write_ok(policy, float(k), decision)
         if decision.write:
             written.append((k, decision.target_um))
-    assert written == [(0, 0.0), (2, 0.7), (4, 1.4), (6, 2.1), (8, 2.8), (10, 3.5), (12, 4.2)]
+    assert written == [(0, 0.0), (2, 0.6), (4, 1.2), (6, 1.8), (8, 2.4), (10, 3.0), (12, 3.6)]
 
 
 def test_clamp_at_plus_and_minus():
@@ -241,7 +253,7 @@ def test_a_hold_in_the_deadband_does_not_bank_slew():
 
 @pytest.mark.parametrize("missing", [None, math.nan, math.inf, -math.inf])
 def test_no_prediction_ramps_to_zero(missing):
-    policy = CompensationPolicy(DEFAULT, start_um=5.0)
+    policy = CompensationPolicy(NO_HOLD, start_um=5.0)
     write_ok(policy, 0.0, policy.decide(0.0, 5.0))
     targets = []
     for k in range(1, 8):
@@ -255,7 +267,7 @@ def test_no_prediction_ramps_to_zero(missing):
 
 
 def test_fallback_ramp_rate_and_sign():
-    limits = CompensationLimits(fallback_ramp_um_per_min=60.0)
+    limits = CompensationLimits(fallback_ramp_um_per_min=60.0, hold_on_loss_s=0.0)
     policy = CompensationPolicy(limits, start_um=-9.0)
     write_ok(policy, 0.0, policy.decide(0.0, -9.0))
     targets = []
@@ -267,7 +279,7 @@ def test_fallback_ramp_rate_and_sign():
 
 
 def test_tracking_resumes_when_predictions_return():
-    policy = CompensationPolicy(DEFAULT)
+    policy = CompensationPolicy(NO_HOLD)
     for k in range(21):  # 0, 1, 2, ... 20 µm
         write_ok(policy, 3.0 * k, policy.decide(3.0 * k, 20.0))
     assert policy.applied_um == 20.0
@@ -280,6 +292,128 @@ def test_tracking_resumes_when_predictions_return():
     write_ok(policy, now, decision)
     settle(policy, now + 3, 25.0)
     assert policy.applied_um == 25.0
+
+
+def test_no_prediction_holds_then_ramps_at_the_configured_rate():
+    limits = CompensationLimits(hold_on_loss_s=60.0, fallback_ramp_um_per_min=10.0)
+    policy = CompensationPolicy(limits, start_um=20.0)
+    write_ok(policy, 0.0, policy.decide(0.0, 20.0))  # the last cycle with a prediction
+    seen = []
+    for k in range(1, 8):
+        decision = policy.decide(30.0 * k, None)
+        write_ok(policy, 30.0 * k, decision)
+        seen.append((decision.target_um, decision.write))
+    # Held 60 s after the last prediction, then 10 µm/min (5 µm per 30 s cycle) to 0.
+    assert seen == [
+        (20.0, False),
+        (20.0, False),
+        (15.0, True),
+        (10.0, True),
+        (5.0, True),
+        (0.0, True),
+        (0.0, False),
+    ]
+    assert policy.decide(240.0, None).reason == "no prediction: ramping to zero, within deadband"
+
+
+def test_hold_reason_and_restart_when_a_prediction_returns():
+    limits = CompensationLimits(hold_on_loss_s=60.0)
+    policy = CompensationPolicy(limits, start_um=10.0)
+    write_ok(policy, 0.0, policy.decide(0.0, 10.0))
+    decision = policy.decide(40.0, math.nan)
+    assert decision.reason == "no prediction (nan): holding for 60 s (40 s so far), within deadband"
+    assert (decision.target_um, decision.write) == (10.0, False)
+    assert policy.decide(50.0, 10.0).reason == "within deadband"  # the prediction is back
+    assert policy.decide(100.0, None).target_um == 10.0  # 50 s since: still held
+    assert policy.decide(120.0, None).target_um < 10.0  # 70 s since: ramping
+
+
+def test_ramp_to_zero_writes_the_last_small_step():
+    policy = CompensationPolicy(NO_HOLD, start_um=0.3)  # below the 0.5 µm deadband
+    write_ok(policy, 0.0, policy.decide(0.0, 0.3))
+    decision = policy.decide(3.0, None)
+    assert (decision.target_um, decision.write) == (0.0, True)
+    policy.confirm(3.0, 0.0)
+    assert policy.decide(6.0, None).write is False  # at zero: nothing more to write
+
+
+def test_disabled_ramps_to_zero_at_the_slew_rate_and_stops_there():
+    policy = CompensationPolicy(DEFAULT, start_um=2.5)
+    write_ok(policy, 0.0, policy.decide(0.0, 2.5))
+    seen = []
+    for k in range(1, 6):
+        decision = policy.decide(3.0 * k, 30.0, enabled=False)  # the prediction is ignored
+        write_ok(policy, 3.0 * k, decision)
+        seen.append((decision.target_um, decision.write))
+    assert seen == [(1.5, True), (0.5, True), (0.0, True), (0.0, False), (0.0, False)]
+    assert decision.reason == "compensation disabled: ramping to zero, within deadband"
+
+
+def test_hold_while_disabled_banks_no_slew():
+    policy = CompensationPolicy(DEFAULT, start_um=5.0)
+    write_ok(policy, 0.0, policy.decide(0.0, 5.0))
+    for k in range(1, 201):  # ten minutes switched off, CNC left alone
+        policy.hold(3.0 * k)
+    decision = policy.decide(603.0, 40.0)  # switched on again
+    assert decision.target_um == 6.0  # one cycle of slew, not ten minutes
+
+
+def test_budget_counts_from_the_confirmed_write_not_the_cycle_start():
+    policy = CompensationPolicy(CompensationLimits(deadband_um=0.0), start_um=0.0)
+    write_ok(policy, 0.0, policy.decide(0.0, 0.0))
+    late = policy.decide(30.6, 40.0)  # this cycle's write went out 0.6 s late
+    assert late.target_um == 10.2
+    policy.confirm(30.6, 10.2)
+    on_time = policy.decide(60.0, 40.0)  # 29.4 s later: 9.8 µm, not 10 µm
+    assert on_time.target_um == 20.0
+    assert on_time.target_um - 10.2 <= 20.0 * 29.4 / 60.0 + 1e-9
+
+
+# --- the CNC's value is the truth ---------------------------------------------------------
+
+
+def test_observe_the_value_the_gateway_applied_changes_nothing():
+    policy = CompensationPolicy(DEFAULT, start_um=48.8)
+    write_ok(policy, 0.0, policy.decide(0.0, 48.8))
+    assert policy.observe(1.0, 0.0488) is None
+    assert policy.observe(2.0, 0.04879999905824661) is None  # 0.0488 carried as float32
+    assert policy.observe(3.0, 0.04884) is None  # within half a CNC step
+    assert (policy.applied_um, policy.external_changes) == (48.8, 0)
+
+
+def test_observe_an_external_change_reseeds_and_restarts_the_slew_budget():
+    policy = CompensationPolicy(DEFAULT, start_um=48.8)
+    write_ok(policy, 0.0, policy.decide(0.0, 48.8))
+    change = policy.observe(30.0, 0.0)  # an operator cleared #500
+    assert change == ExternalChange(believed_um=48.8, held_um=0.0, held_cnc=0.0)
+    assert (policy.applied_um, policy.external_changes) == (0.0, 1)
+    assert policy.decide(30.0, 48.8).target_um == 0.0  # no budget yet: no step
+    assert policy.observe(60.0, 0.0) is None  # seen once, counted once
+    decision = policy.decide(60.0, 48.8)
+    assert (decision.target_um, decision.write) == (10.0, True)  # 30 s at 20 µm/min
+    assert policy.external_changes == 1
+
+
+def test_observe_a_vacant_macro_as_zero_and_a_value_beyond_the_clamp():
+    policy = CompensationPolicy(DEFAULT, start_um=12.0)
+    write_ok(policy, 0.0, policy.decide(0.0, 12.0))
+    change = policy.observe(10.0, math.nan)  # a CNC restarted with the macro vacant
+    assert change is not None and change.held_um == 0.0 and math.isnan(change.held_cnc)
+    assert policy.applied_um == 0.0
+    assert policy.observe(20.0, 0.09) is not None  # 90 µm, outside the clamp
+    assert policy.applied_um == 90.0  # reported as the CNC holds it
+    assert policy.decide(20.0, 90.0).target_um == 50.0  # the clamp wins at once
+
+
+def test_observe_recognises_a_rejected_write_that_landed():
+    policy = CompensationPolicy(DEFAULT, start_um=0.0)
+    write_ok(policy, 0.0, policy.decide(0.0, 0.0))
+    decision = policy.decide(30.0, 20.0)
+    policy.reject(30.0, "reply lost")  # the CNC did get it
+    assert policy.observe(60.0, decision.value_cnc) is None
+    assert (policy.applied_um, policy.external_changes) == (decision.target_um, 0)
+    assert policy.decide(60.0, 20.0).write is False  # its budget restarts when it is seen
+    assert policy.decide(90.0, 20.0).target_um == 20.0  # 30 s later: +10 µm
 
 
 # --- misuse -----------------------------------------------------------------------------
@@ -314,6 +448,7 @@ def random_limits(rng: np.random.Generator) -> CompensationLimits:
         sign=int(rng.choice([1, -1])),  # type: ignore[arg-type]
         decimals=decimals,
         fallback_ramp_um_per_min=ramp,
+        hold_on_loss_s=float(rng.choice([0.0, rng.uniform(0.0, 300.0)])),
     )
 
 
@@ -329,7 +464,7 @@ def random_prediction(rng: np.random.Generator, level_um: float) -> float | None
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_guarantees_hold_for_random_predictions_and_failures(seed):
+def test_guarantees_hold_for_random_predictions_failures_and_external_changes(seed):
     rng = np.random.default_rng(seed)
     limits = random_limits(rng)
     step = limits.step_um
@@ -337,20 +472,46 @@ def test_guarantees_hold_for_random_predictions_and_failures(seed):
     start_um = float(rng.uniform(-limits.clamp_um, limits.clamp_um))
     policy = CompensationPolicy(limits, start_um=start_um)
     failure_rate = float(rng.uniform(0.0, 0.5))
+    external_rate = float(rng.uniform(0.0, 0.05))
 
     now = float(rng.uniform(0, 1e6))
-    confirmed: tuple[float, float] | None = None  # (time, value) of the last confirm
+    applied_since: float | None = None  # when the applied value was last set (confirm, observe)
+    confirmed: tuple[float, float] | None = None  # (time, value) of the last value set
     previous_decision_s = now
+    last_usable_s: float | None = None
     level_um = 0.0
-    writes = 0
+    writes = externals = 0
     for _ in range(2000):
         now += float(rng.choice([rng.uniform(0.1, 5.0), rng.uniform(5.0, 900.0)], p=[0.95, 0.05]))
         if rng.random() < 0.02:
             level_um = float(rng.uniform(-1.5, 1.5) * limits.clamp_um)  # model switch, outage
+
+        # The macro is read before every decision; now and then someone else wrote it.
+        believed_um = policy.applied_um
+        if rng.random() < external_rate:
+            held_cnc = policy.to_cnc(float(rng.uniform(-1.2, 1.2) * limits.clamp_um))
+        else:
+            held_cnc = policy.to_cnc(believed_um)
+        change = policy.observe(now, held_cnc)
+        if policy.same_on_cnc(held_cnc, policy.to_cnc(believed_um)):
+            assert change is None and policy.applied_um == believed_um
+        else:
+            assert change is not None and change.believed_um == believed_um
+            assert policy.applied_um == change.held_um == policy.from_cnc(held_cnc)
+            externals += 1
+            applied_since, confirmed = now, (now, change.held_um)
+        assert policy.external_changes == externals
+        now += float(rng.uniform(0.0, 2.0))  # the write comes a little after the read
+
         predicted = random_prediction(rng, level_um)
+        enabled = rng.random() > 0.05
+        usable = predicted is not None and math.isfinite(predicted)
+        if usable or last_usable_s is None:
+            last_usable_s = now
         applied_before = policy.applied_um
-        decision = policy.decide(now, predicted)
+        decision = policy.decide(now, predicted, enabled=enabled)
         first = confirmed is None
+        inside_clamp = abs(applied_before) <= limits.clamp_um + 1e-9
 
         # Never outside the clamp, before or after the CNC's rounding.
         assert abs(decision.target_um) <= limits.clamp_um + 1e-9
@@ -359,21 +520,31 @@ def test_guarantees_hold_for_random_predictions_and_failures(seed):
         assert decision.value_cnc == policy.to_cnc(decision.target_um)
         assert decision.value_cnc == round(decision.value_cnc, limits.decimals)
         assert decision.target_um == policy.from_cnc(decision.value_cnc)
-        # Deadband: write exactly when the change is worth it (or nothing is confirmed yet).
-        change = abs(decision.target_um - applied_before)
-        assert decision.write == (first or (change > 0 and change >= limits.deadband_um))
-        # Slew: from the last applied value, and never more than one cycle past the deadband.
-        if not first:
-            assert confirmed is not None
-            banked = max_rate * (now - confirmed[0]) / 60.0
+        # Deadband: write exactly when the change is worth it (or nothing is confirmed
+        # yet); a ramp to zero writes its final 0 however small.
+        change_um = abs(decision.target_um - applied_before)
+        zeroing = "ramping to zero" in decision.reason and decision.target_um == 0.0
+        worth = change_um >= limits.deadband_um or zeroing
+        assert decision.write == (first or (change_um > 0 and worth))
+        # Slew: from the last applied value, and never more than one cycle past the
+        # deadband; rounding never carries a step past its budget.
+        if not first and inside_clamp:
+            assert applied_since is not None
+            banked = max_rate * (now - applied_since) / 60.0
             per_cycle = max_rate * (now - previous_decision_s) / 60.0
-            assert change <= min(banked, limits.deadband_um + step + per_cycle) + step / 2 + 1e-9
-        # No prediction: never away from zero (beyond rounding a start value onto the grid).
-        usable = predicted is not None and math.isfinite(predicted)
-        if not usable:
-            assert "no prediction" in decision.reason
+            assert change_um <= min(banked, limits.deadband_um + step + per_cycle) + 1e-9
+        # No prediction or switched off: never away from zero; within the hold, no move.
+        if not usable or not enabled:
             assert decision.target_um * applied_before >= 0.0
             assert abs(decision.target_um) <= abs(applied_before) + step / 2 + 1e-9
+        if enabled and not usable:
+            assert "no prediction" in decision.reason
+            holding = now - last_usable_s < limits.hold_on_loss_s
+            assert ("holding" in decision.reason) == holding
+            if holding and not first and inside_clamp:
+                assert decision.target_um == applied_before
+        if not enabled:
+            assert "compensation disabled" in decision.reason
         previous_decision_s = now
 
         if decision.write:
@@ -383,13 +554,13 @@ def test_guarantees_hold_for_random_predictions_and_failures(seed):
             else:
                 value = policy.from_cnc(decision.value_cnc)
                 policy.confirm(now, value)
-                if confirmed is not None:
-                    # Consecutive confirmed values: |Δ| <= slew · (t2 - t1) / 60 + one step.
+                if confirmed is not None and abs(confirmed[1]) <= limits.clamp_um + 1e-9:
+                    # Consecutive applied values: |Δ| <= slew · (t2 - t1) / 60.
                     t1, v1 = confirmed
-                    assert abs(value - v1) <= max_rate * (now - t1) / 60.0 + step + 1e-9
-                confirmed = (now, value)
+                    assert abs(value - v1) <= max_rate * (now - t1) / 60.0 + 1e-9
+                applied_since, confirmed = now, (now, value)
                 writes += 1
-        assert abs(policy.applied_um) <= limits.clamp_um + 1e-9 or confirmed is None
+        assert abs(policy.applied_um) <= limits.clamp_um + 1e-9 or confirmed is None or externals
     assert writes > 20
     assert policy.failed_writes >= 0
 

@@ -10,9 +10,14 @@ linearly to the other sensors' rises on the training data, with the held-out σ
 of that relation (:mod:`models.sensor_relations`, stored in the model file).
 Every cycle, for every sensor that passed the per-sensor checks::
 
-    z = (ΔT_measured − ΔT_from_the_others) / max(σ, plausibility_min_sigma_C)
+    z = (ΔT_measured − ΔT_from_the_others) / σ_eff
+    σ_eff = max(√(σ_held-out² + σ_ref² · (1 + Σ b_j²)), plausibility_min_sigma_C)
 
-A sensor is *suspect* when |z| > ``plausibility_sigma`` (default 5). When the
+σ_held-out is the leave-one-run-out σ of the very relation used (the set of
+other sensors that are good this cycle). σ_ref (``REFERENCE_SIGMA_C``) is the
+error of the machine's cold reference, one reading per sensor: it shifts every
+rise by a constant, which the relation's coefficients b_j carry into the
+residual. A sensor is *suspect* when |z| > ``plausibility_sigma`` (default 5). When the
 readings disagree, the sensor to blame is the one whose removal leaves the
 others consistent (the smallest worst |z| among the remaining sensors, each
 judged from the remaining ones only); it is removed and the search repeats, so
@@ -67,6 +72,7 @@ from models.sensor_relations import SensorRelations
 __all__ = [
     "AGREE_SHARE",
     "RATE_HORIZON_S",
+    "REFERENCE_SIGMA_C",
     "Plausibility",
     "PlausibilityLimits",
     "Suspect",
@@ -83,6 +89,10 @@ AGREE_SHARE = 0.8
 #: spread over several fast cycles cannot slip through the per-cycle allowance.
 RATE_HORIZON_S = 120.0
 
+#: Error of one sensor's cold reference (one reading, °C): transmitter noise
+#: (0.03 °C here) and half a 0.1 °C register step (0.03 °C σ), rounded up.
+REFERENCE_SIGMA_C = 0.05
+
 #: Fewest sensors among which one can be told to be the wrong one.
 MIN_SENSORS_TO_BLAME = 3
 
@@ -93,9 +103,10 @@ class PlausibilityLimits:
 
     Attributes:
         sigma: a sensor further than this many σ from what the others say is suspect.
-        min_sigma_C: floor of the σ a residual is divided by, °C (register
-            resolution and calibration: a relation fitted too tightly must not
-            turn 0.1 °C into a fault).
+        min_sigma_C: floor of the σ a residual is divided by, °C (the
+            transmitters' 0.1 °C register step, and a fast sensor leading the
+            others by a few tenths through a speed step: a relation fitted
+            tightly must not turn that into a fault).
         recover_s: how long a held sensor must agree again before it is trusted, s.
         max_prediction_rate_um_per_s: fastest believable change of the predicted error.
         prediction_noise_um: change allowed on top of the rate (sensor noise
@@ -103,7 +114,7 @@ class PlausibilityLimits:
     """
 
     sigma: float = 5.0
-    min_sigma_C: float = 0.05
+    min_sigma_C: float = 0.1
     recover_s: float = 900.0
     max_prediction_rate_um_per_s: float = 0.1
     prediction_noise_um: float = 1.0
@@ -164,6 +175,8 @@ class Plausibility:
         self.limits = limits
         self.holds: dict[str, _Hold] = {}
         self.flags = 0  # how many times a sensor was newly held
+        # The largest |z| of a sensor found sound: how close this machine runs to the threshold.
+        self.largest_sound_z = 0.0
         self._history: deque[tuple[float, dict[str, float]]] = deque()
 
     @classmethod
@@ -220,7 +233,8 @@ class Plausibility:
     def _z(self, sensor: str, value_C: float, others: Mapping[str, float]) -> tuple[float, str]:
         assert self.relations is not None
         said = self.relations.predict(sensor, others)
-        sigma = max(said.sigma_C, self.limits.min_sigma_C)
+        carried = REFERENCE_SIGMA_C**2 * (1.0 + sum(b * b for b in said.coefficients))
+        sigma = max(math.sqrt(said.sigma_C**2 + carried), self.limits.min_sigma_C)
         z = (value_C - said.predicted_rise_C) / sigma
         text = f"rise {value_C:.2f} °C, the others say {said.predicted_rise_C:.2f} ± {sigma:.2f} °C"
         return z, text
@@ -240,6 +254,7 @@ class Plausibility:
         while len(active) >= MIN_SENSORS_TO_BLAME:
             worst, scores = self._worst(active)
             if worst <= self.limits.sigma:
+                self.largest_sound_z = max(self.largest_sound_z, worst)
                 break
             candidates = [s for s, (z, _) in scores.items() if abs(z) > self.limits.sigma]
 

@@ -197,3 +197,41 @@ def test_an_old_model_file_without_relations_still_loads(tmp_path: Path) -> None
     path.write_text(json.dumps(damaged), encoding="utf-8")
     with pytest.raises(StoreError, match="field 'sensor_relations': sensor_relations: missing"):
         load_file(path)
+
+
+CONFIG = """\
+machines:
+  - id: vmc-1
+    transmitters:
+      - name: bus1
+        tcp: {host: 127.0.0.1, port: 5020}
+        devices:
+          - {device_id: 1, channels: [T1, T2, T3]}
+    cnc:
+      modbus: {host: 127.0.0.1, port: 5021}
+    models: {store: models}
+    quality:
+      plausibility_sigma: SIGMA
+      max_prediction_rate_um_per_s: 0.2
+"""
+
+
+def test_config_keys_reach_the_limits(tmp_path: Path) -> None:
+    from gateway.config import load_config
+
+    path = tmp_path / "config.yaml"
+    path.write_text(CONFIG.replace("SIGMA", "6"), encoding="utf-8")
+    limits = load_config(path).machines[0].quality.limits()
+    assert limits == PlausibilityLimits(sigma=6.0, max_prediction_rate_um_per_s=0.2)
+
+
+@pytest.mark.parametrize("value", ["0", "-1", ".inf", "x"])
+def test_a_bad_threshold_is_refused_with_its_line(tmp_path: Path, value: str) -> None:
+    from gateway.config import ConfigError, load_config
+
+    path = tmp_path / "config.yaml"
+    path.write_text(CONFIG.replace("SIGMA", value), encoding="utf-8")
+    with pytest.raises(
+        ConfigError, match=r"config.yaml:12: machines\[0\].quality.plausibility_sigma"
+    ):
+        load_config(path)

@@ -85,6 +85,7 @@ def test_document_round_trip_is_plain_json() -> None:
     assert again.sensors == relations.sensors
     assert again.held_out_sigma_C == relations.held_out_sigma_C
     np.testing.assert_array_equal(again.covariance_C2, relations.covariance_C2)
+    assert [r.rows for r in again.per_run] == [100, 100]
     explicit = document["relations"]["C"]
     assert explicit["coefficients_C_per_C"]["A"] == pytest.approx(2.0, abs=0.01)
     assert set(explicit) == {
@@ -98,14 +99,15 @@ def test_document_round_trip_is_plain_json() -> None:
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        (lambda d: d.pop("covariance_C2"), "missing field 'covariance_C2'"),
-        (lambda d: d["relations"]["A"].pop("held_out_sigma_C"), "held_out_sigma_C"),
-        (lambda d: d.update(mean_rise_C=[0.0]), "do not match 3 sensors"),
-        (lambda d: d["covariance_C2"][0].__setitem__(1, 123.0), "symmetric"),
+        (lambda d: d["per_run"][0].pop("covariance_C2"), "missing field 'covariance_C2'"),
+        (lambda d: d.update(rows=5), "'rows'/'runs' do not match 'per_run'"),
+        (lambda d: d["per_run"][0].update(mean_rise_C=[0.0]), "do not match 3 sensors"),
+        (lambda d: d["per_run"][1]["covariance_C2"][0].__setitem__(1, 123.0), "symmetric"),
     ],
 )
 def test_a_damaged_document_is_refused(change, message: str) -> None:
-    document = fit_relations(three_sensors(0.1), ["A", "B", "C"]).as_document()
+    relations = fit_relations(three_sensors(0.1), ["A", "B", "C"], np.repeat([0, 1], 100))
+    document = relations.as_document()
     change(document)
     with pytest.raises(ValueError, match=message):
         SensorRelations.from_document(document)

@@ -230,7 +230,10 @@ class Plausibility:
     def reasons(self) -> dict[str, str]:
         return {sensor: hold.reason for sensor, hold in self.holds.items()}
 
-    def _z(self, sensor: str, value_C: float, others: Mapping[str, float]) -> tuple[float, str]:
+    def z_score(
+        self, sensor: str, value_C: float, others: Mapping[str, float]
+    ) -> tuple[float, str]:
+        """(z, a readable account) of one sensor judged by ``others`` (rises, °C)."""
         assert self.relations is not None
         said = self.relations.predict(sensor, others)
         carried = REFERENCE_SIGMA_C**2 * (1.0 + sum(b * b for b in said.coefficients))
@@ -242,7 +245,7 @@ class Plausibility:
     def _worst(self, rises_C: Mapping[str, float]) -> tuple[float, dict[str, tuple[float, str]]]:
         """Each sensor's z from all the others given, and the largest |z|."""
         scores = {
-            s: self._z(s, v, {o: w for o, w in rises_C.items() if o != s})
+            s: self.z_score(s, v, {o: w for o, w in rises_C.items() if o != s})
             for s, v in rises_C.items()
         }
         return max(abs(z) for z, _ in scores.values()), scores
@@ -277,7 +280,7 @@ class Plausibility:
         others = {s: v for s, v in trusted.items() if s != sensor}
         if len(others) < MIN_SENSORS_TO_BLAME - 1:
             return  # too few trusted sensors to say it agrees: keep holding
-        z, said = self._z(sensor, value_C, others)
+        z, said = self.z_score(sensor, value_C, others)
         if abs(z) > AGREE_SHARE * self.limits.sigma:
             hold.agree_since_s = None
             hold.reason = f"implausible: {z:+.1f}σ from its neighbours ({said})"

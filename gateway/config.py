@@ -19,6 +19,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from gateway.compensation import CompensationLimits
+from gateway.plausibility import PlausibilityLimits
 from gateway.quality import QualityLimits
 from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
 from models.regime_rules import RegimeRules, SpeedBand
@@ -69,6 +70,40 @@ class SensorSection(Strict):
     max_rate_C_per_s: float = Field(default=0.5, gt=0)
     stuck_s: float = Field(default=900.0, gt=0)
     stale_s: float = Field(default=10.0, gt=0)
+
+
+class QualitySection(Strict):
+    """Plausibility of the sensors and of the prediction (see gateway/plausibility.py).
+
+    - ``plausibility_sigma``: a sensor further than this many held-out σ from what
+      the other sensors say is held BAD. 5: on unseen simulated programmes (four
+      programmes × two seeds, 30 s samples, 9 sensors) the largest |z| of a sound
+      sensor was 3.9.
+    - ``plausibility_min_sigma_C`` (°C): floor of that σ; 0.1 °C is one register
+      step, and what a fast bearing sensor leads the others by through a speed step.
+    - ``plausibility_recover_s`` (s): a held sensor must agree for this long before
+      it is trusted again; 900 s is 30 cycles at 30 s, far beyond a flicker.
+    - ``max_prediction_rate_um_per_s`` (µm/s): fastest believable change of the
+      predicted error; 0.1 µm/s = 6 µm/min, seven times the simulated spindle's
+      fastest growth from cold (0.8 µm/min).
+    - ``prediction_noise_um`` (µm): change allowed on top of that rate (noise
+      times the model's coefficients, register steps).
+    """
+
+    plausibility_sigma: float = Field(default=5.0, gt=0, allow_inf_nan=False)
+    plausibility_min_sigma_C: float = Field(default=0.1, gt=0, allow_inf_nan=False)
+    plausibility_recover_s: float = Field(default=900.0, ge=0, allow_inf_nan=False)
+    max_prediction_rate_um_per_s: float = Field(default=0.1, gt=0, allow_inf_nan=False)
+    prediction_noise_um: float = Field(default=1.0, ge=0, allow_inf_nan=False)
+
+    def limits(self) -> PlausibilityLimits:
+        return PlausibilityLimits(
+            sigma=self.plausibility_sigma,
+            min_sigma_C=self.plausibility_min_sigma_C,
+            recover_s=self.plausibility_recover_s,
+            max_prediction_rate_um_per_s=self.max_prediction_rate_um_per_s,
+            prediction_noise_um=self.prediction_noise_um,
+        )
 
 
 class Credentials(Strict):
@@ -225,6 +260,7 @@ class MachineSection(Strict):
     cnc: CncSection
     compensation: CompensationSection = CompensationSection()
     models: ModelsSection
+    quality: QualitySection = QualitySection()
 
     @model_validator(mode="after")
     def _sensor_names(self) -> MachineSection:

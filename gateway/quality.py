@@ -25,6 +25,14 @@ good checks before it is GOOD again, so a loose contact that flickers between
 good and bad never flaps the model's inputs in and out. A sensor that has never
 produced a value starts BAD ("no value yet"), so the same rule applies to it.
 
+Plausibility (:mod:`gateway.plausibility`), when the monitor is given one: after
+these checks, the sensors that passed them are compared with each other
+through the relation learned at fit time. A sensor that disagrees is held BAD
+("implausible: …") until it has agreed again for ``plausibility_recover_s``;
+the hold overrides a GOOD verdict, while a sensor failing one of the checks
+above keeps that more specific reason. :meth:`QualityMonitor.mark_implausible`
+lets the loop hold the sensor its prediction rate bound blames.
+
 Everything is plain numbers and machine time in seconds passed in by the caller;
 no I/O happens here.
 """
@@ -36,6 +44,10 @@ from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from gateway.plausibility import Plausibility
 
 __all__ = [
     "FAULT_CODES",
@@ -139,7 +151,10 @@ class QualityMonitor:
     """Checks every sensor of one machine each cycle (see the module docstring)."""
 
     def __init__(
-        self, sensors: Sequence[str], limits: QualityLimits | Mapping[str, QualityLimits]
+        self,
+        sensors: Sequence[str],
+        limits: QualityLimits | Mapping[str, QualityLimits],
+        plausibility: Plausibility | None = None,
     ) -> None:
         names = list(sensors)
         if not names:
@@ -162,18 +177,24 @@ class QualityMonitor:
         }
         self._start_s: float | None = None
         self._last_now_s: float | None = None
+        self.plausibility = plausibility
 
     def last_good(self, sensor: str) -> float | None:
         """The last value of ``sensor`` that passed every check (°C), or None."""
         return self._states[sensor].last_good_C
 
     def check(
-        self, now_s: float, readings: Mapping[str, tuple[float | None, int | None]]
+        self,
+        now_s: float,
+        readings: Mapping[str, tuple[float | None, int | None]],
+        reference_C: Mapping[str, float] | None = None,
     ) -> dict[str, SensorCheck]:
         """Judge every sensor at machine time ``now_s``.
 
         ``readings`` maps sensor -> (value °C or None, transmitter status or None);
         a sensor missing from ``readings`` is treated as a missed read.
+        ``reference_C``: the machine's cold reference; with it (and a plausibility
+        check) the sensors are also judged against each other, by their rises.
         """
         unknown = [s for s in readings if s not in self._states]
         if unknown:
@@ -209,7 +230,23 @@ class QualityMonitor:
 
         for name, result in results.items():
             self._states[name].last_check = result
+        if self.plausibility is not None and reference_C is not None:
+            rises = {
+                name: plausible[name] - reference_C[name]
+                for name, result in results.items()
+                if result.quality is Quality.GOOD and name in plausible and name in reference_C
+            }
+            held = self.plausibility.judge(now_s, rises)
+            for name, reason in held.items():
+                if results[name].quality is Quality.GOOD:
+                    results[name] = SensorCheck(name, Quality.BAD, reason)
         return {name: results[name] for name in self._states}
+
+    def mark_implausible(self, sensor: str, reason: str) -> SensorCheck:
+        """The verdict for a sensor the loop's prediction rate bound has just held."""
+        if sensor not in self._states:
+            raise ValueError(f"unknown sensor {sensor}")
+        return SensorCheck(sensor, Quality.BAD, reason)
 
     # -- individual checks -------------------------------------------------
 

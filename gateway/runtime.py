@@ -5,7 +5,8 @@ Once per ``cycle_s`` of machine time:
 1. read every transmitter bus and the spindle speed, concurrently; a silent
    device or a dead link becomes missing values and a health record, never an
    exception through the loop;
-2. flag each sensor's quality (range, rate, stuck, stale, transmitter fault);
+2. flag each sensor's quality (range, rate, stuck, stale, transmitter fault,
+   and plausibility against the other sensors, :mod:`gateway.plausibility`);
 3. classify the speed regime (with hysteresis) and take its model from the bank,
    or a fallback fitted without a bad sensor, or none;
 4. predict the error rise (µm) from the temperature rises above the cold reference;
@@ -42,6 +43,7 @@ from gateway.compensation import CompensationPolicy
 from gateway.config import MachineSection
 from gateway.effect_state import EffectStates
 from gateway.model_bank import Banked, BankedAugmented, ModelBank
+from gateway.plausibility import Plausibility
 from gateway.quality import Quality, QualityMonitor
 from gateway.reference import TemperatureReference
 from models.base import ModelInputs
@@ -92,7 +94,10 @@ class MachineLoop:
         self.bank = bank
         self.sinks = list(sinks)
         self.sensors = config.sensor_names
-        self.quality = QualityMonitor(self.sensors, config.quality_limits())
+        self.plausibility = Plausibility.for_machine(
+            config.id, bank, self.sensors, config.quality.limits()
+        )
+        self.quality = QualityMonitor(self.sensors, config.quality_limits(), self.plausibility)
         self.selector = RegimeSelector(config.models.regimes.rules())
         reference = config.models.reference
         state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
@@ -117,7 +122,7 @@ class MachineLoop:
             name: (results[name].value_C, results[name].status) if name in results else (None, None)
             for name in self.sensors
         }
-        checks = self.quality.check(now, readings)
+        checks = self.quality.check(now, readings, self.reference.values_C)
         good = {n for n, c in checks.items() if c.quality is Quality.GOOD}
         good_values = {n: readings[n][0] for n in good if readings[n][0] is not None}
         self.reference.observe(good_values)
@@ -136,6 +141,15 @@ class MachineLoop:
             )
         banked = self.bank.usable(selection.model_id if selection else None, good)
         predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
+        rises = self.reference.available_rises_C(good_values)
+        suspect = self.plausibility.check_prediction(now, banked, rises, speed_rpm)
+        if suspect is not None:  # moved faster than heat can: not used; predict without it
+            checks[suspect.sensor] = self.quality.mark_implausible(suspect.sensor, suspect.reason)
+            good.discard(suspect.sensor)
+            good_values.pop(suspect.sensor, None)
+            banked = self.bank.usable(selection.model_id if selection else None, good)
+            predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
+        self.plausibility.accept(now, self.reference.available_rises_C(good_values))
 
         record = CycleRecord(
             machine=self.config.id,

@@ -19,11 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
+from models.base import ModelInputs
 from models.conditioning import DEFAULT_SENSOR_ACCURACY_C, Conditioning, assess
 from models.crossval import Validation, cross_evaluate, cross_validate
 from models.features import Prepared
 from models.regimes import RegimeReport, SigmaRow, rank_regimes
 from models.registry import make_model
+from models.sensor_relations import fit_relations
 from models.store import ModelStore, build_document
 
 
@@ -106,6 +108,7 @@ def fit_and_store(
             validation=_validation_record(validation, outcome.sigma_rows, group, per_run),
             software_version=software_version,
             conditioning=conditioning.as_dict(),
+            sensor_relations=relations_document(part.inputs),
         )
         outcome.saved[document["model_id"]] = store.save(document)
     return outcome
@@ -158,6 +161,22 @@ def fit_sensor_fallbacks(
             validation=validation.as_dict(),
             software_version=software_version,
             conditioning=assess(model, prepared.inputs).as_dict(),
+            sensor_relations=relations_document(prepared.inputs),
         )
         saved[document["model_id"]] = store.save(document)
     return saved
+
+
+def relations_document(inputs: ModelInputs) -> dict[str, object] | None:
+    """The training sensors' relations (:mod:`models.sensor_relations`) to store with a model.
+
+    Fitted on every sensor of the training inputs, not only the model's own, so a
+    fallback model carries the relation of the sensor it does without. None when
+    the data cannot support one (fewer than two sensors, or too few rows).
+    """
+    if len(inputs.sensors) < 2:
+        return None
+    try:
+        return fit_relations(inputs.rise_C, inputs.sensors, inputs.run_index).as_document()
+    except ValueError:
+        return None

@@ -15,6 +15,11 @@ compensating a machine wrongly:
   made for them when it was saved. The loaded model must reproduce them exactly;
   this catches a file written by a different, incompatible version of the maths.
 
+Optional field ``sensor_relations`` (absent in files saved before it existed,
+which still load): how the training sensors' rises relate to each other
+(:mod:`models.sensor_relations`), for the runtime's plausibility check. It is
+covered by the checksum like every other field and validated on load.
+
 Writes go to a temporary file that is then renamed, so a crash mid-write never
 leaves half a model behind.
 """
@@ -35,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from models.base import ModelInputs, ThermalModel
 from models.registry import METHODS
+from models.sensor_relations import SensorRelations
 
 FORMAT = "spindle-thermal-model"
 FORMAT_VERSION = 1
@@ -85,6 +91,14 @@ class StoredModel(BaseModel):
     #: conditioning and bias sensitivity at fit time (:mod:`models.conditioning`);
     #: absent in files written before it was recorded.
     conditioning: dict[str, Any] | None = None
+    # Optional, so that files saved before it existed still load (see the module docstring).
+    sensor_relations: dict[str, Any] | None = None
+
+    def relations(self) -> SensorRelations | None:
+        """The training sensors' relations, or None for a file saved without them."""
+        if self.sensor_relations is None:
+            return None
+        return SensorRelations.from_document(self.sensor_relations)
 
 
 def data_fingerprint(inputs: ModelInputs, error_um: np.ndarray) -> str:
@@ -135,8 +149,13 @@ def build_document(
     validation: dict[str, Any],
     software_version: str,
     conditioning: dict[str, Any] | None = None,
+    sensor_relations: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """The JSON document for a fitted model (checksum included)."""
+    """The JSON document for a fitted model (checksum included).
+
+    ``sensor_relations``: :meth:`models.sensor_relations.SensorRelations.as_document`
+    of the training rises, stored for the runtime's plausibility check.
+    """
     document: dict[str, Any] = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -166,6 +185,8 @@ def build_document(
     }
     if conditioning is not None:
         document["conditioning"] = conditioning
+    if sensor_relations is not None:
+        document["sensor_relations"] = sensor_relations
     # Round-trip through JSON so the checksum covers exactly what is written.
     document = json.loads(json.dumps(document, ensure_ascii=False))
     document["sha256"] = _checksum(document)
@@ -241,6 +262,10 @@ def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
         raise StoreError(
             f"{path}: checksum mismatch — the file was changed or damaged since it was saved"
         )
+    try:
+        document.relations()
+    except ValueError as exc:
+        raise StoreError(f"{path}: field 'sensor_relations': {exc}") from None
     try:
         model = model_from_document(document)
     except (KeyError, TypeError, ValueError) as exc:

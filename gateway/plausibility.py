@@ -1,0 +1,373 @@
+"""Plausibility: each sensor against what the others say, and the prediction against physics.
+
+Range, rate, stuck and stale checks (:mod:`gateway.quality`) judge a sensor by
+itself, so they miss the faults that look like heat: a transmitter drifting a
+few tenths of a degree per second, a probe that reads a constant 3 °C high
+after a knock, a bias that grows over hours. Two rules here catch those.
+
+**1. Relation to the other sensors.** At fit time each sensor's rise is related
+linearly to the other sensors' rises on the training data, with the held-out σ
+of that relation (:mod:`models.sensor_relations`, stored in the model file).
+Every cycle, for every sensor that passed the per-sensor checks::
+
+    z = (ΔT_measured − ΔT_from_the_others) / σ_eff
+    σ_eff = max(√(σ_held-out² + σ_ref² · (1 + Σ b_j²)), plausibility_min_sigma_C)
+
+σ_held-out is the leave-one-run-out σ of the very relation used (the set of
+other sensors that are good this cycle). σ_ref (``REFERENCE_SIGMA_C``) is the
+error of the machine's cold reference, one reading per sensor: it shifts every
+rise by a constant, which the relation's coefficients b_j carry into the
+residual. A sensor is *suspect* when |z| > ``plausibility_sigma`` (default 5). When the
+readings disagree, the sensor to blame is the one whose removal leaves the
+others consistent (the smallest worst |z| among the remaining sensors, each
+judged from the remaining ones only); it is removed and the search repeats, so
+two bad sensors are found one after the other. Three or more sensors are needed
+to say which one is wrong; with fewer the rule says nothing.
+
+A suspect sensor goes BAD ("implausible: +7.4σ from its neighbours …") and is
+*held*: it no longer predicts the others and the model bank switches to the
+stored model fitted without it, exactly as for an open circuit. It is trusted
+again only after it has agreed with the others (|z| ≤ ``AGREE_SHARE`` ×
+``plausibility_sigma``) for ``plausibility_recover_s`` of machine time without
+a break (default 900 s): a fault that comes and goes, or a bias hovering at the
+threshold, does not flap the model in and out.
+
+**2. A rate bound on the predicted error.** Thermal growth is slow: the fastest
+rise of the simulated 8000 r/min spindle from cold is 0.8 µm/min, and real
+spindles stay within a few µm/min. A plain model's prediction may move, from the
+rises of up to ``RATE_HORIZON_S`` ago to this cycle's (the model and the speed
+held at this cycle's, so a model switch or a speed step is not counted), by at
+most::
+
+    max_prediction_rate_um_per_s · Δt + prediction_noise_um
+
+A prediction that moves faster is not used. The sensor responsible is the one
+whose rise, put back to its earlier value, undoes most of the jump; it is held
+BAD as above ("implausible: moved the prediction …") and the cycle predicts with
+the model without it. Augmented models (lag states) are not bounded this way:
+their speed terms legitimately step with the speed.
+
+**Without relations** (a model file saved before they were stored) rule 1 is
+unavailable, which :attr:`Plausibility.available` says and the loop logs once;
+rule 2 still runs, and a sensor it holds is trusted again after
+``plausibility_recover_s`` of good per-sensor checks.
+
+Plain numbers in, verdicts out: no I/O here, machine time in seconds.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from gateway.model_bank import Banked, BankedModel, ModelBank
+from models.base import ModelInputs
+from models.sensor_relations import SensorRelations
+
+__all__ = [
+    "AGREE_SHARE",
+    "RATE_HORIZON_S",
+    "REFERENCE_SIGMA_C",
+    "Plausibility",
+    "PlausibilityLimits",
+    "Suspect",
+    "relations_from_bank",
+]
+
+log = logging.getLogger(__name__)
+
+#: A held sensor "agrees" again when |z| is at most this share of the threshold:
+#: a band between flagging and agreeing, so a reading near the threshold cannot flap.
+AGREE_SHARE = 0.8
+
+#: How far back (s) the prediction rate bound compares: long enough that a drift
+#: spread over several fast cycles cannot slip through the per-cycle allowance.
+RATE_HORIZON_S = 120.0
+
+#: Error of one sensor's cold reference (one reading, °C): transmitter noise
+#: (0.03 °C here) and half a 0.1 °C register step (0.03 °C σ), rounded up.
+REFERENCE_SIGMA_C = 0.05
+
+#: Fewest sensors among which one can be told to be the wrong one.
+MIN_SENSORS_TO_BLAME = 3
+
+
+@dataclass(frozen=True)
+class PlausibilityLimits:
+    """Thresholds of both rules (see the module docstring).
+
+    Attributes:
+        sigma: a sensor further than this many σ from what the others say is suspect.
+        min_sigma_C: floor of the σ a residual is divided by, °C (the
+            transmitters' 0.1 °C register step, and a fast sensor leading the
+            others by a few tenths through a speed step: a relation fitted
+            tightly must not turn that into a fault).
+        recover_s: how long a held sensor must agree again before it is trusted, s.
+        max_prediction_rate_um_per_s: fastest believable change of the predicted error.
+        prediction_noise_um: change allowed on top of the rate (sensor noise
+            times the model's coefficients, register steps).
+    """
+
+    sigma: float = 5.0
+    min_sigma_C: float = 0.1
+    recover_s: float = 900.0
+    max_prediction_rate_um_per_s: float = 0.1
+    prediction_noise_um: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("sigma", "min_sigma_C", "max_prediction_rate_um_per_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"PlausibilityLimits.{name} must be finite and > 0, got {value}")
+        for name in ("recover_s", "prediction_noise_um"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"PlausibilityLimits.{name} must be finite and ≥ 0, got {value}")
+
+
+@dataclass(frozen=True)
+class Suspect:
+    """A sensor the prediction rate bound blames, and why."""
+
+    sensor: str
+    reason: str
+
+
+@dataclass
+class _Hold:
+    """A sensor held BAD by a plausibility rule."""
+
+    since_s: float
+    reason: str
+    agree_since_s: float | None = None
+
+
+def relations_from_bank(bank: ModelBank, sensors: Iterable[str]) -> SensorRelations | None:
+    """The stored relation covering most of the machine's sensors (then most rows, then id).
+
+    Every model fitted on the same training data carries the same relation, so
+    which one is taken matters only for a store mixing fits of different data.
+    """
+    machine = set(sensors)
+    found: list[tuple[int, int, str, SensorRelations]] = []
+    for model_id, banked in bank.models.items():
+        if not isinstance(banked, BankedModel):
+            continue
+        relations = banked.document.relations()
+        if relations is None:
+            continue
+        covered = sum(1 for s in relations.sensors if s in machine)
+        if covered >= MIN_SENSORS_TO_BLAME:
+            found.append((-covered, -relations.rows, model_id, relations))
+    return min(found, key=lambda f: f[:3])[3] if found else None
+
+
+class Plausibility:
+    """Both rules for one machine, with the holds they place (see the module docstring)."""
+
+    def __init__(self, relations: SensorRelations | None, limits: PlausibilityLimits) -> None:
+        self.relations = relations
+        self.limits = limits
+        self.holds: dict[str, _Hold] = {}
+        self.flags = 0  # how many times a sensor was newly held
+        # The largest |z| of a sensor found sound: how close this machine runs to the threshold.
+        self.largest_sound_z = 0.0
+        self._history: deque[tuple[float, dict[str, float]]] = deque()
+
+    @classmethod
+    def for_machine(
+        cls, machine: str, bank: ModelBank, sensors: Iterable[str], limits: PlausibilityLimits
+    ) -> Plausibility:
+        """The check for one machine, with the relation its model store carries (logged)."""
+        relations = relations_from_bank(bank, sensors)
+        if relations is None:
+            log.warning(
+                "%s: plausibility check unavailable: no stored model carries sensor relations "
+                "(models saved before they were stored; refit to add them); the prediction "
+                "rate bound still applies",
+                machine,
+            )
+        else:
+            log.info(
+                "%s: plausibility check on %s (relations from %d training rows, %d runs)",
+                machine,
+                ", ".join(relations.sensors),
+                relations.rows,
+                relations.runs,
+            )
+        return cls(relations, limits)
+
+    @property
+    def available(self) -> bool:
+        """Whether rule 1 (relations between the sensors) can run."""
+        return self.relations is not None
+
+    # --- rule 1: each sensor against the others ------------------------------------------
+    def judge(self, now_s: float, rises_C: Mapping[str, float]) -> dict[str, str]:
+        """Place and release holds from this cycle's rises; the reason of every held sensor.
+
+        ``rises_C``: rises (°C above the machine's reference) of the sensors that
+        passed the per-sensor checks this cycle, held ones included (they are
+        judged for agreement, never used to judge others).
+        """
+        if self.relations is None:
+            self._release_by_time(now_s, rises_C)
+            return self.reasons()
+        known = {s: v for s, v in rises_C.items() if s in self.relations.sensors}
+        trusted = {s: v for s, v in known.items() if s not in self.holds}
+        for sensor, z, said in self._blame(trusted):
+            self._hold(now_s, sensor, f"implausible: {z:+.1f}σ from its neighbours ({said})")
+            trusted.pop(sensor)
+        for sensor in [s for s in self.holds if s in known]:
+            self._judge_agreement(now_s, sensor, known[sensor], trusted)
+        return self.reasons()
+
+    def reasons(self) -> dict[str, str]:
+        return {sensor: hold.reason for sensor, hold in self.holds.items()}
+
+    def z_score(
+        self, sensor: str, value_C: float, others: Mapping[str, float]
+    ) -> tuple[float, str]:
+        """(z, a readable account) of one sensor judged by ``others`` (rises, °C)."""
+        assert self.relations is not None
+        said = self.relations.predict(sensor, others)
+        carried = REFERENCE_SIGMA_C**2 * (1.0 + sum(b * b for b in said.coefficients))
+        sigma = max(math.sqrt(said.sigma_C**2 + carried), self.limits.min_sigma_C)
+        z = (value_C - said.predicted_rise_C) / sigma
+        text = f"rise {value_C:.2f} °C, the others say {said.predicted_rise_C:.2f} ± {sigma:.2f} °C"
+        return z, text
+
+    def _worst(self, rises_C: Mapping[str, float]) -> tuple[float, dict[str, tuple[float, str]]]:
+        """Each sensor's z from all the others given, and the largest |z|."""
+        scores = {
+            s: self.z_score(s, v, {o: w for o, w in rises_C.items() if o != s})
+            for s, v in rises_C.items()
+        }
+        return max(abs(z) for z, _ in scores.values()), scores
+
+    def _blame(self, trusted: Mapping[str, float]) -> list[tuple[str, float, str]]:
+        """The sensors to hold: removed one by one until the rest agree."""
+        active = dict(trusted)
+        blamed: list[tuple[str, float, str]] = []
+        while len(active) >= MIN_SENSORS_TO_BLAME:
+            worst, scores = self._worst(active)
+            if worst <= self.limits.sigma:
+                self.largest_sound_z = max(self.largest_sound_z, worst)
+                break
+            candidates = [s for s, (z, _) in scores.items() if abs(z) > self.limits.sigma]
+
+            culprit = min(
+                candidates,
+                key=lambda c: (
+                    self._worst({s: v for s, v in active.items() if s != c})[0],
+                    -abs(scores[c][0]),
+                ),
+            )
+            z, said = scores[culprit]
+            blamed.append((culprit, z, said))
+            del active[culprit]
+        return blamed
+
+    def _judge_agreement(
+        self, now_s: float, sensor: str, value_C: float, trusted: Mapping[str, float]
+    ) -> None:
+        hold = self.holds[sensor]
+        others = {s: v for s, v in trusted.items() if s != sensor}
+        if len(others) < MIN_SENSORS_TO_BLAME - 1:
+            return  # too few trusted sensors to say it agrees: keep holding
+        z, said = self.z_score(sensor, value_C, others)
+        if abs(z) > AGREE_SHARE * self.limits.sigma:
+            hold.agree_since_s = None
+            hold.reason = f"implausible: {z:+.1f}σ from its neighbours ({said})"
+            return
+        if hold.agree_since_s is None:
+            hold.agree_since_s = now_s
+        agreed_s = now_s - hold.agree_since_s
+        if agreed_s >= self.limits.recover_s:
+            del self.holds[sensor]
+        else:
+            hold.reason = (
+                f"implausible until it agrees for {self.limits.recover_s:.0f} s "
+                f"(agreeing for {agreed_s:.0f} s, {z:+.1f}σ)"
+            )
+
+    def _release_by_time(self, now_s: float, rises_C: Mapping[str, float]) -> None:
+        """Without relations: a held sensor with good values is trusted after recover_s."""
+        for sensor in [s for s in self.holds if s in rises_C]:
+            hold = self.holds[sensor]
+            if hold.agree_since_s is None:
+                hold.agree_since_s = now_s
+            if now_s - hold.agree_since_s >= self.limits.recover_s:
+                del self.holds[sensor]
+
+    def _hold(self, now_s: float, sensor: str, reason: str) -> None:
+        self.holds[sensor] = _Hold(since_s=now_s, reason=reason)
+        self.flags += 1
+
+    # --- rule 2: the predicted error's rate ---------------------------------------------
+    def check_prediction(
+        self,
+        now_s: float,
+        banked: Banked | None,
+        rises_C: Mapping[str, float],
+        speed_rpm: float | None,
+    ) -> Suspect | None:
+        """Blame (and hold) the sensor that moves a plain model's prediction too fast, if any."""
+        if not isinstance(banked, BankedModel):
+            return None
+        model = banked.model
+        sensors = tuple(model.sensors_used_)
+        if any(s not in rises_C for s in sensors) or (model.uses_speed and speed_rpm is None):
+            return None
+        now_x = np.array([rises_C[s] for s in sensors])
+        worst: tuple[float, float, float, np.ndarray] | None = None  # excess, Δ, Δt, then
+        for then_s, then_rises in self._history:
+            if now_s - then_s > RATE_HORIZON_S or any(s not in then_rises for s in sensors):
+                continue
+            then_x = np.array([then_rises[s] for s in sensors])
+            now_um, then_um = _predict(banked, sensors, np.vstack([now_x, then_x]), speed_rpm)
+            allowed = self._allowed_um(now_s - then_s)
+            excess = abs(now_um - then_um) - allowed
+            if excess > 0 and (worst is None or excess > worst[0]):
+                worst = (excess, now_um - then_um, now_s - then_s, then_x)
+        if worst is None:
+            return None
+        _, moved_um, span_s, then_x = worst
+        # Put each sensor back to its earlier rise in turn: the one that undoes most is to blame.
+        rows = np.tile(now_x, (len(sensors), 1))
+        rows[np.arange(len(sensors)), np.arange(len(sensors))] = then_x
+        undone = _predict(banked, sensors, np.vstack([now_x, rows]), speed_rpm)
+        left_um = np.abs(undone[1:] - (undone[0] - moved_um))
+        sensor = sensors[int(np.argmin(left_um))]
+        reason = (
+            f"implausible: moved the prediction {moved_um:+.1f} µm in {span_s:.0f} s "
+            f"(bound {self._allowed_um(span_s):.1f} µm: "
+            f"{self.limits.max_prediction_rate_um_per_s:g} µm/s + "
+            f"{self.limits.prediction_noise_um:g} µm)"
+        )
+        self._hold(now_s, sensor, reason)
+        return Suspect(sensor, reason)
+
+    def accept(self, now_s: float, rises_C: Mapping[str, float]) -> None:
+        """Remember the rises this cycle predicted from (trusted sensors only)."""
+        self._history.append((now_s, {s: v for s, v in rises_C.items() if s not in self.holds}))
+        while self._history and now_s - self._history[0][0] > RATE_HORIZON_S:
+            self._history.popleft()
+
+    def _allowed_um(self, span_s: float) -> float:
+        lim = self.limits
+        return lim.max_prediction_rate_um_per_s * span_s + lim.prediction_noise_um
+
+
+def _predict(
+    banked: BankedModel, sensors: tuple[str, ...], rows: np.ndarray, speed_rpm: float | None
+) -> np.ndarray:
+    """The model's prediction for each row of rises, all at this cycle's speed."""
+    speed = 0.0 if speed_rpm is None else speed_rpm
+    inputs = ModelInputs(rise_C=rows, sensors=sensors, speed_rpm=np.full(rows.shape[0], speed))
+    return banked.model.predict(inputs)

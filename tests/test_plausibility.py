@@ -1,0 +1,237 @@
+"""gateway.plausibility: sensors judged against each other, the prediction against a rate bound.
+
+Pure numbers on a manual timeline; the protocol-level scenarios are in
+tests/test_plausibility_loop.py.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gateway.model_bank import BankedModel, ModelBank
+from gateway.plausibility import Plausibility, PlausibilityLimits, relations_from_bank
+from gateway.quality import Quality, QualityLimits, QualityMonitor
+from models.base import ModelInputs
+from models.mlr import MlrModel
+from models.sensor_relations import SensorRelations, fit_relations
+from models.store import StoredModel, _checksum, build_document
+
+SENSORS = ("A", "B", "C", "D", "E")
+NOISE_C = 0.05
+LIMITS = PlausibilityLimits(sigma=5.0, recover_s=300.0)
+
+
+def training_rises(rows: int = 600) -> np.ndarray:
+    """Five sensors on two thermal bodies (p, q), each with its own mix, plus noise."""
+    rng = np.random.default_rng(7)
+    t = np.linspace(0, 6 * np.pi, rows)
+    p = 10 * (1 - np.cos(t / 3)) + 2 * np.sin(t)
+    q = 6 * (1 - np.cos(t / 5))
+    mix = np.array([[1.0, 0.0], [0.9, 0.1], [0.5, 0.5], [0.1, 0.9], [0.0, 1.0]])
+    return np.column_stack([p, q]) @ mix.T + rng.normal(0, NOISE_C, (rows, 5))
+
+
+@pytest.fixture(scope="module")
+def relations() -> SensorRelations:
+    return fit_relations(training_rises(), SENSORS, np.repeat([0, 1, 2], 200))
+
+
+def rises_at(p: float, q: float) -> dict[str, float]:
+    """Noise-free rises of the five sensors for body temperatures p, q."""
+    mix = {"A": (1.0, 0.0), "B": (0.9, 0.1), "C": (0.5, 0.5), "D": (0.1, 0.9), "E": (0.0, 1.0)}
+    return {s: a * p + b * q for s, (a, b) in mix.items()}
+
+
+def test_consistent_readings_hold_nothing(relations: SensorRelations) -> None:
+    check = Plausibility(relations, LIMITS)
+    for k in range(50):
+        assert check.judge(30.0 * k, rises_at(0.2 * k, 0.1 * k)) == {}
+    assert check.flags == 0
+
+
+def test_an_offset_sensor_is_held_and_only_that_one(relations: SensorRelations) -> None:
+    check = Plausibility(relations, LIMITS)
+    rises = rises_at(8.0, 4.0)
+    rises["C"] += 3.0
+    held = check.judge(0.0, rises)
+    assert list(held) == ["C"]
+    assert held["C"].startswith("implausible: +") and "σ from its neighbours" in held["C"]
+
+
+def test_a_second_bad_sensor_is_found_while_the_first_is_held(
+    relations: SensorRelations,
+) -> None:
+    check = Plausibility(relations, LIMITS)
+    rises = rises_at(8.0, 4.0)
+    rises["A"] += 4.0
+    assert list(check.judge(0.0, rises)) == ["A"]
+    rises["E"] += 4.0  # judged by B, C, D alone now
+    assert sorted(check.judge(30.0, rises)) == ["A", "E"]
+
+
+def test_fewer_than_three_sensors_cannot_blame_one(relations: SensorRelations) -> None:
+    check = Plausibility(relations, LIMITS)
+    rises = rises_at(8.0, 4.0)
+    assert check.judge(0.0, {"A": rises["A"] + 5.0, "E": rises["E"]}) == {}
+
+
+def test_a_held_sensor_is_trusted_only_after_agreeing_for_recover_s(
+    relations: SensorRelations,
+) -> None:
+    check = Plausibility(relations, LIMITS)
+    bad = rises_at(8.0, 4.0) | {"B": rises_at(8.0, 4.0)["B"] + 3.0}
+    assert "B" in check.judge(0.0, bad)
+    # It agrees again from t = 30 s; one disagreeing cycle at 150 s restarts the clock.
+    timeline = {t: rises_at(8.0, 4.0) for t in range(30, 800, 30)}
+    timeline[150] = bad
+    held_at = {t: "B" in check.judge(float(t), r) for t, r in timeline.items()}
+    assert all(held_at[t] for t in range(30, 480, 30))  # 180 s + 300 s of agreement
+    assert not held_at[480]
+    assert check.flags == 1
+
+
+def test_without_relations_the_check_is_unavailable() -> None:
+    check = Plausibility(None, LIMITS)
+    assert not check.available
+    rises = rises_at(8.0, 4.0) | {"C": 40.0}
+    assert check.judge(0.0, rises) == {}
+
+
+def stored_mlr(tmp_path: Path, relations_document: dict | None) -> BankedModel:
+    """An MLR model e = 2 A + 1 E as the bank holds it (with or without relations)."""
+    x = training_rises()
+    inputs = ModelInputs(rise_C=x, sensors=SENSORS, speed_rpm=np.zeros(x.shape[0]))
+    error_um = 2 * x[:, 0] + x[:, 4]
+    model = MlrModel(["A", "E"]).fit(inputs, error_um)
+    document = build_document(
+        model,
+        model_id="mlr-error_um-all",
+        inputs=inputs,
+        error_um=error_um,
+        target="error_um",
+        source_file=str(tmp_path / "training.csv"),
+        runs=["R1"],
+        reference={"policy": "auto"},
+        regime="all",
+        validation={"pooled": {"rmse_um": 0.1}},
+        software_version="test",
+        sensor_relations=relations_document,
+    )
+    return BankedModel("mlr-error_um-all", model, StoredModel.model_validate(document))
+
+
+def test_the_prediction_rate_bound_blames_the_sensor_that_jumped(tmp_path: Path) -> None:
+    banked = stored_mlr(tmp_path, None)
+    check = Plausibility(None, PlausibilityLimits(max_prediction_rate_um_per_s=0.1))
+    for k in range(4):  # heating at 0.01 °C/s: 0.03 µm/s, well within the bound
+        now = 30.0 * k
+        step = rises_at(8.0 + 0.3 * k, 4.0 + 0.3 * k)
+        assert check.check_prediction(now, banked, step, 3000.0) is None
+        check.accept(now, step)
+    # A jumps 3 °C while both bodies warm 0.3 °C: e = 2 A + E moves 2 · 3.3 + 0.3 = 6.9 µm
+    # in 30 s; the bound is 0.1 · 30 + 1 = 4 µm.
+    jumped = rises_at(9.2, 5.2) | {"A": rises_at(9.2, 5.2)["A"] + 3.0}
+    suspect = check.check_prediction(120.0, banked, jumped, 3000.0)
+    assert suspect is not None and suspect.sensor == "A"
+    assert "implausible: moved the prediction +6.9 µm in 30 s (bound 4.0 µm" in suspect.reason
+    assert check.reasons() == {"A": suspect.reason}
+    # Without relations it is trusted again after recover_s of good checks.
+    check.judge(150.0, jumped)
+    check.judge(150.0 + 899.0, jumped)
+    assert "A" in check.reasons()
+    check.judge(150.0 + 900.0, jumped)
+    assert check.reasons() == {}
+
+
+def test_a_slow_rise_across_a_gap_is_within_the_bound(tmp_path: Path) -> None:
+    banked = stored_mlr(tmp_path, None)
+    check = Plausibility(None, PlausibilityLimits())
+    check.accept(0.0, rises_at(8.0, 4.0))
+    # 100 s later the prediction moved 2 × 1.5 + 1 × 1.5 = 4.5 µm, allowed 0.1 · 100 + 1 = 11.
+    assert check.check_prediction(100.0, banked, rises_at(9.5, 5.5), 0.0) is None
+
+
+def test_the_bank_offers_the_relation_of_its_models(tmp_path: Path, relations) -> None:
+    with_relations = stored_mlr(tmp_path, relations.as_document())
+    without = stored_mlr(tmp_path, None)
+    found = relations_from_bank(ModelBank([with_relations]), SENSORS)
+    assert found is not None and found.sensors == SENSORS
+    assert relations_from_bank(ModelBank([without]), SENSORS) is None
+    assert relations_from_bank(ModelBank([with_relations]), ["A", "B"]) is None  # < 3 covered
+
+
+def test_quality_monitor_holds_an_implausible_sensor(relations: SensorRelations) -> None:
+    check = Plausibility(relations, LIMITS)
+    monitor = QualityMonitor(list(SENSORS), QualityLimits(recover_cycles=0), check)
+    reference = dict.fromkeys(SENSORS, 20.0)
+    values = {s: 20.0 + r for s, r in rises_at(8.0, 4.0).items()}
+    checks = monitor.check(0.0, {s: (v, 0) for s, v in values.items()}, reference)
+    assert all(c.quality is Quality.GOOD for c in checks.values())
+    values["D"] += 3.0
+    readings = {s: (v, 0) for s, v in values.items()}
+    readings["A"] = (float("nan"), 1)  # an open circuit keeps its own, more specific reason
+    checks = monitor.check(30.0, readings, reference)
+    assert checks["D"].quality is Quality.BAD and checks["D"].reason.startswith("implausible")
+    assert checks["A"].reason == "transmitter fault code 1 (open circuit)"
+    assert {s for s, c in checks.items() if c.quality is Quality.GOOD} == {"B", "C", "E"}
+
+
+def test_an_old_model_file_without_relations_still_loads(tmp_path: Path) -> None:
+    from models.store import ModelStore, StoreError, load_file
+
+    banked = stored_mlr(tmp_path, fit_relations(training_rises(), SENSORS).as_document())
+    document = json.loads(banked.document.model_dump_json(exclude_none=True))
+    path = ModelStore(tmp_path).save(document)
+    assert load_file(path)[1].relations() is not None
+    old = {k: v for k, v in document.items() if k != "sensor_relations"}
+    old["sha256"] = _checksum(old)
+    path.write_text(json.dumps(old), encoding="utf-8")
+    assert load_file(path)[1].relations() is None
+    damaged = dict(document)
+    damaged["sensor_relations"] = {"sensors": ["A"]}
+    damaged["sha256"] = _checksum(damaged)
+    path.write_text(json.dumps(damaged), encoding="utf-8")
+    with pytest.raises(StoreError, match="field 'sensor_relations': sensor_relations: missing"):
+        load_file(path)
+
+
+CONFIG = """\
+machines:
+  - id: vmc-1
+    transmitters:
+      - name: bus1
+        tcp: {host: 127.0.0.1, port: 5020}
+        devices:
+          - {device_id: 1, channels: [T1, T2, T3]}
+    cnc:
+      modbus: {host: 127.0.0.1, port: 5021}
+    models: {store: models}
+    quality:
+      plausibility_sigma: SIGMA
+      max_prediction_rate_um_per_s: 0.2
+"""
+
+
+def test_config_keys_reach_the_limits(tmp_path: Path) -> None:
+    from gateway.config import load_config
+
+    path = tmp_path / "config.yaml"
+    path.write_text(CONFIG.replace("SIGMA", "6"), encoding="utf-8")
+    limits = load_config(path).machines[0].quality.limits()
+    assert limits == PlausibilityLimits(sigma=6.0, max_prediction_rate_um_per_s=0.2)
+
+
+@pytest.mark.parametrize("value", ["0", "-1", ".inf", "x"])
+def test_a_bad_threshold_is_refused_with_its_line(tmp_path: Path, value: str) -> None:
+    from gateway.config import ConfigError, load_config
+
+    path = tmp_path / "config.yaml"
+    path.write_text(CONFIG.replace("SIGMA", value), encoding="utf-8")
+    with pytest.raises(
+        ConfigError, match=r"config.yaml:12: machines\[0\].quality.plausibility_sigma"
+    ):
+        load_config(path)

@@ -203,18 +203,23 @@ class Gateway:
         try:
             await asyncio.gather(*tasks)
         finally:
+            log.debug("stopping: machine loops")
             for task in tasks:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
+            log.debug("stopping: saving state, closing links")
             for loop in self.loops:
                 try:
                     await loop.close()
                 except Exception:  # one machine's failure to close must not keep the others open
                     log.exception("%s: closing the loop failed", loop.config.id)
             if self.scada is not None:
+                log.debug("stopping: SCADA server")
                 await self.scada.stop()
+            log.debug("stopping: logging outputs")
             await self.outputs.stop()
+            log.debug("stopped")
 
 
 def _cycles_of(loop: MachineLoop) -> Callable[[], int]:

@@ -125,8 +125,9 @@ class Outputs:
         stays in the on-disk buffer (committed at every append) for the next start.
         """
         if self.forwarder is not None:
-            with contextlib.suppress(RuntimeError):  # a forwarder that is not running
-                await self.forwarder.flush(timeout=flush_timeout_s)
+            if self.forwarder.health()["connected"]:  # down: the points wait on disk anyway
+                with contextlib.suppress(RuntimeError):  # a forwarder that is not running
+                    await self.forwarder.flush(timeout=flush_timeout_s)
             await self.forwarder.stop()
         if self.buffer is not None:
             self.buffer.close()

@@ -5,11 +5,15 @@ an accelerated clock runs machine time ``speedup`` times faster than the wall
 (an hour of machine time in seconds), and a manual clock moves only when told,
 so a test never has to sleep for real. The gateway and the simulated machine
 share one clock object, so they agree on what "now" is.
+
+Every ``sleep`` takes an optional ``stop`` event and returns as soon as it is set:
+a gateway asked to stop (SIGTERM) must not wait out a cycle of minutes first.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 from typing import Protocol
 
@@ -19,9 +23,21 @@ class Clock(Protocol):
         """Machine time, s."""
         ...
 
-    async def sleep(self, seconds: float) -> None:
-        """Wait ``seconds`` of machine time."""
+    async def sleep(self, seconds: float, stop: asyncio.Event | None = None) -> None:
+        """Wait ``seconds`` of machine time, or less when ``stop`` is set meanwhile."""
         ...
+
+
+async def wait_or_stop(wall_s: float, stop: asyncio.Event | None) -> None:
+    """Sleep ``wall_s`` wall seconds, returning early (at once) when ``stop`` is set."""
+    wall_s = max(0.0, wall_s)
+    if stop is None:
+        await asyncio.sleep(wall_s)
+        return
+    if stop.is_set():
+        return
+    with contextlib.suppress(TimeoutError):
+        await asyncio.wait_for(stop.wait(), timeout=wall_s)
 
 
 class WallClock:
@@ -34,8 +50,8 @@ class WallClock:
     def now(self) -> float:
         return self._origin + (time.monotonic() - self._start)
 
-    async def sleep(self, seconds: float) -> None:
-        await asyncio.sleep(max(0.0, seconds))
+    async def sleep(self, seconds: float, stop: asyncio.Event | None = None) -> None:
+        await wait_or_stop(seconds, stop)
 
 
 class AcceleratedClock:
@@ -51,12 +67,13 @@ class AcceleratedClock:
     def now(self) -> float:
         return self._origin + (time.monotonic() - self._start) * self.speedup
 
-    async def sleep(self, seconds: float) -> None:
-        await asyncio.sleep(max(0.0, seconds) / self.speedup)
+    async def sleep(self, seconds: float, stop: asyncio.Event | None = None) -> None:
+        await wait_or_stop(max(0.0, seconds) / self.speedup, stop)
 
 
 class ManualClock:
-    """Machine time that moves only through ``advance``; ``sleep`` advances it at once."""
+    """Machine time that moves only through ``advance``; ``sleep`` advances it at once
+    (unless ``stop`` is already set: a stopped sleeper does not move time)."""
 
     def __init__(self, origin_s: float = 0.0) -> None:
         self._now = origin_s
@@ -70,6 +87,7 @@ class ManualClock:
         self._now += seconds
         return self._now
 
-    async def sleep(self, seconds: float) -> None:
-        self.advance(max(0.0, seconds))
+    async def sleep(self, seconds: float, stop: asyncio.Event | None = None) -> None:
+        if stop is None or not stop.is_set():
+            self.advance(max(0.0, seconds))
         await asyncio.sleep(0)

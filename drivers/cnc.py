@@ -19,7 +19,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
 
-from drivers.link_health import Backoff, LinkHealth
+from drivers.backoff import Backoff
+from drivers.link_health import LinkHealth
 
 T = TypeVar("T")
 SessionT = TypeVar("SessionT")

@@ -19,8 +19,8 @@ import time
 from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
+from drivers.backoff import Backoff
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
-from drivers.link_health import Backoff
 from drivers.transmitters import (
     ModbusConnection,
     ModbusLinkLostError,

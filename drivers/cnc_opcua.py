@@ -21,8 +21,8 @@ from typing import TypeVar
 
 from asyncua import Client, Node, ua
 
+from drivers.backoff import Backoff
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
-from drivers.link_health import Backoff
 
 T = TypeVar("T")
 

@@ -7,6 +7,7 @@ and stop the same way.
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Awaitable, Callable
 from types import TracebackType
 from typing import Self
@@ -72,6 +73,7 @@ class ServerLifecycle:
         """Close client connections and the listening socket (idempotent)."""
         server, self._server = self._server, None
         if server is not None:
+            await _end_time_task(server)
             await server.stop()
 
     def _require_started(self) -> Server:
@@ -93,3 +95,19 @@ class ServerLifecycle:
         tb: TracebackType | None,
     ) -> None:
         await self.stop()
+
+
+async def _end_time_task(server: Server) -> None:
+    """Cancel the server's once-a-second clock update instead of waiting for it.
+
+    asyncua's ``InternalServer.stop`` flags that task and awaits it, which waits
+    out its ``sleep(1)``: every stop took a second, and a gateway must stop within
+    one (SIGTERM). Cancelled here, ``stop`` finds no task left to wait for.
+    """
+    internal = server.iserver
+    task = getattr(internal, "time_task", None)
+    if task is None:
+        return
+    task.cancel()
+    await asyncio.wait({task})  # its end, without raising its CancelledError here
+    internal.time_task = None

@@ -24,7 +24,8 @@ from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
-from drivers.link_health import Backoff, LinkHealth
+from drivers.backoff import Backoff
+from drivers.link_health import LinkHealth
 
 CHANNELS = 8
 #: Input registers (FC4): 0–7 channel values (int16, 0.1 °C), 8–15 channel statuses.

@@ -1,4 +1,11 @@
-"""Building and running the gateway from its configuration: one loop per machine."""
+"""Building and running the gateway from its configuration: one loop per machine.
+
+Each machine loop runs under its own :class:`gateway.supervision.Supervised`: a
+loop that raises is logged, restarted after a back-off and counted
+(``loop_restarts``), while the other machines keep cycling. A sink that raises
+is counted by the loop and never stops a cycle. :meth:`Gateway.health` gathers
+every counter of a machine (and the forwarder's) for SCADA and the heartbeat.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +13,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from drivers.clock import Clock, WallClock
@@ -19,6 +26,7 @@ from gateway.model_bank import ModelBank
 from gateway.outputs import Outputs
 from gateway.runtime import CycleRecord, MachineLoop, Sink
 from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
+from gateway.supervision import Supervised
 from models.dataset import ambient_sensor_of
 
 log = logging.getLogger(__name__)
@@ -124,11 +132,13 @@ class Gateway:
         self.config = config
         # In the plant machine time is Unix time, so logged points carry real timestamps.
         self.clock = clock or WallClock(origin_s=time.time())
-        self.outputs = Outputs(config)
-        sinks = [self.outputs.sink, *sinks]
+        self.outputs = Outputs(config, health=self.health)
+        # The heartbeat last: it carries the counts of this cycle's sink failures too.
+        sinks = [self.outputs.log_points, *sinks]
         self.scada = self._build_scada()
         if self.scada is not None:
             sinks = [*sinks, self._publish_to_scada]
+        sinks = [*sinks, self.outputs.beat]
         self.loops = [
             MachineLoop(
                 machine,
@@ -141,6 +151,24 @@ class Gateway:
             )
             for machine in config.machines
         ]
+        self.supervisors = {
+            loop.config.id: Supervised(
+                f"machine {loop.config.id} loop", loop.run, progress=_cycles_of(loop)
+            )
+            for loop in self.loops
+        }
+
+    def health(self, machine_id: str) -> dict[str, int | bool | str | dict[str, int] | None]:
+        """Every health counter of one machine, plus the gateway-wide forwarder's."""
+        loop = self._loop_of(machine_id)
+        supervisor = self.supervisors[machine_id]
+        return {
+            **health_of(loop),
+            "sink_failures_by_sink": dict(loop.sink_failures),
+            "loop_restarts": supervisor.restarts,
+            "last_loop_error": supervisor.last_error,
+            **self.outputs.forwarder_health(),
+        }
 
     def _build_scada(self) -> ScadaServer | None:
         section = self.config.scada
@@ -171,27 +199,48 @@ class Gateway:
 
     def _publish_to_scada(self, record: CycleRecord) -> None:
         assert self.scada is not None
-        self.scada.publish_soon(record, health_of(self._loop_of(record.machine)))
+        health = self.health(record.machine)
+        self.scada.publish_soon(record, {k: v for k, v in health.items() if _scalar(v)})
 
     async def run(self, stop: asyncio.Event | None = None) -> None:
+        """Run every machine until ``stop``; on the way out save state and close links."""
         stop = stop or asyncio.Event()
         self.outputs.start()
         if self.scada is not None:
             await self.scada.start()
             log.info("SCADA server at %s", self.scada.endpoint)
-        tasks = [asyncio.create_task(loop.run(stop)) for loop in self.loops]
+        tasks = [
+            asyncio.create_task(supervisor.supervise(stop), name=supervisor.name)
+            for supervisor in self.supervisors.values()
+        ]
         try:
             await asyncio.gather(*tasks)
         finally:
+            log.debug("stopping: machine loops")
             for task in tasks:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
+            log.debug("stopping: saving state, closing links")
             for loop in self.loops:
-                await loop.close()
+                try:
+                    await loop.close()
+                except Exception:  # one machine's failure to close must not keep the others open
+                    log.exception("%s: closing the loop failed", loop.config.id)
             if self.scada is not None:
+                log.debug("stopping: SCADA server")
                 await self.scada.stop()
+            log.debug("stopping: logging outputs")
             await self.outputs.stop()
+            log.debug("stopped")
+
+
+def _cycles_of(loop: MachineLoop) -> Callable[[], int]:
+    return lambda: loop.cycles
+
+
+def _scalar(value: object) -> bool:
+    return isinstance(value, int | float | str | bool)
 
 
 async def check_connections(config: GatewayConfig) -> list[str]:

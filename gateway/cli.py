@@ -406,6 +406,7 @@ def check_config(config_path: Path, connect: bool) -> None:
 def run(config_path: Path, log_level: str) -> None:
     """Run the compensation loop for every machine in the configuration."""
     import asyncio
+    import gc
     import signal
 
     from gateway.app import Gateway
@@ -426,6 +427,10 @@ def run(config_path: Path, log_level: str) -> None:
         f"running {len(config.machines)} machine(s): {', '.join(m.id for m in config.machines)}"
     )
     asyncio.run(serve())
+    # The interpreter's last garbage collection walks every object of the OPC UA
+    # address spaces and the models: seconds on an edge box, after the state is
+    # saved. Frozen objects are left to the process exit, so a stop takes < 1 s.
+    gc.freeze()
     click.echo("stopped")
 
 

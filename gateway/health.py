@@ -3,17 +3,24 @@
 Each machine loop calls :func:`write_heartbeat` once a cycle; it replaces
 ``<state_dir>/<machine>-heartbeat.json`` atomically with::
 
-    {"machine": "vmc-1", "wall_time": 1732370000.25, "time_s": 8113.0, "cycles": 8113}
+    {"machine": "vmc-1", "wall_time": 1732370000.25, "time_s": 8113.0, "cycles": 8113,
+     "health": {"failed_writes": 0, "external_changes": 0, "link_errors_total": 3,
+                "sink_failures": 0, "sink_failures_by_sink": {}, "loop_restarts": 0,
+                "forwarder_backlog": 12, "dropped_points": 0, ...}}
 
 ``wall_time`` is the wall clock (``time.time()``, s since the epoch) of the
 process that wrote it, so another process (the checker) can compare it with its
 own clock; ``time_s`` is the loop's machine time, kept for the record only.
+``health`` holds the machine's counters since the gateway started (the same
+ones SCADA shows under ``Machines/<id>/Health``).
 
 :func:`check` is healthy when every heartbeat file in the state directory is
-younger than ``max_age_s``. ``python -m gateway.health --state-dir DIR
---max-age-s N`` runs it, prints one line and exits 0 (healthy) or 1
-(unhealthy), as Docker's ``HEALTHCHECK`` expects. It imports nothing but the
-standard library, so it starts fast even on a small edge box.
+younger than ``max_age_s``; its message also names every non-zero failure
+counter of :data:`REPORTED`, so ``docker inspect`` shows what went wrong.
+``python -m gateway.health --state-dir DIR --max-age-s N`` runs it, prints
+one line and exits 0 (healthy) or 1 (unhealthy), as Docker's ``HEALTHCHECK``
+expects. It imports nothing but the standard library, so it starts fast even on
+a small edge box.
 """
 
 from __future__ import annotations
@@ -27,11 +34,23 @@ import re
 import sys
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 SUFFIX = "-heartbeat.json"
 MACHINE_ID = re.compile(r"^[A-Za-z0-9_.-]+$")  # as gateway.config checks machine ids
+#: Failure counters of a heartbeat's ``health`` that the check's message names when non-zero.
+REPORTED = (
+    "failed_writes",
+    "external_changes",
+    "link_errors_total",
+    "sink_failures",
+    "loop_restarts",
+    "forwarder_restarts",
+    "dropped_points",
+    "rejected_points",
+)
 
 
 def heartbeat_path(state_dir: str | Path, machine_id: str) -> Path:
@@ -47,6 +66,7 @@ def write_heartbeat(
     cycles: int = 0,
     *,
     wall_time: float | None = None,
+    health: Mapping[str, Any] | None = None,
 ) -> Path:
     """Record that ``machine_id``'s loop completed a cycle at machine time ``time_s``.
 
@@ -56,12 +76,14 @@ def write_heartbeat(
     """
     path = heartbeat_path(state_dir, machine_id)
     path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
+    payload: dict[str, Any] = {
         "machine": machine_id,
         "wall_time": time.time() if wall_time is None else float(wall_time),
         "time_s": float(time_s),
         "cycles": int(cycles),
     }
+    if health is not None:
+        payload["health"] = dict(health)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as handle:
@@ -98,13 +120,28 @@ def check(state_dir: str | Path, max_age_s: float, now: float | None = None) -> 
             stale.append(f"machine {name}: unreadable heartbeat {path.name} ({exc})")
             continue
         age_s = now - wall_time
+        counters = _reported(beat.get("health"))
         if age_s > max_age_s:
-            stale.append(f"machine {name}: last heartbeat {age_s:.1f} s ago (max {max_age_s:g} s)")
+            stale.append(
+                f"machine {name}: last heartbeat {age_s:.1f} s ago (max {max_age_s:g} s){counters}"
+            )
         else:
-            fresh.append(f"{name} {max(age_s, 0.0):.1f} s ago")
+            fresh.append(f"{name} {max(age_s, 0.0):.1f} s ago{counters}")
     if stale:
         return False, "unhealthy: " + "; ".join(stale)
     return True, "healthy: " + ", ".join(fresh)
+
+
+def _reported(health: object) -> str:
+    """' (sink_failures 3, loop_restarts 1)' for the non-zero counters; '' when none."""
+    if not isinstance(health, dict):
+        return ""
+    found = [
+        f"{key} {health[key]}"
+        for key in REPORTED
+        if isinstance(health.get(key), int | float) and health[key]
+    ]
+    return f" ({', '.join(found)})" if found else ""
 
 
 class _Parser(argparse.ArgumentParser):

@@ -11,9 +11,13 @@ and the writer::
 
     peek the oldest batch → write it → remove it from the buffer → next batch
 
-On a failure it waits (exponential back-off from ``retry_s`` up to
-``max_retry_s``) and retries the *same* batch, so points reach InfluxDB in
-buffer order and none is skipped, however long the outage.
+On a failure it waits (:class:`drivers.backoff.Backoff`: from ``retry_s``
+doubling up to ``max_retry_s``, with jitter, back to the start after a success)
+and retries the *same* batch, so points reach InfluxDB in buffer order and none
+is skipped, however long the outage. The task is supervised
+(:class:`gateway.supervision.Supervised`): should it raise anyway (the buffer's
+disk failing, a bug), it is logged, counted in ``restarts`` and started again,
+and the points stay in the buffer for it.
 
 Why there are no duplicates: a batch is removed from the buffer only after
 InfluxDB acknowledged it (HTTP 204). If the gateway dies after the
@@ -49,7 +53,9 @@ from influxdb_client import Point as InfluxPoint
 from influxdb_client.client.write_api import SYNCHRONOUS
 from influxdb_client.rest import ApiException
 
+from drivers.backoff import Backoff
 from gateway.point_buffer import PointBuffer
+from gateway.supervision import Supervised
 from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
@@ -228,7 +234,9 @@ class Forwarder:
             (:class:`InfluxWriter`); :class:`WriteRejectedError` drops the batch.
         batch: the most points per write.
         retry_s: the first wait after a failure; doubled per failure up to
-            ``max_retry_s``; back to ``retry_s`` after a success.
+            ``max_retry_s`` (each shortened by up to 20 % jitter); back to
+            ``retry_s`` after a success. The cap is also the longest the
+            forwarder can take to notice that InfluxDB is back.
         idle_s: how often an empty buffer is looked at (or call :meth:`wake`).
     """
 
@@ -238,7 +246,7 @@ class Forwarder:
         writer: PointWriter,
         batch: int = 5000,
         retry_s: float = 1.0,
-        max_retry_s: float = 60.0,
+        max_retry_s: float = 10.0,
         idle_s: float = 1.0,
     ) -> None:
         if batch < 1:
@@ -248,6 +256,7 @@ class Forwarder:
         self.batch = batch
         self.retry_s = retry_s
         self.max_retry_s = max_retry_s
+        self.backoff = Backoff(initial_s=retry_s, max_s=max_retry_s)
         self.idle_s = idle_s
         self.sent = 0
         self.rejected = 0
@@ -258,11 +267,16 @@ class Forwarder:
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._down = False
+        self.supervisor = Supervised(
+            "InfluxDB forwarder", lambda _stop: self.run(), progress=lambda: self.sent
+        )
 
     # --- lifecycle ----------------------------------------------------------------------
     def start(self) -> asyncio.Task[None]:
         if self._task is None or self._task.done():
-            self._task = asyncio.create_task(self.run(), name="influx-forwarder")
+            self._task = asyncio.create_task(
+                self.supervisor.supervise(asyncio.Event()), name="influx-forwarder"
+            )
         return self._task
 
     async def stop(self) -> None:
@@ -301,11 +315,12 @@ class Forwarder:
             "last_error": self.last_error,
             "last_error_time": self.last_error_time,
             "last_success_time": self.last_success_time,
+            "restarts": self.supervisor.restarts,
         }
 
     # --- the task -----------------------------------------------------------------------
     async def run(self) -> None:
-        wait_s = self.retry_s
+        """Forward until cancelled (``start`` runs this under a supervisor)."""
         while True:
             batch = self.buffer.peek(self.batch)
             if not batch:
@@ -330,13 +345,13 @@ class Forwarder:
                         exc,
                     )
                 self._down = True
-                await asyncio.sleep(wait_s)  # not cut short by wake(): back-off holds
-                wait_s = min(self.max_retry_s, wait_s * 2)
+                # not cut short by wake(): the back-off holds
+                await asyncio.sleep(self.backoff.failed(time.monotonic()))
                 continue
             self.buffer.remove_through(batch[-1][0])
             self.sent += len(points)
             self.last_success_time = time.time()
-            wait_s = self.retry_s
+            self.backoff.reset()
             if self._down:
                 log.info("InfluxDB writes succeed again; %d point(s) buffered", len(self.buffer))
                 self._down = False

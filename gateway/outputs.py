@@ -7,13 +7,22 @@
   the compensation loop.
 - Probe measurements of the real error, when the CNC publishes them, are logged
   as their own points.
-- A heartbeat file per machine, which the container's health check reads.
+- A heartbeat file per machine, which the container's health check reads, with
+  the machine's health counters when a ``health`` provider is given.
+
+The two are separate sinks (:meth:`Outputs.log_points`, :meth:`Outputs.beat`):
+a log write that fails (a full disk under the local store) is counted by the
+loop and does not keep the heartbeat, and the failure count in it, from being
+written.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Callable, Mapping
 from pathlib import Path
+from typing import Any
 
 from gateway.config import GatewayConfig
 from gateway.health import write_heartbeat
@@ -25,10 +34,17 @@ from gateway.timeseries import Point, points_from_record, probe_point
 
 log = logging.getLogger(__name__)
 
+#: Wall seconds a stopping gateway waits for the forwarder to empty the buffer.
+FLUSH_TIMEOUT_S = 0.3
+
+
+HealthProvider = Callable[[str], Mapping[str, Any]]
+
 
 class Outputs:
-    def __init__(self, config: GatewayConfig) -> None:
+    def __init__(self, config: GatewayConfig, health: HealthProvider | None = None) -> None:
         self.config = config
+        self.health = health
         section = config.logging
         self.forwarder: Forwarder | None = None
         self.buffer: PointBuffer | None = None
@@ -56,22 +72,62 @@ class Outputs:
 
     def sink(self, record: CycleRecord) -> None:
         """The runtime sink: log the record (and any probe value), beat the heart."""
+        try:
+            self.log_points(record)
+        finally:
+            self.beat(record)
+
+    def log_points(self, record: CycleRecord) -> None:
+        """Log the record's points (and any probe value) to the buffer or the local store."""
         points = points_from_record(record)
         if record.probe_error_um is not None:
             points.append(probe_point(record.machine, record.time_s, record.probe_error_um))
         self._write(points)
+
+    def beat(self, record: CycleRecord) -> None:
+        """Write the machine's heartbeat, with its health counters when known."""
         self._cycles[record.machine] = self._cycles.get(record.machine, 0) + 1
         write_heartbeat(
-            self.state_dir, record.machine, record.time_s, cycles=self._cycles[record.machine]
+            self.state_dir,
+            record.machine,
+            record.time_s,
+            cycles=self._cycles[record.machine],
+            health=None if self.health is None else self.health(record.machine),
         )
+
+    def forwarder_health(self) -> dict[str, Any]:
+        """Backlog, dropped points and restarts of the store-and-forward path (zeros
+        with the local store, which has no backlog)."""
+        if self.forwarder is None:
+            return {
+                "forwarder_backlog": 0,
+                "dropped_points": 0,
+                "rejected_points": 0,
+                "forwarder_restarts": 0,
+            }
+        health = self.forwarder.health()
+        return {
+            "forwarder_backlog": int(health["buffered"]),
+            "dropped_points": int(health["dropped"]),  # the buffer was full: oldest dropped
+            "rejected_points": int(health["rejected"]),  # InfluxDB refused them as invalid
+            "forwarder_restarts": int(health["restarts"]),
+            "forwarder_connected": bool(health["connected"]),
+        }
 
     def start(self) -> None:
         if self.forwarder is not None:
             self.forwarder.start()
 
-    async def stop(self) -> None:
+    async def stop(self, flush_timeout_s: float = FLUSH_TIMEOUT_S) -> None:
+        """Give the forwarder ``flush_timeout_s`` to empty the buffer, then stop it.
+
+        Short on purpose: a stop must be quick (SIGTERM), and whatever is not sent
+        stays in the on-disk buffer (committed at every append) for the next start.
+        """
         if self.forwarder is not None:
-            await self.forwarder.flush(timeout=5.0)
+            if self.forwarder.health()["connected"]:  # down: the points wait on disk anyway
+                with contextlib.suppress(RuntimeError):  # a forwarder that is not running
+                    await self.forwarder.flush(timeout=flush_timeout_s)
             await self.forwarder.stop()
         if self.buffer is not None:
             self.buffer.close()

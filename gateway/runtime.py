@@ -28,6 +28,7 @@ tests).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 from collections.abc import Callable, Mapping, Sequence
@@ -75,6 +76,14 @@ class CycleRecord:
 
 Sink = Callable[[CycleRecord], None]
 
+#: Wall seconds a cycle in progress may take to finish once a stop is requested.
+STOP_GRACE_S = 0.5
+
+
+def sink_name(sink: Sink) -> str:
+    """A readable name for a sink (its qualified name; a bound method names its class)."""
+    return str(getattr(sink, "__qualname__", None) or type(sink).__name__)
+
 
 class MachineLoop:
     def __init__(
@@ -110,6 +119,11 @@ class MachineLoop:
         self.failed_writes = 0
         self.external_changes = 0
         self.cycles = 0
+        #: Link errors reported, summed over cycles (one per failing source per cycle).
+        self.link_errors = 0
+        #: Failures per sink (by name); a failing sink never stops the cycle.
+        self.sink_failures: dict[str, int] = {}
+        self._failing_sinks: set[str] = set()
         self._last_probe_um: float | None = None
         self._link_down: set[str] = set()
         self._external_note = ""  # this cycle's external change, for the write status
@@ -118,6 +132,7 @@ class MachineLoop:
     async def run_cycle(self) -> CycleRecord:
         now = self.clock.now()
         results, speed_rpm, errors = await self._read_inputs(now)
+        self.link_errors += len(errors)
         readings = {
             name: (results[name].value_C, results[name].status) if name in results else (None, None)
             for name in self.sensors
@@ -170,9 +185,36 @@ class MachineLoop:
         await self._compensate(now, predicted, record)
         await self._read_probe(record)
         self.cycles += 1
-        for sink in self.sinks:
-            sink(record)
+        self._deliver(record)
         return record
+
+    def _deliver(self, record: CycleRecord) -> None:
+        """Hand the record to every sink; a sink that raises is counted and logged, and
+        neither stops the cycle nor keeps the other sinks from their record.
+
+        The traceback is logged once when a sink starts failing, and one line when it
+        works again, so a full disk does not flood the log every cycle.
+        """
+        for sink in self.sinks:
+            name = sink_name(sink)
+            try:
+                sink(record)
+            except Exception:
+                self.sink_failures[name] = self.sink_failures.get(name, 0) + 1
+                if name not in self._failing_sinks:
+                    self._failing_sinks.add(name)
+                    log.exception(
+                        "%s: sink %s failed; the cycle goes on without it", self.config.id, name
+                    )
+                continue
+            if name in self._failing_sinks:
+                self._failing_sinks.discard(name)
+                log.info(
+                    "%s: sink %s works again (%d failure(s) so far)",
+                    self.config.id,
+                    name,
+                    self.sink_failures[name],
+                )
 
     async def _read_inputs(
         self, now: float
@@ -365,20 +407,49 @@ class MachineLoop:
 
     # --- running ------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event | None = None, cycles: int | None = None) -> None:
-        """Cycle every ``cycle_s`` of machine time until ``stop`` is set or ``cycles`` ran."""
+        """Cycle every ``cycle_s`` of machine time until ``stop`` is set or ``cycles`` ran.
+
+        ``stop`` cuts the wait between cycles short, so a stop request is served at
+        once whatever ``cycle_s`` is. A cycle in progress gets ``STOP_GRACE_S`` (wall)
+        to finish its write and read-back; then it is cancelled. Nothing is lost by
+        that: the policy moves its applied value only on a confirmed read-back, and
+        the next start reads what the macro holds before it writes.
+        """
         stop = stop or asyncio.Event()
         next_due = self.clock.now()
         done = 0
         while not stop.is_set() and (cycles is None or done < cycles):
-            await self.run_cycle()
+            if not await self._cycle_unless_stopped(stop):
+                return
             done += 1
             next_due += self.config.cycle_s
             wait = next_due - self.clock.now()
             if wait > 0:
-                await self.clock.sleep(wait)
+                await self.clock.sleep(wait, stop)
             else:
                 next_due = self.clock.now()  # overrun: do not try to catch up in a burst
                 await asyncio.sleep(0)
+
+    async def _cycle_unless_stopped(self, stop: asyncio.Event) -> bool:
+        """Run one cycle; False when ``stop`` came and the cycle did not end in the grace."""
+        cycle = asyncio.ensure_future(self.run_cycle())
+        stopped = asyncio.ensure_future(stop.wait())
+        try:
+            await asyncio.wait({cycle, stopped}, return_when=asyncio.FIRST_COMPLETED)
+            if not cycle.done():
+                await asyncio.wait({cycle}, timeout=STOP_GRACE_S)
+            if not cycle.done():
+                log.warning("%s: stop requested; cancelling the cycle in progress", self.config.id)
+                cycle.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await cycle
+                return False
+            cycle.result()  # an exception of the cycle goes to the supervisor
+            return True
+        finally:
+            stopped.cancel()
+            if not cycle.done():  # this task itself was cancelled
+                cycle.cancel()
 
     async def close(self) -> None:
         self.effects.save()

@@ -118,12 +118,37 @@ class ScadaSettings:
 
 
 def health_of(loop: Any) -> dict[str, int | bool]:
-    """The ``health`` mapping for :meth:`ScadaServer.publish` from a ``MachineLoop``."""
+    """The ``health`` mapping for :meth:`ScadaServer.publish` from a ``MachineLoop``
+    (the gateway adds ``loop_restarts`` and the forwarder's counters)."""
     return {
         "failed_writes": int(loop.failed_writes),
+        "external_changes": int(getattr(loop, "external_changes", 0)),
+        "link_errors_total": int(getattr(loop, "link_errors", 0)),
+        "sink_failures": int(sum(getattr(loop, "sink_failures", {}).values())),
         "cycles": int(loop.cycles),
         "compensation_enabled": bool(loop.compensation_enabled),
     }
+
+
+#: ``health`` keys published as UInt32 counters under ``Machines/<id>/Health``.
+HEALTH_COUNTERS = {
+    "failed_writes": ("Health.FailedWrites", "CNC writes that failed"),
+    "cycles": ("Health.Cycles", "Cycles run since start"),
+    "external_changes": (
+        "Health.ExternalChanges",
+        "Changes of the macro the gateway did not make",
+    ),
+    "link_errors_total": ("Health.LinkErrorsTotal", "Link errors since start, all cycles"),
+    "sink_failures": ("Health.SinkFailures", "Record deliveries (log, SCADA) that failed"),
+    "loop_restarts": ("Health.LoopRestarts", "Restarts of the machine loop after a failure"),
+    "forwarder_backlog": ("Health.ForwarderBacklog", "Points buffered for InfluxDB"),
+    "dropped_points": ("Health.DroppedPoints", "Points dropped from a full buffer"),
+    "rejected_points": ("Health.RejectedPoints", "Points InfluxDB refused as invalid"),
+    "forwarder_restarts": (
+        "Health.ForwarderRestarts",
+        "Restarts of the InfluxDB forwarder after a failure",
+    ),
+}
 
 
 # -- identities and permissions -------------------------------------------------------
@@ -393,7 +418,7 @@ class ScadaServer(ServerLifecycle):
     async def publish(self, record: CycleRecord, health: Mapping[str, float | int | str]) -> None:
         """Show one cycle's record and the loop's health counters.
 
-        ``health`` keys: ``failed_writes`` and ``cycles`` (counts) and
+        ``health`` keys: the counters of :data:`HEALTH_COUNTERS` and
         ``compensation_enabled`` (the loop's current switch state); see
         :func:`health_of`. Missing keys leave their nodes as they are.
         """
@@ -423,10 +448,11 @@ class ScadaServer(ServerLifecycle):
                 ("LastWriteStatus", _string(record.write_status)),
                 ("Health.LinkErrors", _uint32(len(record.link_errors))),
             ]
-            if "failed_writes" in health:
-                values.append(("Health.FailedWrites", _uint32(health["failed_writes"])))
-            if "cycles" in health:
-                values.append(("Health.Cycles", _uint32(health["cycles"])))
+            values += [
+                (node, _uint32(health[key]))
+                for key, (node, _) in HEALTH_COUNTERS.items()
+                if key in health
+            ]
             for name, datavalue in values:
                 await server.write_attribute_value(
                     self._nodeids[self.node_id(machine, name)], datavalue
@@ -491,9 +517,8 @@ class ScadaServer(ServerLifecycle):
                 (obj, "PredictedUm", nan, "Predicted thermal Z error rise", MICROMETRE),
                 (obj, "CompensationUm", nan, "Compensation applied by the CNC", MICROMETRE),
                 (obj, "LastWriteStatus", text, "Outcome of the last CNC write", None),
-                (health, "Health.FailedWrites", zero, "CNC writes that failed", None),
-                (health, "Health.Cycles", zero, "Cycles run since start", None),
                 (health, "Health.LinkErrors", zero, "Link errors in the last cycle", None),
+                *((health, n, zero, d, None) for n, d in HEALTH_COUNTERS.values()),
             ):
                 await self._variable(parent, machine, name, initial, description, unit)
 

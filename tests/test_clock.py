@@ -37,3 +37,30 @@ def test_wall_clock_follows_the_wall() -> None:
     first = clock.now()
     asyncio.run(clock.sleep(0.05))
     assert 0.04 <= clock.now() - first <= 1.0
+
+
+@pytest.mark.parametrize("clock", [WallClock(), AcceleratedClock(speedup=2.0)])
+def test_sleep_returns_as_soon_as_stop_is_set(clock: WallClock | AcceleratedClock) -> None:
+    async def scenario() -> float:
+        stop = asyncio.Event()
+        asyncio.get_running_loop().call_later(0.05, stop.set)
+        start = time.monotonic()
+        await clock.sleep(300.0, stop)  # a five-minute cycle
+        return time.monotonic() - start
+
+    assert asyncio.run(scenario()) < 0.5
+    already = asyncio.Event()
+    already.set()
+    start = time.monotonic()
+    asyncio.run(clock.sleep(300.0, already))
+    assert time.monotonic() - start < 0.5
+
+
+def test_manual_clock_does_not_move_for_a_stopped_sleeper() -> None:
+    clock = ManualClock()
+    stop = asyncio.Event()
+    asyncio.run(clock.sleep(30.0, stop))
+    assert clock.now() == 30.0
+    stop.set()
+    asyncio.run(clock.sleep(30.0, stop))
+    assert clock.now() == 30.0

@@ -205,7 +205,7 @@ def test_opcua_wrong_endpoint_names_it_and_backs_off() -> None:
     async def body() -> None:
         now = [100.0]
         endpoint = f"opc.tcp://{HOST}:{free_tcp_port()}/cnc"
-        cnc = OpcUaCnc(endpoint, timeout_s=0.3, clock=lambda: now[0])
+        cnc = OpcUaCnc(endpoint, timeout_s=0.3, clock=lambda: now[0], backoff=Backoff(jitter=0.0))
         with pytest.raises(CncError, match="cannot connect") as info:
             await cnc.read_speed()
         assert endpoint in str(info.value)

@@ -1,0 +1,92 @@
+"""Simulated machines and the gateway configuration that compensates them, for tests.
+
+Each :func:`plant` is one simulated machine serving its transmitters over Modbus
+TCP and its CNC over OPC UA and Modbus TCP on free loopback ports;
+:func:`machine_entry` is the ``machines[]`` entry of a gateway configuration that
+reaches it through those protocols.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from drivers.clock import Clock
+from gateway.demo import fit_models, write_training_data
+from simulator.serve import SimulatedPlant, SimulatorConfig
+from tests.ports import free_tcp_port
+
+DEVICES = [
+    {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
+    {"device_id": 2, "channels": ["T9", "ambient"]},
+]
+SENSORS = [f"T{i}" for i in range(1, 10)]
+
+
+def fit_store(folder: Path) -> Path:
+    """The demo's models (per regime, all runs, and without each sensor), fitted once."""
+    write_training_data(folder / "training.csv", seed=1)
+    fit_models(folder / "training.csv", folder / "models", "test")
+    return folder / "models"
+
+
+def plant(clock: Clock, program: str = "const8000", seed: int = 0) -> SimulatedPlant:
+    """A simulated machine on ``clock``, its three servers on free ports (not started)."""
+    return SimulatedPlant(
+        SimulatorConfig.model_validate(
+            {
+                "program": program,
+                "seed": seed,
+                "publish_period_s": 0.05,
+                "transmitters": {"tcp": {"port": free_tcp_port(), "devices": DEVICES}},
+                "cnc": {
+                    "opcua": {"port": free_tcp_port()},
+                    "modbus": {"port": free_tcp_port()},
+                },
+            }
+        ),
+        clock=clock,
+    )
+
+
+def machine_entry(
+    machine_id: str,
+    served: SimulatedPlant,
+    store: Path,
+    *,
+    cnc: str = "modbus",
+    cycle_s: float = 1.0,
+    stale_s: float = 10.0,
+) -> dict[str, Any]:
+    """The config entry of one machine compensated through ``served``'s protocols."""
+    transmitters = served.config.transmitters.tcp
+    assert transmitters is not None
+    if cnc == "opcua":
+        assert served.cnc_opcua is not None
+        link: dict[str, Any] = {"opcua": {"endpoint": served.cnc_opcua.endpoint, "timeout_s": 1.0}}
+    else:
+        modbus = served.config.cnc.modbus
+        assert modbus is not None
+        link = {"modbus": {"host": "127.0.0.1", "port": modbus.port, "timeout_s": 0.5}}
+    return {
+        "id": machine_id,
+        "cycle_s": cycle_s,
+        "transmitters": [
+            {
+                "name": "bus1",
+                "tcp": {"host": "127.0.0.1", "port": transmitters.port},
+                "timeout_s": 0.3,
+                "devices": [DEVICES[0], {"device_id": 2, "channels": ["T9", None]}],
+            }
+        ],
+        "sensors": {name: {"max_rate_C_per_s": 50.0, "stale_s": stale_s} for name in SENSORS},
+        "cnc": link,
+        "compensation": {"slew_um_per_min": 2000.0},
+        "models": {
+            "store": str(store),
+            "regimes": {
+                "models": {"variable": "mlr-error_um-variable"},
+                "fallback_model": "mlr-error_um-all",
+            },
+        },
+    }

@@ -1,0 +1,157 @@
+"""SIGTERM/SIGINT stop `python -m gateway run` within 1 s, whatever the cycle, with state saved.
+
+Two processes, as on a bench: `simulate` serves the machine (Modbus TCP
+transmitters and CNC), `run` compensates it with a five-minute cycle, logs to
+InfluxDB through the disk buffer (the database is down: nothing listens on its
+port, so every point stays buffered) and serves SCADA.
+
+First the gateway runs with a 1 s cycle until it has taken the cold reference
+(a sensor is trusted after 3 good cycles) and is stopped; then it starts again
+with a five-minute cycle, runs its first cycle from the saved reference, and the
+signal arrives while the loop sleeps towards the second.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from gateway.point_buffer import PointBuffer
+from tests import gateway_rig as rig
+from tests.ports import free_tcp_port, wait_for_port
+
+ROOT = Path(__file__).resolve().parent.parent
+CYCLE_S = 300.0
+STOP_LIMIT_S = 1.0
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return rig.fit_store(tmp_path_factory.mktemp("shutdown"))
+
+
+def write_config(tmp_path: Path, store: Path, cycle_s: float) -> tuple[Path, int]:
+    bus, cnc = free_tcp_port(), free_tcp_port()
+    password_file = tmp_path / "viewer.secret"
+    password_file.write_text("view-secret-3\n")
+    config = {
+        "state_dir": str(tmp_path / "state"),
+        "logging": {
+            "influxdb": {"url": f"http://127.0.0.1:{free_tcp_port()}", "bucket": "gateway/autogen"},
+            "buffer_path": str(tmp_path / "data" / "buffer.sqlite"),
+        },
+        "scada": {
+            "port": free_tcp_port(),
+            "pki_dir": str(tmp_path / "pki"),
+            "users": [{"username": "victor", "password_file": str(password_file)}],
+        },
+        "simulator": {
+            "program": "const8000",
+            "speedup": 1,
+            "transmitters": {"tcp": {"port": bus, "devices": rig.DEVICES}},
+            "cnc": {"modbus": {"port": cnc}},
+        },
+        "machines": [
+            {
+                "id": "bench-1",
+                "cycle_s": cycle_s,
+                "transmitters": [
+                    {
+                        "name": "bus1",
+                        "tcp": {"host": "127.0.0.1", "port": bus},
+                        "devices": [rig.DEVICES[0], {"device_id": 2, "channels": ["T9", None]}],
+                    }
+                ],
+                "sensors": {name: {"stale_s": 2 * CYCLE_S} for name in rig.SENSORS},
+                "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
+                "models": {
+                    "store": str(store),
+                    "regimes": {
+                        "models": {"variable": "mlr-error_um-variable"},
+                        "fallback_model": "mlr-error_um-all",
+                    },
+                },
+            }
+        ],
+    }
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path, cnc
+
+
+def wait_for_file(path: Path, process: subprocess.Popen[str], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not path.exists():
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline, f"no {path.name} after {timeout_s:g} s"
+        time.sleep(0.05)
+
+
+def run_until_stopped(
+    config: Path, ready: Path, signum: signal.Signals
+) -> tuple[float, subprocess.CompletedProcess[str]]:
+    """Serve the simulated machine, run the gateway until ``ready`` exists and one
+    second more, send ``signum``; (seconds from the signal to the exit, the run)."""
+    command = [sys.executable, "-m", "gateway"]
+    pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    cnc = yaml.safe_load(config.read_text())["simulator"]["cnc"]["modbus"]["port"]
+    simulator = subprocess.Popen([*command, "simulate", "--config", str(config)], **pipes)
+    gateway = None
+    try:
+        wait_for_port(cnc)
+        gateway = subprocess.Popen([*command, "run", "--config", str(config)], **pipes)
+        wait_for_file(ready, gateway, timeout_s=60)
+        time.sleep(1.0)  # the cycle is done; the loop sleeps towards the next one
+        sent = time.monotonic()
+        gateway.send_signal(signum)
+        gateway.wait(timeout=30)
+        stopped_s = time.monotonic() - sent
+        out, err = gateway.communicate()
+    finally:
+        if gateway is not None and gateway.poll() is None:
+            gateway.kill()
+        simulator.send_signal(signal.SIGINT)
+        simulator.communicate(timeout=30)
+    return stopped_s, subprocess.CompletedProcess(gateway.args, gateway.returncode, out, err)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_signal_stops_a_sleeping_loop_within_a_second_with_state_saved(
+    tmp_path: Path, store: Path, signum: signal.Signals
+) -> None:
+    state = tmp_path / "state"
+    reference_file = state / "bench-1-reference.json"
+    first, _ = write_config(tmp_path, store, cycle_s=1.0)
+    first_stop_s, done = run_until_stopped(first, reference_file, signum)
+    assert done.returncode == 0, done.stderr
+    assert first_stop_s < STOP_LIMIT_S, f"stopped {first_stop_s:.2f} s after {signum.name}"
+    reference = json.loads(reference_file.read_text())["reference_C"]
+    assert sorted(reference) == sorted(rig.SENSORS)
+    with PointBuffer(tmp_path / "data" / "buffer.sqlite") as buffer:
+        first_points = len(buffer)
+    assert first_points > 0
+
+    second, _ = write_config(tmp_path, store, cycle_s=CYCLE_S)
+    (state / "bench-1-heartbeat.json").unlink()
+    stopped_s, done = run_until_stopped(second, state / "bench-1-heartbeat.json", signum)
+    assert done.returncode == 0, done.stderr
+    assert stopped_s < STOP_LIMIT_S, f"stopped {stopped_s:.2f} s after {signum.name}"
+    assert "stopped" in done.stdout
+    assert "Traceback" not in done.stderr
+    # The reference was kept across the restart; one cycle ran, and was logged.
+    assert json.loads(reference_file.read_text())["reference_C"] == reference
+    beat = json.loads((state / "bench-1-heartbeat.json").read_text())
+    assert beat["cycles"] == 1
+    # Every point of both runs is in the disk buffer, for the forwarder of the next start.
+    with PointBuffer(tmp_path / "data" / "buffer.sqlite") as buffer:
+        points = [point for _, point in buffer.peek(100_000)]
+    assert len(points) > first_points
+    assert all(p.tags.get("machine") == "bench-1" for p in points)
+    assert beat["health"]["forwarder_backlog"] == len(points)

@@ -136,9 +136,10 @@ def _check_quoted(text: str, first_line: int, n_fields: int) -> TextProblem | No
     line = first_line
     for record in reader:
         if reader.line_num - (line - first_line) > 1:
+            broken = [i for i, cell in enumerate(record) if "\n" in cell or "\r" in cell]
             return TextProblem(
                 line=line,
-                field=len(record) - 1,
+                field=broken[0] if broken else None,
                 reason="a quoted cell runs over a line break; one row per line was expected",
             )
         if record and len(record) != n_fields:

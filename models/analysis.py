@@ -361,7 +361,11 @@ class ResidualAnalysis:
             cross = np.empty((self.folds.count, width))
             for f, (now, before) in enumerate(pairs):
                 # z = [fixed, extra]; only this fold's rows of it are ever made
-                z_w = fixed.joined(extra, now) - rho * fixed.joined(extra, before)
+                z_w = fixed.joined(extra, now)
+                lagged = fixed.joined(extra, before)
+                lagged *= rho
+                z_w -= lagged
+                del lagged
                 gram[f], cross[f] = z_w.T @ z_w, z_w.T @ whitened_y[f]
             del extra
             k0 = width - ev.n_added

@@ -28,7 +28,7 @@ from models.registry import METHODS
 from models.significance import anova_oneway, format_table, manova_oneway, speed_groups
 from models.store import ModelStore, StoreError
 
-INPUT_ERRORS = (DataError, StoreError, ValueError, KeyError, FileNotFoundError)
+INPUT_ERRORS = (DataError, StoreError, ValueError, KeyError, OSError)
 
 
 def input_errors_exit(command: Callable[..., Any]) -> Callable[..., Any]:
@@ -64,6 +64,8 @@ def write_json(path: Path | None, payload: dict[str, Any]) -> None:
 def report_skipped(data) -> None:
     for skipped in data.skipped:
         click.echo(f"note: {skipped.describe()}", err=True)
+    for note in data.notes:
+        click.echo(f"note: {data.source}: {note}", err=True)
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})

@@ -200,10 +200,13 @@ class ResidualAnalysis:
             families = self._open_families(accepted)
             if not families:
                 break
-            tried = [(family, self.evaluate(accepted, family)) for family in self._bar(families)]
-            candidates = [
-                self._judge(family, ev, current, accepted, len(families)) for family, ev in tried
-            ]
+            tried: list[tuple[EffectFamily, Evaluation | None]] = []
+            candidates: list[CandidateResult] = []
+            for family in self._bar(families):
+                ev = self.evaluate(accepted, family)
+                candidates.append(self._judge(family, ev, current, accepted, len(families)))
+                # Only a believed candidate can be added: the others' predictions are dropped.
+                tried.append((family, ev if candidates[-1].believed else None))
             believed = [i for i, c in enumerate(candidates) if c.believed]
             before = accuracy(self.y, current.predicted_um)
             if not believed:
@@ -222,6 +225,7 @@ class ResidualAnalysis:
                 break
             best = min(believed, key=lambda i: candidates[i].rmse_um)
             family, ev = tried[best]
+            assert ev is not None
             overall = candidates[best]
             choice = _overall_choice(ev, family)
             variant = family.variants[choice]
@@ -350,24 +354,27 @@ class ResidualAnalysis:
             groups.setdefault(key, []).append(f)
         worst = 0.0
         for key, folds_in_group in groups.items():
-            z = np.column_stack(
-                [
-                    self._fixed_design(key[0], accepted, key[1:-1]),
-                    family.variants[key[-1]].build(),
-                ]
-            )
-            gram = np.empty((self.folds.count, z.shape[1], z.shape[1]))
-            cross = np.empty((self.folds.count, z.shape[1]))
+            fixed = self._fixed_design(key[0], accepted, key[1:-1])
+            extra = family.variants[key[-1]].build()
+            width = fixed.width + extra.shape[1]
+            gram = np.empty((self.folds.count, width, width))
+            cross = np.empty((self.folds.count, width))
             for f, (now, before) in enumerate(pairs):
-                z_w = z[now] - rho * z[before]
+                # z = [fixed, extra]; only this fold's rows of it are ever made
+                z_w = fixed.joined(extra, now)
+                lagged = fixed.joined(extra, before)
+                lagged *= rho
+                z_w -= lagged
+                del lagged
                 gram[f], cross[f] = z_w.T @ z_w, z_w.T @ whitened_y[f]
-            k0 = z.shape[1] - ev.n_added
+            del extra
+            k0 = width - ev.n_added
             for f in folds_in_group:
                 g, c, t = gram.sum(0) - gram[f], cross.sum(0) - cross[f], yy.sum() - yy[f]
                 sse1 = _sse(g, c, t, np.linalg.lstsq(g, c, rcond=1e-12)[0])
                 g0, c0 = g[:k0, :k0], c[:k0]
                 sse0 = _sse(g0, c0, t, np.linalg.lstsq(g0, c0, rcond=1e-12)[0])
-                df2 = int(n_pairs.sum() - n_pairs[f]) - z.shape[1]
+                df2 = int(n_pairs.sum() - n_pairs[f]) - width
                 if df2 < 1 or sse1 <= 0 or ev.n_added == 0:
                     return 1.0
                 statistic = max(sse0 - sse1, 0.0) / ev.n_added / (sse1 / df2)
@@ -384,30 +391,30 @@ class ResidualAnalysis:
         heldout = np.full((n_variants, k), np.inf)
         inner = np.full((n_variants, k), np.inf)
         train = np.zeros((n_variants, k))
-        predicted = np.zeros((n_variants, self.y.size))
+        betas: dict[tuple[int, int], np.ndarray] = {}  # (variant, fold) → coefficients
         n_columns = n_added = 0
         groups: dict[tuple, list[int]] = {}
         for f in range(k):
             key = self._fold_design(f, accepted)
             groups.setdefault(key, []).append(f)
+        designs: dict[tuple, FixedDesign] = {}
+        last_built: dict[tuple, tuple[int, np.ndarray]] = {}
         for key, folds_in_group in groups.items():
-            fixed = self._fixed_design(key[0], accepted, key[1:])
+            fixed = designs[key] = self._fixed_design(key[0], accepted, key[1:])
             fixed_gram = self._grams(fixed, fixed)
             fixed_cross = self._grams(fixed, self.y)
             for vi, variant in enumerate(variants):
-                extra = variant.build() if variant is not None else np.empty((self.y.size, 0))
-                n_columns, n_added = fixed.shape[1] + extra.shape[1], extra.shape[1]
+                last_built.pop(key, None)  # one variant's terms in memory at a time
+                extra = self._extra(variant)
+                n_columns, n_added = fixed.width + extra.shape[1], extra.shape[1]
                 gram, cross = self._joined(fixed, extra, fixed_gram, fixed_cross)
                 yy = self._yy
                 for f in folds_in_group:
-                    beta = _solve(gram, cross, exclude=[f])
+                    beta = betas[vi, f] = _solve(gram, cross, exclude=[f])
                     heldout[vi, f] = _sse(gram[f], cross[f], yy[f], beta)
                     train[vi, f] = _sse(
                         gram.sum(0) - gram[f], cross.sum(0) - cross[f], yy.sum() - yy[f], beta
                     )
-                    part = self.folds.parts[f]
-                    predicted[vi, part] = fixed[part] @ beta[: fixed.shape[1]]
-                    predicted[vi, part] += extra[part] @ beta[fixed.shape[1] :]
                     if n_variants > 1:
                         inner[vi, f] = sum(
                             _shape_sse(
@@ -416,13 +423,31 @@ class ResidualAnalysis:
                             for s in range(k)
                             if s != f
                         )
+                last_built[key] = (vi, extra)
+                del extra
         if family is not None:
             for f, vi in _taken_in_fold(family, accepted, k):
                 inner[vi, f] = np.inf  # that fold already has this time constant in
         chosen = [int(np.argmin(inner[:, f])) if n_variants > 1 else 0 for f in range(k)]
+        # Held-out predictions of the chosen variants only (a variant's terms are made
+        # again if another one was made after it): never one row set per variant.
         result = np.empty(self.y.size)
-        for f, vi in enumerate(chosen):
-            result[self.folds.rows[f]] = predicted[vi, self.folds.rows[f]]
+        for key, folds_in_group in groups.items():
+            fixed = designs[key]
+            for vi in sorted({chosen[f] for f in folds_in_group}):
+                built_vi, extra = last_built.pop(key, (None, None))
+                if built_vi != vi:
+                    del extra
+                    extra = self._extra(variants[vi])
+                for f in folds_in_group:
+                    if chosen[f] != vi:
+                        continue
+                    part, beta = self.folds.parts[f], betas[vi, f]
+                    predicted = fixed.rows(part) @ beta[: fixed.width]
+                    predicted += extra[part] @ beta[fixed.width :]
+                    result[self.folds.rows[f]] = predicted
+                del extra
+        del last_built
         return Evaluation(
             predicted_um=result,
             per_fold_sse=np.array([heldout[vi, f] for f, vi in enumerate(chosen)]),
@@ -440,26 +465,34 @@ class ResidualAnalysis:
 
     def _fixed_design(
         self, base_group: int, accepted: list[Accepted], choices: Sequence[int]
-    ) -> np.ndarray:
+    ) -> FixedDesign:
         """Intercept, the model's own terms and the accepted effects (each fold's variant)."""
-        columns = [np.ones((self.y.size, 1)), self.base.design(base_group)]
-        columns += [a.family.variants[v].build() for a, v in zip(accepted, choices, strict=True)]
-        return np.column_stack(columns)
+        blocks = [a.family.variants[v].build() for a, v in zip(accepted, choices, strict=True)]
+        return FixedDesign(self.base.design(base_group), blocks)
 
-    def _grams(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Per fold: aᵀb (fold rows as views where the fold is contiguous)."""
-        return np.stack([a[part].T @ b[part] for part in self.folds.parts])
+    def _extra(self, variant: Variant | None) -> np.ndarray:
+        return variant.build() if variant is not None else np.empty((self.y.size, 0))
+
+    def _grams(self, a: FixedDesign | np.ndarray, b: FixedDesign | np.ndarray) -> np.ndarray:
+        """Per fold: aᵀb (fold rows as views where the fold is contiguous; a fixed design's
+        rows are made once per fold, also when ``b`` is ``a``)."""
+        products = []
+        for part in self.folds.parts:
+            rows = a.rows(part) if isinstance(a, FixedDesign) else a[part]
+            other = rows if b is a else b[part]
+            products.append(rows.T @ other)
+        return np.stack(products)
 
     def _joined(
         self,
-        fixed: np.ndarray,
+        fixed: FixedDesign,
         extra: np.ndarray,
         fixed_gram: np.ndarray,
         fixed_cross: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Per-fold ZᵀZ and Zᵀy of Z = [fixed, extra], reusing the fixed block's products:
         a candidate costs only its own columns' products, not a new design matrix."""
-        fixed_extra = self._grams(fixed, extra)
+        fixed_extra = np.stack([fixed.rows(part).T @ extra[part] for part in self.folds.parts])
         gram = np.concatenate(
             [
                 np.concatenate([fixed_gram, fixed_extra], axis=2),
@@ -469,6 +502,33 @@ class ResidualAnalysis:
         )
         cross = np.concatenate([fixed_cross, self._grams(extra, self.y)], axis=1)
         return gram, cross
+
+
+class FixedDesign:
+    """The columns every candidate is added to: intercept, the model's own terms, and the
+    effects already in (each fold's variant).
+
+    Its rows are made one fold at a time (:meth:`rows`), so the whole (n, k) matrix
+    never exists: on a million-row file it would be hundreds of megabytes. A
+    fold's rows are the same numbers, in the same C order, as the slice of the
+    full matrix would be, so every product is exactly what it was.
+    """
+
+    def __init__(self, base: np.ndarray, blocks: list[np.ndarray]) -> None:
+        self.base = base
+        self.blocks = blocks
+        self.width = 1 + base.shape[1] + sum(block.shape[1] for block in blocks)
+
+    def rows(self, part: slice | np.ndarray) -> np.ndarray:
+        base = self.base[part]
+        ones = np.ones((base.shape[0], 1))
+        return np.column_stack([ones, base, *(block[part] for block in self.blocks)])
+
+    def joined(self, extra: np.ndarray, part: slice | np.ndarray) -> np.ndarray:
+        """Rows ``part`` of [fixed, extra]."""
+        base = self.base[part]
+        ones = np.ones((base.shape[0], 1))
+        return np.column_stack([ones, base, *(b[part] for b in self.blocks), extra[part]])
 
 
 def _solve(gram: np.ndarray, cross: np.ndarray, exclude: list[int]) -> np.ndarray:

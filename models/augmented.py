@@ -28,7 +28,7 @@ from models.base import ThermalModel
 from models.effect_terms import candidate_families
 from models.features import Prepared
 from models.registry import METHODS, make_model
-from models.store import StoreError, data_fingerprint, safe_model_id
+from models.store import StoreError, data_fingerprint, refuse_non_finite, safe_model_id
 
 FORMAT = "thermal-gateway-augmented-model"
 FORMAT_VERSION = 1
@@ -105,6 +105,7 @@ def build_augmented_document(
 
 
 def save(document: dict[str, Any], store_dir: str | Path) -> Path:
+    refuse_non_finite(document)
     folder = Path(store_dir) / FOLDER
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{document['model_id']}.json"

@@ -17,23 +17,36 @@ exactly for the message.
 
 from __future__ import annotations
 
+import codecs
 import csv
 import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
-SENSOR_PATTERN = re.compile(r"^T\d+$")
+from models import csv_text
+from models.plausibility import (
+    SENSOR_PATTERN,
+    TIME_COLUMN,
+    bounds_of,
+    first_implausible,
+    has_unit,
+    why_implausible,
+)
+
 RUN_COLUMN = "run"
-TIME_COLUMN = "time_s"
 SPEED_COLUMN = "speed_rpm"
 AMBIENT_COLUMN = "ambient_C"
 AMBIENT_SENSORS = ("ambient_C", "ambient")  # machine sensor names that feed AMBIENT_COLUMN
 DEFAULT_TARGET = "error_um"
 HEADER_LINE = 1
+CHUNK_ROWS = 1 << 18  # rows parsed per block: about 30 MB of a 14-column file
+# A number as pandas' C parser reads it (leading/trailing blanks are stripped first).
+NUMBER_PATTERN = r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|[+-]?inf(inity)?"
 
 
 class DataError(ValueError):
@@ -78,6 +91,8 @@ class MeasuredRuns:
         labels: text columns other than ``run`` (e.g. a regime label), by name.
         lines: (n,) 1-based file line of each row, for messages.
         skipped: rows left out and why (empty when none were).
+        notes: optional columns not used as signals and why (a bad cell in a
+            column the command does not need does not refuse the file).
     """
 
     source: str
@@ -90,6 +105,7 @@ class MeasuredRuns:
     labels: dict[str, np.ndarray] = field(default_factory=dict)
     lines: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     skipped: tuple[SkippedRows, ...] = ()
+    notes: tuple[str, ...] = ()
 
     @property
     def n_samples(self) -> int:
@@ -98,14 +114,16 @@ class MeasuredRuns:
     @property
     def run_ids(self) -> tuple[str, ...]:
         """Run identifiers in order of first appearance."""
-        _, first = np.unique(self.run, return_index=True)
-        return tuple(str(self.run[i]) for i in sorted(first))
+        starts, _ = group_bounds(self.run)
+        return tuple(dict.fromkeys(str(self.run[s]) for s in starts))
 
     @property
     def run_index(self) -> np.ndarray:
         """(n,) run number 0, 1, … of each row, in order of first appearance."""
+        starts, ends = group_bounds(self.run)
         order = {run_id: i for i, run_id in enumerate(self.run_ids)}
-        return np.array([order[r] for r in self.run], dtype=int)
+        numbers = [order[str(self.run[s])] for s in starts]
+        return np.repeat(np.array(numbers, dtype=int), ends - starts)
 
     def run_slices(self) -> list[tuple[str, slice]]:
         """(run id, row slice) per run, in file order (runs are contiguous)."""
@@ -150,6 +168,7 @@ class MeasuredRuns:
             labels={k: v[rows] for k, v in self.labels.items()},
             lines=self.lines[rows],
             skipped=self.skipped,
+            notes=self.notes,
         )
 
     def label_per_run(self, column: str) -> dict[str, str]:
@@ -182,14 +201,25 @@ class MeasuredRuns:
 
 
 def read_header(path: Path) -> list[str]:
-    """The header row's column names; refuses an empty file or duplicate names."""
+    """The header row's column names; refuses an unreadable or empty file, or duplicate names.
+
+    A UTF-8 byte order mark (as spreadsheet programs write) is accepted.
+    """
+    raw = _first_line(path)
+    if raw.startswith(codecs.BOM_UTF8):
+        raw = raw[len(codecs.BOM_UTF8) :]
+    if b"\0" in raw:
+        raise DataError(path, HEADER_LINE, None, "a NUL byte: binary data where text was expected")
     try:
-        with path.open(newline="", encoding="utf-8") as handle:
-            header = next(csv.reader(handle), None)
-    except FileNotFoundError:
-        raise DataError(path, None, None, "file not found") from None
+        text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise DataError(path, None, None, f"not UTF-8 text ({exc.reason})") from None
+        raise DataError(
+            path,
+            HEADER_LINE,
+            None,
+            csv_text.undecodable(raw[exc.start]),
+        ) from None
+    header = next(csv.reader([text.rstrip("\r\n")]), None)
     if header is None or not any(cell.strip() for cell in header):
         raise DataError(path, HEADER_LINE, None, "the file is empty; a header row was expected")
     names = [cell.strip() for cell in header]
@@ -201,6 +231,25 @@ def read_header(path: Path) -> list[str]:
             raise DataError(path, HEADER_LINE, name, "column name appears twice")
         seen.add(name)
     return names
+
+
+def _first_line(path: Path) -> bytes:
+    """The file's first line as bytes, after checking it is a readable regular file."""
+    if not path.exists():
+        raise DataError(path, None, None, "file not found")
+    if path.is_dir():
+        raise DataError(path, None, None, "is a directory; a measured-run CSV file was expected")
+    if not path.is_file():
+        raise DataError(
+            path, None, None, "not a regular file; a measured-run CSV file was expected"
+        )
+    try:
+        with path.open("rb") as handle:
+            return handle.readline()
+    except PermissionError:
+        raise DataError(path, None, None, "cannot be read: permission denied") from None
+    except OSError as exc:
+        raise DataError(path, None, None, f"cannot be read: {exc.strerror}") from None
 
 
 def load_runs(
@@ -222,89 +271,248 @@ def load_runs(
     _require_columns(path, names, target, sensor_names, sensors)
     chosen_sensors = tuple(sensors) if sensors is not None else tuple(sensor_names)
 
-    table = _read_table(path, len(names))
-    table.columns = names
-    if table.empty:
+    scanned = csv_text.scan(path, len(names))
+    if isinstance(scanned, csv_text.TextProblem):
+        column = names[scanned.field] if scanned.field is not None else None
+        raise DataError(path, scanned.line, column, scanned.reason)
+    if scanned == 0:
         raise DataError(path, HEADER_LINE + 1, None, "no data rows after the header")
-    lines = np.arange(HEADER_LINE + 1, HEADER_LINE + 1 + len(table))
 
-    required_numeric = [TIME_COLUMN, SPEED_COLUMN, *chosen_sensors, target]
+    needed = [TIME_COLUMN, SPEED_COLUMN, *chosen_sensors, target]
     if AMBIENT_COLUMN in names:
-        required_numeric.append(AMBIENT_COLUMN)
-    needed = [RUN_COLUMN, *required_numeric]
-
-    empty = table[needed].isna().any(axis=1).to_numpy()
-    skipped: tuple[SkippedRows, ...] = ()
-    if empty.any():
-        skipped = (
-            SkippedRows(
-                count=int(empty.sum()),
-                reason=f"an empty cell in a needed column ({', '.join(needed)})",
-                first_lines=tuple(int(x) for x in lines[empty][:5]),
-            ),
-        )
-        table = table.loc[~empty].reset_index(drop=True)
-        lines = lines[~empty]
-        if table.empty:
-            raise DataError(path, None, None, "every data row has an empty needed cell")
-
-    numeric: dict[str, np.ndarray] = {}
-    labels: dict[str, np.ndarray] = {}
-    for name in names:
-        if name == RUN_COLUMN:
-            continue
-        if name in required_numeric:
-            numeric[name] = _to_numbers(path, table[name], name, lines)
-        else:
-            converted = pd.to_numeric(table[name], errors="coerce").to_numpy(dtype=float)
-            if np.all(np.isfinite(converted)):
-                numeric[name] = converted
-            else:
-                labels[name] = table[name].fillna("").astype(str).to_numpy(dtype=object)
-
-    run = table[RUN_COLUMN].str.strip().to_numpy(dtype=object)
-    _check_runs(path, run, numeric[TIME_COLUMN], lines)
+        needed.append(AMBIENT_COLUMN)
+    reader = _ColumnReader(path, names, needed, capacity=scanned)
+    table = reader.read()
+    _check_runs(path, table.run, table.run_code, table.numeric[TIME_COLUMN], table.lines)
     return MeasuredRuns(
         source=str(path),
-        run=run,
-        time_s=numeric[TIME_COLUMN],
-        speed_rpm=numeric[SPEED_COLUMN],
+        run=table.run,
+        time_s=table.numeric[TIME_COLUMN],
+        speed_rpm=table.numeric[SPEED_COLUMN],
         sensors=chosen_sensors,
         target=target,
-        numeric={k: v for k, v in numeric.items() if k not in (TIME_COLUMN, SPEED_COLUMN)},
-        labels=labels,
-        lines=lines,
-        skipped=skipped,
+        numeric={k: v for k, v in table.numeric.items() if k not in (TIME_COLUMN, SPEED_COLUMN)},
+        labels=table.labels,
+        lines=table.lines,
+        skipped=table.skipped,
+        notes=table.notes,
     )
 
 
-def _read_table(path: Path, n_columns: int) -> pd.DataFrame:
-    """The cells, numbers parsed natively where a whole column is numeric.
+@dataclass
+class _Table:
+    run: np.ndarray
+    run_code: np.ndarray
+    numeric: dict[str, np.ndarray]
+    labels: dict[str, np.ndarray]
+    lines: np.ndarray
+    skipped: tuple[SkippedRows, ...]
+    notes: tuple[str, ...]
 
-    Only an empty cell counts as missing (NaN); text such as "nan" or "hot" keeps
-    its column as text, so the check that follows can name the exact cell. A row
-    with the wrong number of fields is refused by line.
+
+class _UnparsedCellError(Exception):
+    """The typed read met a cell its float parser refused (located by a second pass)."""
+
+
+class _ColumnReader:
+    """Reads the file column-wise into preallocated float64 arrays, one block of rows at a time.
+
+    Columns whose name carries a unit (and every column the command needs) are
+    parsed straight to float64 by pandas' C parser; ``run`` is read as a
+    category (a few distinct strings, shared by every row); any other column is
+    read as text and kept as a number only if every cell is one. Each block is
+    checked as it arrives, so a bad value is refused before the rest is read, and
+    memory stays at the final arrays plus one block.
     """
-    try:
-        return pd.read_csv(
-            path,
-            dtype={RUN_COLUMN: str},
-            keep_default_na=False,
-            na_values=[""],
-            skip_blank_lines=False,
-            skipinitialspace=True,
-            encoding="utf-8",
+
+    def __init__(self, path: Path, names: list[str], needed: list[str], capacity: int) -> None:
+        self.path = path
+        self.names = names
+        self.needed = needed
+        self.capacity = capacity
+        self.typed = [n for n in names if n != RUN_COLUMN and (n in needed or has_unit(n))]
+        self.text: list[str] = [n for n in names if n != RUN_COLUMN and n not in self.typed]
+        self.notes: dict[str, str] = {}
+
+    def read(self) -> _Table:
+        try:
+            return self._read()
+        except _UnparsedCellError:
+            pass
+        # A cell the float parser refused: find it; a needed column is refused there,
+        # any other column with text is read as text and the file read again.
+        demoted = self._locate_text()
+        if not demoted:
+            raise DataError(self.path, None, None, "not a readable CSV file") from None
+        self.typed = [n for n in self.typed if n not in demoted]
+        self.text = [n for n in self.names if n != RUN_COLUMN and n not in self.typed]
+        try:
+            return self._read()
+        except _UnparsedCellError:
+            raise DataError(self.path, None, None, "not a readable CSV file") from None
+
+    def _chunks(self, dtypes: dict[str, Any], usecols: list[str] | None = None):
+        try:
+            yield from pd.read_csv(
+                self.path,
+                header=0,
+                names=self.names,
+                usecols=usecols,
+                dtype=dtypes,
+                encoding="utf-8-sig",
+                keep_default_na=False,
+                na_values=[""],
+                skip_blank_lines=False,
+                skipinitialspace=True,
+                chunksize=CHUNK_ROWS,
+                engine="c",
+            )
+        except pd.errors.ParserError as exc:
+            found = re.search(r"line (\d+)", str(exc))
+            line = int(found.group(1)) if found else None
+            raise DataError(self.path, line, None, f"not a readable CSV file ({exc})") from None
+        except ValueError as exc:
+            raise _UnparsedCellError(str(exc)) from None
+
+    def _read(self) -> _Table:
+        n = self.capacity
+        numbers = {name: np.empty(n) for name in self.typed}
+        run_code = np.empty(n, dtype=np.int32)
+        lines = np.empty(n, dtype=np.int64)
+        run_ids: dict[str, int] = {}
+        text_parts: dict[str, list[np.ndarray]] = {name: [] for name in self.text}
+        optional = [name for name in self.typed if name not in self.needed]
+        dtypes: dict[str, Any] = {RUN_COLUMN: "category"}
+        dtypes |= {name: np.float64 for name in self.typed}
+        dtypes |= {name: str for name in self.text}
+        skipped_count, skipped_first = 0, []
+        filled, next_line = 0, HEADER_LINE + 1
+        for chunk in self._chunks(dtypes):
+            m = len(chunk)
+            if filled + m > n:
+                raise DataError(self.path, None, None, "not a readable CSV file (rows miscounted)")
+            chunk_lines = np.arange(next_line, next_line + m)
+            next_line += m
+            empty = chunk[[RUN_COLUMN, *self.needed]].isna().to_numpy().any(axis=1)
+            keep: slice | np.ndarray = slice(None)
+            if empty.any():
+                skipped_count += int(empty.sum())
+                skipped_first += [int(x) for x in chunk_lines[empty][: 5 - len(skipped_first)]]
+                keep = ~empty
+            kept_lines = chunk_lines[keep]
+            k = kept_lines.size
+            rows = slice(filled, filled + k)
+            worst: tuple[int, str, float] | None = None
+            for name in self.needed:
+                values = chunk[name].to_numpy(dtype=np.float64)[keep]
+                bad = first_implausible(values, bounds_of(name))
+                if bad is not None and (worst is None or bad < worst[0]):
+                    worst = (bad, name, float(values[bad]))
+                numbers[name][rows] = values
+            if worst is not None:
+                bad, name, value = worst
+                raise DataError(
+                    self.path, int(kept_lines[bad]), name, why_implausible(value, bounds_of(name))
+                )
+            for name in optional:
+                if name in self.notes:
+                    continue
+                values = chunk[name].to_numpy(dtype=np.float64)[keep]
+                bad = first_implausible(values, bounds_of(name))
+                if bad is not None:
+                    self.notes[name] = _set_aside(name, int(kept_lines[bad]), float(values[bad]))
+                numbers[name][rows] = values
+            runs = chunk[RUN_COLUMN].array
+            code_of = np.array(
+                [run_ids.setdefault(str(c).strip(), len(run_ids)) for c in runs.categories],
+                dtype=np.int32,
+            )
+            run_code[rows] = code_of[np.asarray(runs.codes)[keep]]
+            for name in self.text:
+                text_parts[name].append(chunk[name].fillna("").to_numpy(dtype=object)[keep])
+            lines[rows] = kept_lines
+            filled += k
+            del chunk
+        if filled == 0:
+            raise DataError(
+                self.path,
+                skipped_first[0] if skipped_first else HEADER_LINE + 1,
+                None,
+                "every data row has an empty needed cell" if skipped_count else "no data rows",
+            )
+        for array in (run_code, lines, *numbers.values()):
+            array.resize(filled, refcheck=False)
+        skipped: tuple[SkippedRows, ...] = ()
+        if skipped_count:
+            columns = ", ".join([RUN_COLUMN, *self.needed])
+            skipped = (
+                SkippedRows(
+                    count=skipped_count,
+                    reason=f"an empty cell in a needed column ({columns})",
+                    first_lines=tuple(skipped_first),
+                ),
+            )
+        numeric: dict[str, np.ndarray] = {}
+        labels: dict[str, np.ndarray] = {}
+        for name in self.names:
+            if name in numbers and name not in self.notes:
+                numeric[name] = numbers[name]
+            elif name in text_parts:
+                cells = np.concatenate(text_parts.pop(name))
+                converted = pd.to_numeric(pd.Series(cells), errors="coerce").to_numpy(float)
+                if first_implausible(converted, bounds_of(name)) is None:
+                    numeric[name] = converted
+                else:
+                    labels[name] = cells
+        return _Table(
+            run=np.array(list(run_ids), dtype=object)[run_code],
+            run_code=run_code,
+            numeric=numeric,
+            labels=labels,
+            lines=lines,
+            skipped=skipped,
+            notes=tuple(self.notes.values()),
         )
-    except pd.errors.ParserError as exc:
-        found = re.search(r"Expected (\d+) fields in line (\d+), saw (\d+)", str(exc))
-        if found is None:
-            raise DataError(path, None, None, f"not a readable CSV file ({exc})") from None
-        raise DataError(
-            path,
-            int(found.group(2)),
-            None,
-            f"expected {n_columns} fields as in the header, found {found.group(3)}",
-        ) from None
+
+    def _locate_text(self) -> set[str]:
+        """Typed columns holding a cell that is not a number; refuses one the command needs."""
+        found: dict[str, tuple[int, str]] = {}
+        next_line = HEADER_LINE + 1
+        dtypes = {name: str for name in self.typed}
+        for chunk in self._chunks(dtypes, usecols=self.typed):
+            for name in self.typed:
+                if name in found:
+                    continue
+                cells = chunk[name]
+                text = cells.notna().to_numpy() & ~cells.str.strip().str.fullmatch(
+                    NUMBER_PATTERN, flags=re.IGNORECASE
+                ).fillna(True).to_numpy(dtype=bool)
+                if text.any():
+                    row = int(np.argmax(text))
+                    found[name] = (next_line + row, str(cells.iloc[row]))
+            needed = [(line, name) for name, (line, _) in found.items() if name in self.needed]
+            if needed:
+                line, name = min(needed)
+                raise DataError(
+                    self.path,
+                    line,
+                    name,
+                    f"expected a finite number, found '{found[name][1]}' "
+                    f"(the column holds {bounds_of(name).what})",
+                )
+            next_line += len(chunk)
+        for name, (line, cell) in found.items():
+            self.notes[name] = (
+                f"column '{name}' is read as text, not as {bounds_of(name).what}: "
+                f"line {line} holds '{cell}'"
+            )
+        return set(found)
+
+
+def _set_aside(name: str, line: int, value: float) -> str:
+    """The note for an optional numeric column that is not used because of one value."""
+    what = "an empty cell" if np.isnan(value) else why_implausible(value, bounds_of(name))
+    return f"column '{name}' is not used as a signal: line {line}: {what}"
 
 
 def _require_columns(
@@ -340,30 +548,18 @@ def _require_columns(
             )
 
 
-def _to_numbers(path: Path, cells: pd.Series, name: str, lines: np.ndarray) -> np.ndarray:
-    """Convert a required column, naming the first bad cell exactly."""
-    values = pd.to_numeric(cells, errors="coerce").to_numpy(dtype=float)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        row = int(np.flatnonzero(bad)[0])
-        raise DataError(
-            path,
-            int(lines[row]),
-            name,
-            f"expected a finite number, found '{cells.iloc[row]}'",
-        )
-    return values
-
-
 def group_bounds(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """First row and end row (exclusive) of each contiguous block of equal labels."""
     starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
     return starts, np.r_[starts[1:], labels.size]
 
 
-def _check_runs(path: Path, run: np.ndarray, time_s: np.ndarray, lines: np.ndarray) -> None:
-    """Runs must be contiguous blocks with strictly increasing time."""
-    starts, _ = group_bounds(run)
+def _check_runs(
+    path: Path, run: np.ndarray, run_code: np.ndarray, time_s: np.ndarray, lines: np.ndarray
+) -> None:
+    """Runs must be contiguous blocks with strictly increasing time (``run_code``: the
+    same runs as small integers, compared faster than strings)."""
+    starts, _ = group_bounds(run_code)
     seen: dict[str, int] = {}
     for start in starts:
         run_id = str(run[start])
@@ -376,7 +572,7 @@ def _check_runs(path: Path, run: np.ndarray, time_s: np.ndarray, lines: np.ndarr
                 f"{seen[run_id]}); the rows of one run must be contiguous",
             )
         seen[run_id] = int(lines[start])
-    same_run = run[1:] == run[:-1]
+    same_run = run_code[1:] == run_code[:-1]
     backwards = same_run & (np.diff(time_s) <= 0)
     if backwards.any():
         row = int(np.flatnonzero(backwards)[0]) + 1

@@ -112,11 +112,18 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
     recording = prepared.plan.recording
     time_s = data.time_s
     used_rises = prepared.inputs.columns(used_sensors) if used_sensors else None
-    speed_krpm = data.speed_rpm / SPEED_SCALE_RPM
-    speed_terms = prepared.plan.rises(np.column_stack([speed_krpm, speed_krpm**2]))
 
-    def lagged(values: np.ndarray, tau: float) -> Callable[[], np.ndarray]:
-        return lambda: np.atleast_2d(first_order_lag(values, time_s, recording, tau).T).T
+    # Terms are made when a variant is built, not held: on a million-row file each
+    # (n,) column is megabytes, and only one family is tried at a time.
+    def speed_terms() -> np.ndarray:
+        speed_krpm = data.speed_rpm / SPEED_SCALE_RPM
+        return prepared.plan.rises(np.column_stack([speed_krpm, speed_krpm**2]))
+
+    def ambient_rise() -> np.ndarray:
+        return prepared.plan.rises(data.ambient_C)
+
+    def lagged(values: Callable[[], np.ndarray], tau: float) -> Callable[[], np.ndarray]:
+        return lambda: np.atleast_2d(first_order_lag(values(), time_s, recording, tau).T).T
 
     families: list[EffectFamily] = []
     if used_rises is not None:
@@ -127,7 +134,7 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
                 tuple(
                     Variant(
                         {"tau_s": tau},
-                        lagged(used_rises, tau),
+                        lagged(lambda: used_rises, tau),
                         f"lag (τ = {tau:g} s) of Δ{used_sensors[0]}, °C",
                     )
                     for tau in LAG_TAUS_S
@@ -139,7 +146,7 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
             EffectFamily(
                 "speed_direct",
                 "speed n and n² (n in 1000 r/min), as rises",
-                (Variant({}, lambda: speed_terms, "speed rise Δn, 1000 r/min"),),
+                (Variant({}, speed_terms, "speed rise Δn, 1000 r/min"),),
             )
         )
         families.append(
@@ -158,7 +165,6 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
         )
     ambient = data.ambient_C
     if ambient is not None and np.ptp(ambient) > 0:
-        ambient_rise = prepared.plan.rises(ambient)
         families.append(
             EffectFamily(
                 "ambient",
@@ -166,21 +172,26 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
                 tuple(
                     Variant(
                         {"tau_s": tau},
-                        (lambda: ambient_rise[:, None]) if tau == 0 else lagged(ambient_rise, tau),
+                        (lambda: ambient_rise()[:, None])
+                        if tau == 0
+                        else lagged(ambient_rise, tau),
                         f"ambient_C rise (τ = {tau:g} s), °C",
                     )
                     for tau in AMBIENT_TAUS_S
                 ),
             )
         )
-    run_hours = hours_since_start(time_s, data.run_index)
-    drift_variants = [Variant({"origin": "run"}, lambda: run_hours[:, None], "time in run, h")]
+
+    def run_hours() -> np.ndarray:
+        return hours_since_start(time_s, data.run_index)[:, None]
+
+    def recording_hours() -> np.ndarray:
+        return hours_since_start(time_s, recording)[:, None]
+
+    drift_variants = [Variant({"origin": "run"}, run_hours, "time in run, h")]
     if len(prepared.plan.recording_runs) < len(data.run_ids):
-        recording_hours = hours_since_start(time_s, recording)
         drift_variants.append(
-            Variant(
-                {"origin": "recording"}, lambda: recording_hours[:, None], "time in recording, h"
-            )
+            Variant({"origin": "recording"}, recording_hours, "time in recording, h")
         )
     families.append(EffectFamily("drift", "time since the start, h", tuple(drift_variants)))
     unused = unused_columns(prepared, used_sensors)

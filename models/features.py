@@ -36,8 +36,11 @@ def prepare(
     """Rises of the declared sensors (°C) and of the target (µm) from their references."""
     names = tuple(sensors) if sensors is not None else data.sensors
     plan = plan_references(data, reference)
+    rise_C = np.empty((data.n_samples, len(names)))
+    for j, name in enumerate(names):  # one column at a time: no (n, k) temporaries
+        rise_C[:, j] = plan.rises(data.column(name))
     inputs = ModelInputs(
-        rise_C=plan.rises(data.temperatures(names)),
+        rise_C=rise_C,
         sensors=names,
         speed_rpm=data.speed_rpm,
         run_index=data.run_index,

@@ -81,7 +81,7 @@ def fit_and_store(
             outcome.ranking = rank_regimes(outcome.sigma_rows)
 
     for group, rows in groups.items():
-        part = prepared.take(rows)
+        part = prepared if rows.all() else prepared.take(rows)  # no copy of the whole data set
         validation = None if per_run else cross_validate(factory, part, progress)
         model = factory().fit(part.inputs, part.error_um)
         label = f"run-{group}" if per_run else group

@@ -4,7 +4,7 @@
 
 Paper 002 §4 fits exactly this on the temperature-sensitive points
 (e.g. Y1 = 6.97 + 4.64 ΔT1 − 2.10 ΔT7). Solved by ordinary least squares
-(``numpy.linalg.lstsq``, SVD based, so a rank-deficient set of sensors still
+(LAPACK ``gelsd``, SVD based, so a rank-deficient set of sensors still
 gives the minimum-norm solution instead of failing).
 """
 
@@ -14,14 +14,30 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 
 from models.base import ModelInputs, ThermalModel
 
 
 def least_squares_with_intercept(X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
-    """(b0, b) minimising ‖y − b0 − X b‖²."""
-    design = np.column_stack([np.ones(X.shape[0]), X])
-    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    """(b0, b) minimising ‖y − b0 − X b‖².
+
+    The same LAPACK ``gelsd`` and rank cutoff (eps · max(n, k)) as
+    ``numpy.linalg.lstsq(rcond=None)``, but on a design built once in Fortran
+    order and solved in place: numpy would copy it again, and on a
+    million-row file that copy is hundreds of megabytes.
+    """
+    design = np.empty((X.shape[0], X.shape[1] + 1), order="F")
+    design[:, 0] = 1.0
+    design[:, 1:] = X
+    coef, *_ = scipy.linalg.lstsq(
+        design,
+        y,
+        cond=np.finfo(float).eps * max(design.shape),
+        overwrite_a=True,
+        check_finite=False,
+        lapack_driver="gelsd",
+    )
     return float(coef[0]), coef[1:]
 
 

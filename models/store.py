@@ -193,6 +193,33 @@ def build_document(
     return document
 
 
+def refuse_non_finite(document: dict[str, Any]) -> None:
+    """Raise StoreError naming the first number in ``document`` that is NaN or infinite."""
+    found = _first_non_finite(document, "")
+    if found is not None:
+        where, value = found
+        raise StoreError(
+            f"model '{document.get('model_id', '?')}' not saved: {where} is {value!r}; "
+            "a model whose numbers or figures are not finite is never stored"
+        )
+
+
+def _first_non_finite(value: Any, where: str) -> tuple[str, float] | None:
+    if isinstance(value, float):
+        return None if np.isfinite(value) else (where, value)
+    if isinstance(value, dict):
+        items = ((f"{where}.{k}" if where else str(k), v) for k, v in value.items())
+    elif isinstance(value, list | tuple):
+        items = ((f"{where}[{i}]", v) for i, v in enumerate(value))
+    else:
+        return None
+    for path, item in items:
+        found = _first_non_finite(item, path)
+        if found is not None:
+            return found
+    return None
+
+
 def model_from_document(document: StoredModel) -> ThermalModel:
     cls = METHODS.get(document.method)
     if cls is None:
@@ -210,14 +237,19 @@ class ModelStore:
         return self.root / f"{safe_model_id(model_id)}.json"
 
     def save(self, document: dict[str, Any]) -> Path:
-        """Validate ``document`` as a loader would, then write it atomically."""
+        """Validate ``document`` as a loader would, then write it atomically.
+
+        A model whose numbers or figures are not finite (an RMSE of ``inf``, a
+        NaN coefficient) is refused: it would compensate a machine wrongly.
+        """
+        refuse_non_finite(document)
         StoredModel.model_validate(document)
         self.root.mkdir(parents=True, exist_ok=True)
         path = self.path_of(document["model_id"])
         handle, tmp = tempfile.mkstemp(dir=self.root, prefix=".tmp-", suffix=".json")
         try:
             with os.fdopen(handle, "w", encoding="utf-8") as out:
-                json.dump(document, out, ensure_ascii=False, indent=2)
+                json.dump(document, out, ensure_ascii=False, indent=2, allow_nan=False)
                 out.write("\n")
             os.replace(tmp, path)
         except BaseException:

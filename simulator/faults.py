@@ -37,6 +37,14 @@ class SensorFault:
         if self.magnitude_C is None:
             self.magnitude_C = DEFAULT_MAGNITUDE[self.kind]
 
+    @property
+    def held_C(self) -> float | None:
+        """The value a stuck sensor shows (None until the machine took it)."""
+        return self._held_C
+
+    def hold(self, value_C: float) -> None:
+        self._held_C = value_C
+
     def active(self, time_s: float) -> bool:
         return time_s >= self.start_s and (self.end_s is None or time_s < self.end_s)
 

@@ -22,6 +22,7 @@ from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.config import GatewayConfig, MachineSection
+from gateway.login_throttle import ThrottlePolicy
 from gateway.model_bank import ModelBank
 from gateway.outputs import Outputs
 from gateway.runtime import CycleRecord, MachineLoop, Sink
@@ -181,6 +182,13 @@ class Gateway:
             users=users,
             host=section.host,
             allow_anonymous=section.allow_anonymous,
+            rejected_keep=section.rejected_keep,
+            login_throttle=ThrottlePolicy(
+                max_failures=section.login_max_failures,
+                window_s=section.login_window_s,
+                lockout_s=section.login_lockout_s,
+                max_lockout_s=section.login_max_lockout_s,
+            ),
         )
         machines = {m.id: m.sensor_names for m in self.config.machines}
         return ScadaServer(settings, machines, self._set_enabled)

@@ -386,7 +386,7 @@ def check_config(config_path: Path, connect: bool) -> None:
         bank = load_bank(machine)
         click.echo(
             f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
-            f"{len(bank.models)} models in {machine.models.store}, "
+            f"{len(bank.models)} models in {machine.models.store} (target {bank.target}), "
             f"compensation → #{machine.compensation.macro} ({machine.compensation.unit})"
         )
     if connect:

@@ -351,6 +351,20 @@ class ScadaSection(Strict):
     pki_dir: Path = Path(".cache/state/pki")
     allow_anonymous: bool = False
     users: list[ScadaUserSection] = Field(default_factory=list)
+    rejected_keep: int = Field(default=50, ge=1, le=10_000)
+    login_max_failures: int = Field(default=5, ge=1, le=1000)
+    login_window_s: float = Field(default=60.0, gt=0, le=86_400)
+    login_lockout_s: float = Field(default=30.0, gt=0, le=86_400)
+    login_max_lockout_s: float = Field(default=900.0, gt=0, le=86_400)
+
+    @model_validator(mode="after")
+    def _lockout_bounds(self) -> ScadaSection:
+        if self.login_lockout_s > self.login_max_lockout_s:
+            raise ValueError(
+                f"login_lockout_s ({self.login_lockout_s}) must not exceed "
+                f"login_max_lockout_s ({self.login_max_lockout_s})"
+            )
+        return self
 
 
 class GatewayConfig(Strict):

@@ -9,6 +9,11 @@ states are carried by the machine loop, not here. The regime rules name models
 of both kinds by id; when a sensor a model needs goes bad, the bank offers a
 *fallback*: another stored model that does without that sensor, preferring one
 fitted for the same regime, then the one with the lowest held-out RMSE.
+
+A machine compensates one quantity (one target, in one unit), so every model of
+a store must predict the same target in the same unit: a fallback fitted for
+another probe channel would put another channel's error into the macro. The bank
+refuses a store whose models disagree, naming each model and its target.
 """
 
 from __future__ import annotations
@@ -30,6 +35,17 @@ log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
+class Target:
+    """What a model predicts: the measured error column it was fitted to, and its unit."""
+
+    name: str
+    unit: str
+
+    def __str__(self) -> str:
+        return f"{self.name} ({self.unit})"
+
+
+@dataclass(frozen=True)
 class BankedModel:
     """A plain model: predicts from one cycle's rises."""
 
@@ -44,6 +60,10 @@ class BankedModel:
     @property
     def regime(self) -> str | None:
         return self.document.regime
+
+    @property
+    def target(self) -> Target:
+        return Target(self.document.target.get("name", "?"), self.document.target.get("unit", "?"))
 
     @property
     def held_out_rmse_um(self) -> float:
@@ -83,6 +103,11 @@ class BankedAugmented:
         )
 
     @property
+    def target(self) -> Target:
+        target = self.document.get("target") or {}
+        return Target(str(target.get("name", "?")), str(target.get("unit", "?")))
+
+    @property
     def held_out_rmse_um(self) -> float:
         after = self.document.get("provenance", {}).get("after") or {}
         return float(after.get("rmse_um", float("inf")))
@@ -95,13 +120,35 @@ class BankedAugmented:
 Banked = BankedModel | BankedAugmented
 
 
+def refuse_mixed_targets(models: Iterable[Banked], where: str = "model store") -> None:
+    """Refuse models that do not all predict the same target in the same unit."""
+    by_target: dict[Target, list[str]] = {}
+    for model in models:
+        by_target.setdefault(model.target, []).append(model.model_id)
+    if len(by_target) > 1:
+        listed = "; ".join(
+            f"{target}: {', '.join(sorted(ids))}"
+            for target, ids in sorted(by_target.items(), key=str)
+        )
+        raise ValueError(
+            f"{where}: its models predict different targets ({listed}); a machine compensates "
+            "one target, so keep only that target's models in its store"
+        )
+
+
 class ModelBank:
-    def __init__(self, models: Iterable[Banked]) -> None:
+    def __init__(self, models: Iterable[Banked], where: str = "model store") -> None:
         self.models: dict[str, Banked] = {}
         for model in models:
             if model.model_id in self.models:
                 raise ValueError(f"model id '{model.model_id}' is in the store twice")
             self.models[model.model_id] = model
+        refuse_mixed_targets(self.models.values(), where)
+
+    @property
+    def target(self) -> Target | None:
+        """The one target every model predicts (None for an empty bank)."""
+        return next((m.target for m in self.models.values()), None)
 
     @classmethod
     def from_store(cls, folder: Path, ambient_sensor: str | None = None) -> ModelBank:
@@ -126,7 +173,7 @@ class ModelBank:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"
             )
-        return cls(loaded)
+        return cls(loaded, where=f"model store {folder}")
 
     def __contains__(self, model_id: str) -> bool:
         return model_id in self.models

@@ -16,9 +16,13 @@ Security (asyncua's defaults are open, so every layer is set explicitly):
   be in ``pki_dir/trusted`` (``.der`` or ``.pem``; checked at every
   CreateSession, so copying one there needs no restart) unless
   ``trust_all_clients``; an untrusted one is refused (BadCertificateUntrusted) and
-  saved in ``pki_dir/rejected`` for an engineer to review and move;
+  saved in ``pki_dir/rejected`` for an engineer to review and move (the newest
+  ``rejected_keep`` only, so a stream of fresh certificates cannot fill the disk),
+  with one log line and no traceback;
 * identity: user name and password checked against :class:`ScadaUser` (constant-
-  time compare); anonymous only if ``allow_anonymous``, and then read-only;
+  time compare); anonymous only if ``allow_anonymous``, and then read-only.
+  Failed logins lock the remote address and the user name out for a while
+  (:mod:`gateway.login_throttle`), so passwords cannot be guessed at speed;
 * authorisation: only operators may send Write requests (viewers and anonymous
   get BadUserAccessDenied and nothing changes); the only writable node is each
   machine's ``CompensationEnabled``. An operator's write calls
@@ -38,6 +42,7 @@ import logging
 import math
 import re
 import socket
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -58,6 +63,7 @@ from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from drivers.opcua_common import CELSIUS, MICROMETRE, RPM, ServerLifecycle
+from gateway.login_throttle import Key, LoginThrottle, ThrottlePolicy
 from gateway.runtime import CycleRecord
 
 _logger = logging.getLogger(__name__)
@@ -96,7 +102,8 @@ class ScadaSettings:
 
     ``pki_dir`` keeps the server certificate (``server_cert.der``) and key
     (``server_key.pem``), the trusted client certificates (``trusted/``), refused
-    ones (``rejected/``) and optional revocation lists (``crl/``).
+    ones (``rejected/``, the newest ``rejected_keep``) and optional revocation
+    lists (``crl/``). ``login_throttle``: when failed logins lock a client out.
     """
 
     port: int
@@ -106,10 +113,14 @@ class ScadaSettings:
     allow_anonymous: bool = False
     application_uri: str = NAMESPACE
     trust_all_clients: bool = False
+    rejected_keep: int = 50
+    login_throttle: ThrottlePolicy = field(default_factory=ThrottlePolicy)
 
     def __post_init__(self) -> None:
         if not 0 < self.port < 65536:
             raise ValueError(f"port {self.port} is not a TCP port")
+        if self.rejected_keep < 1:
+            raise ValueError(f"rejected_keep must be at least 1, got {self.rejected_keep}")
         object.__setattr__(self, "pki_dir", Path(self.pki_dir))
         object.__setattr__(self, "users", tuple(self.users))
         names = [u.username for u in self.users]
@@ -186,11 +197,12 @@ class _ClientTrust:
     session whose secure channel was opened with any other one (or none).
     """
 
-    def __init__(self, pki_dir: Path, trust_all: bool) -> None:
+    def __init__(self, pki_dir: Path, trust_all: bool, rejected_keep: int = 50) -> None:
         self._trusted = pki_dir / TRUSTED_DIR
         self._rejected = pki_dir / REJECTED_DIR
         self._crl = pki_dir / CRL_DIR
         self._trust_all = trust_all
+        self._rejected_keep = rejected_keep
         self._admitted: set[bytes] = set()
 
     def admitted(self, certificate_der: bytes) -> bool:
@@ -215,27 +227,37 @@ class _ClientTrust:
             name = ua.StatusCode(err.code).name
             subject = _common_name(cert)
             if err.code == ua.StatusCodes.BadCertificateUntrusted:
-                path = self._save_rejected(cert, der)
+                path, removed = self._save_rejected(cert, der)
                 _logger.warning(
                     "SCADA client %r (%s) refused: certificate not trusted, saved as %s; "
-                    "move it to %s to trust it",
+                    "move it to %s to trust it%s",
                     subject,
                     app.ApplicationUri,
                     path,
                     self._trusted,
+                    f" ({removed} older rejected certificate(s) removed: {self._rejected} "
+                    f"keeps the newest {self._rejected_keep})"
+                    if removed
+                    else "",
                 )
             else:
                 _logger.warning("SCADA client %r refused: %s", subject, name)
             raise
         self._admitted.add(der)
 
-    def _save_rejected(self, cert: x509.Certificate, der: bytes) -> Path:
+    def _save_rejected(self, cert: x509.Certificate, der: bytes) -> tuple[Path, int]:
+        """Save the certificate, then keep only the newest ``rejected_keep``; (path, removed)."""
         # The SHA-1 thumbprint is how OPC UA tools name a certificate (an id, not a hash).
         thumbprint = cert.fingerprint(hashes.SHA1()).hex()
         label = re.sub(r"[^A-Za-z0-9_.-]+", "_", _common_name(cert))[:60]
         path = self._rejected / f"{label}_{thumbprint}.der"
         path.write_bytes(der)
-        return path
+        saved = [p for p in self._rejected.glob("*.der") if p.is_file()]
+        saved.sort(key=lambda p: (p.stat().st_mtime_ns, p == path))
+        excess = [p for p in saved[: max(len(saved) - self._rejected_keep, 0)] if p != path]
+        for old in excess:
+            old.unlink(missing_ok=True)
+        return path, len(excess)
 
 
 def _common_name(cert: x509.Certificate) -> str:
@@ -243,13 +265,36 @@ def _common_name(cert: x509.Certificate) -> str:
     return str(names[0].value) if names else "?"
 
 
-class _UserManager(UserManager):
-    """asyncua user manager: secure channel + trusted certificate + password → role."""
+class _QuietTrustStore(logging.Filter):
+    """Drops asyncua's traceback for an untrusted certificate: ``_ClientTrust`` logs one line."""
 
-    def __init__(self, users: Sequence[ScadaUser], allow_anonymous: bool, trust: _ClientTrust):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Not trusted certificate used")
+
+
+_TRUST_STORE_LOGGER = "asyncuagds.validate"  # asyncua.crypto.truststore's logger
+
+
+class _UserManager(UserManager):
+    """asyncua user manager: secure channel + trusted certificate + password → role.
+
+    asyncua does not tell a user manager who is asking; :func:`_watch_peers`
+    sets ``peer`` (the remote address) around each ActivateSession, so failed
+    logins can be throttled per address as well as per user name.
+    """
+
+    def __init__(
+        self,
+        users: Sequence[ScadaUser],
+        allow_anonymous: bool,
+        trust: _ClientTrust,
+        throttle: LoginThrottle,
+    ):
         self._users = {u.username: u for u in users}
         self._allow_anonymous = allow_anonymous
         self._trust = trust
+        self.throttle = throttle
+        self.peer: str | None = None
 
     def get_user(
         self,
@@ -266,15 +311,60 @@ class _UserManager(UserManager):
             if self._allow_anonymous:
                 return _SessionUser(role=UserRole.Anonymous, name="anonymous", may_write=False)
             return None
+        address = self.peer or "unknown"
+        keys: list[Key] = [("address", address), ("user", username)]
+        if self.throttle.refuse_locked(keys):
+            return None  # the lockout was logged when it started
         user = self._users.get(username)
         expected = (user.password if user is not None else "\0 no such user").encode()
         given = (password or "").encode()
         if user is None or not hmac.compare_digest(given, expected):
-            _logger.warning("SCADA login refused for user %r", username)
+            _logger.warning("SCADA login refused for user %r from %s", username, address)
+            policy = self.throttle.policy
+            for lockout in self.throttle.failed(keys):
+                kind, value = lockout.key
+                _logger.warning(
+                    "SCADA logins %s %s locked for %.0f s after %d failed attempts within "
+                    "%.0f s; every login through it is refused until then",
+                    "from address" if kind == "address" else "as user",
+                    value if kind == "address" else repr(value),
+                    lockout.duration_s,
+                    lockout.failures,
+                    policy.window_s,
+                )
             return None
+        self.throttle.succeeded(keys)
         return _SessionUser(
             role=UserRole.User, name=user.username, may_write=user.role == "operator"
         )
+
+
+def _watch_peers(server: Server, manager: _UserManager) -> None:
+    """Tell ``manager`` the remote address of every ActivateSession it judges.
+
+    asyncua names each session by the peer's (host, port) and calls the user
+    manager synchronously inside ``InternalSession.activate_session``; wrapping
+    that call on every new session lets ``manager.peer`` hold the host meanwhile.
+    """
+    iserver = server.iserver
+    create_session = iserver.create_session
+
+    def create_watched_session(name: Any, *args: Any, **kwargs: Any) -> Any:
+        session = create_session(name, *args, **kwargs)
+        activate = session.activate_session
+        host = str(name[0]) if isinstance(name, tuple) and name else str(name)
+
+        def activate_session(*a: Any, **kw: Any) -> Any:
+            manager.peer = host
+            try:
+                return activate(*a, **kw)
+            finally:
+                manager.peer = None
+
+        session.activate_session = activate_session
+        return session
+
+    iserver.create_session = create_watched_session
 
 
 # -- the server -----------------------------------------------------------------------
@@ -335,7 +425,9 @@ class ScadaServer(ServerLifecycle):
         settings: ScadaSettings,
         machines: Sequence[str] | Mapping[str, Sequence[str]],
         on_enable: Callable[[str, bool], None],
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
+        """``clock`` (seconds) times login lockouts; tests pass a manual one."""
         if isinstance(machines, Mapping):
             sensors = {str(m): tuple(s) for m, s in machines.items()}
         else:
@@ -349,6 +441,7 @@ class ScadaServer(ServerLifecycle):
         self._settings = settings
         self._sensors = sensors
         self._on_enable = on_enable
+        self.login_throttle = LoginThrottle(settings.login_throttle, clock)
         self._server: Server | None = None
         self._ns: int | None = None
         self._nodeids: dict[str, ua.NodeId] = {}
@@ -385,9 +478,14 @@ class ScadaServer(ServerLifecycle):
         """Create or load the certificate, build the address space, then listen."""
         self._refuse_second_start()
         settings = self._settings
-        trust = _ClientTrust(settings.pki_dir, settings.trust_all_clients)
+        trust = _ClientTrust(settings.pki_dir, settings.trust_all_clients, settings.rejected_keep)
         await self._ensure_certificate()
-        server = Server(user_manager=_UserManager(settings.users, settings.allow_anonymous, trust))
+        manager = _UserManager(settings.users, settings.allow_anonymous, trust, self.login_throttle)
+        server = Server(user_manager=manager)
+        _watch_peers(server, manager)
+        trust_store_log = logging.getLogger(_TRUST_STORE_LOGGER)
+        if not any(isinstance(f, _QuietTrustStore) for f in trust_store_log.filters):
+            trust_store_log.addFilter(_QuietTrustStore())
         await server.init()
         server.set_endpoint(self.endpoint)
         server.set_server_name("Spindle thermal compensation gateway (SCADA)")

@@ -65,6 +65,14 @@ class SensorFault:
         """A ``drift`` stated in °C per second (stored as °C per hour)."""
         return cls(sensor, "drift", start_s, end_s, magnitude_C=rate_C_per_s * 3600.0)
 
+    @property
+    def held_C(self) -> float | None:
+        """The value a stuck sensor shows (None until the machine took it)."""
+        return self._held_C
+
+    def hold(self, value_C: float) -> None:
+        self._held_C = value_C
+
     def active(self, time_s: float) -> bool:
         return time_s >= self.start_s and (self.end_s is None or time_s < self.end_s)
 

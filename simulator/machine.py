@@ -8,8 +8,11 @@ so the measured error is
 
     error = Z growth − sign · #500 · (µm per CNC unit) + probe noise.
 
-All randomness (sensor and probe noise) comes from one seeded generator, so a
-recording is reproducible to the byte.
+All randomness (sensor and probe noise) is a function of the seed, the machine
+time and the channel (:mod:`simulator.noise`), never of how often or when (in
+wall-clock time) the machine is read: a recording is reproducible to the byte,
+and a served machine gives the same readings at the same machine time however
+its publishes fall.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from simulator.link import (
     RunMode,
     check_macro_number,
 )
+from simulator.noise import PROBE, SENSORS, MachineNoise
 from simulator.params import NODES, MachineParams
 from simulator.programs import SpeedProgram
 from simulator.thermal import ThermalNetwork
@@ -51,7 +55,7 @@ class SimulatedMachine:
         self.network = ThermalNetwork(
             params, params.sub_step_s, self.effects.coolant_conductance_W_per_K
         )
-        self.rng = np.random.default_rng(seed)
+        self.noise = MachineNoise(seed)
         self.program_start_s = start_s
         self.time_s = start_s
         self.reference_C = params.ambient_C
@@ -108,6 +112,7 @@ class SimulatedMachine:
             self.ambient_decay * self.ambient_sensor_C + (1 - self.ambient_decay) * room
         )
         self.time_s += h
+        self._hold_stuck_sensors()
         if self.time_s + 1e-9 >= self._next_probe_s:
             self._next_probe_s += self.params.probe.period_s
             self.probe_error_um = self.measured_error_um()
@@ -136,8 +141,14 @@ class SimulatedMachine:
         return self.growth_um() - self.applied_compensation_um()
 
     def measured_error_um(self) -> float:
-        """What a probe measures: the true error plus probe noise."""
-        return self.true_error_um() + self.rng.normal(0.0, self.params.probe.noise_um)
+        """What a probe measures: the true error plus probe noise (fixed by machine time)."""
+        noise = self.noise.normal(PROBE, self.sample_index, 1)[0]
+        return self.true_error_um() + float(noise) * self.params.probe.noise_um
+
+    @property
+    def sample_index(self) -> int:
+        """Machine time in sub-steps: what the noise of a reading is keyed on."""
+        return round(self.time_s / self.params.sub_step_s)
 
     # --- sensors ------------------------------------------------------------------------
     def add_fault(self, fault: SensorFault) -> None:
@@ -146,21 +157,41 @@ class SimulatedMachine:
                 f"no sensor '{fault.sensor}' (sensors: {', '.join(self.sensor_names)})"
             )
         self.faults.append(fault)
+        self._hold_stuck_sensors()
+
+    def _hold_stuck_sensors(self) -> None:
+        """A stuck sensor freezes at its reading of the machine time the fault starts.
+
+        Taken here (at the first sub-step of the fault, or when a fault already
+        under way is added), not at whichever read happens to come first.
+        """
+        stuck = [f for f in self.faults if f.kind == "stuck" and f.active(self.time_s)]
+        if any(f.held_C is None for f in stuck):
+            clean = self._clean_readings()
+            for fault in stuck:
+                if fault.held_C is None:
+                    fault.hold(clean[fault.sensor].value_C)
 
     def clear_faults(self) -> None:
         self.faults.clear()
 
     def readings(self) -> dict[str, ChannelReading]:
         """What each transmitter channel measures now (°C), with noise and faults."""
-        noise = self.rng.normal(0.0, self.params.sensor_noise_C, len(self.sensor_names) + 1)
+        readings = self._clean_readings()
+        for fault in self.faults:
+            readings[fault.sensor] = fault.apply(readings[fault.sensor], self.time_s)
+        return readings
+
+    def _clean_readings(self) -> dict[str, ChannelReading]:
+        """Every channel with its noise at this machine time, before faults."""
+        draws = self.noise.normal(SENSORS, self.sample_index, len(self.sensor_names) + 1)
+        noise = draws * self.params.sensor_noise_C
         values = self.sensors_C + self.offsets_C + noise[:-1]
         readings = {
             name: ChannelReading(float(v))
             for name, v in zip(self.sensor_names, values, strict=True)
         }
         readings[AMBIENT_CHANNEL] = ChannelReading(float(self.ambient_sensor_C + noise[-1]))
-        for fault in self.faults:
-            readings[fault.sensor] = fault.apply(readings[fault.sensor], self.time_s)
         return readings
 
     # --- MachineLink --------------------------------------------------------------------

@@ -268,13 +268,12 @@ def test_a_document_the_stream_cannot_run_is_refused(documents: dict[str, dict])
 def test_bank_loads_augmented_models_with_their_needed_sensors(
     tmp_path: Path, documents: dict[str, dict]
 ) -> None:
-    for name in ("sim", "fl-by-hand"):
-        augmented.save(documents[name], tmp_path)
-    bank = ModelBank.from_store(tmp_path, ambient_sensor="ambient")
-    sim, fl = bank.get(documents["sim"]["model_id"]), bank.get(documents["fl-by-hand"]["model_id"])
-    assert isinstance(sim, BankedAugmented) and isinstance(fl, BankedAugmented)
+    augmented.save(documents["sim"], tmp_path / "sim")
+    bank = ModelBank.from_store(tmp_path / "sim", ambient_sensor="ambient")
+    sim = bank.get(documents["sim"]["model_id"])
+    assert isinstance(sim, BankedAugmented)
     assert sim.sensors == {f"T{i}" for i in range(1, 10)} | {"ambient"}
-    assert sim.ambient_sensor == "ambient" and fl.ambient_sensor is None
+    assert sim.ambient_sensor == "ambient"
     assert sim.regime is None
     assert sim.held_out_rmse_um == documents["sim"]["provenance"]["after"]["rmse_um"]
     machine = {f"T{i}" for i in range(1, 17)} | {"ambient"}
@@ -282,8 +281,17 @@ def test_bank_loads_augmented_models_with_their_needed_sensors(
     with pytest.raises(ValueError, match=r"needs sensor\(s\) \['ambient'\]"):
         bank.check_sensors(machine - {"ambient"})
     assert bank.usable(sim.model_id, machine) is sim
-    assert bank.usable(sim.model_id, machine - {"T2"}) is fl  # the fallback does without T2
-    assert bank.usable(sim.model_id, machine - {"T16", "T2"}) is None
+    for name in ("fl", "fl-by-hand"):  # both ch1_um: one store holds one target
+        augmented.save(documents[name], tmp_path / "fl")
+    bank = ModelBank.from_store(tmp_path / "fl", ambient_sensor="ambient")
+    full, few = bank.get(documents["fl"]["model_id"]), bank.get(documents["fl-by-hand"]["model_id"])
+    assert isinstance(few, BankedAugmented) and few.ambient_sensor is None
+    assert bank.usable(full.model_id, machine) is full
+    assert bank.usable(full.model_id, machine - {"T2"}) is few  # the fallback does without T2
+    assert bank.usable(full.model_id, machine - {"T16", "T2"}) is None
+    augmented.save(documents["sim"], tmp_path / "fl")  # error_um next to ch1_um: refused
+    with pytest.raises(ValueError, match=r"predict different targets \(ch1_um \(µm\): "):
+        ModelBank.from_store(tmp_path / "fl", ambient_sensor="ambient")
 
 
 def test_effect_states_survive_a_restart(

@@ -1,0 +1,140 @@
+"""Lock out a client that keeps failing to log in, so passwords cannot be guessed fast.
+
+An OPC UA client can open sessions as fast as the handshakes allow (about 7 a
+second on loopback), and each one is a password guess. The throttle keeps, for
+each *key* — a remote address and a user name are separate keys — the failed
+logins of the last ``window_s``. The ``max_failures``-th failure within that
+window locks the key for ``lockout_s``; every further lockout of the same key
+doubles, up to ``max_lockout_s``. While a key is locked, every login through it
+is refused without looking at the password, the right one included, so guesses
+made during a lockout teach nothing. A key that has failed nothing for
+``forget_s`` starts over; a successful login clears its keys.
+
+Keying on the user name as well as the address means a client cannot rotate
+addresses to keep guessing one account. It also means anyone who can reach the
+server can lock an account out for a while; the lockout is bounded and every
+lockout is logged, and the shift can log in again when it ends.
+
+The throttle is pure bookkeeping on an injected clock (``now``, seconds); the
+SCADA server calls it from its user manager.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+Key = tuple[str, str]  # ("address", "10.0.0.7") or ("user", "alice")
+
+MAX_KEYS = 10_000  # a flood of made-up user names cannot grow the table without bound
+
+
+@dataclass(frozen=True, kw_only=True)
+class ThrottlePolicy:
+    """When a key is locked, and for how long."""
+
+    max_failures: int = 5
+    window_s: float = 60.0
+    lockout_s: float = 30.0
+    max_lockout_s: float = 900.0
+    forget_s: float = 3600.0
+
+    def __post_init__(self) -> None:
+        if self.max_failures < 1:
+            raise ValueError(f"max_failures must be at least 1, got {self.max_failures}")
+        if not 0 < self.lockout_s <= self.max_lockout_s:
+            raise ValueError(
+                f"need 0 < lockout_s ({self.lockout_s}) <= max_lockout_s ({self.max_lockout_s})"
+            )
+        if self.window_s <= 0 or self.forget_s <= 0:
+            raise ValueError("window_s and forget_s must be positive")
+
+    def lockout_for(self, previous_lockouts: int) -> float:
+        """The length of a key's next lockout after ``previous_lockouts`` earlier ones."""
+        return min(self.lockout_s * 2.0 ** min(previous_lockouts, 64), self.max_lockout_s)
+
+
+@dataclass
+class _KeyState:
+    failures: deque[float] = field(default_factory=deque)
+    locked_until_s: float = 0.0
+    lockouts: int = 0
+    last_failure_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Lockout:
+    """A lockout that has just started (for the one log line it deserves)."""
+
+    key: Key
+    duration_s: float
+    failures: int
+
+
+class LoginThrottle:
+    def __init__(self, policy: ThrottlePolicy, now: Callable[[], float] = time.monotonic) -> None:
+        self.policy = policy
+        self._now = now
+        self._keys: dict[Key, _KeyState] = {}
+        self.checked = 0  # logins whose password was compared
+        self.refused_locked = 0  # logins refused unchecked because a key was locked
+
+    def locked_for_s(self, keys: Iterable[Key]) -> float:
+        """Seconds until every one of ``keys`` is unlocked (0: the login may be checked)."""
+        now = self._now()
+        remaining = 0.0
+        for key in keys:
+            state = self._keys.get(key)
+            if state is not None:
+                remaining = max(remaining, state.locked_until_s - now)
+        return remaining
+
+    def refuse_locked(self, keys: Iterable[Key]) -> bool:
+        """True (and counted) if the login must be refused unchecked."""
+        if self.locked_for_s(keys) > 0:
+            self.refused_locked += 1
+            return True
+        self.checked += 1
+        return False
+
+    def failed(self, keys: Iterable[Key]) -> list[Lockout]:
+        """Record a failed login through ``keys``; the lockouts it started."""
+        now = self._now()
+        self._forget_idle(now)
+        started = []
+        for key in keys:
+            state = self._keys.setdefault(key, _KeyState())
+            if now - state.last_failure_s > self.policy.forget_s:
+                state.lockouts = 0
+            state.last_failure_s = now
+            state.failures.append(now)
+            while state.failures and now - state.failures[0] > self.policy.window_s:
+                state.failures.popleft()
+            if len(state.failures) >= self.policy.max_failures:
+                duration = self.policy.lockout_for(state.lockouts)
+                state.locked_until_s = now + duration
+                state.lockouts += 1
+                started.append(Lockout(key, duration, len(state.failures)))
+                state.failures.clear()
+        return started
+
+    def succeeded(self, keys: Iterable[Key]) -> None:
+        for key in keys:
+            self._keys.pop(key, None)
+
+    def _forget_idle(self, now: float) -> None:
+        if len(self._keys) < MAX_KEYS:
+            return
+        idle = [
+            key
+            for key, state in self._keys.items()
+            if state.locked_until_s <= now and now - state.last_failure_s > self.policy.window_s
+        ]
+        for key in idle:
+            del self._keys[key]
+        if len(self._keys) >= MAX_KEYS:  # all busy: drop the longest idle
+            oldest = sorted(self._keys, key=lambda k: self._keys[k].last_failure_s)
+            for key in oldest[: len(self._keys) - MAX_KEYS + 1]:
+                del self._keys[key]

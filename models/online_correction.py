@@ -74,7 +74,7 @@ class CorrectionParams:
     bound_um: float = 20.0
     decay_after_s: float = 4 * SECONDS_PER_HOUR
     decay_tau_s: float = SECONDS_PER_HOUR
-    reset_after_refusals: int = 3
+    reset_after_refusals: int = 2
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:

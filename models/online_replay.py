@@ -51,7 +51,7 @@ LAG_TAU_SETS_S: tuple[tuple[float, ...], ...] = ((600.0, 3600.0), (1800.0, 7200.
 RIDGE_PENALTIES = (0.01, 0.03, 0.1)
 LEVEL_WEIGHTS = (0.5, 1.0)
 CHANGE_LAGS = 8  # lags 1/8 … 8/8 of the probe interval in the change term
-PROCESS_UM2_PER_H = (1.0, 10.0, 100.0)
+PROCESS_FLOOR_UM2_PER_H = 0.01
 OUTLIER_SIGMAS = (4.0, 6.0, 8.0)
 OUTLIER_TOLERANCE = 1.02  # the smallest k whose inner RMSE is within 2 % of the best
 MIN_PROBE_NOISE_UM = 0.05
@@ -222,27 +222,43 @@ def _score(params: CorrectionParams, prepared: Prepared, residual: np.ndarray,
     return float(np.sqrt(sse / n))
 
 
+def process_noise_um2_per_h(
+    prepared: Prepared, residual: np.ndarray, runs: Sequence[str], interval_s: float, noise_um: float
+) -> float:
+    """q from the training runs by moment matching: successive probe residuals Δ apart differ
+    by q·Δ + 2R in variance under the random-walk model (R = probe noise²)."""
+    slices = dict(prepared.data.run_slices())
+    steps = []
+    for run in runs:
+        rows = slices[run]
+        at = probe_rows(prepared.data.time_s[rows], interval_s)
+        steps.append(np.diff(residual[rows][at]))
+    values = np.concatenate(steps)
+    if values.size == 0:
+        return PROCESS_FLOOR_UM2_PER_H
+    q = (float(np.mean(values**2)) - 2.0 * noise_um**2) / (interval_s / 3600.0)
+    return max(q, PROCESS_FLOOR_UM2_PER_H)
+
+
 def choose_filter(
-    prepared: Prepared, inner_residual: np.ndarray, runs: Sequence[str], interval_s: float,
+    prepared: Prepared,
+    inner_residual: np.ndarray,
+    runs: Sequence[str],
+    interval_s: float,
     defaults: CorrectionParams,
 ) -> CorrectionParams:
-    """q, then the smallest k within ``OUTLIER_TOLERANCE`` of the best, on inner residuals."""
+    """R and q estimated on the training runs, then the smallest k whose inner replay RMSE is
+    within ``OUTLIER_TOLERANCE`` of the best k."""
     noise = probe_noise_um(prepared, runs)
-    base = defaults.with_limits(probe_noise_um=noise)
-    scored_q = [
-        (_score(base.with_limits(process_um2_per_h=q, outlier_sigma=max(OUTLIER_SIGMAS)),
-                prepared, inner_residual, runs, interval_s), q)
-        for q in PROCESS_UM2_PER_H
-    ]
-    q = min(scored_q)[1]
+    q = process_noise_um2_per_h(prepared, inner_residual, runs, interval_s, noise)
+    base = defaults.with_limits(probe_noise_um=noise, process_um2_per_h=q)
     scored_k = {
-        k: _score(base.with_limits(process_um2_per_h=q, outlier_sigma=k), prepared,
-                  inner_residual, runs, interval_s)
+        k: _score(base.with_limits(outlier_sigma=k), prepared, inner_residual, runs, interval_s)
         for k in OUTLIER_SIGMAS
     }
     best = min(scored_k.values())
     k = min(k for k, s in scored_k.items() if s <= OUTLIER_TOLERANCE * best)
-    return base.with_limits(process_um2_per_h=q, outlier_sigma=k)
+    return base.with_limits(outlier_sigma=k)
 
 
 def replay_interval(
@@ -315,7 +331,7 @@ def replay_interval(
 def _filter_choice(params: CorrectionParams) -> dict[str, Any]:
     return {
         "kind": params.kind,
-        "process_um2_per_h": params.process_um2_per_h,
+        "process_um2_per_h": round(params.process_um2_per_h, 4),
         "probe_noise_um": round(params.probe_noise_um, 4),
         "outlier_sigma": params.outlier_sigma,
     }

@@ -147,14 +147,16 @@ class LaggedFeatures:
         self.y = prepared.error_um
         dt = float(np.median(np.diff(data.time_s[: min(data.n_samples, 1000)])))
         steps = np.linspace(interval_s / CHANGE_LAGS, interval_s, CHANGE_LAGS) / max(dt, 1e-9)
-        self.change_steps = sorted({max(int(round(s)), 1) for s in steps})
+        self.change_steps = sorted({max(round(s), 1) for s in steps})
         self.designs: dict[tuple[float, ...], np.ndarray] = {}
         self.grams: dict[tuple[float, ...], dict[str, tuple[np.ndarray, ...]]] = {}
         for taus in LAG_TAU_SETS_S:
             lags = [first_order_lag(rises, data.time_s, prepared.plan.recording, t) for t in taus]
             design = np.column_stack([np.ones(data.n_samples), rises, *lags])
             self.designs[taus] = design
-            self.grams[taus] = {run: self._run_grams(design, rows) for run, rows in self.slices.items()}
+            self.grams[taus] = {
+                run: self._run_grams(design, rows) for run, rows in self.slices.items()
+            }
 
     def _run_grams(self, design: np.ndarray, rows: slice) -> tuple[np.ndarray, ...]:
         z, y = design[rows], self.y[rows]
@@ -197,12 +199,13 @@ def augmented_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray
     families = {f.effect: f for f in candidate_families(prepared, effect_sensors)}
     for effect in document["effects"]:
         family = families.get(effect["effect"])
-        matches = [] if family is None else [
-            v for v in family.variants if v.params == effect["params"]
-        ]
+        matches = (
+            [] if family is None else [v for v in family.variants if v.params == effect["params"]]
+        )
         if not matches:
-            raise StoreError(f"this data cannot provide the effect {effect['effect']} "
-                             f"{effect['params']}")
+            raise StoreError(
+                f"this data cannot provide the effect {effect['effect']} {effect['params']}"
+            )
         columns.append(matches[0].build())
     return np.column_stack(columns)
 
@@ -210,8 +213,13 @@ def augmented_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray
 # --- the nested choice ------------------------------------------------------------------
 
 
-def _score(params: CorrectionParams, prepared: Prepared, residual: np.ndarray,
-           runs: Sequence[str], interval_s: float) -> float:
+def _score(
+    params: CorrectionParams,
+    prepared: Prepared,
+    residual: np.ndarray,
+    runs: Sequence[str],
+    interval_s: float,
+) -> float:
     slices = dict(prepared.data.run_slices())
     sse = n = 0.0
     for run in runs:
@@ -223,7 +231,11 @@ def _score(params: CorrectionParams, prepared: Prepared, residual: np.ndarray,
 
 
 def process_noise_um2_per_h(
-    prepared: Prepared, residual: np.ndarray, runs: Sequence[str], interval_s: float, noise_um: float
+    prepared: Prepared,
+    residual: np.ndarray,
+    runs: Sequence[str],
+    interval_s: float,
+    noise_um: float,
 ) -> float:
     """q from the training runs by moment matching: successive probe residuals Δ apart differ
     by q·Δ + 2R in variance under the random-walk model (R = probe noise²)."""
@@ -337,7 +349,9 @@ def _filter_choice(params: CorrectionParams) -> dict[str, Any]:
     }
 
 
-def _used_sensors(prepared: Prepared, method: str, sensors: Sequence[str] | None) -> tuple[str, ...]:
+def _used_sensors(
+    prepared: Prepared, method: str, sensors: Sequence[str] | None
+) -> tuple[str, ...]:
     """The sensors the declared model uses (grey-mlr selects a few; the others use all)."""
     if method == "mlr":
         return tuple(sensors) if sensors is not None else prepared.inputs.sensors
@@ -354,7 +368,9 @@ def _fit_lagged(
 
 
 def _choose_lagged(
-    features: LaggedFeatures, train_runs: list[str], defaults: CorrectionParams,
+    features: LaggedFeatures,
+    train_runs: list[str],
+    defaults: CorrectionParams,
     interval_s: float,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """τ set, ridge penalty and level weight by inner leave-one-out on ``train_runs``,

@@ -76,6 +76,10 @@ def run_replay(
             f"{row['rmse_between_probes_um']:10.2f} {row['max_abs_um']:8.2f} "
             f"{row['probes']:6d} {row['probes_refused']:7d}"
         )
+    for row in rows:
+        say(f"chosen without the held-out run, probe every {row['probe_interval_min']:g} min:")
+        for run, figures in row["per_run"].items():
+            say(f"  {run:<14} {figures['rmse_um']:6.2f} µm  {describe_choice(figures['chosen'])}")
     elapsed = time.perf_counter() - started
     say(f"leave-one-run-out, causal; {elapsed:.1f} s")
     return {
@@ -89,3 +93,20 @@ def run_replay(
         "reference": prepared.plan.describe(),
         "elapsed_s": round(elapsed, 2),
     }
+
+
+def describe_choice(chosen: dict[str, Any]) -> str:
+    """One line: the base's choices (if any) and the filter's parameters."""
+    parts = []
+    if "lag_taus_s" in chosen:
+        taus = "+".join(f"{t:g}" for t in chosen["lag_taus_s"])
+        parts.append(
+            f"lags τ {taus} s, ridge {chosen['ridge']:g}, level weight {chosen['level_weight']:g}"
+        )
+    f = chosen.get("filter", {})
+    if f:
+        parts.append(
+            f"filter {f['kind']}: q {f['process_um2_per_h']:.3g} µm²/h, "
+            f"R {f['probe_noise_um']:.3g} µm, k {f['outlier_sigma']:g}"
+        )
+    return "; ".join(parts)

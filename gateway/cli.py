@@ -655,6 +655,13 @@ def analyze(
     multiple=True,
     help="Minutes between probes (repeatable; default 60).",
 )
+@click.option(
+    "--store",
+    "store_dir",
+    type=click.Path(path_type=Path),
+    help="Save the lagged base fitted on every run, with its online-correction parameters "
+    "for the first interval, as an augmented model (sub-folder augmented/).",
+)
 @click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
 @input_errors_exit
 def replay(
@@ -665,6 +672,7 @@ def replay(
     base: str,
     augmented_file: Path | None,
     intervals: tuple[float, ...],
+    store_dir: Path | None,
     json_out: Path | None,
 ) -> None:
     """Replay measured runs causally through the online probe correction, leave-one-run-out."""
@@ -679,5 +687,7 @@ def replay(
         base,
         augmented_file,
         click.echo,
+        store_dir=store_dir,
+        version=__version__,
     )
     write_json(json_out, result)

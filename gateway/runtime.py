@@ -42,7 +42,7 @@ from gateway.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.quality import Quality, QualityMonitor
 from gateway.reference import TemperatureReference
 from models.base import ModelInputs
-from models.online_correction import OnlineCorrection
+from models.online_correction import CorrectionParams, OnlineCorrection
 from models.regime_rules import RegimeSelector
 
 log = logging.getLogger(__name__)
@@ -153,7 +153,8 @@ class MachineLoop:
             write_status="",
             link_errors=errors,
         )
-        await self._compensate(now, self._corrected(now, predicted, record), record)
+        corrected = self._corrected(now, banked, predicted, record)
+        await self._compensate(now, corrected, record)
         await self._read_probe(record)
         self._online_update(now, predicted, record)
         self.cycles += 1
@@ -269,15 +270,30 @@ class MachineLoop:
             self._last_probe_um = value
             record.probe_error_um = value
 
-    def _corrected(self, now: float, predicted: float | None, record: CycleRecord) -> float | None:
+    def _corrected(
+        self, now: float, banked: Banked | None, predicted: float | None, record: CycleRecord
+    ) -> float | None:
         """The prediction plus the online correction (bounded, decayed in silence).
 
         No prediction stays no prediction: the policy's hold-and-ramp path takes over.
+        A model that stores its own online-correction noise model (``replay --store``)
+        brings it along; the config's limits (bound, decay) always hold.
         """
         if self.online is None or predicted is None:
             return predicted
+        params = self._online_params(banked)
+        if params.kind != self.online.params.kind:
+            log.info("%s: online correction restarts as %s", self.config.id, params.kind)
+            self.online = OnlineCorrection(params)
+        self.online.params = params
         record.correction_um = float(self.online.correction_at(now)[0])
         return predicted + record.correction_um
+
+    def _online_params(self, banked: Banked | None) -> CorrectionParams:
+        limits = self.config.online_correction.params()
+        document = banked.document if isinstance(banked, BankedAugmented) else None
+        stored = (document or {}).get("online_correction") or {}
+        return limits.with_noise_of(stored.get("params", {}))
 
     def _online_update(self, now: float, predicted: float | None, record: CycleRecord) -> None:
         """A new probe value updates the filter with the model's residual then (contracts §7):

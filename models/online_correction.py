@@ -57,6 +57,15 @@ import numpy as np
 
 SECONDS_PER_HOUR = 3600.0
 KINDS = ("bias", "bias-rate")
+# What a fit chooses and a model stores; the rest (bound, decay) are the machine's safety limits.
+NOISE_FIELDS = (
+    "kind",
+    "process_um2_per_h",
+    "rate_process_um2_per_h3",
+    "reversion_tau_s",
+    "probe_noise_um",
+    "outlier_sigma",
+)
 Kind = Literal["bias", "bias-rate"]
 
 
@@ -106,8 +115,12 @@ class CorrectionParams:
         return cls(**dict(values))
 
     def with_limits(self, **limits: Any) -> CorrectionParams:
-        """The same noise model with other safety limits (bound, k, decay) from a config."""
+        """The same parameters with the ones named replaced."""
         return replace(self, **limits)
+
+    def with_noise_of(self, stored: Mapping[str, Any]) -> CorrectionParams:
+        """These safety limits with the noise model (``NOISE_FIELDS``) a model stored."""
+        return replace(self, **{k: stored[k] for k in NOISE_FIELDS if k in stored})
 
 
 @dataclass(frozen=True)

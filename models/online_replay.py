@@ -336,11 +336,11 @@ def replay_interval(
         result_runs.append(
             RunReplay(held, residual - applied, at_probe, int(probe_at.size), correction.refused)
         )
-        choices[held] = chosen | {"filter": _filter_choice(params)}
+        choices[held] = chosen | {"filter": filter_choice(params)}
     return IntervalResult(interval_min, result_runs, base_residual, choices)
 
 
-def _filter_choice(params: CorrectionParams) -> dict[str, Any]:
+def filter_choice(params: CorrectionParams) -> dict[str, Any]:
     return {
         "kind": params.kind,
         "process_um2_per_h": round(params.process_um2_per_h, 4),
@@ -412,3 +412,57 @@ def offline_accuracy(
         predicted[test] = _declared_prediction(prepared, method, sensors, ~test)[test]
     acc = accuracy(prepared.error_um, predicted)
     return {"rmse_um": acc.rmse_um, "max_abs_um": acc.max_abs_um}
+
+
+# --- the model to store -----------------------------------------------------------------
+
+
+def fit_for_store(
+    prepared: Prepared,
+    interval_min: float,
+    method: str = "mlr",
+    sensors: Sequence[str] | None = None,
+    defaults: CorrectionParams | None = None,
+) -> tuple[dict[str, Any], CorrectionParams, dict[str, Any], np.ndarray]:
+    """The lagged base and the filter fitted on every run (choices by leave-one-run-out on
+    all of them, as ``fit`` does): (augmented-model parts, filter parameters, choices, the
+    base's leave-one-run-out prediction).
+
+    The base is an augmented model as :mod:`models.augmented` stores it: ``mlr`` on the
+    sensors plus one ``thermal_lag`` effect per time constant, so the runtime's model
+    bank and :mod:`models.effect_stream` run it unchanged.
+    """
+    defaults = defaults or CorrectionParams()
+    interval_s = 60.0 * interval_min
+    runs = list(prepared.data.run_ids)
+    used = _used_sensors(prepared, method, sensors)
+    features = LaggedFeatures(prepared, used, interval_s)
+    _, chosen = _choose_lagged(features, runs, defaults, interval_s)
+    slices = dict(prepared.data.run_slices())
+    heldout = np.empty(prepared.data.n_samples)
+    for run in runs:
+        inner_pred, _ = _fit_lagged(features, chosen, [r for r in runs if r != run])
+        heldout[slices[run]] = inner_pred[slices[run]]
+    residual = prepared.error_um - heldout
+    params = choose_filter(prepared, residual, runs, interval_s, defaults)
+    taus = tuple(chosen["lag_taus_s"])
+    beta = features.fit(taus, chosen["ridge"], chosen["level_weight"], runs)
+    base = make_model("mlr", list(used)).fit(prepared.inputs, prepared.error_um)
+    parts = {
+        "base": {
+            "method": base.method,
+            "hyperparams": base.hyperparams(),
+            "params": base.fitted_params(),
+        },
+        "effects": [
+            {"effect": "thermal_lag", "params": {"tau_s": tau}, "terms": len(used)} for tau in taus
+        ],
+        "effect_sensors": list(used),
+        "coefficients": {
+            "intercept_um": float(beta[0]),
+            "all_um_per_unit": [float(b) for b in beta],
+            "order": "intercept, the base model's terms, then each effect's terms in order",
+            "fitted_by": "ridge on the level and on the changes over the probe interval",
+        },
+    }
+    return parts, params, chosen, heldout

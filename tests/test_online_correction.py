@@ -218,3 +218,52 @@ def test_the_policy_clamp_still_bounds_the_corrected_value():
     applied = run_cycles(OnlineCorrection(params), {0: 60.0}, 30, limits=limits)
     assert max(applied) <= 15.0
     assert applied[-1] == pytest.approx(15.0, abs=1e-3)
+
+
+# --- the machines[].online_correction config section ----------------------------------------
+
+CONFIG = """\
+machines:
+  - id: vmc-1
+    transmitters:
+      - name: bus1
+        tcp: {host: 127.0.0.1, port: 5020}
+        devices:
+          - {device_id: 1, channels: [T1, T2]}
+    cnc:
+      opcua: {endpoint: "opc.tcp://127.0.0.1:4840/cnc"}
+    compensation: {macro: 500, PROBE}
+    online_correction:
+      enabled: true
+      bound_um: BOUND
+      decay_after_s: 7200
+    models:
+      store: STORE
+"""
+
+
+def load_online(tmp_path, probe: str = "probe_macro: 510", bound: str = "8"):
+    from gateway.config import load_config
+
+    path = tmp_path / "config.yaml"
+    text = CONFIG.replace("PROBE", probe).replace("BOUND", bound)
+    path.write_text(text.replace("STORE", str(tmp_path / "models")), encoding="utf-8")
+    return path, load_config(path)
+
+
+def test_config_section_gives_the_filter_its_limits(tmp_path):
+    _, config = load_online(tmp_path)
+    params = config.machines[0].online_correction.params()
+    assert (params.bound_um, params.decay_after_s) == (8.0, 7200.0)
+    assert params.outlier_sigma == CorrectionParams().outlier_sigma  # the documented default
+
+
+def test_config_refuses_a_correction_without_probe_or_with_a_bad_bound(tmp_path):
+    from gateway.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"config.yaml:2: machines\[0\]: .*probe_macro"):
+        load_online(tmp_path, probe="clamp_um: 40")
+    with pytest.raises(
+        ConfigError, match=r"config.yaml:13: machines\[0\].online_correction.bound_um"
+    ):
+        load_online(tmp_path, bound="0")

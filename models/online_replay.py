@@ -299,6 +299,14 @@ def replay_interval(
         used = _used_sensors(prepared, method, sensors)
         features = LaggedFeatures(prepared, used, interval_s)
     design = augmented_design(document, prepared) if base == "augmented" else None
+    grams = (
+        {
+            r: (design[slices[r]].T @ design[slices[r]], design[slices[r]].T @ y[slices[r]])
+            for r in runs
+        }
+        if design is not None
+        else {}
+    )
 
     def fitted(train_runs: list[str]) -> tuple[np.ndarray, dict[str, Any]]:
         """Base prediction on every row from ``train_runs``, and what was chosen."""
@@ -306,8 +314,10 @@ def replay_interval(
         if base == "declared":
             return _declared_prediction(prepared, method, sensors, train), {}
         if base == "augmented":
-            assert design is not None
-            beta, *_ = np.linalg.lstsq(design[train], y[train], rcond=None)
+            assert design is not None  # least squares from the runs' Gram sums
+            g = sum(grams[r][0] for r in train_runs)
+            c = sum(grams[r][1] for r in train_runs)
+            beta, *_ = np.linalg.lstsq(g, c, rcond=1e-12)
             return design @ beta, {}
         assert features is not None
         return _choose_lagged(features, train_runs, defaults, interval_s)

@@ -125,3 +125,21 @@ def assert_stored_model_runs_in_the_bank(store, result) -> None:
     assert np.max(np.abs(np.array(stepped) - batch)) < 1e-9
     # Fitted on every cycle, the base explains them far better than the plain mlr.
     assert np.sqrt(np.mean((prepared.error_um - batch) ** 2)) < 0.6 * result["offline"]["rmse_um"]
+
+
+def test_replay_an_analyze_result_refits_its_coefficients_per_held_out_run(tmp_path):
+    store = tmp_path / "store"
+    done = gateway("analyze", FL_THERMAL, "--target", "ch1_um", "--store", store, "--no-progress")
+    assert done.returncode == 0, done.stderr
+    (model_file,) = (store / augmented.FOLDER).glob("*.json")
+    out = tmp_path / "replay.json"
+    done = gateway(
+        "replay", FL_THERMAL, "--target", "ch1_um", "--augmented", model_file, "--json", out
+    )
+    assert done.returncode == 0, done.stderr
+    assert "chosen on this file" in done.stdout  # says that its structure saw every run
+    result = json.loads(out.read_text(encoding="utf-8"))
+    assert result["base"]["kind"] == "augmented"
+    assert result["augmented_model"] == augmented.load(model_file)["model_id"]
+    (online,) = result["online"]
+    assert online["rmse_um"] < 0.25 * result["offline"]["rmse_um"]

@@ -657,3 +657,74 @@ def analyze(
 
         click.echo(f"wrote {write_report(result, report_dir)}")
     write_json(json_out, result.as_dict())
+
+
+@main.command()
+@click.argument("data_csv", type=click.Path(path_type=Path))
+@click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
+@click.option(
+    "--model",
+    "method",
+    type=click.Choice(sorted(METHODS)),
+    default="mlr",
+    show_default=True,
+    help="The declared model (its sensors feed the base).",
+)
+@click.option("--sensors", help="Declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
+@click.option(
+    "--base",
+    type=click.Choice(["lagged", "declared"]),
+    default="lagged",
+    show_default=True,
+    help="lagged: the model's sensors plus first-order lags, ridge, fitted for online use; "
+    "declared: the model as fit fits it.",
+)
+@click.option(
+    "--augmented",
+    "augmented_file",
+    type=click.Path(path_type=Path),
+    help="An analyze --store result to replay instead of --model.",
+)
+@click.option(
+    "--probe-interval-min",
+    "intervals",
+    type=click.FloatRange(min=0, min_open=True),
+    multiple=True,
+    help="Minutes between probes (repeatable; default 60).",
+)
+@click.option(
+    "--store",
+    "store_dir",
+    type=click.Path(path_type=Path),
+    help="Save the lagged base fitted on every run, with its online-correction parameters "
+    "for the first interval, as an augmented model (sub-folder augmented/).",
+)
+@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@input_errors_exit
+def replay(
+    data_csv: Path,
+    target: str,
+    method: str,
+    sensors: str | None,
+    base: str,
+    augmented_file: Path | None,
+    intervals: tuple[float, ...],
+    store_dir: Path | None,
+    json_out: Path | None,
+) -> None:
+    """Replay measured runs causally through the online probe correction, leave-one-run-out."""
+    from gateway.replay import run_replay
+
+    result = run_replay(
+        data_csv,
+        target,
+        method,
+        parse_sensors(sensors),
+        intervals or (60.0,),
+        base,
+        augmented_file,
+        click.echo,
+        store_dir=store_dir,
+        version=__version__,
+    )
+    write_json(json_out, result)

@@ -22,6 +22,7 @@ from gateway.compensation import CompensationLimits
 from gateway.plausibility import PlausibilityLimits
 from gateway.quality import QualityLimits
 from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
+from models.online_correction import CorrectionParams
 from models.regime_rules import RegimeRules, SpeedBand
 
 
@@ -204,6 +205,30 @@ class CompensationSection(Strict):
         )
 
 
+class OnlineCorrectionSection(Strict):
+    """The probe-driven online correction (:mod:`models.online_correction`).
+
+    Off by default. When on, every new value of ``compensation.probe_macro``
+    updates a Kalman filter on the model's residual; the correction is added to
+    the prediction before the compensation policy's clamp and slew limit.
+    """
+
+    enabled: bool = False
+    kind: Literal["bias", "bias-rate"] = "bias"
+    process_um2_per_h: float = Field(default=1.0, ge=0)
+    rate_process_um2_per_h3: float = Field(default=0.0, ge=0)
+    reversion_tau_s: float | None = Field(default=None, gt=0)
+    probe_noise_um: float = Field(default=0.3, gt=0)
+    bound_um: float = Field(default=20.0, gt=0)
+    outlier_sigma: float = Field(default=4.0, gt=0)
+    decay_after_s: float = Field(default=14400.0, ge=0)
+    decay_tau_s: float = Field(default=3600.0, gt=0)
+    reset_after_refusals: int = Field(default=2, ge=1)
+
+    def params(self) -> CorrectionParams:
+        return CorrectionParams.from_dict(self.model_dump(exclude={"enabled"}))
+
+
 class BandSection(Strict):
     name: str
     min_rpm: float = Field(ge=0)
@@ -259,6 +284,7 @@ class MachineSection(Strict):
     sensors: dict[str, SensorSection] = Field(default_factory=dict)
     cnc: CncSection
     compensation: CompensationSection = CompensationSection()
+    online_correction: OnlineCorrectionSection = OnlineCorrectionSection()
     models: ModelsSection
     quality: QualitySection = QualitySection()
 
@@ -275,6 +301,8 @@ class MachineSection(Strict):
         used = [m for m in (comp.handshake_macro, comp.probe_macro) if m is not None]
         if comp.macro in used:
             raise ValueError(f"macro #{comp.macro} is used twice in compensation")
+        if self.online_correction.enabled and comp.probe_macro is None:
+            raise ValueError("online_correction.enabled needs compensation.probe_macro")
         return self
 
     @property

@@ -48,6 +48,7 @@ from gateway.plausibility import Plausibility
 from gateway.quality import Quality, QualityMonitor
 from gateway.reference import TemperatureReference
 from models.base import ModelInputs
+from models.online_correction import CorrectionParams, OnlineCorrection
 from models.regime_rules import RegimeSelector
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,7 @@ class CycleRecord:
     write_status: str
     link_errors: list[str] = field(default_factory=list)
     probe_error_um: float | None = None  # a new probe measurement of the real error, µm
+    correction_um: float | None = None  # online correction added to predicted_um, µm
 
 
 Sink = Callable[[CycleRecord], None]
@@ -125,6 +127,9 @@ class MachineLoop:
         self.sink_failures: dict[str, int] = {}
         self._failing_sinks: set[str] = set()
         self._last_probe_um: float | None = None
+        online = config.online_correction
+        self.online = OnlineCorrection(online.params()) if online.enabled else None
+        self._probe_basis: tuple[float, float] | None = None  # (predicted, applied) µm, last cycle
         self._link_down: set[str] = set()
         self._external_note = ""  # this cycle's external change, for the write status
 
@@ -182,8 +187,10 @@ class MachineLoop:
             write_status="",
             link_errors=errors,
         )
-        await self._compensate(now, predicted, record)
+        corrected = self._corrected(now, banked, predicted, record)
+        await self._compensate(now, corrected, record)
         await self._read_probe(record)
+        self._online_update(now, predicted, record)
         self.cycles += 1
         self._deliver(record)
         return record
@@ -381,6 +388,53 @@ class MachineLoop:
         if math.isfinite(value) and value != self._last_probe_um:
             self._last_probe_um = value
             record.probe_error_um = value
+
+    def _corrected(
+        self, now: float, banked: Banked | None, predicted: float | None, record: CycleRecord
+    ) -> float | None:
+        """The prediction plus the online correction (bounded, decayed in silence).
+
+        No prediction stays no prediction: the policy's hold-and-ramp path takes over.
+        A model that stores its own online-correction noise model (``replay --store``)
+        brings it along; the config's limits (bound, decay) always hold.
+        """
+        if self.online is None or predicted is None:
+            return predicted
+        params = self._online_params(banked)
+        if params.kind != self.online.params.kind:
+            log.info("%s: online correction restarts as %s", self.config.id, params.kind)
+            self.online = OnlineCorrection(params)
+        self.online.params = params
+        record.correction_um = float(self.online.correction_at(now)[0])
+        return predicted + record.correction_um
+
+    def _online_params(self, banked: Banked | None) -> CorrectionParams:
+        limits = self.config.online_correction.params()
+        document = banked.document if isinstance(banked, BankedAugmented) else None
+        stored = (document or {}).get("online_correction") or {}
+        return limits.with_noise_of(stored.get("params", {}))
+
+    def _online_update(self, now: float, predicted: float | None, record: CycleRecord) -> None:
+        """A new probe value updates the filter with the model's residual then (contracts §7):
+        probe + compensation applied then − prediction then. The probe was measured since the
+        last cycle, so "then" is the last cycle's prediction and applied value."""
+        if self.online is None:
+            return
+        basis = self._probe_basis
+        applied = record.applied_um
+        self._probe_basis = None if predicted is None or applied is None else (predicted, applied)
+        if record.probe_error_um is None or basis is None:
+            return
+        residual_um = record.probe_error_um + basis[1] - basis[0]
+        outcome = self.online.update(now, residual_um)
+        if not outcome.accepted:
+            log.warning(
+                "%s: probe %.2f µm refused by the online correction (%s; refused so far: %d)",
+                self.config.id,
+                record.probe_error_um,
+                outcome.reason,
+                self.online.refused,
+            )
 
     def _start_policy(self, held: tuple[float, float]) -> None:
         """The policy starts from what the CNC applies now (a vacant macro: 0)."""

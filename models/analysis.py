@@ -89,11 +89,12 @@ class Folds:
     pairs: tuple[tuple[slice | np.ndarray, slice | np.ndarray], ...]  # (row t, row t−1) in a fold
 
     @classmethod
-    def of(cls, prepared: Prepared) -> Folds:
+    def of(cls, prepared: Prepared, fit_rows: np.ndarray | None = None) -> Folds:
+        """One fold per run; rows outside ``fit_rows`` (if given) belong to no fold (index −1)."""
         scheme, labels = fold_labels(prepared)
-        names = tuple(dict.fromkeys(labels))
+        names = tuple(dict.fromkeys(labels if fit_rows is None else labels[fit_rows]))
         number = {name: i for i, name in enumerate(names)}
-        index = np.array([number[label] for label in labels], dtype=int)
+        index = np.array([number.get(label, -1) for label in labels], dtype=int)
         rows = tuple(np.flatnonzero(index == i) for i in range(len(names)))
         parts = tuple(_as_slice(r) for r in rows)
         pairs = []
@@ -137,20 +138,26 @@ class BaseDesigns:
     """The declared model's regression terms, fitted per fold (or once, when fixed)."""
 
     def __init__(
-        self, method: str, sensors: Sequence[str] | None, prepared: Prepared, folds: Folds
+        self,
+        method: str,
+        sensors: Sequence[str] | None,
+        prepared: Prepared,
+        folds: Folds,
+        fit_rows: np.ndarray | None = None,
     ):
         self.method = method
         self.sensors = None if sensors is None else list(sensors)
         self.prepared = prepared
         self.folds = folds
+        usable = np.ones(prepared.data.n_samples, dtype=bool) if fit_rows is None else fit_rows
         probe = make_model(method, self.sensors)
         self.fixed = type(probe).fixed_design
         if self.fixed:
-            self.models = [probe.fit(prepared.inputs, prepared.error_um)]
+            self.models = [probe.fit(prepared.inputs.take(usable), prepared.error_um[usable])]
         else:
             self.models = []
             for rows in folds.rows:
-                train = np.ones(prepared.data.n_samples, dtype=bool)
+                train = usable.copy()
                 train[rows] = False
                 model = make_model(method, self.sensors)
                 self.models.append(model.fit(prepared.inputs.take(train), prepared.error_um[train]))
@@ -180,14 +187,20 @@ class ResidualAnalysis:
         method: str = "mlr",
         sensors: Sequence[str] | None = None,
         progress: bool = False,
+        fit_rows: np.ndarray | None = None,
     ) -> None:
         self.prepared = prepared
         self.method = method
         self.y = prepared.error_um
-        self.folds = Folds.of(prepared)
+        n = prepared.data.n_samples
+        # Rows whose target the analysis may use; the others (a run held out by ``replay``)
+        # still feed the effect terms' history (lags run over the whole recording).
+        self.fit_rows = np.ones(n, dtype=bool) if fit_rows is None else np.asarray(fit_rows, bool)
+        self.n_fit = int(self.fit_rows.sum())
+        self.folds = Folds.of(prepared, None if fit_rows is None else self.fit_rows)
         self._yy = np.array([self.y[part] @ self.y[part] for part in self.folds.parts])
         self.progress = progress
-        self.base = BaseDesigns(method, sensors, prepared, self.folds)
+        self.base = BaseDesigns(method, sensors, prepared, self.folds, fit_rows)
         self.families = candidate_families(prepared, self.base.used_sensors)
 
     # ---- the loop -----------------------------------------------------------------
@@ -208,7 +221,7 @@ class ResidualAnalysis:
                 # Only a believed candidate can be added: the others' predictions are dropped.
                 tried.append((family, ev if candidates[-1].believed else None))
             believed = [i for i, c in enumerate(candidates) if c.believed]
-            before = accuracy(self.y, current.predicted_um)
+            before = self._accuracy(current.predicted_um)
             if not believed:
                 steps.append(
                     StepResult(
@@ -236,7 +249,7 @@ class ResidualAnalysis:
                     family.effect,
                     overall.params,
                     before,
-                    accuracy(self.y, ev.predicted_um),
+                    self._accuracy(ev.predicted_um),
                     tuple(candidates),
                     current.predicted_um,
                     ev.predicted_um,
@@ -270,6 +283,9 @@ class ResidualAnalysis:
                 open_.append(EffectFamily(family.effect, family.label, variants))
         return open_
 
+    def _accuracy(self, predicted: np.ndarray):
+        return accuracy(self.y[self.fit_rows], predicted[self.fit_rows])
+
     def _bar(self, families: list[EffectFamily]):
         return tqdm(families, desc="candidate effects", disable=not self.progress, leave=False)
 
@@ -285,7 +301,7 @@ class ResidualAnalysis:
     ) -> CandidateResult:
         before_shape = self._shape_sse(current.predicted_um)
         after_shape = self._shape_sse(ev.predicted_um)
-        after = float(np.sqrt(ev.per_fold_sse.sum() / self.y.size))
+        after = float(np.sqrt(ev.per_fold_sse.sum() / self.n_fit))
         gain = 100.0 * (1.0 - np.sqrt(after_shape.sum() / before_shape.sum()))
         improved = int(np.sum(after_shape < before_shape))
         p_value = self._p_value(family, ev, accepted)
@@ -293,7 +309,7 @@ class ResidualAnalysis:
         failures = []
         if gain < MIN_GAIN_PCT:
             failures.append(f"held-out RMSE falls {gain:.1f} % < {MIN_GAIN_PCT:g} %")
-        if after >= float(np.sqrt(current.per_fold_sse.sum() / self.y.size)):
+        if after >= float(np.sqrt(current.per_fold_sse.sum() / self.n_fit)):
             failures.append("held-out RMSE with offsets does not fall")
         if improved < MIN_FOLD_SHARE * self.folds.count:
             failures.append(f"improves {improved}/{self.folds.count} held-out folds")
@@ -431,7 +447,7 @@ class ResidualAnalysis:
         chosen = [int(np.argmin(inner[:, f])) if n_variants > 1 else 0 for f in range(k)]
         # Held-out predictions of the chosen variants only (a variant's terms are made
         # again if another one was made after it): never one row set per variant.
-        result = np.empty(self.y.size)
+        result = np.zeros(self.y.size)  # rows outside every fold stay 0
         for key, folds_in_group in groups.items():
             fixed = designs[key]
             for vi in sorted({chosen[f] for f in folds_in_group}):
@@ -452,7 +468,7 @@ class ResidualAnalysis:
             predicted_um=result,
             per_fold_sse=np.array([heldout[vi, f] for f, vi in enumerate(chosen)]),
             train_sse=np.array([train[vi, f] for f, vi in enumerate(chosen)]),
-            train_n=np.array([self.y.size - rows.size for rows in self.folds.rows]),
+            train_n=np.array([self.n_fit - rows.size for rows in self.folds.rows]),
             chosen=chosen,
             n_columns=n_columns,
             n_added=n_added,
@@ -583,7 +599,7 @@ def _first_column(variant: Variant) -> np.ndarray:
 
 def _lag1_autocorrelation(residual: np.ndarray, fold_index: np.ndarray) -> float:
     """Lag-1 autocorrelation of the residual, pairs taken within folds only, in [0, 1)."""
-    same = fold_index[1:] == fold_index[:-1]
+    same = (fold_index[1:] == fold_index[:-1]) & (fold_index[1:] >= 0)
     a, b = residual[1:][same], residual[:-1][same]
     if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
         return 0.0

@@ -150,6 +150,14 @@ def predict(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
     return design @ coef
 
 
+def sealed(document: dict[str, Any]) -> dict[str, Any]:
+    """``document`` as plain JSON with its checksum, as :func:`load` checks it."""
+    document = json.loads(json.dumps(document, ensure_ascii=False))
+    document.pop("sha256", None)
+    document["sha256"] = _checksum(document)
+    return document
+
+
 def _checksum(document: dict[str, Any]) -> str:
     text = json.dumps(document, sort_keys=True, ensure_ascii=False)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

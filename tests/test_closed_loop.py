@@ -70,8 +70,11 @@ async def closed_loop(
     cnc: str = "opcua",
     regimes: dict[str, Any] | None = None,
     state_dir: Path | None = None,
+    effects: tuple[str, ...] = (),
+    update: dict[str, Any] | None = None,
 ) -> AsyncIterator[tuple[ClosedLoop, ManualClock]]:
-    """The plant and the gateway on a manual clock; ``regimes`` replaces the demo's rules."""
+    """The plant and the gateway on a manual clock; ``regimes`` replaces the demo's rules,
+    ``effects`` are hidden in the plant, ``update`` replaces machine config sections."""
     clock = ManualClock()
     with socat_pty_pair(tmp_path) as pty:
         devices = [
@@ -82,6 +85,7 @@ async def closed_loop(
             SimulatorConfig.model_validate(
                 {
                     "seed": 5,
+                    "effects": list(effects),
                     "transmitters": {"rtu": {"port": pty.server_port, "devices": devices}},
                     "cnc": {
                         "opcua": {"port": free_tcp_port()},
@@ -124,6 +128,8 @@ async def closed_loop(
                 update={"regimes": RegimeSection.model_validate(regimes)}
             )
             machine = machine.model_copy(update={"models": models})
+        if update is not None:
+            machine = machine.model_copy(update=update)
         closed = await open_loop(plant, machine, clock, state_dir=state_dir)
         try:
             await closed.loop.run_cycle()

@@ -1,0 +1,478 @@
+"""Replaying measured runs causally through the online correction, leave-one-run-out.
+
+For each held-out run: a base model is fitted on the other runs, the run is
+replayed sample by sample as the machine would live it, a probe every
+``interval_s`` measures the real error (the measured value as it is: the data
+already carries the probe's noise), and :class:`models.online_correction.
+OnlineCorrection` (the class the runtime uses) turns those probe values into a
+correction of the base prediction. A prediction at time t uses probe values
+taken at times ≤ t only; the first probe of a run is at its first sample plus
+one interval, and the filter starts afresh with each run.
+
+Every choice is made without the held-out run, by an inner leave-one-out over
+the training runs (nested validation): the base model's structure (below) and
+the filter's process noise q and outlier threshold k. The probe noise R is
+estimated on the training runs from the target's sample-to-sample scatter.
+
+Bases (``base``):
+
+- ``declared``: the declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``)
+  fitted as ``fit`` fits it.
+- ``lagged`` (default): the sensors the declared model uses, plus first-order
+  lags of them at one or two time constants (as ``analyze``'s ``thermal_lag``),
+  fitted by ridge regression for the online use: the loss is ``w`` × the plain
+  squared error plus the squared error of the *changes* over lags up to the
+  probe interval. Between two probes the correction holds the offset the last
+  probe measured, so what remains is how far the model's change since that
+  probe misses the real change; the second term fits exactly that, the first
+  keeps the level right before the run's first probe. τ set, ridge penalty and
+  w are chosen by the inner leave-one-out for each probe interval.
+- ``augmented``: the structure of an ``analyze --store`` document (its base
+  model and effects with their parameters) with every coefficient refitted
+  without the held-out run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from models.effect_terms import candidate_families, first_order_lag
+from models.features import Prepared
+from models.metrics import accuracy
+from models.online_correction import CorrectionParams, OnlineCorrection
+from models.registry import METHODS, make_model
+from models.store import StoreError
+
+LAG_TAU_SETS_S: tuple[tuple[float, ...], ...] = ((600.0, 3600.0), (1800.0, 7200.0))
+RIDGE_PENALTIES = (0.01, 0.03, 0.1)
+LEVEL_WEIGHTS = (0.5, 1.0)
+CHANGE_LAGS = 8  # lags 1/8 … 8/8 of the probe interval in the change term
+PROCESS_FLOOR_UM2_PER_H = 0.01
+OUTLIER_SIGMAS = (4.0, 6.0, 8.0)
+OUTLIER_TOLERANCE = 1.02  # the smallest k whose inner RMSE is within 2 % of the best
+MIN_PROBE_NOISE_UM = 0.05
+BASES = ("lagged", "declared", "augmented")
+
+
+@dataclass(frozen=True)
+class RunReplay:
+    """One held-out run replayed: the corrected residual and what the probes did."""
+
+    run: str
+    residual_um: np.ndarray  # measured − (base + correction), every sample
+    at_probe: np.ndarray  # bool: the samples at probe instants
+    probes: int
+    refused: int
+
+
+@dataclass
+class IntervalResult:
+    probe_interval_min: float
+    runs: list[RunReplay]
+    base_residual_um: np.ndarray
+    choices: dict[str, dict[str, Any]] = field(default_factory=dict)  # per held-out run
+
+    def as_dict(self) -> dict[str, Any]:
+        e = np.concatenate([r.residual_um for r in self.runs])
+        between = np.concatenate([r.residual_um[~r.at_probe] for r in self.runs])
+        return {
+            "probe_interval_min": self.probe_interval_min,
+            "rmse_um": float(np.sqrt(np.mean(e**2))),
+            "rmse_between_probes_um": float(np.sqrt(np.mean(between**2))),
+            "max_abs_um": float(np.max(np.abs(e))),
+            "probes": int(sum(r.probes for r in self.runs)),
+            "probes_refused": int(sum(r.refused for r in self.runs)),
+            "base_rmse_um": float(np.sqrt(np.mean(self.base_residual_um**2))),
+            "per_run": {
+                r.run: {
+                    "rmse_um": float(np.sqrt(np.mean(r.residual_um**2))),
+                    "probes": r.probes,
+                    "probes_refused": r.refused,
+                    "chosen": self.choices.get(r.run, {}),
+                }
+                for r in self.runs
+            },
+        }
+
+
+def probe_rows(time_s: np.ndarray, interval_s: float) -> np.ndarray:
+    """Rows of one run where a probe measures: the first sample at or after t₀ + k·interval."""
+    times = np.arange(time_s[0] + interval_s, time_s[-1] + 1e-9, interval_s)
+    rows = np.searchsorted(time_s, times - 1e-9)
+    return np.unique(rows[rows < time_s.size])
+
+
+def replay_run(
+    params: CorrectionParams, time_s: np.ndarray, residual_um: np.ndarray, interval_s: float
+) -> tuple[np.ndarray, np.ndarray, OnlineCorrection]:
+    """(correction per sample, probe rows, the filter after the run), causally.
+
+    At a probe row the probe is taken first, then the correction applies, as the
+    runtime applies the correction of the last probe it has read.
+    """
+    correction = OnlineCorrection(params)
+    applied = np.zeros(time_s.size)
+    rows = probe_rows(time_s, interval_s)
+    ends = [*rows[1:], time_s.size]
+    for row, end in zip(rows, ends, strict=True):
+        correction.update(float(time_s[row]), float(residual_um[row]))
+        applied[row:end] = correction.correction_at(time_s[row:end])
+    return applied, rows, correction
+
+
+def probe_noise_um(prepared: Prepared, runs: Sequence[str]) -> float:
+    """The probe's σ from the training runs: scatter of successive samples / √2 (an upper
+    bound: the real error moves a little between samples too)."""
+    steps = [np.diff(prepared.error_um[s]) for r, s in prepared.data.run_slices() if r in runs]
+    values = np.concatenate(steps)
+    return max(float(np.std(values) / np.sqrt(2.0)), MIN_PROBE_NOISE_UM)
+
+
+# --- bases ------------------------------------------------------------------------------
+
+
+class LaggedFeatures:
+    """Sensor rises and their first-order lags (over the whole recording), per τ set, with
+    per-run Gram products of the level and change terms, so that every fit is a sum."""
+
+    def __init__(self, prepared: Prepared, sensors: Sequence[str], interval_s: float):
+        self.prepared = prepared
+        data = prepared.data
+        rises = prepared.inputs.columns(tuple(sensors))
+        self.slices = dict(data.run_slices())
+        self.y = prepared.error_um
+        dt = float(np.median(np.diff(data.time_s[: min(data.n_samples, 1000)])))
+        steps = np.linspace(interval_s / CHANGE_LAGS, interval_s, CHANGE_LAGS) / max(dt, 1e-9)
+        self.change_steps = sorted({max(round(s), 1) for s in steps})
+        self.designs: dict[tuple[float, ...], np.ndarray] = {}
+        self.grams: dict[tuple[float, ...], dict[str, tuple[np.ndarray, ...]]] = {}
+        for taus in LAG_TAU_SETS_S:
+            lags = [first_order_lag(rises, data.time_s, prepared.plan.recording, t) for t in taus]
+            design = np.column_stack([np.ones(data.n_samples), rises, *lags])
+            self.designs[taus] = design
+            self.grams[taus] = {
+                run: self._run_grams(design, rows) for run, rows in self.slices.items()
+            }
+
+    def _run_grams(self, design: np.ndarray, rows: slice) -> tuple[np.ndarray, ...]:
+        z, y = design[rows], self.y[rows]
+        level_g, level_c = z.T @ z, z.T @ y
+        change_g = np.zeros_like(level_g)
+        change_c = np.zeros_like(level_c)
+        for k in self.change_steps:
+            if k >= y.size:
+                continue
+            dz, dy = z[k:] - z[:-k], y[k:] - y[:-k]
+            change_g += dz.T @ dz
+            change_c += dz.T @ dy
+        return level_g, level_c, change_g, change_c
+
+    def fit(self, taus: tuple[float, ...], ridge: float, weight: float, runs: Sequence[str]):
+        parts = [self.grams[taus][r] for r in runs]
+        g = sum(weight * p[0] + p[2] for p in parts)
+        c = sum(weight * p[1] + p[3] for p in parts)
+        penalty = ridge * np.diag(g).copy()
+        penalty[0] = 0.0  # the intercept is not shrunk
+        return np.linalg.solve(g + np.diag(penalty) + 1e-9 * np.eye(g.shape[0]), c)
+
+    def predict(self, taus: tuple[float, ...], beta: np.ndarray, rows: slice) -> np.ndarray:
+        return self.designs[taus][rows] @ beta
+
+
+def _declared_prediction(
+    prepared: Prepared, method: str, sensors: Sequence[str] | None, train: np.ndarray
+) -> np.ndarray:
+    model = make_model(method, sensors).fit(prepared.inputs.take(train), prepared.error_um[train])
+    return model.predict(prepared.inputs)
+
+
+def augmented_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
+    """The design (intercept, base terms, effect terms) of a stored augmented model."""
+    base_info = document["base"]
+    base = METHODS[base_info["method"]].from_params(base_info["hyperparams"], base_info["params"])
+    columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]
+    effect_sensors = tuple(document.get("effect_sensors", base.sensors_used_))
+    families = {f.effect: f for f in candidate_families(prepared, effect_sensors)}
+    for effect in document["effects"]:
+        family = families.get(effect["effect"])
+        matches = (
+            [] if family is None else [v for v in family.variants if v.params == effect["params"]]
+        )
+        if not matches:
+            raise StoreError(
+                f"this data cannot provide the effect {effect['effect']} {effect['params']}"
+            )
+        columns.append(matches[0].build())
+    return np.column_stack(columns)
+
+
+# --- the nested choice ------------------------------------------------------------------
+
+
+def _score(
+    params: CorrectionParams,
+    prepared: Prepared,
+    residual: np.ndarray,
+    runs: Sequence[str],
+    interval_s: float,
+) -> float:
+    slices = dict(prepared.data.run_slices())
+    sse = n = 0.0
+    for run in runs:
+        rows = slices[run]
+        applied, _, _ = replay_run(params, prepared.data.time_s[rows], residual[rows], interval_s)
+        sse += float(np.sum((residual[rows] - applied) ** 2))
+        n += applied.size
+    return float(np.sqrt(sse / n))
+
+
+def process_noise_um2_per_h(
+    prepared: Prepared,
+    residual: np.ndarray,
+    runs: Sequence[str],
+    interval_s: float,
+    noise_um: float,
+) -> float:
+    """q from the training runs by moment matching: successive probe residuals Δ apart differ
+    by q·Δ + 2R in variance under the random-walk model (R = probe noise²)."""
+    slices = dict(prepared.data.run_slices())
+    steps = []
+    for run in runs:
+        rows = slices[run]
+        at = probe_rows(prepared.data.time_s[rows], interval_s)
+        steps.append(np.diff(residual[rows][at]))
+    values = np.concatenate(steps)
+    if values.size == 0:
+        return PROCESS_FLOOR_UM2_PER_H
+    q = (float(np.mean(values**2)) - 2.0 * noise_um**2) / (interval_s / 3600.0)
+    return max(q, PROCESS_FLOOR_UM2_PER_H)
+
+
+def choose_filter(
+    prepared: Prepared,
+    inner_residual: np.ndarray,
+    runs: Sequence[str],
+    interval_s: float,
+    defaults: CorrectionParams,
+) -> CorrectionParams:
+    """R and q estimated on the training runs, then the smallest k whose inner replay RMSE is
+    within ``OUTLIER_TOLERANCE`` of the best k."""
+    noise = probe_noise_um(prepared, runs)
+    q = process_noise_um2_per_h(prepared, inner_residual, runs, interval_s, noise)
+    base = defaults.with_limits(probe_noise_um=noise, process_um2_per_h=q)
+    scored_k = {
+        k: _score(base.with_limits(outlier_sigma=k), prepared, inner_residual, runs, interval_s)
+        for k in OUTLIER_SIGMAS
+    }
+    best = min(scored_k.values())
+    k = min(k for k, s in scored_k.items() if s <= OUTLIER_TOLERANCE * best)
+    return base.with_limits(outlier_sigma=k)
+
+
+def replay_interval(
+    prepared: Prepared,
+    interval_min: float,
+    base: str = "lagged",
+    method: str = "mlr",
+    sensors: Sequence[str] | None = None,
+    document: dict[str, Any] | None = None,
+    defaults: CorrectionParams | None = None,
+) -> IntervalResult:
+    """Leave-one-run-out replay at one probe interval; see the module docstring."""
+    if base not in BASES:
+        raise ValueError(f"unknown base {base!r}; expected one of {BASES}")
+    defaults = defaults or CorrectionParams()
+    interval_s = 60.0 * interval_min
+    data = prepared.data
+    runs = list(data.run_ids)
+    if len(runs) < 3:
+        raise ValueError(f"replay needs at least 3 runs for nested validation, found {len(runs)}")
+    slices = dict(data.run_slices())
+    masks = {r: data.run == r for r in runs}
+    y = prepared.error_um
+    features = None
+    if base == "lagged":
+        used = _used_sensors(prepared, method, sensors)
+        features = LaggedFeatures(prepared, used, interval_s)
+    design = augmented_design(document, prepared) if base == "augmented" else None
+    grams = (
+        {
+            r: (design[slices[r]].T @ design[slices[r]], design[slices[r]].T @ y[slices[r]])
+            for r in runs
+        }
+        if design is not None
+        else {}
+    )
+
+    def fitted(train_runs: list[str]) -> tuple[np.ndarray, dict[str, Any]]:
+        """Base prediction on every row from ``train_runs``, and what was chosen."""
+        train = np.any([masks[r] for r in train_runs], axis=0)
+        if base == "declared":
+            return _declared_prediction(prepared, method, sensors, train), {}
+        if base == "augmented":
+            assert design is not None  # least squares from the runs' Gram sums
+            g = sum(grams[r][0] for r in train_runs)
+            c = sum(grams[r][1] for r in train_runs)
+            beta, *_ = np.linalg.lstsq(g, c, rcond=1e-12)
+            return design @ beta, {}
+        assert features is not None
+        return _choose_lagged(features, train_runs, defaults, interval_s)
+
+    result_runs: list[RunReplay] = []
+    base_residual = np.empty(y.size)
+    choices: dict[str, dict[str, Any]] = {}
+    for held in runs:
+        train_runs = [r for r in runs if r != held]
+        predicted, chosen = fitted(train_runs)
+        inner_residual = np.empty(y.size)
+        for inner in train_runs:
+            inner_pred, _ = (
+                _fit_lagged(features, chosen, [r for r in train_runs if r != inner])
+                if features is not None
+                else fitted([r for r in train_runs if r != inner])
+            )
+            inner_residual[slices[inner]] = y[slices[inner]] - inner_pred[slices[inner]]
+        params = choose_filter(prepared, inner_residual, train_runs, interval_s, defaults)
+        rows = slices[held]
+        residual = y[rows] - predicted[rows]
+        base_residual[rows] = residual
+        applied, probe_at, correction = replay_run(params, data.time_s[rows], residual, interval_s)
+        at_probe = np.zeros(residual.size, dtype=bool)
+        at_probe[probe_at] = True
+        result_runs.append(
+            RunReplay(held, residual - applied, at_probe, int(probe_at.size), correction.refused)
+        )
+        choices[held] = chosen | {"filter": filter_choice(params)}
+    return IntervalResult(interval_min, result_runs, base_residual, choices)
+
+
+def filter_choice(params: CorrectionParams) -> dict[str, Any]:
+    return {
+        "kind": params.kind,
+        "process_um2_per_h": round(params.process_um2_per_h, 4),
+        "probe_noise_um": round(params.probe_noise_um, 4),
+        "outlier_sigma": params.outlier_sigma,
+    }
+
+
+def _used_sensors(
+    prepared: Prepared, method: str, sensors: Sequence[str] | None
+) -> tuple[str, ...]:
+    """The sensors the declared model uses (grey-mlr selects a few; the others use all)."""
+    if method == "mlr":
+        return tuple(sensors) if sensors is not None else prepared.inputs.sensors
+    model = make_model(method, sensors).fit(prepared.inputs, prepared.error_um)
+    return tuple(model.sensors_used_)
+
+
+def _fit_lagged(
+    features: LaggedFeatures, chosen: dict[str, Any], train_runs: list[str]
+) -> tuple[np.ndarray, dict[str, Any]]:
+    taus = tuple(chosen["lag_taus_s"])
+    beta = features.fit(taus, chosen["ridge"], chosen["level_weight"], train_runs)
+    return features.designs[taus] @ beta, chosen
+
+
+def _choose_lagged(
+    features: LaggedFeatures,
+    train_runs: list[str],
+    defaults: CorrectionParams,
+    interval_s: float,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """τ set, ridge penalty and level weight by inner leave-one-out on ``train_runs``,
+    scored by the replay itself (default filter), then refitted on all of them."""
+    prepared = features.prepared
+    time_s = prepared.data.time_s
+    params = defaults.with_limits(
+        probe_noise_um=probe_noise_um(prepared, train_runs),
+        process_um2_per_h=10.0,
+        outlier_sigma=max(OUTLIER_SIGMAS),
+    )
+    best: tuple[float, dict[str, Any]] | None = None
+    for taus in LAG_TAU_SETS_S:
+        for ridge in RIDGE_PENALTIES:
+            for weight in LEVEL_WEIGHTS:
+                sse = n = 0.0
+                for inner in train_runs:
+                    beta = features.fit(taus, ridge, weight, [r for r in train_runs if r != inner])
+                    rows = features.slices[inner]
+                    residual = features.y[rows] - features.predict(taus, beta, rows)
+                    applied, _, _ = replay_run(params, time_s[rows], residual, interval_s)
+                    sse += float(np.sum((residual - applied) ** 2))
+                    n += residual.size
+                score = float(np.sqrt(sse / n))
+                choice = {"lag_taus_s": list(taus), "ridge": ridge, "level_weight": weight}
+                if best is None or score < best[0]:
+                    best = (score, choice)
+    assert best is not None
+    return _fit_lagged(features, best[1], train_runs)
+
+
+def offline_accuracy(
+    prepared: Prepared, method: str, sensors: Sequence[str] | None
+) -> dict[str, float]:
+    """The declared model as ``fit`` validates it (leave-one-run-out, no probes)."""
+    predicted = np.empty(prepared.data.n_samples)
+    for run in prepared.data.run_ids:
+        test = prepared.data.run == run
+        predicted[test] = _declared_prediction(prepared, method, sensors, ~test)[test]
+    acc = accuracy(prepared.error_um, predicted)
+    return {"rmse_um": acc.rmse_um, "max_abs_um": acc.max_abs_um}
+
+
+# --- the model to store -----------------------------------------------------------------
+
+
+def fit_for_store(
+    prepared: Prepared,
+    interval_min: float,
+    method: str = "mlr",
+    sensors: Sequence[str] | None = None,
+    defaults: CorrectionParams | None = None,
+) -> tuple[dict[str, Any], CorrectionParams, dict[str, Any], np.ndarray]:
+    """The lagged base and the filter fitted on every run (choices by leave-one-run-out on
+    all of them, as ``fit`` does): (augmented-model parts, filter parameters, choices, the
+    base's leave-one-run-out prediction).
+
+    The base is an augmented model as :mod:`models.augmented` stores it: ``mlr`` on the
+    sensors plus one ``thermal_lag`` effect per time constant, so the runtime's model
+    bank and :mod:`models.effect_stream` run it unchanged.
+    """
+    defaults = defaults or CorrectionParams()
+    interval_s = 60.0 * interval_min
+    runs = list(prepared.data.run_ids)
+    used = _used_sensors(prepared, method, sensors)
+    features = LaggedFeatures(prepared, used, interval_s)
+    _, chosen = _choose_lagged(features, runs, defaults, interval_s)
+    slices = dict(prepared.data.run_slices())
+    heldout = np.empty(prepared.data.n_samples)
+    for run in runs:
+        inner_pred, _ = _fit_lagged(features, chosen, [r for r in runs if r != run])
+        heldout[slices[run]] = inner_pred[slices[run]]
+    residual = prepared.error_um - heldout
+    params = choose_filter(prepared, residual, runs, interval_s, defaults)
+    taus = tuple(chosen["lag_taus_s"])
+    beta = features.fit(taus, chosen["ridge"], chosen["level_weight"], runs)
+    base = make_model("mlr", list(used)).fit(prepared.inputs, prepared.error_um)
+    parts = {
+        "base": {
+            "method": base.method,
+            "hyperparams": base.hyperparams(),
+            "params": base.fitted_params(),
+        },
+        "effects": [
+            {"effect": "thermal_lag", "params": {"tau_s": tau}, "terms": len(used)} for tau in taus
+        ],
+        "effect_sensors": list(used),
+        "coefficients": {
+            "intercept_um": float(beta[0]),
+            "all_um_per_unit": [float(b) for b in beta],
+            "order": "intercept, the base model's terms, then each effect's terms in order",
+            "fitted_by": "ridge on the level and on the changes over the probe interval",
+        },
+    }
+    return parts, params, chosen, heldout

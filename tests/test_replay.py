@@ -1,0 +1,145 @@
+"""``python -m gateway replay`` end to end (contracts §6), and the replay's causality."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from gateway.model_bank import ModelBank
+from models import augmented
+from models.dataset import load_runs
+from models.features import prepare
+from models.online_correction import CorrectionParams
+from models.online_replay import probe_rows, replay_run
+from tests.cli import ROOT, gateway
+
+FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
+ONLINE_KEYS = {
+    "probe_interval_min",
+    "rmse_um",
+    "rmse_between_probes_um",
+    "max_abs_um",
+    "probes",
+    "probes_refused",
+}
+
+
+def test_replay_fl_thermal_ch5_a_probe_every_hour(tmp_path):
+    out = tmp_path / "replay.json"
+    store = tmp_path / "store"
+    done = gateway(
+        "replay",
+        FL_THERMAL,
+        "--target",
+        "ch5_um",
+        "--probe-interval-min",
+        "60",
+        "--json",
+        out,
+        "--store",
+        store,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "60 min" in done.stdout
+    result = json.loads(out.read_text(encoding="utf-8"))
+    assert result["target"] == "ch5_um"
+    assert result["model"] == "mlr"
+    assert result["validation"] == "leave-one-run-out"
+    assert set(result["offline"]) >= {"rmse_um", "max_abs_um"}
+    assert 6.0 < result["offline"]["rmse_um"] < 7.5  # the plain mlr of fit (6.75 µm)
+    (online,) = result["online"]
+    assert set(online) >= ONLINE_KEYS
+    assert online["probe_interval_min"] == 60
+    # Six cycles of 7.7 h on average: 7 probes each (the first one interval after the start).
+    assert 36 <= online["probes"] <= 48
+    assert 0 <= online["probes_refused"] <= online["probes"]
+    # Measured 1.92 µm; the target is 2.0 µm, with a margin for other BLAS builds.
+    assert online["rmse_um"] <= 2.1
+    assert online["rmse_um"] < 0.35 * result["offline"]["rmse_um"]
+    assert online["rmse_between_probes_um"] >= online["rmse_um"] - 0.05
+    assert online["max_abs_um"] >= online["rmse_um"]
+    assert_stored_model_runs_in_the_bank(store, result)
+
+
+def test_replay_refuses_bad_input_with_one_line(tmp_path):
+    done = gateway("replay", FL_THERMAL, "--target", "ch9_um")
+    assert done.returncode == 2
+    assert "ch9_um" in done.stderr and "Traceback" not in done.stderr
+    missing = tmp_path / "none.json"
+    done = gateway("replay", FL_THERMAL, "--target", "ch5_um", "--augmented", missing)
+    assert done.returncode == 2
+    assert str(missing) in done.stderr and "Traceback" not in done.stderr
+
+
+def test_replay_uses_only_probes_from_the_past():
+    """Changing the residual after a time t never changes the correction before t."""
+    time_s = np.arange(0.0, 6 * 3600.0, 15.0)
+    rng = np.random.default_rng(3)
+    residual = np.cumsum(rng.normal(0.0, 0.05, time_s.size))
+    params = CorrectionParams(process_um2_per_h=5.0, probe_noise_um=0.1, outlier_sigma=50.0)
+    applied, rows, _ = replay_run(params, time_s, residual, 3600.0)
+    assert time_s[rows].tolist() == [3600.0 * k for k in range(1, 6)]
+    assert np.all(applied[: rows[0]] == 0.0)  # nothing before the first probe
+    cut = rows[2] + 10
+    changed = residual.copy()
+    changed[cut:] += 25.0
+    applied_changed, _, _ = replay_run(params, time_s, changed, 3600.0)
+    assert np.array_equal(applied[:cut], applied_changed[:cut])
+    assert not np.array_equal(applied[cut:], applied_changed[cut:])
+
+
+def test_probe_rows_take_the_first_sample_at_or_after_each_probe_time():
+    time_s = np.array([0.0, 20.0, 40.0, 65.0, 80.0, 130.0])
+    assert probe_rows(time_s, 40.0).tolist() == [2, 4, 5]
+
+
+def test_fl_thermal_cycles_are_the_runs_replayed():
+    data = load_runs(FL_THERMAL, target="ch5_um")
+    prepared = prepare(data)
+    assert len(data.run_ids) == 6
+    assert len(prepared.plan.recording_runs) == 1  # one recording: lags carry across cycles
+
+
+def assert_stored_model_runs_in_the_bank(store, result) -> None:
+    """The lagged base saved by ``--store`` is an augmented model the runtime runs as is,
+    carrying the filter's noise model for the runtime."""
+    bank = ModelBank.from_store(store)
+    (banked,) = bank.augmented()
+    assert banked.model_id == result["stored_model"]["model_id"]
+    stored = banked.document["online_correction"]
+    params = CorrectionParams.from_dict(stored["params"])
+    assert params.process_um2_per_h > 0 and stored["probe_interval_min"] == 60
+    prepared = prepare(load_runs(FL_THERMAL, target="ch5_um"))
+    batch = augmented.predict(banked.document, prepared)
+    stream = banked.stream()
+    rows = range(0, prepared.data.n_samples)
+    stepped = [
+        stream.step(
+            float(prepared.data.time_s[i]),
+            dict(zip(prepared.inputs.sensors, prepared.inputs.rise_C[i], strict=True)),
+            float(prepared.data.speed_rpm[i]),
+        )
+        for i in rows
+    ]
+    assert np.max(np.abs(np.array(stepped) - batch)) < 1e-9
+    # Fitted on every cycle, the base explains them far better than the plain mlr.
+    assert np.sqrt(np.mean((prepared.error_um - batch) ** 2)) < 0.6 * result["offline"]["rmse_um"]
+
+
+def test_replay_an_analyze_result_refits_its_coefficients_per_held_out_run(tmp_path):
+    store = tmp_path / "store"
+    done = gateway("analyze", FL_THERMAL, "--target", "ch1_um", "--store", store, "--no-progress")
+    assert done.returncode == 0, done.stderr
+    (model_file,) = (store / augmented.FOLDER).glob("*.json")
+    out = tmp_path / "replay.json"
+    done = gateway(
+        "replay", FL_THERMAL, "--target", "ch1_um", "--augmented", model_file, "--json", out
+    )
+    assert done.returncode == 0, done.stderr
+    assert "chosen on this file" in done.stdout  # says that its structure saw every run
+    result = json.loads(out.read_text(encoding="utf-8"))
+    assert result["base"]["kind"] == "augmented"
+    assert result["augmented_model"] == augmented.load(model_file)["model_id"]
+    (online,) = result["online"]
+    assert online["rmse_um"] < 0.25 * result["offline"]["rmse_um"]

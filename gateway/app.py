@@ -109,9 +109,10 @@ class Gateway:
         sinks: Sequence[Sink] = (),
     ) -> None:
         self.config = config
-        # In the plant machine time is Unix time, so logged points carry real timestamps.
+        # In the plant machine time is Unix time, so logged points carry real timestamps;
+        # Outputs stamps them with time.time_ns() (NTP followed), the loops stay monotonic.
         self.clock = clock or WallClock(origin_s=time.time())
-        self.outputs = Outputs(config)
+        self.outputs = Outputs(config, wall_clock=self.clock if clock is None else None)
         sinks = [self.outputs.sink, *sinks]
         self.scada = self._build_scada()
         if self.scada is not None:

@@ -31,5 +31,7 @@ if ! "$PODMAN" image exists "$BASE"; then
 fi
 bash scripts/build-wheelhouse.sh
 # --format docker: OCI images have no HEALTHCHECK; the Docker format keeps it.
-"$PODMAN" build --quiet --format docker --layers --build-arg "BASE=$BASE" -t "$TAG" . >/dev/null
+# --network none: the build needs no network at all (the wheelhouse is in the context).
+"$PODMAN" build --quiet --format docker --layers --network none \
+    --build-arg "BASE=$BASE" -t "$TAG" . >/dev/null
 echo "built $TAG on $BASE"

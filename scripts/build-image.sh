@@ -21,7 +21,7 @@ PODMAN=scripts/podman.sh
 if [ ! -f "$ROOTFS" ]; then
     echo "building the base root filesystem with mmdebstrap (once, a few minutes)"
     mkdir -p "$(dirname "$ROOTFS")"
-    mmdebstrap --quiet --variant=minbase \
+    mmdebstrap --quiet --variant=minbase --format=tar \
         --include=python3.11,python3.11-venv,python3-pip,ca-certificates \
         bookworm "$ROOTFS.part"
     mv "$ROOTFS.part" "$ROOTFS"

@@ -21,9 +21,13 @@ import pytest
 import yaml
 from pymodbus.client import ModbusTcpClient
 
+from drivers.clock import ManualClock
+from gateway.config import GatewayConfig
 from gateway.demo import fit_models, write_training_data
 from gateway.local_store import LocalStore
+from gateway.outputs import Outputs
 from gateway.point_buffer import PointBuffer
+from gateway.runtime import CycleRecord
 from gateway.timeseries import Point
 from tests.ports import free_tcp_port, wait_for_port
 
@@ -271,3 +275,86 @@ def test_gateway_compensates_on_with_a_full_disk_and_logs_again_after(tmp_path: 
         assert "writable again" in err and "dropped in all" in err, err[-3000:]
         with LocalStore(data / "points.sqlite") as store:
             assert len(store.query("spindle_cycle", "bench-1")) > 0
+
+
+# --- the gateway's outputs: wall-clock stamps and retention actually run -------------------
+def outputs_config(tmp_path: Path, **logging_keys: object) -> GatewayConfig:
+    return GatewayConfig.model_validate(
+        {
+            "state_dir": str(tmp_path / "state"),
+            "logging": {"local_store": str(tmp_path / "points.sqlite"), **logging_keys},
+            "machines": [
+                {
+                    "id": "vmc-1",
+                    "transmitters": [
+                        {
+                            "name": "bus",
+                            "tcp": {"host": "127.0.0.1", "port": 502},
+                            "devices": [{"device_id": 1, "channels": ["T1"]}],
+                        }
+                    ],
+                    "cnc": {"modbus": {"host": "127.0.0.1", "port": 502}},
+                    "models": {"store": str(tmp_path / "models")},
+                }
+            ],
+        }
+    )
+
+
+def record_at(time_s: float) -> CycleRecord:
+    return CycleRecord(
+        machine="vmc-1",
+        time_s=time_s,
+        temperatures_C={"T1": 21.5},
+        quality={"T1": "good"},
+        quality_reasons={},
+        speed_rpm=4000.0,
+        regime="variable",
+        model_id="mlr-error_um-variable",
+        predicted_um=2.0,
+        target_um=2.0,
+        applied_um=2.0,
+        written_cnc=0.002,
+        write_status="ok",
+    )
+
+
+def test_points_carry_the_wall_clock_of_the_cycle_start_through_an_ntp_step(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clock = ManualClock(origin_s=5000.0)  # the loops' monotonic machine time
+    outputs = Outputs(outputs_config(tmp_path), wall_clock=clock)
+    wall_ns = [T0_NS]
+    monkeypatch.setattr("gateway.outputs.time.time_ns", lambda: wall_ns[0])
+    try:
+        clock.advance(0.25)  # the cycle began 0.25 s before its record is logged
+        outputs.sink(record_at(5000.0))
+        clock.advance(0.75)
+        wall_ns[0] = T0_NS + 3_600 * NS + NS  # NTP stepped the system clock by an hour
+        outputs.sink(record_at(5001.0))
+    finally:
+        assert outputs.store is not None
+        stamps = [p.time_ns for p in outputs.store.query("spindle_cycle", "vmc-1")]
+        outputs.store.close()
+    # The first point: wall time minus the 0.25 s since the cycle began; the second
+    # follows the corrected wall clock, not start + monotonic time (which says +1 s).
+    assert stamps == [T0_NS - NS // 4, T0_NS + 3_601 * NS]
+
+
+def test_outputs_run_retention_every_interval(tmp_path: Path) -> None:
+    config = outputs_config(
+        tmp_path, local_store_retention_days=1 / 86_400, retention_interval_s=0.05
+    )  # points older than 1 s go, checked every 50 ms
+    outputs = Outputs(config)  # no wall clock: points carry machine time (here: Unix s)
+    assert outputs.store is not None
+    try:
+        now_s = time.time()
+        outputs.sink(record_at(now_s - 30.0))  # a point from 30 s ago …
+        outputs.sink(record_at(now_s - 29.0))
+        time.sleep(0.1)
+        outputs.sink(record_at(time.time()))  # … and one now; the interval has passed
+        kept = outputs.store.query("spindle_cycle", "vmc-1")
+        assert len(kept) == 1 and kept[0].time_s > now_s - 1.0
+        assert outputs.store.expired == 2 * 2  # cycle and temperature points of two cycles
+    finally:
+        outputs.store.close()

@@ -1,38 +1,56 @@
 # Edge image of the spindle thermal-error gateway.
-# Slim Python base, dependencies pinned by pyproject.toml, runs as a non-root user.
+# Python 3.11 on Debian bookworm, the locked dependency set, runs as a non-root user.
 #
-#   docker build -t spindle-thermal-gateway:0.1.0 .        (from the repository root)
+#   scripts/build-wheelhouse.sh                                # the wheels, once per lock
+#   docker build -t spindle-thermal-gateway:0.1.0 .           (from the repository root)
 #   deploy/docker-compose.yml builds and runs it with InfluxDB and Grafana (deploy/README.md).
-FROM python:3.11-slim-bookworm
+#
+# The build needs no package index: every dependency is installed from wheelhouse/ (made
+# on a connected machine by scripts/build-wheelhouse.sh from requirements.lock, hashes
+# checked), which is how an air-gapped plant builds it. BASE is any image with Python 3.11
+# (python3, its venv module) on glibc ≥ 2.36; scripts/build-image.sh builds one from
+# Debian packages when no registry is reachable.
+ARG BASE=python:3.11-slim-bookworm
 
-ENV PYTHONDONTWRITEBYTECODE=1 \
+# --- the dependencies, installed into /opt/venv from the wheelhouse -------------------------
+FROM ${BASE} AS dependencies
+ENV PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1
+COPY requirements.lock /tmp/requirements.lock
+COPY wheelhouse /tmp/wheelhouse
+RUN python3 -m venv /opt/venv \
+    && /opt/venv/bin/pip install --no-index --find-links /tmp/wheelhouse \
+        --require-hashes --only-binary=:all: -r /tmp/requirements.lock
+# The package itself, for its metadata and entry point (build backend from the wheelhouse).
+COPY pyproject.toml README.md /tmp/src/
+COPY gateway /tmp/src/gateway
+COPY drivers /tmp/src/drivers
+COPY models /tmp/src/models
+COPY simulator /tmp/src/simulator
+RUN /opt/venv/bin/pip install --no-index --find-links /tmp/wheelhouse --no-deps /tmp/src
+
+# --- the image --------------------------------------------------------------------------------
+FROM ${BASE}
+ENV PATH=/opt/venv/bin:$PATH \
+    PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
-    PIP_NO_CACHE_DIR=1 \
-    PIP_DISABLE_PIP_VERSION_CHECK=1 \
     MPLCONFIGDIR=/tmp/matplotlib
 
 # A fixed uid/gid, so a bind-mounted /data can be chowned to it (chown -R 10001:10001 DIR).
 RUN groupadd --system --gid 10001 gateway \
     && useradd --system --uid 10001 --gid gateway --home-dir /srv/gateway --shell /usr/sbin/nologin gateway
 
+COPY --from=dependencies /opt/venv /opt/venv
 WORKDIR /srv/gateway
 
-# Dependencies first (their layer is reused while only the code changes): the pins of
-# pyproject.toml, read from the file itself so there is one list to keep.
-COPY pyproject.toml README.md ./
-RUN python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']))" \
-        > /tmp/requirements.txt \
-    && pip install --no-cache-dir -r /tmp/requirements.txt \
-    && rm /tmp/requirements.txt
-
-# The package itself. The source tree stays in the working directory: `python -m` puts it
-# first on sys.path, and it carries the data files setuptools does not install
-# (simulator/*.yaml).
+# The source tree stays in the working directory: `python -m` puts it first on sys.path,
+# and it carries the data files setuptools does not install (simulator/*.yaml).
 COPY gateway ./gateway
 COPY drivers ./drivers
 COPY models ./models
 COPY simulator ./simulator
-RUN pip install --no-cache-dir --no-deps . \
+# Compiled once here, so a read-only root needs no __pycache__ at run time.
+RUN python -m compileall -q gateway drivers models simulator /opt/venv/lib \
     && mkdir -p /data/state /data/models /config \
     && chown -R gateway:gateway /data /config
 

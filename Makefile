@@ -6,10 +6,13 @@ STAMP  := $(VENV)/.installed
 
 .PHONY: main demo fit test lint bench clean
 
-$(STAMP): pyproject.toml
+# The locked set (requirements-dev.lock, hashes checked: the image installs the same
+# versions from requirements.lock), then the project itself without resolving again.
+$(STAMP): pyproject.toml requirements-dev.lock
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) on PATH"; exit 1; }
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet --require-hashes -r requirements-dev.lock
+	$(PY) -m pip install --quiet --no-deps -e .
 	touch $(STAMP)
 
 # The main job on embedded defaults: simulated machine + gateway, compensated vs not.

@@ -131,9 +131,12 @@ class Gateway:
         sinks: Sequence[Sink] = (),
     ) -> None:
         self.config = config
-        # In the plant machine time is Unix time, so logged points carry real timestamps.
+        # In the plant machine time is Unix time, so logged points carry real timestamps;
+        # Outputs stamps them with time.time_ns() (NTP followed), the loops stay monotonic.
         self.clock = clock or WallClock(origin_s=time.time())
-        self.outputs = Outputs(config, health=self.health)
+        self.outputs = Outputs(
+            config, health=self.health, wall_clock=self.clock if clock is None else None
+        )
         # The heartbeat last: it carries the counts of this cycle's sink failures too.
         sinks = [self.outputs.log_points, *sinks]
         self.scada = self._build_scada()

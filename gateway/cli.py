@@ -530,9 +530,13 @@ def export(
     influx = config.logging.influxdb
     if influx is not None:
         source = InfluxReader(
-            influx.url, influx.token(), influx.org, influx.bucket, influx.timeout_s
+            influx.url_value(),
+            influx.token(),
+            influx.org_value(),
+            influx.bucket_value(),
+            influx.timeout_s,
         )
-        where = f"InfluxDB {influx.url} bucket {influx.bucket}"
+        where = f"InfluxDB {influx.url_value()} bucket {influx.bucket_value()}"
     else:
         if not config.logging.local_store.exists():
             raise ValueError(

@@ -323,15 +323,57 @@ class MachineSection(Strict):
         return limits
 
 
-class InfluxSection(Strict):
-    """An InfluxDB 2.x/3.x (or 1.8 with the v2 API) to log to; the token never in the file."""
+def from_environment(variable: str, key: str) -> str:
+    """The value of ``variable``, named in the config by ``key`` (e.g. ``url_env``)."""
+    value = os.environ.get(variable)
+    if value is None or not value.strip():
+        raise ConfigError(f"environment variable {variable} ({key}) is not set")
+    return value.strip()
 
-    url: str
-    org: str = "-"
-    bucket: str
+
+class InfluxSection(Strict):
+    """An InfluxDB 2.x/3.x (or 1.8 with the v2 API) to log to; the token never in the file.
+
+    Each of ``url``, ``org`` and ``bucket`` is given either literally or as the name
+    of an environment variable (``url_env``, ``org_env``, ``bucket_env``), as a
+    container passes them; the token only ever by ``token_env`` or ``token_file``.
+    """
+
+    url: str | None = None
+    url_env: str | None = None
+    org: str | None = None
+    org_env: str | None = None
+    bucket: str | None = None
+    bucket_env: str | None = None
     token_env: str | None = None
     token_file: Path | None = None
     timeout_s: float = Field(default=10.0, gt=0)
+
+    @model_validator(mode="after")
+    def _literal_or_environment(self) -> InfluxSection:
+        for key, required in (("url", True), ("org", False), ("bucket", True)):
+            literal, variable = getattr(self, key), getattr(self, f"{key}_env")
+            if literal is not None and variable is not None:
+                raise ValueError(f"give '{key}' or '{key}_env', not both")
+            if required and literal is None and variable is None:
+                raise ValueError(f"give '{key}' or '{key}_env' (an environment variable)")
+        return self
+
+    def _setting(self, key: str, default: str | None = None) -> str:
+        variable = getattr(self, f"{key}_env")
+        if variable is not None:
+            return from_environment(variable, f"{key}_env")
+        literal = getattr(self, key)
+        return default if literal is None else literal
+
+    def url_value(self) -> str:
+        return self._setting("url")
+
+    def org_value(self) -> str:
+        return self._setting("org", "-")  # InfluxDB 1.8 takes any org
+
+    def bucket_value(self) -> str:
+        return self._setting("bucket")
 
     def token(self) -> str:
         if self.token_env:
@@ -360,6 +402,13 @@ class LoggingSection(Strict):
     local_store: Path = Path(".cache/data/points.sqlite")
     buffer_path: Path = Path(".cache/data/buffer.sqlite")
     buffer_max_points: int = Field(default=2_000_000, ge=1000)
+    # Retention (gateway/retention.md): points older than *_retention_days go, and the
+    # oldest go while a file holds more than *_max_mb (10⁶ bytes).
+    local_store_retention_days: float = Field(default=365.0, gt=0)
+    local_store_max_mb: float = Field(default=8000.0, ge=1)
+    buffer_retention_days: float = Field(default=30.0, gt=0)
+    buffer_max_mb: float = Field(default=1000.0, ge=1)
+    retention_interval_s: float = Field(default=60.0, gt=0)
 
 
 class ScadaUserSection(Credentials):

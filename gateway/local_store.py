@@ -5,17 +5,34 @@ configured, and a source for :func:`gateway.export.export_runs`. It keeps
 InfluxDB's identity rule: a point is identified by measurement, tags and time, so
 writing the same point again stores it once (its fields are merged, a field
 written again takes the new value, as InfluxDB does).
+
+The store is bounded (:mod:`gateway.sqlite_bounds`): by age, points older than
+``retention_s`` are deleted by :meth:`LocalStore.enforce_retention` (the gateway
+calls it every ``logging.retention_interval_s``); by size, the file never grows past
+``max_bytes`` — a write that meets the cap first deletes the oldest points. A
+write that fails because the disk is full is dropped and counted
+(:attr:`LocalStore.dropped`), logged once when it starts and once when writes
+succeed again, and never raised: compensation does not depend on its log.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import sqlite3
 import threading
+import time
 from collections.abc import Iterable
 from pathlib import Path
 
+from gateway.sqlite_bounds import cap_size, is_out_of_space, used_bytes
 from gateway.timeseries import Point
+
+log = logging.getLogger(__name__)
+
+DELETE_CHUNK_ROWS = 5000  # rows per DELETE: keeps one retention step short (ms)
+MAX_ROUNDS = 50  # delete-and-retry rounds a capped write may take
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS points (
@@ -27,6 +44,7 @@ CREATE TABLE IF NOT EXISTS points (
     PRIMARY KEY (measurement, machine, tags, time_ns)
 );
 CREATE INDEX IF NOT EXISTS points_by_machine_time ON points (measurement, machine, time_ns);
+CREATE INDEX IF NOT EXISTS points_by_time ON points (time_ns);
 """
 
 
@@ -35,21 +53,47 @@ def _tags_text(tags: dict[str, str]) -> str:
 
 
 class LocalStore:
-    """SQLite (WAL) table of points, indexed on (measurement, machine, time_ns)."""
+    """SQLite (WAL) table of points, indexed on (measurement, machine, time_ns).
 
-    def __init__(self, path: str | Path, synchronous: str = "NORMAL") -> None:
+    Args:
+        path: the database file (created with its folder when missing).
+        synchronous: SQLite ``synchronous`` level.
+        max_bytes: the largest the file may grow (None: unbounded); at the cap the
+            oldest points make room for the newest.
+        retention_s: the oldest point :meth:`enforce_retention` keeps, s (None: all).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        synchronous: str = "NORMAL",
+        max_bytes: int | None = None,
+        retention_s: float | None = None,
+    ) -> None:
         if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
             raise ValueError(f"unknown SQLite synchronous level {synchronous!r}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.max_bytes = max_bytes
+        self.retention_s = retention_s
+        self.dropped = 0  # points not stored because the disk was full
+        self.expired = 0  # points deleted for age
+        self.evicted = 0  # points deleted to stay within max_bytes
+        self._failing = False
         self._lock = threading.Lock()
         self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
         self._db.executescript(SCHEMA)
+        if max_bytes is not None:
+            cap_size(self._db, max_bytes)
 
-    def write(self, points: Iterable[Point]) -> None:
-        """Store points (one transaction); a point already stored has its fields merged."""
+    def write(self, points: Iterable[Point]) -> bool:
+        """Store points (one transaction); a point already stored has its fields merged.
+
+        Returns False when the points could not be stored (disk full): they are
+        counted in :attr:`dropped` and logged, nothing is raised.
+        """
         rows = [
             (
                 p.measurement,
@@ -61,21 +105,77 @@ class LocalStore:
             for p in points
         ]
         if not rows:
-            return
+            return True
         with self._lock:
-            self._db.execute("BEGIN IMMEDIATE")
-            try:
-                self._db.executemany(
-                    "INSERT INTO points (measurement, machine, tags, time_ns, fields) "
-                    "VALUES (?, ?, ?, ?, ?) "
-                    "ON CONFLICT (measurement, machine, tags, time_ns) "
-                    "DO UPDATE SET fields = json_patch(fields, excluded.fields)",
-                    rows,
-                )
-                self._db.execute("COMMIT")
-            except BaseException:
+            for _ in range(MAX_ROUNDS):
+                try:
+                    self._insert(rows)
+                except sqlite3.Error as exc:
+                    if not is_out_of_space(exc):
+                        raise
+                    # At the file's own cap, the oldest points make room; a full disk
+                    # is waited out (the pages freed are reused once space returns).
+                    if self.max_bytes is not None and self._at_cap() and self._evict_oldest():
+                        continue
+                    self._lost(len(rows), exc)
+                    return False
+                if self._failing:
+                    self._failing = False
+                    log.warning(
+                        "local store %s writable again; %d point(s) dropped in all",
+                        self.path,
+                        self.dropped,
+                    )
+                return True
+            self._lost(len(rows), sqlite3.OperationalError("no room made at the size cap"))
+            return False
+
+    def _insert(self, rows: list[tuple[str, str, str, int, str]]) -> None:
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._db.executemany(
+                "INSERT INTO points (measurement, machine, tags, time_ns, fields) "
+                "VALUES (?, ?, ?, ?, ?) "
+                "ON CONFLICT (measurement, machine, tags, time_ns) "
+                "DO UPDATE SET fields = json_patch(fields, excluded.fields)",
+                rows,
+            )
+            self._db.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):
                 self._db.execute("ROLLBACK")
+            raise
+
+    def _lost(self, n: int, exc: sqlite3.Error) -> None:
+        self.dropped += n
+        if not self._failing:
+            self._failing = True
+            log.error(
+                "local store %s cannot store points (%s): dropping and counting them "
+                "until it can again",
+                self.path,
+                exc,
+            )
+
+    def _at_cap(self) -> bool:
+        assert self.max_bytes is not None
+        page_size = self._db.execute("PRAGMA page_size").fetchone()[0]
+        return used_bytes(self._db) + 8 * page_size >= self.max_bytes
+
+    def _evict_oldest(self) -> int:
+        """Delete the oldest chunk of points (lock held); how many went."""
+        try:
+            removed = self._db.execute(
+                "DELETE FROM points WHERE rowid IN "
+                "(SELECT rowid FROM points ORDER BY time_ns LIMIT ?)",
+                (DELETE_CHUNK_ROWS,),
+            ).rowcount
+        except sqlite3.Error as exc:
+            if not is_out_of_space(exc):
                 raise
+            return 0
+        self.evicted += removed
+        return removed
 
     def query(
         self,
@@ -109,10 +209,61 @@ class LocalStore:
             rows = self._db.execute("SELECT DISTINCT machine FROM points ORDER BY machine")
             return [machine for (machine,) in rows.fetchall() if machine]
 
-    def delete_before(self, time_ns: int) -> int:
-        """Remove points older than ``time_ns`` (retention); return how many."""
+    def delete_before(self, time_ns: int, limit: int | None = None) -> int:
+        """Remove points older than ``time_ns`` (retention), at most ``limit``; return how many."""
         with self._lock:
-            return self._db.execute("DELETE FROM points WHERE time_ns < ?", (time_ns,)).rowcount
+            return self._delete_before(time_ns, limit)
+
+    def _delete_before(self, time_ns: int, limit: int | None) -> int:
+        if limit is None:
+            sql, args = "DELETE FROM points WHERE time_ns < ?", (time_ns,)
+        else:
+            sql = (
+                "DELETE FROM points WHERE rowid IN (SELECT rowid FROM points "
+                "WHERE time_ns < ? ORDER BY time_ns LIMIT ?)"
+            )
+            args = (time_ns, limit)
+        return self._db.execute(sql, args).rowcount
+
+    def enforce_retention(self, now_ns: int | None = None, budget_s: float = 0.2) -> int:
+        """Delete points past ``retention_s``, then the oldest while over ``max_bytes``.
+
+        Works in chunks for at most about ``budget_s`` (it runs between compensation
+        cycles); what is left is taken on the next call. Returns the points deleted.
+        A full disk makes it do nothing (and nothing is raised).
+        """
+        now_ns = time.time_ns() if now_ns is None else now_ns
+        deadline = time.monotonic() + budget_s
+        deleted = 0
+        with self._lock:
+            try:
+                if self.retention_s is not None:
+                    cutoff = now_ns - round(self.retention_s * 1e9)
+                    while time.monotonic() < deadline:
+                        n = self._delete_before(cutoff, DELETE_CHUNK_ROWS)
+                        self.expired += n
+                        deleted += n
+                        if n < DELETE_CHUNK_ROWS:
+                            break
+                if self.max_bytes is not None:
+                    target = 0.98 * self.max_bytes
+                    while used_bytes(self._db) > target and time.monotonic() < deadline:
+                        n = self._evict_oldest()
+                        deleted += n
+                        if n == 0:
+                            break
+            except sqlite3.Error as exc:
+                if not is_out_of_space(exc):
+                    raise
+                log.warning("local store %s: retention step failed (%s)", self.path, exc)
+        if deleted:
+            log.info("local store %s: retention deleted %d old point(s)", self.path, deleted)
+        return deleted
+
+    def used_bytes(self) -> int:
+        """Bytes of the file in use (the quantity ``max_bytes`` bounds)."""
+        with self._lock:
+            return used_bytes(self._db)
 
     def __len__(self) -> int:
         with self._lock:

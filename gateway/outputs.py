@@ -14,16 +14,24 @@ The two are separate sinks (:meth:`Outputs.log_points`, :meth:`Outputs.beat`):
 a log write that fails (a full disk under the local store) is counted by the
 loop and does not keep the heartbeat, and the failure count in it, from being
 written.
+- Retention: every ``logging.retention_interval_s`` the store (or buffer) deletes
+  what is past its age or over its size (gateway/local_store.py, point_buffer.py).
+- Timestamps: in the plant (``clock`` given, running on wall time) points carry
+  ``time.time_ns()`` of the cycle's start, so an NTP correction of the system
+  clock is followed; the loops keep scheduling on the monotonic clock.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
+from drivers.clock import Clock
 from gateway.config import GatewayConfig
 from gateway.health import write_heartbeat
 from gateway.influx_writer import Forwarder, InfluxWriter
@@ -41,10 +49,20 @@ FLUSH_TIMEOUT_S = 0.3
 HealthProvider = Callable[[str], Mapping[str, Any]]
 
 
+SECONDS_PER_DAY = 86_400.0
+BYTES_PER_MB = 1_000_000
+
+
 class Outputs:
-    def __init__(self, config: GatewayConfig, health: HealthProvider | None = None) -> None:
+    def __init__(
+        self,
+        config: GatewayConfig,
+        health: HealthProvider | None = None,
+        wall_clock: Clock | None = None,
+    ) -> None:
         self.config = config
         self.health = health
+        self.wall_clock = wall_clock
         section = config.logging
         self.forwarder: Forwarder | None = None
         self.buffer: PointBuffer | None = None
@@ -52,16 +70,46 @@ class Outputs:
         if section.influxdb is not None:
             influx = section.influxdb
             section.buffer_path.parent.mkdir(parents=True, exist_ok=True)
-            self.buffer = PointBuffer(section.buffer_path, section.buffer_max_points)
+            self.buffer = PointBuffer(
+                section.buffer_path,
+                section.buffer_max_points,
+                max_bytes=round(section.buffer_max_mb * BYTES_PER_MB),
+                retention_s=section.buffer_retention_days * SECONDS_PER_DAY,
+            )
             writer = InfluxWriter(
-                influx.url, influx.token(), influx.org, influx.bucket, influx.timeout_s
+                influx.url_value(),
+                influx.token(),
+                influx.org_value(),
+                influx.bucket_value(),
+                influx.timeout_s,
             )
             self.forwarder = Forwarder(self.buffer, writer)
         else:
             section.local_store.parent.mkdir(parents=True, exist_ok=True)
-            self.store = LocalStore(section.local_store)
+            self.store = LocalStore(
+                section.local_store,
+                max_bytes=round(section.local_store_max_mb * BYTES_PER_MB),
+                retention_s=section.local_store_retention_days * SECONDS_PER_DAY,
+            )
         self.state_dir = Path(config.state_dir)
         self._cycles: dict[str, int] = {}
+        self._next_retention = time.monotonic()
+        self._heartbeat_failing = False
+
+    def enforce_retention(self) -> int:
+        """Delete what is past its age or over its size now; the points deleted."""
+        self._next_retention = time.monotonic() + self.config.logging.retention_interval_s
+        if self.buffer is not None:
+            return self.buffer.enforce_retention()
+        assert self.store is not None
+        return self.store.enforce_retention()
+
+    def _stamped(self, points: list[Point], record: CycleRecord) -> list[Point]:
+        if self.wall_clock is None:
+            return points
+        elapsed_ns = round((self.wall_clock.now() - record.time_s) * 1e9)
+        time_ns = time.time_ns() - elapsed_ns
+        return [dataclasses.replace(p, time_ns=time_ns) for p in points]
 
     def _write(self, points: list[Point]) -> None:
         if self.buffer is not None:
@@ -82,18 +130,27 @@ class Outputs:
         points = points_from_record(record)
         if record.probe_error_um is not None:
             points.append(probe_point(record.machine, record.time_s, record.probe_error_um))
-        self._write(points)
+        self._write(self._stamped(points, record))
+        if time.monotonic() >= self._next_retention:
+            self.enforce_retention()
 
     def beat(self, record: CycleRecord) -> None:
         """Write the machine's heartbeat, with its health counters when known."""
         self._cycles[record.machine] = self._cycles.get(record.machine, 0) + 1
-        write_heartbeat(
-            self.state_dir,
-            record.machine,
-            record.time_s,
-            cycles=self._cycles[record.machine],
-            health=None if self.health is None else self.health(record.machine),
-        )
+        try:
+            write_heartbeat(
+                self.state_dir,
+                record.machine,
+                record.time_s,
+                cycles=self._cycles[record.machine],
+                health=None if self.health is None else self.health(record.machine),
+            )
+        except OSError as exc:  # a full disk: the health check will say so, the loop goes on
+            if not self._heartbeat_failing:
+                log.error("cannot write the heartbeat in %s: %s", self.state_dir, exc)
+            self._heartbeat_failing = True
+        else:
+            self._heartbeat_failing = False
 
     def forwarder_health(self) -> dict[str, Any]:
         """Backlog, dropped points and restarts of the store-and-forward path (zeros

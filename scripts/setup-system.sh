@@ -4,12 +4,20 @@
 #   mbpoll (an independent libmodbus-based Modbus master)
 #   node-opcua (an independent OPC UA client, pinned in tests/node/package-lock.json)
 #   influxd 1.8.10 (a real time-series server; built once with Go into .cache/bin)
+#   podman, runc, mmdebstrap (the gateway image is built and run: tests/test_container.py)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 missing=()
 for tool in socat mbpoll; do
     command -v "$tool" >/dev/null 2>&1 || missing+=("$tool")
+done
+# The container tools, with runc named so apt does not pick crun for podman.
+for tool in podman runc mmdebstrap; do
+    if ! command -v "$tool" >/dev/null 2>&1; then
+        missing+=(podman runc mmdebstrap uidmap slirp4netns fuse-overlayfs)
+        break
+    fi
 done
 if ((${#missing[@]})); then
     SUDO=""

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Builds the gateway image from the repository's Dockerfile with podman, with no registry:
+#
+#   scripts/build-image.sh [TAG]        # default spindle-thermal-gateway:<version>
+#
+# 1. the base: Debian bookworm with Python 3.11 from Debian's own packages
+#    (mmdebstrap --variant=minbase), imported as localhost/spindle-base:bookworm;
+#    its rootfs tarball is cached in .cache/container/ (made once, ~250 MB);
+# 2. the wheelhouse (scripts/build-wheelhouse.sh, once per requirements.lock);
+# 3. podman build --build-arg BASE=localhost/spindle-base:bookworm; the layers are
+#    cached, so a rebuild after a code change takes seconds.
+# With a registry at hand, `docker build .` uses the Dockerfile's default base instead.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VERSION=$(python3 -c "import tomllib; print(tomllib.load(open('pyproject.toml','rb'))['project']['version'])")
+TAG=${1:-spindle-thermal-gateway:$VERSION}
+BASE=localhost/spindle-base:bookworm
+ROOTFS=.cache/container/rootfs-bookworm-py311.tar
+PODMAN=scripts/podman.sh
+
+if [ ! -f "$ROOTFS" ]; then
+    echo "building the base root filesystem with mmdebstrap (once, a few minutes)"
+    mkdir -p "$(dirname "$ROOTFS")"
+    mmdebstrap --quiet --variant=minbase --format=tar \
+        --include=python3.11,python3.11-venv,python3-pip,ca-certificates \
+        bookworm "$ROOTFS.part"
+    mv "$ROOTFS.part" "$ROOTFS"
+fi
+if ! "$PODMAN" image exists "$BASE"; then
+    "$PODMAN" import --quiet "$ROOTFS" "$BASE" >/dev/null
+fi
+bash scripts/build-wheelhouse.sh
+# --format docker: OCI images have no HEALTHCHECK; the Docker format keeps it.
+# --network none: the build needs no network at all (the wheelhouse is in the context).
+"$PODMAN" build --quiet --format docker --layers --network none \
+    --build-arg "BASE=$BASE" -t "$TAG" . >/dev/null
+echo "built $TAG on $BASE"

@@ -1,0 +1,360 @@
+"""Bounded disk: retention of the local store and the disk buffer, and a full disk survived.
+
+The size and age bounds are checked on real SQLite files. The full disk is a real
+one: a small tmpfs mounted for the test (the suite runs as root, as CI does), filled
+with a filler file until the kernel answers ENOSPC, then freed again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import yaml
+from pymodbus.client import ModbusTcpClient
+
+from drivers.clock import ManualClock
+from gateway.config import GatewayConfig
+from gateway.demo import fit_models, write_training_data
+from gateway.local_store import LocalStore
+from gateway.outputs import Outputs
+from gateway.point_buffer import PointBuffer
+from gateway.runtime import CycleRecord
+from gateway.timeseries import Point
+from tests.ports import free_tcp_port, wait_for_port
+
+ROOT = Path(__file__).resolve().parent.parent
+NS = 1_000_000_000
+T0_NS = 1_780_000_000 * NS  # an arbitrary Unix time, s → ns
+
+
+def cycle_points(machine: str, second: int, sensors: int = 9) -> list[Point]:
+    """The ten points of one logged cycle (as gateway.timeseries makes them)."""
+    ns = T0_NS + second * NS
+    tags = {"machine": machine, "regime": "variable", "model_id": "mlr-error_um-variable"}
+    fields = {"speed_rpm": 4000.0, "predicted_um": 3.25, "applied_um": 3.0, "write_status": "ok"}
+    points = [Point("spindle_cycle", tags, fields, ns)]
+    for i in range(1, sensors + 1):
+        sensor_tags = {"machine": machine, "sensor": f"T{i}", "quality": "good"}
+        points.append(Point("spindle_temperature", sensor_tags, {"value_C": 20.0 + i}, ns))
+    return points
+
+
+# --- age ----------------------------------------------------------------------------------
+def test_local_store_deletes_points_past_their_age(tmp_path: Path) -> None:
+    with LocalStore(tmp_path / "points.sqlite", retention_s=3600.0) as store:
+        for second in range(0, 7200, 60):  # two hours, one cycle a minute
+            store.write(cycle_points("vmc-1", second))
+        assert len(store) == 120 * 10
+        now_ns = T0_NS + 7200 * NS
+        deleted = store.enforce_retention(now_ns)
+        assert deleted == 60 * 10 and store.expired == deleted
+        kept = store.query("spindle_cycle", "vmc-1")
+        assert kept[0].time_ns == now_ns - 3600 * NS  # the first point inside the hour
+        assert store.enforce_retention(now_ns) == 0
+
+
+def test_buffer_drops_points_past_their_age_and_counts_them(tmp_path: Path) -> None:
+    with PointBuffer(tmp_path / "buffer.sqlite", retention_s=600.0) as buffer:
+        for second in range(0, 1800, 10):
+            buffer.append(cycle_points("vmc-1", second))
+        now_ns = T0_NS + 1800 * NS
+        assert buffer.enforce_retention(now_ns) == 120 * 10
+        assert buffer.dropped == 1200 and len(buffer) == 600
+        (_, oldest), *_ = buffer.peek(1)
+        assert oldest.time_ns == now_ns - 600 * NS
+    with PointBuffer(tmp_path / "buffer.sqlite") as reopened:
+        assert reopened.dropped == 1200  # the count is kept in the file
+
+
+# --- size ---------------------------------------------------------------------------------
+def test_local_store_stays_within_its_size_and_keeps_the_newest(tmp_path: Path) -> None:
+    max_bytes = 2_000_000
+    path = tmp_path / "points.sqlite"
+    with LocalStore(path, max_bytes=max_bytes) as store:
+        seconds = 6000  # 60 000 points, several times what fits
+        for second in range(seconds):
+            assert store.write(cycle_points("vmc-1", second))
+        assert path.stat().st_size <= max_bytes
+        assert store.used_bytes() <= max_bytes
+        assert store.evicted > 0 and store.dropped == 0
+        kept = store.query("spindle_cycle", "vmc-1")
+        assert kept[-1].time_ns == T0_NS + (seconds - 1) * NS  # the newest is there
+        assert kept[0].time_ns > T0_NS  # the oldest made room
+        assert [p.time_ns for p in kept] == sorted(p.time_ns for p in kept)
+        stored = len(store)
+        assert stored + store.evicted == seconds * 10  # every point stored or evicted
+        print(f"{max_bytes / stored:.0f} bytes per point at the cap", file=sys.stderr)
+
+
+def test_buffer_stays_within_its_size_dropping_the_oldest(tmp_path: Path) -> None:
+    max_bytes = 2_000_000
+    path = tmp_path / "buffer.sqlite"
+    with PointBuffer(path, max_points=10**7, max_bytes=max_bytes) as buffer:
+        for second in range(4000):
+            assert buffer.append(cycle_points("vmc-1", second))
+        assert path.stat().st_size <= max_bytes
+        assert buffer.dropped > 0
+        assert len(buffer) + buffer.dropped == 40_000
+        batch = buffer.peek(len(buffer))
+        assert batch[-1][1].time_ns == T0_NS + 3999 * NS
+        assert [row_id for row_id, _ in batch] == sorted(row_id for row_id, _ in batch)
+
+
+# --- a real full disk ---------------------------------------------------------------------
+@contextlib.contextmanager
+def small_disk(path: Path, size: str = "2m") -> Iterator[Path]:
+    """A tmpfs of ``size`` at ``path`` (needs root, as the suite and CI run)."""
+    path.mkdir()
+    mount = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size},mode=0777", "tmpfs", str(path)],
+        capture_output=True,
+        text=True,
+    )
+    if mount.returncode != 0:
+        raise RuntimeError(f"cannot mount a tmpfs for the full-disk test: {mount.stderr}")
+    try:
+        yield path
+    finally:
+        subprocess.run(["umount", "-l", str(path)], check=False)
+
+
+def fill(disk: Path) -> Path:
+    """Take every free byte of ``disk`` with one file (the kernel says ENOSPC at the end)."""
+    filler = disk / "filler"
+    with open(filler, "wb", buffering=0) as handle, contextlib.suppress(OSError):
+        while True:
+            handle.write(b"\0" * 4096)
+    return filler
+
+
+def test_full_disk_drops_and_counts_then_recovers(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING)
+    with small_disk(tmp_path / "disk") as disk:
+        store = LocalStore(disk / "points.sqlite")
+        buffer = PointBuffer(disk / "buffer.sqlite")
+        try:
+            assert store.write(cycle_points("vmc-1", 0)) and buffer.append(cycle_points("vmc-1", 0))
+            filler = fill(disk)
+            lost_store = lost_buffer = 0
+            for second in range(1, 2000):  # until the WAL files cannot grow either
+                lost_store += not store.write(cycle_points("vmc-1", second))
+                lost_buffer += not buffer.append(cycle_points("vmc-1", second))
+                if lost_store > 5 and lost_buffer > 5:
+                    break
+            assert lost_store > 5 and store.dropped == 10 * lost_store
+            assert lost_buffer > 5 and buffer.dropped == 10 * lost_buffer
+            assert "cannot store points" in caplog.text and "cannot keep points" in caplog.text
+            # A sent batch the full disk will not let go of is not sent twice.
+            held = len(buffer)
+            sent = buffer.peek(5)
+            assert buffer.remove_through(sent[-1][0]) == 5 and len(buffer) == held - 5
+            assert all(row_id > sent[-1][0] for row_id, _ in buffer.peek(held))
+
+            filler.unlink()  # space returns
+            assert store.write(cycle_points("vmc-1", 5000))
+            assert buffer.append(cycle_points("vmc-1", 5000))
+            assert "local store" in caplog.text and "writable again" in caplog.text
+            assert store.query("spindle_cycle", "vmc-1")[-1].time_ns == T0_NS + 5000 * NS
+            remaining = buffer.peek(10**6)
+            assert remaining[-1][1].time_ns == T0_NS + 5000 * NS
+            assert len(buffer) == len(remaining)
+        finally:
+            store.close()
+            buffer.close()
+    with PointBuffer(tmp_path / "reopen.sqlite") as empty:  # the module still works after
+        assert empty.dropped == 0
+
+
+def read_macro_mm(port: int, number: int = 500) -> float:
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
+    assert client.connect()
+    try:
+        rr = client.read_holding_registers(1000 + 2 * (number - 500), count=2, device_id=1)
+        assert not rr.isError(), rr
+        return float(
+            client.convert_from_registers(rr.registers, client.DATATYPE.FLOAT32, word_order="big")
+        )
+    finally:
+        client.close()
+
+
+def rises(values: list[float]) -> int:
+    return sum(b > a for a, b in itertools.pairwise(values))
+
+
+def test_gateway_compensates_on_with_a_full_disk_and_logs_again_after(tmp_path: Path) -> None:
+    write_training_data(tmp_path / "training.csv", seed=1)
+    fit_models(tmp_path / "training.csv", tmp_path / "models", "test")
+    bus, cnc = free_tcp_port(), free_tcp_port()
+    devices = [
+        {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
+        {"device_id": 2, "channels": ["T9", "ambient"]},
+    ]
+    with small_disk(tmp_path / "data") as data:
+        config = {
+            "state_dir": str(data / "state"),
+            "logging": {"local_store": str(data / "points.sqlite")},
+            "simulator": {
+                "program": "const8000",
+                "speedup": 120,
+                "transmitters": {"tcp": {"port": bus, "devices": devices}},
+                "cnc": {"modbus": {"port": cnc}},
+            },
+            "machines": [
+                {
+                    "id": "bench-1",
+                    "cycle_s": 0.2,
+                    "transmitters": [
+                        {
+                            "name": "bus1",
+                            "tcp": {"host": "127.0.0.1", "port": bus},
+                            "devices": [devices[0], {"device_id": 2, "channels": ["T9", None]}],
+                        }
+                    ],
+                    "sensors": {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)},
+                    "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
+                    "compensation": {"slew_um_per_min": 2000.0},
+                    "models": {
+                        "store": str(tmp_path / "models"),
+                        "regimes": {
+                            "models": {"variable": "mlr-error_um-variable"},
+                            "fallback_model": "mlr-error_um-all",
+                        },
+                    },
+                }
+            ],
+        }
+        path = tmp_path / "config.yaml"
+        path.write_text(yaml.safe_dump(config), encoding="utf-8")
+        command = [sys.executable, "-m", "gateway"]
+        pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+        simulator = subprocess.Popen([*command, "simulate", "--config", str(path)], **pipes)
+        gateway = None
+        try:
+            wait_for_port(cnc)
+            gateway = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
+
+            def macro_rises(within_s: float) -> list[float]:
+                """#500 read every 0.5 s until it has risen twice (compensation at work)."""
+                values = [read_macro_mm(cnc)]
+                deadline = time.monotonic() + within_s
+                while time.monotonic() < deadline and rises(values) < 2:
+                    time.sleep(0.5)
+                    values.append(read_macro_mm(cnc))
+                return values
+
+            before = macro_rises(40)
+            assert rises(before) >= 2, before
+            filler = fill(data)
+            time.sleep(3)  # the WAL fills what was left; from here on points are dropped
+            during = macro_rises(30)
+            assert rises(during) >= 2, during
+            assert gateway.poll() is None, "the gateway must keep running on a full disk"
+            filler.unlink()
+            time.sleep(3)
+            gateway.send_signal(signal.SIGTERM)
+            _, err = gateway.communicate(timeout=30)
+            assert gateway.returncode == 0, err[-3000:]
+        finally:
+            if gateway is not None and gateway.poll() is None:
+                gateway.kill()
+            simulator.send_signal(signal.SIGINT)
+            simulator.communicate(timeout=30)
+        assert "cannot store points" in err, err[-3000:]
+        assert "writable again" in err and "dropped in all" in err, err[-3000:]
+        with LocalStore(data / "points.sqlite") as store:
+            assert len(store.query("spindle_cycle", "bench-1")) > 0
+
+
+# --- the gateway's outputs: wall-clock stamps and retention actually run -------------------
+def outputs_config(tmp_path: Path, **logging_keys: object) -> GatewayConfig:
+    return GatewayConfig.model_validate(
+        {
+            "state_dir": str(tmp_path / "state"),
+            "logging": {"local_store": str(tmp_path / "points.sqlite"), **logging_keys},
+            "machines": [
+                {
+                    "id": "vmc-1",
+                    "transmitters": [
+                        {
+                            "name": "bus",
+                            "tcp": {"host": "127.0.0.1", "port": 502},
+                            "devices": [{"device_id": 1, "channels": ["T1"]}],
+                        }
+                    ],
+                    "cnc": {"modbus": {"host": "127.0.0.1", "port": 502}},
+                    "models": {"store": str(tmp_path / "models")},
+                }
+            ],
+        }
+    )
+
+
+def record_at(time_s: float) -> CycleRecord:
+    return CycleRecord(
+        machine="vmc-1",
+        time_s=time_s,
+        temperatures_C={"T1": 21.5},
+        quality={"T1": "good"},
+        quality_reasons={},
+        speed_rpm=4000.0,
+        regime="variable",
+        model_id="mlr-error_um-variable",
+        predicted_um=2.0,
+        target_um=2.0,
+        applied_um=2.0,
+        written_cnc=0.002,
+        write_status="ok",
+    )
+
+
+def test_points_carry_the_wall_clock_of_the_cycle_start_through_an_ntp_step(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clock = ManualClock(origin_s=5000.0)  # the loops' monotonic machine time
+    outputs = Outputs(outputs_config(tmp_path), wall_clock=clock)
+    wall_ns = [T0_NS]
+    monkeypatch.setattr("gateway.outputs.time.time_ns", lambda: wall_ns[0])
+    try:
+        clock.advance(0.25)  # the cycle began 0.25 s before its record is logged
+        outputs.sink(record_at(5000.0))
+        clock.advance(0.75)
+        wall_ns[0] = T0_NS + 3_600 * NS + NS  # NTP stepped the system clock by an hour
+        outputs.sink(record_at(5001.0))
+    finally:
+        assert outputs.store is not None
+        stamps = [p.time_ns for p in outputs.store.query("spindle_cycle", "vmc-1")]
+        outputs.store.close()
+    # The first point: wall time minus the 0.25 s since the cycle began; the second
+    # follows the corrected wall clock, not start + monotonic time (which says +1 s).
+    assert stamps == [T0_NS - NS // 4, T0_NS + 3_601 * NS]
+
+
+def test_outputs_run_retention_every_interval(tmp_path: Path) -> None:
+    config = outputs_config(
+        tmp_path, local_store_retention_days=1 / 86_400, retention_interval_s=0.05
+    )  # points older than 1 s go, checked every 50 ms
+    outputs = Outputs(config)  # no wall clock: points carry machine time (here: Unix s)
+    assert outputs.store is not None
+    try:
+        now_s = time.time()
+        outputs.sink(record_at(now_s - 30.0))  # a point from 30 s ago …
+        outputs.sink(record_at(now_s - 29.0))
+        time.sleep(0.1)
+        outputs.sink(record_at(time.time()))  # … and one now; the interval has passed
+        kept = outputs.store.query("spindle_cycle", "vmc-1")
+        assert len(kept) == 1 and kept[0].time_s > now_s - 1.0
+        assert outputs.store.expired == 2 * 2  # cycle and temperature points of two cycles
+    finally:
+        outputs.store.close()

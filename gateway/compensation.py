@@ -244,11 +244,14 @@ class CompensationPolicy:
         """The gateway leaves the CNC alone this cycle (compensation off, ``hold``).
 
         The slew budget restarts at ``now_s``, so nothing is banked while the
-        gateway does not write: switched on again, it moves at the slew rate.
+        gateway does not write: switched on again, it moves at the slew rate. So
+        does the hold on loss of prediction: switched on without one, the value
+        is held ``hold_on_loss_s`` from then before the ramp to zero.
         """
         self._advance(now_s)
         self._applied_s = now_s
         self._last_decision_s = now_s
+        self._last_usable_s = now_s
 
     def decide(self, now_s: float, predicted_um: float | None, *, enabled: bool = True) -> Decision:
         """The value to write at ``now_s`` for this prediction (None: no prediction).

@@ -358,6 +358,15 @@ def test_hold_while_disabled_banks_no_slew():
     assert decision.target_um == 6.0  # one cycle of slew, not ten minutes
 
 
+def test_switched_on_after_a_hold_without_prediction_holds_first():
+    policy = CompensationPolicy(DEFAULT, start_um=5.0)
+    write_ok(policy, 0.0, policy.decide(0.0, 5.0))
+    for k in range(1, 201):
+        policy.hold(3.0 * k)
+    assert "holding" in policy.decide(603.0, None).reason  # not an instant ramp
+    assert "ramping" in policy.decide(663.0, None).reason
+
+
 def test_budget_counts_from_the_confirmed_write_not_the_cycle_start():
     policy = CompensationPolicy(CompensationLimits(deadband_um=0.0), start_um=0.0)
     write_ok(policy, 0.0, policy.decide(0.0, 0.0))

@@ -51,7 +51,7 @@ HOT_C = {**{name: COLD_C for name in SENSORS}, "T1": 30.0}  # ≈ 40 µm predict
 CNCS = ["opcua", "modbus"]
 
 
-def run(body: Callable[[], Awaitable[T]], timeout_s: float = 60.0) -> T:
+def run(body: Callable[[], Awaitable[T]], timeout_s: float = 120.0) -> T:
     async def bounded() -> T:
         return await asyncio.wait_for(body(), timeout_s)
 

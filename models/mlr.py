@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import scipy.linalg
+from scipy.linalg.lapack import get_lapack_funcs
 
 from models.base import ModelInputs, ThermalModel
 
@@ -22,23 +22,24 @@ from models.base import ModelInputs, ThermalModel
 def least_squares_with_intercept(X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
     """(b0, b) minimising ‖y − b0 − X b‖².
 
-    The same LAPACK ``gelsd`` and rank cutoff (eps · max(n, k)) as
-    ``numpy.linalg.lstsq(rcond=None)``, but on a design built once in Fortran
-    order and solved in place: numpy would copy it again, and on a
-    million-row file that copy is hundreds of megabytes.
+    LAPACK ``gelsd`` with the rank cutoff of ``numpy.linalg.lstsq(rcond=None)``
+    (eps · max(n, k)), on a design built once in Fortran order and solved in
+    place. ``numpy.linalg.lstsq`` (and ``scipy.linalg.lstsq``) would copy the
+    design first, and on a million-row file that copy is hundreds of megabytes.
     """
-    design = np.empty((X.shape[0], X.shape[1] + 1), order="F")
+    rows, columns = X.shape[0], X.shape[1] + 1
+    design = np.empty((rows, columns), order="F")
     design[:, 0] = 1.0
     design[:, 1:] = X
-    coef, *_ = scipy.linalg.lstsq(
-        design,
-        y,
-        cond=np.finfo(float).eps * max(design.shape),
-        overwrite_a=True,
-        check_finite=False,
-        lapack_driver="gelsd",
-    )
-    return float(coef[0]), coef[1:]
+    rhs = np.zeros(max(rows, columns))
+    rhs[:rows] = y
+    cond = np.finfo(float).eps * max(rows, columns)
+    gelsd, gelsd_lwork = get_lapack_funcs(("gelsd", "gelsd_lwork"), (design, rhs))
+    work, iwork, info = gelsd_lwork(rows, columns, 1, cond)
+    coef, _, _, info = gelsd(design, rhs, int(work), int(iwork), cond, overwrite_a=1, overwrite_b=1)
+    if info > 0:
+        raise np.linalg.LinAlgError("SVD did not converge in linear least squares")
+    return float(coef[0]), coef[1:columns]
 
 
 class MlrModel(ThermalModel):

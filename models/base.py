@@ -110,6 +110,15 @@ class ThermalModel(ABC):
         self._fit(inputs, y)
         return self
 
+    def fit_rows(self, inputs: ModelInputs, error_um: np.ndarray, rows: np.ndarray) -> Self:
+        """The same as ``fit(inputs.take(rows), error_um[rows])``.
+
+        A method may override it to read the rows straight from ``inputs``
+        (validation fits on all runs but one, and on a million-row file a copy
+        of the inputs first is hundreds of megabytes).
+        """
+        return self.fit(inputs.take(rows), np.asarray(error_um)[rows])
+
     def predict(self, inputs: ModelInputs) -> np.ndarray:
         if not self.is_fitted:
             raise NotFittedError(

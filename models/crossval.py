@@ -67,7 +67,7 @@ def cross_validate(factory: ModelFactory, prepared: Prepared, progress: bool = F
     per_fold: dict[str, Accuracy] = {}
     for fold in tqdm(folds, desc="held-out folds", disable=not progress, leave=False):
         test = labels == fold
-        model = factory().fit(prepared.inputs.take(~test), prepared.error_um[~test])
+        model = factory().fit_rows(prepared.inputs, prepared.error_um, ~test)
         predicted[test] = model.predict(prepared.inputs.take(test))
         per_fold[fold] = accuracy(prepared.error_um[test], predicted[test])
     return Validation(

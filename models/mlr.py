@@ -14,31 +14,39 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-import scipy.linalg
+from scipy.linalg.lapack import get_lapack_funcs
 
 from models.base import ModelInputs, ThermalModel
 
 
-def least_squares_with_intercept(X: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
-    """(b0, b) minimising ‖y − b0 − X b‖².
+def least_squares_with_intercept(
+    X: np.ndarray, y: np.ndarray, rows: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
+    """(b0, b) minimising ‖y − b0 − X b‖², on ``rows`` of X and y only if given.
 
-    The same LAPACK ``gelsd`` and rank cutoff (eps · max(n, k)) as
-    ``numpy.linalg.lstsq(rcond=None)``, but on a design built once in Fortran
-    order and solved in place: numpy would copy it again, and on a
-    million-row file that copy is hundreds of megabytes.
+    LAPACK ``gelsd`` with the rank cutoff of ``numpy.linalg.lstsq(rcond=None)``
+    (eps · max(n, k)), on a design built once in Fortran order and solved in
+    place. ``numpy.linalg.lstsq`` (and ``scipy.linalg.lstsq``) would copy the
+    design first, and on a million-row file that copy is hundreds of megabytes.
     """
-    design = np.empty((X.shape[0], X.shape[1] + 1), order="F")
+    if rows is not None:
+        y = y[rows]
+    n, columns = y.shape[0], X.shape[1] + 1
+    design = np.empty((n, columns), order="F")
     design[:, 0] = 1.0
-    design[:, 1:] = X
-    coef, *_ = scipy.linalg.lstsq(
-        design,
-        y,
-        cond=np.finfo(float).eps * max(design.shape),
-        overwrite_a=True,
-        check_finite=False,
-        lapack_driver="gelsd",
-    )
-    return float(coef[0]), coef[1:]
+    for j in range(X.shape[1]):  # column by column: no (n, k) temporary of the rows
+        design[:, j + 1] = X[:, j] if rows is None else X[rows, j]
+    if not np.all(np.isfinite(design)) or not np.all(np.isfinite(y)):
+        raise ValueError("fit needs finite temperatures and errors (found NaN or inf)")
+    rhs = np.zeros(max(n, columns))
+    rhs[:n] = y
+    cond = np.finfo(float).eps * max(n, columns)
+    gelsd, gelsd_lwork = get_lapack_funcs(("gelsd", "gelsd_lwork"), (design, rhs))
+    work, iwork, info = gelsd_lwork(n, columns, 1, cond)
+    coef, _, _, info = gelsd(design, rhs, int(work), int(iwork), cond, overwrite_a=1, overwrite_b=1)
+    if info > 0:
+        raise np.linalg.LinAlgError("SVD did not converge in linear least squares")
+    return float(coef[0]), coef[1:columns]
 
 
 class MlrModel(ThermalModel):
@@ -59,6 +67,18 @@ class MlrModel(ThermalModel):
             inputs.columns(used), error_um
         )
         self.sensors_used_ = used
+
+    def fit_rows(self, inputs: ModelInputs, error_um: np.ndarray, rows: np.ndarray) -> MlrModel:
+        """``fit`` on ``rows``, reading them straight from ``inputs`` into the design."""
+        used = tuple(self.sensors) if self.sensors is not None else inputs.sensors
+        y = np.asarray(error_um, dtype=float)
+        if y.shape != (inputs.n_samples,):
+            raise ValueError(f"error_um must be ({inputs.n_samples},), got {y.shape}")
+        self.intercept_um_, self.coef_um_per_C_ = least_squares_with_intercept(
+            inputs.columns(used), y, rows
+        )
+        self.sensors_used_ = used
+        return self
 
     def _predict(self, inputs: ModelInputs) -> np.ndarray:
         return self.intercept_um_ + inputs.columns(self.sensors_used_) @ self.coef_um_per_C_

@@ -105,6 +105,7 @@ def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]
         target_um=record.target_um,
         applied_um=record.applied_um,
         written_cnc=record.written_cnc,
+        correction_um=record.correction_um,
     )
     fields["write_status"] = record.write_status
     fields["link_errors"] = len(record.link_errors)

@@ -294,10 +294,15 @@ def replay_interval(
     slices = dict(data.run_slices())
     masks = {r: data.run == r for r in runs}
     y = prepared.error_um
-    features = None
-    if base == "lagged":
-        used = _used_sensors(prepared, method, sensors)
-        features = LaggedFeatures(prepared, used, interval_s)
+    lagged: dict[tuple[str, ...], LaggedFeatures] = {}  # by the sensors a fold's model uses
+
+    def lagged_features(train_runs: list[str]) -> LaggedFeatures:
+        train = np.any([masks[r] for r in train_runs], axis=0)
+        used = _used_sensors(prepared, method, sensors, train)
+        if used not in lagged:
+            lagged[used] = LaggedFeatures(prepared, used, interval_s)
+        return lagged[used]
+
     design = augmented_design(document, prepared) if base == "augmented" else None
     grams = (
         {
@@ -319,8 +324,7 @@ def replay_interval(
             c = sum(grams[r][1] for r in train_runs)
             beta, *_ = np.linalg.lstsq(g, c, rcond=1e-12)
             return design @ beta, {}
-        assert features is not None
-        return _choose_lagged(features, train_runs, defaults, interval_s)
+        return _choose_lagged(lagged_features(train_runs), train_runs, defaults, interval_s)
 
     result_runs: list[RunReplay] = []
     base_residual = np.empty(y.size)
@@ -328,6 +332,7 @@ def replay_interval(
     for held in runs:
         train_runs = [r for r in runs if r != held]
         predicted, chosen = fitted(train_runs)
+        features = lagged_features(train_runs) if base == "lagged" else None
         inner_residual = np.empty(y.size)
         for inner in train_runs:
             inner_pred, _ = (
@@ -360,12 +365,13 @@ def filter_choice(params: CorrectionParams) -> dict[str, Any]:
 
 
 def _used_sensors(
-    prepared: Prepared, method: str, sensors: Sequence[str] | None
+    prepared: Prepared, method: str, sensors: Sequence[str] | None, rows: np.ndarray
 ) -> tuple[str, ...]:
-    """The sensors the declared model uses (grey-mlr selects a few; the others use all)."""
+    """The sensors the declared model uses when fitted on ``rows`` (grey-mlr selects a few;
+    the others use all)."""
     if method == "mlr":
         return tuple(sensors) if sensors is not None else prepared.inputs.sensors
-    model = make_model(method, sensors).fit(prepared.inputs, prepared.error_um)
+    model = make_model(method, sensors).fit(prepared.inputs.take(rows), prepared.error_um[rows])
     return tuple(model.sensors_used_)
 
 
@@ -445,7 +451,7 @@ def fit_for_store(
     defaults = defaults or CorrectionParams()
     interval_s = 60.0 * interval_min
     runs = list(prepared.data.run_ids)
-    used = _used_sensors(prepared, method, sensors)
+    used = _used_sensors(prepared, method, sensors, np.ones(prepared.data.n_samples, dtype=bool))
     features = LaggedFeatures(prepared, used, interval_s)
     _, chosen = _choose_lagged(features, runs, defaults, interval_s)
     slices = dict(prepared.data.run_slices())

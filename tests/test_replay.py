@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 
+from gateway.config import MachineSection
 from gateway.model_bank import ModelBank
+from gateway.runtime import MachineLoop
 from models import augmented
 from models.dataset import load_runs
 from models.features import prepare
@@ -123,6 +126,27 @@ def assert_stored_model_runs_in_the_bank(store, result) -> None:
         for i in rows
     ]
     assert np.max(np.abs(np.array(stepped) - batch)) < 1e-9
+    # The running gateway takes the stored noise model and keeps its own safety limits.
+    machine = MachineSection.model_validate(
+        {
+            "id": "m1",
+            "transmitters": [
+                {
+                    "name": "b",
+                    "tcp": {"host": "127.0.0.1", "port": 5020},
+                    "devices": [{"device_id": 1, "channels": ["T1"]}],
+                }
+            ],
+            "cnc": {"modbus": {"host": "127.0.0.1", "port": 5021}},
+            "compensation": {"probe_macro": 510},
+            "online_correction": {"enabled": True, "bound_um": 7.0, "process_um2_per_h": 99.0},
+            "models": {"store": str(store)},
+        }
+    )
+    taken = MachineLoop._online_params(SimpleNamespace(config=machine), banked)
+    assert taken.process_um2_per_h == params.process_um2_per_h  # the model's, not 99
+    assert taken.probe_noise_um == params.probe_noise_um
+    assert taken.bound_um == 7.0  # the machine's limit
     # Fitted on every cycle, the base explains them far better than the plain mlr.
     assert np.sqrt(np.mean((prepared.error_um - batch) ** 2)) < 0.6 * result["offline"]["rmse_um"]
 

@@ -47,6 +47,17 @@ BAD as above ("implausible: moved the prediction …") and the cycle predicts wi
 the model without it. Augmented models (lag states) are not bounded this way:
 their speed terms legitimately step with the speed.
 
+**A reference taken while the spindle turns** (the gateway started for the
+first time in the middle of a run) makes every rise relative to that moment's
+transient, when a fast sensor leads the others; the relation would then flag
+sound sensors as the transient settles. So rule 1 arms itself at the first
+cycle with rises: if the spindle was turning at the gateway's first cycle and
+the rises are all within ``FRESH_REFERENCE_C`` of zero (the reference was
+just taken), it stays off for this run, logged once (the remedy: delete the
+reference file and start the gateway with the machine cold and at rest, which
+the models need too). A reference kept from an earlier start (rises already
+larger), or taken with the spindle at rest, arms it.
+
 **Without relations** (a model file saved before they were stored) rule 1 is
 unavailable, which :attr:`Plausibility.available` says and the loop logs once;
 rule 2 still runs, and a sensor it holds is trusted again after
@@ -92,6 +103,9 @@ RATE_HORIZON_S = 120.0
 #: Error of one sensor's cold reference (one reading, °C): transmitter noise
 #: (0.03 °C here) and half a 0.1 °C register step (0.03 °C σ), rounded up.
 REFERENCE_SIGMA_C = 0.05
+
+#: Rises all within this of zero (°C) at the first cycle: the reference was just taken.
+FRESH_REFERENCE_C = 0.5
 
 #: Fewest sensors among which one can be told to be the wrong one.
 MIN_SENSORS_TO_BLAME = 3
@@ -170,9 +184,14 @@ def relations_from_bank(bank: ModelBank, sensors: Iterable[str]) -> SensorRelati
 class Plausibility:
     """Both rules for one machine, with the holds they place (see the module docstring)."""
 
-    def __init__(self, relations: SensorRelations | None, limits: PlausibilityLimits) -> None:
+    def __init__(
+        self, relations: SensorRelations | None, limits: PlausibilityLimits, machine: str = ""
+    ) -> None:
         self.relations = relations
         self.limits = limits
+        self.machine = machine
+        self.armed: bool | None = None  # rule 1: decided at the first cycle with rises
+        self._turning_at_start: bool | None = None
         self.holds: dict[str, _Hold] = {}
         self.flags = 0  # how many times a sensor was newly held
         # The largest |z| of a sensor found sound: how close this machine runs to the threshold.
@@ -200,12 +219,12 @@ class Plausibility:
                 relations.rows,
                 relations.runs,
             )
-        return cls(relations, limits)
+        return cls(relations, limits, machine)
 
     @property
     def available(self) -> bool:
         """Whether rule 1 (relations between the sensors) can run."""
-        return self.relations is not None
+        return self.relations is not None and self.armed is not False
 
     # --- rule 1: each sensor against the others ------------------------------------------
     def judge(self, now_s: float, rises_C: Mapping[str, float]) -> dict[str, str]:
@@ -215,7 +234,7 @@ class Plausibility:
         passed the per-sensor checks this cycle, held ones included (they are
         judged for agreement, never used to judge others).
         """
-        if self.relations is None:
+        if self.relations is None or self.armed is False:
             self._release_by_time(now_s, rises_C)
             return self.reasons()
         known = {s: v for s, v in rises_C.items() if s in self.relations.sensors}
@@ -353,8 +372,25 @@ class Plausibility:
         self._hold(now_s, sensor, reason)
         return Suspect(sensor, reason)
 
-    def accept(self, now_s: float, rises_C: Mapping[str, float]) -> None:
-        """Remember the rises this cycle predicted from (trusted sensors only)."""
+    def accept(
+        self, now_s: float, rises_C: Mapping[str, float], speed_rpm: float | None = None
+    ) -> None:
+        """Remember the rises this cycle predicted from (trusted sensors only).
+
+        The first cycle with rises also arms rule 1, or not (see the module docstring).
+        """
+        if self._turning_at_start is None:
+            self._turning_at_start = speed_rpm is not None and speed_rpm > 0
+        if self.armed is None and rises_C:
+            fresh = max(abs(v) for v in rises_C.values()) <= FRESH_REFERENCE_C
+            self.armed = not (fresh and self._turning_at_start)
+            if not self.armed and self.relations is not None:
+                log.warning(
+                    "%s: plausibility check off: the temperature reference was taken with the "
+                    "spindle turning; delete the reference file and start the gateway with the "
+                    "machine cold and at rest to arm it",
+                    self.machine,
+                )
         self._history.append((now_s, {s: v for s, v in rises_C.items() if s not in self.holds}))
         while self._history and now_s - self._history[0][0] > RATE_HORIZON_S:
             self._history.popleft()

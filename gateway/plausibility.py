@@ -308,7 +308,7 @@ class Plausibility:
             hold.agree_since_s = now_s
         agreed_s = now_s - hold.agree_since_s
         if agreed_s >= self.limits.recover_s:
-            del self.holds[sensor]
+            self._release(sensor)
         else:
             hold.reason = (
                 f"implausible until it agrees for {self.limits.recover_s:.0f} s "
@@ -322,11 +322,21 @@ class Plausibility:
             if hold.agree_since_s is None:
                 hold.agree_since_s = now_s
             if now_s - hold.agree_since_s >= self.limits.recover_s:
-                del self.holds[sensor]
+                self._release(sensor)
 
     def _hold(self, now_s: float, sensor: str, reason: str) -> None:
         self.holds[sensor] = _Hold(since_s=now_s, reason=reason)
         self.flags += 1
+        log.warning("%s: sensor %s is bad: %s", self.machine, sensor, reason)
+
+    def _release(self, sensor: str) -> None:
+        hold = self.holds.pop(sensor)
+        log.info(
+            "%s: sensor %s agrees again; trusted (held since %.0f s)",
+            self.machine,
+            sensor,
+            hold.since_s,
+        )
 
     # --- rule 2: the predicted error's rate ---------------------------------------------
     def check_prediction(

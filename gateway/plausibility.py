@@ -20,9 +20,10 @@ rise by a constant, which the relation's coefficients b_j carry into the
 residual. A sensor is *suspect* when |z| > ``plausibility_sigma`` (default 5). When the
 readings disagree, the sensor to blame is the one whose removal leaves the
 others consistent (the smallest worst |z| among the remaining sensors, each
-judged from the remaining ones only); it is removed and the search repeats, so
-two bad sensors are found one after the other. Three or more sensors are needed
-to say which one is wrong; with fewer the rule says nothing.
+judged from the remaining ones only); it is removed and the search repeats
+while the rest still disagree. A second fault while the first sensor is held
+is judged by the sensors left. Three or more sensors are needed to say which
+one is wrong; with fewer the rule says nothing.
 
 A suspect sensor goes BAD ("implausible: +7.4σ from its neighbours …") and is
 *held*: it no longer predicts the others and the model bank switches to the
@@ -44,8 +45,12 @@ most::
 A prediction that moves faster is not used. The sensor responsible is the one
 whose rise, put back to its earlier value, undoes most of the jump; it is held
 BAD as above ("implausible: moved the prediction …") and the cycle predicts with
-the model without it. Augmented models (lag states) are not bounded this way:
-their speed terms legitimately step with the speed.
+the model without it (so the policy does not fall back to hold-and-ramp). It is
+released by rule 1, or, where rule 1 cannot run, after ``plausibility_recover_s``
+of good per-sensor checks. Augmented models (lag states) are not bounded this
+way: their speed terms legitimately step with the speed. Rates are per second
+of the loop's clock: a simulated machine served faster than the gateway's wall
+clock needs the bound scaled by the same factor.
 
 **A reference taken while the spindle turns** (the gateway started for the
 first time in the middle of a run) makes every rise relative to that moment's
@@ -60,10 +65,10 @@ larger), or taken with the spindle at rest, arms it.
 
 **Without relations** (a model file saved before they were stored) rule 1 is
 unavailable, which :attr:`Plausibility.available` says and the loop logs once;
-rule 2 still runs, and a sensor it holds is trusted again after
-``plausibility_recover_s`` of good per-sensor checks.
+rule 2 still runs.
 
-Plain numbers in, verdicts out: no I/O here, machine time in seconds.
+Plain numbers in, verdicts out, machine time in seconds; no protocol I/O here.
+Every hold and release is logged once.
 """
 
 from __future__ import annotations

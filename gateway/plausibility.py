@@ -20,9 +20,10 @@ rise by a constant, which the relation's coefficients b_j carry into the
 residual. A sensor is *suspect* when |z| > ``plausibility_sigma`` (default 5). When the
 readings disagree, the sensor to blame is the one whose removal leaves the
 others consistent (the smallest worst |z| among the remaining sensors, each
-judged from the remaining ones only); it is removed and the search repeats, so
-two bad sensors are found one after the other. Three or more sensors are needed
-to say which one is wrong; with fewer the rule says nothing.
+judged from the remaining ones only); it is removed and the search repeats
+while the rest still disagree. A second fault while the first sensor is held
+is judged by the sensors left. Three or more sensors are needed to say which
+one is wrong; with fewer the rule says nothing.
 
 A suspect sensor goes BAD ("implausible: +7.4σ from its neighbours …") and is
 *held*: it no longer predicts the others and the model bank switches to the
@@ -44,15 +45,30 @@ most::
 A prediction that moves faster is not used. The sensor responsible is the one
 whose rise, put back to its earlier value, undoes most of the jump; it is held
 BAD as above ("implausible: moved the prediction …") and the cycle predicts with
-the model without it. Augmented models (lag states) are not bounded this way:
-their speed terms legitimately step with the speed.
+the model without it (so the policy does not fall back to hold-and-ramp). It is
+released by rule 1, or, where rule 1 cannot run, after ``plausibility_recover_s``
+of good per-sensor checks. Augmented models (lag states) are not bounded this
+way: their speed terms legitimately step with the speed. Rates are per second
+of the loop's clock: a simulated machine served faster than the gateway's wall
+clock needs the bound scaled by the same factor.
+
+**A reference taken while the spindle turns** (the gateway started for the
+first time in the middle of a run) makes every rise relative to that moment's
+transient, when a fast sensor leads the others; the relation would then flag
+sound sensors as the transient settles. So rule 1 arms itself at the first
+cycle with rises: if the spindle was turning at the gateway's first cycle and
+the rises are all within ``FRESH_REFERENCE_C`` of zero (the reference was
+just taken), it stays off for this run, logged once (the remedy: delete the
+reference file and start the gateway with the machine cold and at rest, which
+the models need too). A reference kept from an earlier start (rises already
+larger), or taken with the spindle at rest, arms it.
 
 **Without relations** (a model file saved before they were stored) rule 1 is
 unavailable, which :attr:`Plausibility.available` says and the loop logs once;
-rule 2 still runs, and a sensor it holds is trusted again after
-``plausibility_recover_s`` of good per-sensor checks.
+rule 2 still runs.
 
-Plain numbers in, verdicts out: no I/O here, machine time in seconds.
+Plain numbers in, verdicts out, machine time in seconds; no protocol I/O here.
+Every hold and release is logged once.
 """
 
 from __future__ import annotations
@@ -92,6 +108,9 @@ RATE_HORIZON_S = 120.0
 #: Error of one sensor's cold reference (one reading, °C): transmitter noise
 #: (0.03 °C here) and half a 0.1 °C register step (0.03 °C σ), rounded up.
 REFERENCE_SIGMA_C = 0.05
+
+#: Rises all within this of zero (°C) at the first cycle: the reference was just taken.
+FRESH_REFERENCE_C = 0.5
 
 #: Fewest sensors among which one can be told to be the wrong one.
 MIN_SENSORS_TO_BLAME = 3
@@ -170,9 +189,14 @@ def relations_from_bank(bank: ModelBank, sensors: Iterable[str]) -> SensorRelati
 class Plausibility:
     """Both rules for one machine, with the holds they place (see the module docstring)."""
 
-    def __init__(self, relations: SensorRelations | None, limits: PlausibilityLimits) -> None:
+    def __init__(
+        self, relations: SensorRelations | None, limits: PlausibilityLimits, machine: str = ""
+    ) -> None:
         self.relations = relations
         self.limits = limits
+        self.machine = machine
+        self.armed: bool | None = None  # rule 1: decided at the first cycle with rises
+        self._turning_at_start: bool | None = None
         self.holds: dict[str, _Hold] = {}
         self.flags = 0  # how many times a sensor was newly held
         # The largest |z| of a sensor found sound: how close this machine runs to the threshold.
@@ -200,12 +224,12 @@ class Plausibility:
                 relations.rows,
                 relations.runs,
             )
-        return cls(relations, limits)
+        return cls(relations, limits, machine)
 
     @property
     def available(self) -> bool:
         """Whether rule 1 (relations between the sensors) can run."""
-        return self.relations is not None
+        return self.relations is not None and self.armed is not False
 
     # --- rule 1: each sensor against the others ------------------------------------------
     def judge(self, now_s: float, rises_C: Mapping[str, float]) -> dict[str, str]:
@@ -215,7 +239,7 @@ class Plausibility:
         passed the per-sensor checks this cycle, held ones included (they are
         judged for agreement, never used to judge others).
         """
-        if self.relations is None:
+        if self.relations is None or self.armed is False:
             self._release_by_time(now_s, rises_C)
             return self.reasons()
         known = {s: v for s, v in rises_C.items() if s in self.relations.sensors}
@@ -289,7 +313,7 @@ class Plausibility:
             hold.agree_since_s = now_s
         agreed_s = now_s - hold.agree_since_s
         if agreed_s >= self.limits.recover_s:
-            del self.holds[sensor]
+            self._release(sensor)
         else:
             hold.reason = (
                 f"implausible until it agrees for {self.limits.recover_s:.0f} s "
@@ -303,11 +327,21 @@ class Plausibility:
             if hold.agree_since_s is None:
                 hold.agree_since_s = now_s
             if now_s - hold.agree_since_s >= self.limits.recover_s:
-                del self.holds[sensor]
+                self._release(sensor)
 
     def _hold(self, now_s: float, sensor: str, reason: str) -> None:
         self.holds[sensor] = _Hold(since_s=now_s, reason=reason)
         self.flags += 1
+        log.warning("%s: sensor %s is bad: %s", self.machine, sensor, reason)
+
+    def _release(self, sensor: str) -> None:
+        hold = self.holds.pop(sensor)
+        log.info(
+            "%s: sensor %s agrees again; trusted (held since %.0f s)",
+            self.machine,
+            sensor,
+            hold.since_s,
+        )
 
     # --- rule 2: the predicted error's rate ---------------------------------------------
     def check_prediction(
@@ -353,8 +387,25 @@ class Plausibility:
         self._hold(now_s, sensor, reason)
         return Suspect(sensor, reason)
 
-    def accept(self, now_s: float, rises_C: Mapping[str, float]) -> None:
-        """Remember the rises this cycle predicted from (trusted sensors only)."""
+    def accept(
+        self, now_s: float, rises_C: Mapping[str, float], speed_rpm: float | None = None
+    ) -> None:
+        """Remember the rises this cycle predicted from (trusted sensors only).
+
+        The first cycle with rises also arms rule 1, or not (see the module docstring).
+        """
+        if self._turning_at_start is None:
+            self._turning_at_start = speed_rpm is not None and speed_rpm > 0
+        if self.armed is None and rises_C:
+            fresh = max(abs(v) for v in rises_C.values()) <= FRESH_REFERENCE_C
+            self.armed = not (fresh and self._turning_at_start)
+            if not self.armed and self.relations is not None:
+                log.warning(
+                    "%s: plausibility check off: the temperature reference was taken with the "
+                    "spindle turning; delete the reference file and start the gateway with the "
+                    "machine cold and at rest to arm it",
+                    self.machine,
+                )
         self._history.append((now_s, {s: v for s, v in rises_C.items() if s not in self.holds}))
         while self._history and now_s - self._history[0][0] > RATE_HORIZON_S:
             self._history.popleft()

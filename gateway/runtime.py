@@ -169,7 +169,7 @@ class MachineLoop:
             good_values.pop(suspect.sensor, None)
             banked = self.bank.usable(selection.model_id if selection else None, good)
             predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
-        self.plausibility.accept(now, self.reference.available_rises_C(good_values))
+        self.plausibility.accept(now, self.reference.available_rises_C(good_values), speed_rpm)
 
         record = CycleRecord(
             machine=self.config.id,

@@ -235,3 +235,26 @@ def test_a_bad_threshold_is_refused_with_its_line(tmp_path: Path, value: str) ->
         ConfigError, match=r"config.yaml:12: machines\[0\].quality.plausibility_sigma"
     ):
         load_config(path)
+
+
+def test_a_reference_taken_with_the_spindle_turning_leaves_rule_1_off(
+    relations: SensorRelations,
+) -> None:
+    check = Plausibility(relations, LIMITS)
+    check.accept(0.0, {}, 8000.0)  # the gateway's first cycle: spindle turning, no rises yet
+    check.accept(30.0, dict.fromkeys(SENSORS, 0.0), 8000.0)  # the reference just taken
+    assert check.armed is False and not check.available
+    rises = rises_at(8.0, 4.0) | {"C": rises_at(8.0, 4.0)["C"] + 3.0}
+    assert check.judge(60.0, rises) == {}
+
+
+def test_a_reference_taken_at_rest_or_kept_from_before_arms_rule_1(
+    relations: SensorRelations,
+) -> None:
+    at_rest = Plausibility(relations, LIMITS)
+    at_rest.accept(0.0, {}, 0.0)
+    at_rest.accept(30.0, dict.fromkeys(SENSORS, 0.0), 6000.0)
+    kept = Plausibility(relations, LIMITS)
+    kept.accept(0.0, {}, 8000.0)
+    kept.accept(30.0, rises_at(8.0, 4.0), 8000.0)  # a cold reference from an earlier start
+    assert at_rest.armed and kept.armed

@@ -61,6 +61,8 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
                     }
                 ],
                 "sensors": {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)},
+                # The machine runs ×120 faster than the gateway's wall clock: so does its growth.
+                "quality": {"max_prediction_rate_um_per_s": 120 * 0.1},
                 "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
                 "compensation": {"slew_um_per_min": 2000.0, "probe_macro": 600},
                 "models": {

@@ -142,6 +142,7 @@ def test_signal_stops_a_sleeping_loop_within_a_second_with_state_saved(
     (state / "bench-1-heartbeat.json").unlink()
     stopped_s, done = run_until_stopped(second, state / "bench-1-heartbeat.json", signum)
     assert done.returncode == 0, done.stderr
+    print(f"{signum.name}: stopped {first_stop_s:.2f} s (1 s cycle), {stopped_s:.2f} s (300 s)")
     assert stopped_s < STOP_LIMIT_S, f"stopped {stopped_s:.2f} s after {signum.name}"
     assert "stopped" in done.stdout
     assert "Traceback" not in done.stderr

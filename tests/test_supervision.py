@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import itertools
 import json
 import logging
 import time
@@ -26,12 +27,14 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from drivers.backoff import Backoff
 from drivers.clock import AcceleratedClock
 from gateway.app import Gateway
 from gateway.config import GatewayConfig
 from gateway.health import check
 from gateway.runtime import CycleRecord
 from gateway.scada import TRUSTED_DIR
+from gateway.supervision import Supervised
 from simulator.serve import SimulatedPlant
 from tests import gateway_rig as rig
 from tests.ports import free_tcp_port
@@ -139,6 +142,7 @@ def test_a_failing_sink_and_a_failing_loop_leave_the_other_machines_cycling(
         return figures
 
     figures = asyncio.run(scenario())
+    print(f"supervision: {figures['cycles_while_m0_down']} cycles in {figures['m0_down_s']:.2f} s")
     assert figures["sink_failures"] >= figures["m0_cycles_with_failing_sink"] - 1
     # While m0 was down (≈ 0.5 + 1 + 2 s of restart back-off) the others kept their pace.
     down = figures["cycles_while_m0_down"]
@@ -255,3 +259,56 @@ def test_health_is_published_over_scada_and_in_the_heartbeat(tmp_path: Path, sto
     assert beat["sink_failures"] >= values["SinkFailures"]
     assert beat["link_errors_total"] >= values["LinkErrorsTotal"]
     assert heartbeat(tmp_path, "m0")["health"]["sink_failures"] == 0
+
+
+# -- the supervisor on its own (no I/O) -------------------------------------------------
+
+
+def test_supervisor_restarts_with_growing_back_off_reset_by_progress() -> None:
+    progress = {"cycles": 0}
+    starts: list[float] = []
+
+    async def task(stop: asyncio.Event) -> None:
+        starts.append(time.monotonic())
+        if len(starts) == 4:
+            progress["cycles"] += 1  # this run did some work before failing
+        if len(starts) < 6:
+            raise ValueError("boom")
+        stop.set()
+
+    supervised = Supervised("task", task, progress=lambda: progress["cycles"])
+    supervised.backoff = Backoff(initial_s=0.05, factor=2.0, max_s=0.2, jitter=0.0)
+    asyncio.run(asyncio.wait_for(supervised.supervise(asyncio.Event()), 10))
+    gaps = [round(b - a, 2) for a, b in itertools.pairwise(starts)]
+    assert supervised.restarts == 5 and supervised.last_error == "ValueError: boom"
+    # 0.05, 0.1, 0.2, then progress was made: back to 0.05, then 0.1
+    assert gaps == pytest.approx([0.05, 0.1, 0.2, 0.05, 0.1], abs=0.04)
+
+
+def test_supervisor_back_off_is_cut_short_by_stop_and_cancel_is_not_a_failure() -> None:
+    async def failing(stop: asyncio.Event) -> None:
+        raise OSError("disk full")
+
+    async def scenario() -> tuple[float, Supervised, Supervised]:
+        stop = asyncio.Event()
+        supervised = Supervised("failing", failing)
+        supervised.backoff = Backoff(initial_s=30.0, max_s=30.0, jitter=0.0)
+        running = asyncio.create_task(supervised.supervise(stop))
+        await asyncio.sleep(0.05)
+        started = time.monotonic()
+        stop.set()
+        await asyncio.wait_for(running, 5)
+        waited = time.monotonic() - started
+
+        forever = Supervised("forever", lambda stop: asyncio.Event().wait())
+        task = asyncio.create_task(forever.supervise(asyncio.Event()))
+        await asyncio.sleep(0.05)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        return waited, supervised, forever
+
+    waited, supervised, forever = asyncio.run(scenario())
+    assert waited < 0.5  # not the 30 s back-off
+    assert supervised.restarts == 0 and supervised.last_error == "OSError: disk full"
+    assert forever.restarts == 0 and forever.last_error is None

@@ -14,84 +14,42 @@ import contextlib
 from pathlib import Path
 from typing import Any
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
-
 from drivers.clock import AcceleratedClock, Clock
 from drivers.servers.modbus_cnc import CncModbusServer
 from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from drivers.servers.opcua_cnc import CncOpcUaServer
+from drivers.yaml_loader import YamlError, load_yaml, validate
 from simulator.effects import parse_effects
 from simulator.machine import SimulatedMachine
 from simulator.params import load_params
 from simulator.programs import program_by_name
+from simulator.section import (
+    CncConfig,
+    DeviceConfig,
+    EndpointConfig,
+    RtuBusConfig,
+    SimulatorConfig,
+    TcpBusConfig,
+    TransmittersConfig,
+)
 
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class DeviceConfig(Strict):
-    device_id: int = Field(ge=1, le=247)
-    channels: list[str | None] = Field(min_length=1, max_length=8)
-
-
-class RtuBusConfig(Strict):
-    port: str
-    baudrate: int = 19200
-    parity: str = "N"
-    devices: list[DeviceConfig] = Field(min_length=1)
-
-
-class TcpBusConfig(Strict):
-    host: str = "127.0.0.1"
-    port: int = Field(ge=1, le=65535)
-    devices: list[DeviceConfig] = Field(min_length=1)
-
-
-class TransmittersConfig(Strict):
-    rtu: RtuBusConfig | None = None
-    tcp: TcpBusConfig | None = None
-
-
-class EndpointConfig(Strict):
-    host: str = "127.0.0.1"
-    port: int = Field(ge=1, le=65535)
-
-
-class CncConfig(Strict):
-    opcua: EndpointConfig | None = None
-    modbus: EndpointConfig | None = None
-
-
-class SimulatorConfig(Strict):
-    program: str = "iso230-spectrum"
-    effects: list[str] = Field(default_factory=list)
-    seed: int = 0
-    speedup: float = Field(default=60.0, gt=0)
-    publish_period_s: float = Field(default=0.2, gt=0)
-    machine: dict[str, Any] = Field(default_factory=dict)
-    transmitters: TransmittersConfig = TransmittersConfig()
-    cnc: CncConfig = CncConfig()
+__all__ = [
+    "CncConfig",
+    "DeviceConfig",
+    "EndpointConfig",
+    "SimulatedPlant",
+    "SimulatorConfig",
+    "TransmittersConfig",
+    "load_simulator_config",
+]
 
 
 def load_simulator_config(path: Path) -> SimulatorConfig:
-    """The ``simulator`` section of a config file, validated (errors name the key path)."""
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except FileNotFoundError:
-        raise ValueError(f"{path}: file not found") from None
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML ({exc})") from None
-    section = raw.get("simulator") if isinstance(raw, dict) else None
-    if section is None:
-        raise ValueError(f"{path}: no 'simulator' section to serve")
-    try:
-        return SimulatorConfig.model_validate(section)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in ("simulator", *first["loc"]))
-        raise ValueError(f"{path}: '{where}': {first['msg']}") from None
+    """The ``simulator`` section of a config file, validated (errors name the line and key)."""
+    document = load_yaml(path)
+    if not isinstance(document.data, dict) or document.data.get("simulator") is None:
+        raise YamlError(f"{path}:1: no 'simulator' section to serve")
+    return validate(document, SimulatorConfig, ("simulator",))
 
 
 class SimulatedPlant:

@@ -22,7 +22,7 @@ NAMES = sorted(p.stem for p in CASES.glob("*.yaml"))
 
 def test_every_case_has_its_expected_message() -> None:
     expected = sorted(p.stem for p in CASES.glob("*.expected"))
-    assert NAMES == expected
+    assert expected == NAMES
     assert len(NAMES) >= 50
 
 

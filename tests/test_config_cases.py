@@ -92,3 +92,38 @@ def test_a_default_stale_s_follows_a_long_cycle(tmp_path: Path) -> None:
     limits = load_config(path).machines[0].quality_limits()
     assert limits["T2"].stale_s == 60.0
     assert load_config(ROOT / "config.yaml").machines[0].quality_limits()["T2"].stale_s == 10.0
+
+
+def test_run_refuses_what_check_config_refuses_with_the_same_line() -> None:
+    case = CASES.relative_to(ROOT) / "password-env-unset.yaml"
+    expected = (CASES / "password-env-unset.expected").read_text(encoding="utf-8").rstrip("\n")
+    result = gateway("run", "--config", case, timeout_s=120)
+    assert result.returncode == 2
+    assert result.stderr.splitlines() == [expected]
+
+
+def test_programmes_file_is_read_by_the_same_loader(tmp_path: Path) -> None:
+    from simulator.programs import load_programs
+
+    path = tmp_path / "programs.yaml"
+    path.write_text("programs:\n  warm: [[[10, 2000]]]\n  warm: [[[20, 4000]]]\n", encoding="utf-8")
+    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: programs.warm: key given"):
+        load_programs(path)
+    path.write_text("programs:\n  warm: [[[10, 2000]]]\n  cold: [[[-5, 0]]]\n", encoding="utf-8")
+    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: programs.cold: .*positive"):
+        load_programs(path)
+    assert set(load_programs()) >= {"iso230-spectrum", "const4000"}
+
+
+def test_machine_parameters_file_is_read_by_the_same_loader(tmp_path: Path) -> None:
+    from simulator.params import load_params_file
+
+    path = tmp_path / "params.yaml"
+    path.write_text("sensor_noise_C: 0.05\nsensors:\n  T1: {lag_s: .inf}\n", encoding="utf-8")
+    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: sensors.T1.lag_s: .inf is"):
+        load_params_file(path)
+    path.write_text("sensors:\n  T1:\n    lag_s: -1\n", encoding="utf-8")
+    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: sensors.T1.lag_s: Input"):
+        load_params_file(path)
+    path.write_text("sensor_noise_C: 0.05\n", encoding="utf-8")
+    assert load_params_file(path).sensor_noise_C == 0.05

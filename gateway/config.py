@@ -8,7 +8,7 @@ variable) or ``password_file`` (a file readable by the gateway only).
 The file is read by :mod:`drivers.yaml_loader` (duplicate keys, alias bombs,
 non-finite numbers, encodings: refused with the line). The ``simulator``
 section (served by ``python -m gateway simulate``) follows the schema of
-:mod:`simulator.section`, checked here by the same code, with line numbers.
+:mod:`simulator.serve`, checked here by the same code, with line numbers.
 
 What the CNC cannot hold or a machine tool should never do is refused too:
 a clamp beyond :data:`MAX_CLAMP_UM` or beyond the ±9999 units a macro variable
@@ -574,7 +574,7 @@ def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
             )
         config = validate_section(document, GatewayConfig)
         if config.simulator is not None:
-            from simulator.section import SimulatorConfig
+            from simulator.serve import SimulatorConfig
 
             validate_section(document, SimulatorConfig, ("simulator",))
         if check_host:

@@ -305,21 +305,9 @@ def simulate(
 
 
 def load_machine_params(params_file: Path | None):
-    import yaml
+    from simulator.params import load_params, load_params_file
 
-    from simulator.params import load_params
-
-    if params_file is None:
-        return load_params()
-    try:
-        overrides = yaml.safe_load(params_file.read_text(encoding="utf-8")) or {}
-    except FileNotFoundError:
-        raise ValueError(f"{params_file}: file not found") from None
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{params_file}: not valid YAML ({exc})") from None
-    if not isinstance(overrides, dict):
-        raise ValueError(f"{params_file}: a mapping of machine parameters was expected")
-    return load_params(overrides, source=str(params_file))
+    return load_params() if params_file is None else load_params_file(params_file)
 
 
 def serve_simulator(config_path: Path) -> None:
@@ -381,7 +369,7 @@ def check_config(config_path: Path, connect: bool) -> None:
     from gateway.config import load_config
 
     quiet_protocol_libraries()
-    config = load_config(config_path)
+    config = load_config(config_path, check_host=True)
     for machine in config.machines:
         bank = load_bank(machine)
         click.echo(
@@ -415,7 +403,7 @@ def run(config_path: Path, log_level: str) -> None:
     from gateway.config import load_config
 
     setup_logging(log_level)
-    config = load_config(config_path)
+    config = load_config(config_path, check_host=True)
     gateway_app = Gateway(config)
 
     async def serve() -> None:

@@ -5,19 +5,33 @@ key path (``config.yaml:23: machines[0].compensation.clamp_um: …``). Secrets
 never live in the file: a password is named by ``password_env`` (an environment
 variable) or ``password_file`` (a file readable by the gateway only).
 
-The ``simulator`` section (served by ``python -m gateway simulate``) is checked
-by :mod:`simulator.serve`; this module checks everything else.
+The file is read by :mod:`drivers.yaml_loader` (duplicate keys, alias bombs,
+non-finite numbers, encodings: refused with the line). The ``simulator``
+section (served by ``python -m gateway simulate``) follows the schema of
+:mod:`simulator.serve`, checked here by the same code, with line numbers.
+
+What the CNC cannot hold or a machine tool should never do is refused too:
+a clamp beyond :data:`MAX_CLAMP_UM` or beyond the ±9999 units a macro variable
+holds, a slew beyond :data:`MAX_SLEW_UM_PER_MIN`, a deadband at or above the
+clamp, one macro used for two purposes or written by two machines, a sensor
+that would go stale after one missed read (``stale_s < cycle_s``). With
+``check_host`` (``check-config`` and ``run``), what depends on the host is
+checked too: secrets readable, ``state_dir`` and the stores writable.
 """
 
 from __future__ import annotations
 
 import os
+import re
+import tempfile
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from drivers.yaml_loader import KeyPathError, Loc, YamlDocument, YamlError, load_yaml
+from drivers.yaml_loader import validate as validate_section
 from gateway.compensation import CompensationLimits
 from gateway.plausibility import PlausibilityLimits
 from gateway.quality import QualityLimits
@@ -25,13 +39,43 @@ from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURA
 from models.online_correction import CorrectionParams
 from models.regime_rules import RegimeRules, SpeedBand
 
+MAX_CLAMP_UM = 1000.0
+"""Largest clamp: thermal growth of a spindle is tens of µm; a bigger clamp is a typo."""
+MACRO_MAX_UNITS = 9999
+"""Largest magnitude a FANUC macro variable takes as written, in its own unit (mm or µm)."""
+MAX_SLEW_UM_PER_MIN = 6000.0
+"""Fastest slew: far above any thermal drift (µm per minute); beyond it the limit is no limit."""
+
 
 class ConfigError(ValueError):
     """A configuration problem, located: file, line, key path."""
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+def _located(exc: ValueError, prefix: str) -> KeyPathError:
+    """A runtime object's refusal (``Prefix.field must …``) blamed on the key of that field."""
+    match = re.match(rf"{prefix}\.(\w+):? (?:\((.*?)\) )?(.*)", str(exc), flags=re.DOTALL)
+    if match is None:
+        return KeyPathError((), str(exc))
+    key, value, message = match.groups()
+    return KeyPathError((key,), f"{value} {message}" if value else message)
+
+
+def _host_port(value: str) -> tuple[str, int | None]:
+    """Host and port of a URL; a port outside 1…65535 is refused."""
+    parts = urlsplit(value)
+    try:
+        port = parts.port
+    except ValueError:
+        port = -1
+    if port is not None and not 1 <= port <= 65535:
+        raise ValueError(f"port out of range in '{value}' (1…65535 expected)")
+    if not parts.hostname:
+        raise ValueError(f"no host in '{value}'")
+    return parts.hostname.lower(), port
 
 
 class DeviceSection(Strict):
@@ -71,6 +115,25 @@ class SensorSection(Strict):
     max_rate_C_per_s: float = Field(default=0.5, gt=0)
     stuck_s: float = Field(default=900.0, gt=0)
     stale_s: float = Field(default=10.0, gt=0)
+
+    @model_validator(mode="after")
+    def _range(self) -> SensorSection:
+        if self.min_C >= self.max_C:
+            key = "min_C" if "min_C" in self.model_fields_set else "max_C"
+            raise KeyPathError(
+                (key,), f"min_C ({self.min_C:g}) must be below max_C ({self.max_C:g}) °C"
+            )
+        try:
+            QualityLimits(
+                min_C=self.min_C,
+                max_C=self.max_C,
+                max_rate_C_per_s=self.max_rate_C_per_s,
+                stuck_s=self.stuck_s,
+                stale_s=self.stale_s,
+            )
+        except ValueError as exc:
+            raise _located(exc, "QualityLimits") from None
+        return self
 
 
 class QualitySection(Strict):
@@ -128,6 +191,12 @@ class Credentials(Strict):
                 raise ConfigError(f"password_file {self.password_file}: {exc.strerror}") from None
         return None
 
+    @model_validator(mode="after")
+    def _one_secret(self) -> Credentials:
+        if self.password_env and self.password_file:
+            raise KeyPathError(("password_file",), "give password_env or password_file, not both")
+        return self
+
 
 class OpcUaCncSection(Credentials):
     endpoint: str
@@ -150,6 +219,12 @@ class OpcUaCncSection(Credentials):
     def _has_number(cls, value: str) -> str:
         if "{n}" not in value:
             raise ValueError("must contain {n}, the macro variable number (e.g. 'Macro.{n}')")
+        return value
+
+    @field_validator("endpoint")
+    @classmethod
+    def _endpoint_address(cls, value: str) -> str:
+        _host_port(value)
         return value
 
 
@@ -204,6 +279,49 @@ class CompensationSection(Strict):
             hold_on_loss_s=self.hold_on_loss_s,
         )
 
+    @model_validator(mode="after")
+    def _safe(self) -> CompensationSection:
+        """Refuse what the CNC cannot hold and limits that would not limit."""
+        um_per_unit = 1000.0 if self.unit == "mm" else 1.0
+        if self.clamp_um / um_per_unit > MACRO_MAX_UNITS:
+            raise KeyPathError(
+                ("clamp_um",),
+                f"{self.clamp_um:.10g} µm is {self.clamp_um / um_per_unit:.10g} {self.unit}; "
+                f"the CNC's macro #{self.macro} holds at most ±{MACRO_MAX_UNITS} {self.unit}",
+            )
+        if self.clamp_um > MAX_CLAMP_UM:
+            raise KeyPathError(
+                ("clamp_um",),
+                f"{self.clamp_um:.10g} µm is more than any thermal compensation needs "
+                f"(at most {MAX_CLAMP_UM:g} µm)",
+            )
+        if self.slew_um_per_min > MAX_SLEW_UM_PER_MIN:
+            raise KeyPathError(
+                ("slew_um_per_min",),
+                f"{self.slew_um_per_min:.10g} µm/min would not limit anything "
+                f"(at most {MAX_SLEW_UM_PER_MIN:g} µm/min)",
+            )
+        if self.deadband_um >= self.clamp_um:
+            raise KeyPathError(
+                ("deadband_um",),
+                f"{self.deadband_um:.10g} µm is not below clamp_um ({self.clamp_um:.10g} µm): "
+                "nothing would ever be written",
+            )
+        roles = {"macro": self.macro}
+        for role in ("handshake_macro", "probe_macro"):
+            number = getattr(self, role)
+            if number is None:
+                continue
+            for other, used in roles.items():
+                if number == used:
+                    raise KeyPathError((role,), f"#{number} is already the {other}; give its own")
+            roles[role] = number
+        try:
+            self.limits()
+        except ValueError as exc:
+            raise _located(exc, "CompensationLimits") from None
+        return self
+
 
 class OnlineCorrectionSection(Strict):
     """The probe-driven online correction (:mod:`models.online_correction`).
@@ -234,6 +352,15 @@ class BandSection(Strict):
     min_rpm: float = Field(ge=0)
     max_rpm: float = Field(gt=0)
 
+    @model_validator(mode="after")
+    def _ordered(self) -> BandSection:
+        if self.min_rpm >= self.max_rpm:
+            raise KeyPathError(
+                ("min_rpm",),
+                f"{self.min_rpm:g} r/min must be below max_rpm ({self.max_rpm:g} r/min)",
+            )
+        return self
+
 
 class RegimeSection(Strict):
     window_s: float = Field(default=1800.0, gt=0)
@@ -252,6 +379,14 @@ class RegimeSection(Strict):
             models=dict(self.models),
             fallback_model=self.fallback_model,
         )
+
+    @model_validator(mode="after")
+    def _rules(self) -> RegimeSection:
+        try:
+            self.rules()
+        except ValueError as exc:
+            raise _located(exc, "RegimeRules") from None
+        return self
 
 
 class ReferenceSection(Strict):
@@ -291,18 +426,62 @@ class MachineSection(Strict):
     @model_validator(mode="after")
     def _sensor_names(self) -> MachineSection:
         names = [c for bus in self.transmitters for d in bus.devices for c in d.channels if c]
-        duplicates = sorted({n for n in names if names.count(n) > 1})
-        if duplicates:
-            raise ValueError(f"sensor(s) {duplicates} appear on more than one channel")
+        seen: set[str] = set()
+        for b, bus in enumerate(self.transmitters):
+            for d, device in enumerate(bus.devices):
+                for c, name in enumerate(device.channels):
+                    if name in seen:
+                        raise KeyPathError(
+                            ("transmitters", b, "devices", d, "channels", c),
+                            f"sensor '{name}' is already on another channel; one channel each",
+                        )
+                    if name:
+                        seen.add(name)
         unknown = sorted(set(self.sensors) - set(names))
         if unknown:
-            raise ValueError(f"sensors {unknown} are configured but on no transmitter channel")
+            raise KeyPathError(
+                ("sensors", unknown[0]),
+                f"sensors {unknown} are configured but on no transmitter channel",
+            )
         comp = self.compensation
         used = [m for m in (comp.handshake_macro, comp.probe_macro) if m is not None]
         if comp.macro in used:
             raise ValueError(f"macro #{comp.macro} is used twice in compensation")
         if self.online_correction.enabled and comp.probe_macro is None:
             raise ValueError("online_correction.enabled needs compensation.probe_macro")
+        return self
+
+    @model_validator(mode="after")
+    def _fits_sensors_and_cycle(self) -> MachineSection:
+        """One missed read must not make a sensor stale; a fixed reference covers every sensor."""
+        for name in self.sensor_names:
+            sensor = self.sensors.get(name)
+            explicit = sensor is not None and "stale_s" in sensor.model_fields_set
+            if explicit and sensor.stale_s < self.cycle_s:
+                raise KeyPathError(
+                    ("sensors", name, "stale_s"),
+                    f"{sensor.stale_s:g} s is shorter than cycle_s ({self.cycle_s:g} s): "
+                    "one missed read would make the sensor stale; at least cycle_s expected",
+                )
+        reference = self.models.reference
+        unknown = sorted(set(reference.values_C) - set(self.sensor_names))
+        if unknown:
+            raise KeyPathError(
+                ("models", "reference", "values_C", unknown[0]),
+                f"no transmitter channel carries sensor(s) {unknown}",
+            )
+        if reference.mode == "fixed":
+            missing = [n for n in self.sensor_names if n not in reference.values_C]
+            if missing:
+                raise KeyPathError(
+                    ("models", "reference", "values_C"),
+                    f"mode 'fixed' needs a reference temperature (°C) for every sensor; "
+                    f"missing: {missing}",
+                )
+        try:
+            self.quality_limits()
+        except ValueError as exc:
+            raise KeyPathError(("sensors",), str(exc)) from None
         return self
 
     @property
@@ -318,9 +497,35 @@ class MachineSection(Strict):
                 max_C=s.max_C,
                 max_rate_C_per_s=s.max_rate_C_per_s,
                 stuck_s=s.stuck_s,
-                stale_s=s.stale_s,
+                stale_s=s.stale_s if "stale_s" in s.model_fields_set else self.default_stale_s,
             )
         return limits
+
+    @property
+    def default_stale_s(self) -> float:
+        """``stale_s`` of a sensor that sets none: 10 s, or two cycles if that is longer."""
+        return max(SensorSection().stale_s, 2 * self.cycle_s)
+
+    def cnc_address(self) -> tuple[str, int | None, int | None]:
+        """(host, port, Modbus device id) of the CNC: two machines with the same are one CNC."""
+        if self.cnc.opcua is not None:
+            host, port = _host_port(self.cnc.opcua.endpoint)
+            return _same_host(host), port or 4840, None
+        modbus = self.cnc.modbus
+        assert modbus is not None
+        return _same_host(modbus.host), modbus.port, modbus.device_id
+
+    def written_macros(self) -> dict[str, int]:
+        """The macro variables the gateway writes on this machine's CNC, by key."""
+        comp = self.compensation
+        written = {"macro": comp.macro}
+        if comp.handshake_macro is not None:
+            written["handshake_macro"] = comp.handshake_macro
+        return written
+
+
+def _same_host(host: str) -> str:
+    return "127.0.0.1" if host.lower() == "localhost" else host.lower()
 
 
 def from_environment(variable: str, key: str) -> str:
@@ -367,13 +572,28 @@ class InfluxSection(Strict):
         return default if literal is None else literal
 
     def url_value(self) -> str:
-        return self._setting("url")
+        url = self._setting("url")
+        if self.url_env is not None and urlsplit(url).scheme not in ("http", "https"):
+            raise ConfigError(
+                f"environment variable {self.url_env} (url_env): expected an http:// or "
+                f"https:// URL, got '{url}'"
+            )
+        return url
 
     def org_value(self) -> str:
         return self._setting("org", "-")  # InfluxDB 1.8 takes any org
 
     def bucket_value(self) -> str:
         return self._setting("bucket")
+    @field_validator("url")
+    @classmethod
+    def _http_url(cls, value: str | None) -> str | None:
+        if value is None:
+            return None  # from url_env, checked when it is read
+        if urlsplit(value).scheme not in ("http", "https"):
+            raise ValueError(f"expected an http:// or https:// URL, got '{value}'")
+        _host_port(value)
+        return value
 
     def token(self) -> str:
         if self.token_env:
@@ -459,68 +679,115 @@ class GatewayConfig(Strict):
             raise ValueError(f"machine id(s) {duplicates} used twice")
         return self
 
-
-def key_lines(text: str) -> dict[tuple[str | int, ...], int]:
-    """1-based line of every key path in a YAML document (mappings and lists)."""
-    lines: dict[tuple[str | int, ...], int] = {}
-
-    def walk(node: yaml.Node, path: tuple[str | int, ...]) -> None:
-        lines.setdefault(path, node.start_mark.line + 1)
-        if isinstance(node, yaml.MappingNode):
-            for key, value in node.value:
-                child = (*path, key.value)
-                lines[child] = key.start_mark.line + 1
-                walk(value, child)
-        elif isinstance(node, yaml.SequenceNode):
-            for i, item in enumerate(node.value):
-                walk(item, (*path, i))
-
-    root = yaml.compose(text)
-    if root is not None:
-        walk(root, ())
-    return lines
+    @model_validator(mode="after")
+    def _one_writer_per_macro(self) -> GatewayConfig:
+        """Two machines writing one macro of one CNC would overwrite each other every cycle."""
+        writers: dict[tuple[object, ...], tuple[int, str]] = {}
+        for index, machine in enumerate(self.machines):
+            address = machine.cnc_address()
+            for key, number in machine.written_macros().items():
+                owner = writers.get((*address, number))
+                if owner is not None:
+                    host, port, _ = address
+                    raise KeyPathError(
+                        ("machines", index, "compensation", key),
+                        f"#{number} of the CNC at {host}:{port} is already written by machine "
+                        f"'{owner[1]}' (machines[{owner[0]}]); each macro needs one writer",
+                    )
+                writers[(*address, number)] = (index, machine.id)
+        return self
 
 
-def format_path(loc: tuple[str | int, ...]) -> str:
-    text = ""
-    for part in loc:
-        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
-    return text or "(top level)"
+def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
+    """The configuration in ``path``, validated; any problem is one located :class:`ConfigError`.
 
-
-def locate(path: Path, lines: dict[tuple[str | int, ...], int], loc: tuple[str | int, ...]) -> str:
-    """'file:line: key.path' for the deepest part of ``loc`` the file has."""
-    for depth in range(len(loc), -1, -1):
-        if loc[:depth] in lines:
-            return f"{path}:{lines[loc[:depth]]}: {format_path(loc)}"
-    return f"{path}: {format_path(loc)}"
-
-
-def load_config(path: str | Path) -> GatewayConfig:
-    path = Path(path)
+    ``check_host`` also checks what depends on this host (secrets set and
+    readable, folders writable): ``check-config`` and ``run`` do, so that
+    ``run`` never refuses later what ``check-config`` let through.
+    """
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such configuration file") from None
+        document = load_yaml(path)
+        if document.data is None:
+            raise YamlError(
+                f"{document.path}:1: no settings (the file is empty or only comments); "
+                "a mapping with a 'machines' list was expected"
+            )
+        if not isinstance(document.data, dict):
+            kind = "a list" if isinstance(document.data, list) else "a single value"
+            raise YamlError(
+                f"{document.path}:1: {kind} at the top level; a mapping with a 'machines' "
+                "list was expected"
+            )
+        config = validate_section(document, GatewayConfig)
+        if config.simulator is not None:
+            from simulator.serve import SimulatorConfig
+
+            validate_section(document, SimulatorConfig, ("simulator",))
+        if check_host:
+            check_host_of(config, document)
+    except YamlError as exc:
+        raise ConfigError(str(exc)) from None
+    return config
+
+
+def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
+    """Secrets and folders, as ``run`` will use them; the first problem, located."""
+    problems: list[tuple[Loc, str]] = []
+    for index, machine in enumerate(config.machines):
+        if machine.cnc.opcua is not None:
+            problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
+    if config.scada is not None:
+        for index, user in enumerate(config.scada.users):
+            problems += _secret_problems(user, ("scada", "users", index))
+        problems += _folder_problems(config.scada.pki_dir, ("scada", "pki_dir"))
+    problems += _folder_problems(Path(config.state_dir), ("state_dir",))
+    logging = config.logging
+    if logging.influxdb is not None:
+        try:
+            logging.influxdb.token()
+        except ConfigError as exc:
+            key = "token_env" if logging.influxdb.token_env else "token_file"
+            problems.append((("logging", "influxdb", key), str(exc)))
+        problems += _file_problems(logging.buffer_path, ("logging", "buffer_path"))
+    else:
+        problems += _file_problems(logging.local_store, ("logging", "local_store"))
+    if problems:
+        loc, message = problems[0]
+        raise document.error(loc, message)
+
+
+def _secret_problems(credentials: Credentials, loc: Loc) -> list[tuple[Loc, str]]:
+    key = "password_env" if credentials.password_env else "password_file"
     try:
-        raw = yaml.safe_load(text)
-        lines = key_lines(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark else str(path)
-        raise ConfigError(f"{where}: not valid YAML ({getattr(exc, 'problem', exc)})") from None
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{path}:1: a mapping with a 'machines' list was expected")
+        secret = credentials.password()
+    except ConfigError as exc:
+        return [((*loc, key), str(exc))]
+    if secret == "" and credentials.password_file is not None:
+        return [((*loc, key), f"password_file {credentials.password_file} is empty")]
+    return []
+
+
+def _folder_problems(folder: Path, loc: Loc, subject: Path | None = None) -> list[tuple[Loc, str]]:
+    """A folder the gateway can create or write in (for ``subject``); else why not."""
+    subject = folder if subject is None else subject
+    existing = folder
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if not existing.is_dir():
+        what = "is" if existing == subject else f"would be inside {existing}, which is"
+        return [(loc, f"{subject} {what} a file; a folder the gateway can write in was expected")]
     try:
-        return GatewayConfig.model_validate(raw)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        loc = tuple(
-            p for p in first["loc"] if not (isinstance(p, str) and p.startswith("function-"))
-        )
-        message = first["msg"].removeprefix("Value error, ")
-        if first["type"] == "missing":
-            message = "required key is missing"
-        elif first["type"] == "extra_forbidden":
-            message = "unknown key (not part of the configuration)"
-        raise ConfigError(f"{locate(path, lines, loc)}: {message}") from None
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        return [(loc, f"{subject}: cannot be created in {existing} ({exc.strerror or exc})")]
+    return []
+
+
+def _file_problems(path: Path, loc: Loc) -> list[tuple[Loc, str]]:
+    """A file the gateway can create or write."""
+    if path.is_dir():
+        return [(loc, f"{path} is a folder; a file the gateway can write was expected")]
+    if path.exists() and not os.access(path, os.W_OK):
+        return [(loc, f"{path} is not writable")]
+    return _folder_problems(path.parent, loc, subject=path)

@@ -1,7 +1,8 @@
 """Machine parameters: the YAML schema, validated once, with units in every key.
 
 Defaults live in ``simulator/machine.yaml``; a config file may override any
-part of them (a deep merge). A bad value is refused with the key path.
+part of them (a deep merge). Files are read by :mod:`drivers.yaml_loader`, so a
+bad value is refused with the file, the line and the key path.
 """
 
 from __future__ import annotations
@@ -9,8 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from drivers.yaml_loader import YamlError, first_problem, format_path, load_yaml, validate
 
 NODES = ("bearing", "shaft", "motor", "headstock", "column")
 DEFAULTS = Path(__file__).with_name("machine.yaml")
@@ -18,7 +20,7 @@ EFFECTS = ("thermal_lag", "speed_direct", "ambient", "drift", "cooler")
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Convection(Strict):
@@ -155,16 +157,34 @@ def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]
     return merged
 
 
+def merged_params(overrides: dict[str, Any] | None = None) -> MachineParams:
+    """The defaults with ``overrides`` merged in; a bad value raises pydantic's ValidationError."""
+    document = load_yaml(DEFAULTS)
+    if not overrides:
+        return validate(document, MachineParams)
+    return MachineParams.model_validate(deep_merge(document.data, overrides))
+
+
 def load_params(
     overrides: dict[str, Any] | None = None, source: str = "machine parameters"
 ) -> MachineParams:
     """The defaults, with ``overrides`` merged in, validated."""
-    raw = yaml.safe_load(DEFAULTS.read_text(encoding="utf-8"))
-    if overrides:
-        raw = deep_merge(raw, overrides)
     try:
-        return MachineParams.model_validate(raw)
+        return merged_params(overrides)
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise ValueError(f"{source}: '{where}': {first['msg']}") from None
+        loc, message = first_problem(exc)
+        raise ValueError(f"{source}: '{format_path(loc)}': {message}") from None
+
+
+def load_params_file(path: Path) -> MachineParams:
+    """The defaults with the overrides of a YAML file (``simulate --params``), located errors."""
+    document = load_yaml(path)
+    if document.data is None:
+        return merged_params()
+    if not isinstance(document.data, dict):
+        raise YamlError(f"{path}:1: a mapping of machine parameters was expected")
+    try:
+        return merged_params(document.data)
+    except ValidationError as exc:
+        loc, message = first_problem(exc)
+        raise document.error(loc, message) from None

@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
+
+from drivers.yaml_loader import load_yaml
 
 PROGRAMS_FILE = Path(__file__).with_name("programs.yaml")
 PRODUCTION_PREFIX = "production"
@@ -63,14 +64,25 @@ def _expand(entry: Any, parts: dict[str, list], name: str) -> list[tuple[float, 
 
 
 def load_programs(path: Path = PROGRAMS_FILE) -> dict[str, SpeedProgram]:
-    raw = yaml.safe_load(path.read_text(encoding="utf-8"))
-    parts = raw.get("parts", {})
+    """The named programmes of ``path``; a bad one is refused with its line."""
+    document = load_yaml(path)
+    raw = document.data
+    if not isinstance(raw, dict) or not isinstance(raw.get("programs"), dict):
+        raise document.error((), "a mapping with a 'programs' mapping was expected")
+    parts = raw.get("parts") or {}
+    if not isinstance(parts, dict):
+        raise document.error(("parts",), "a mapping of named parts was expected")
     programs = {}
     for name, entries in raw["programs"].items():
-        segments: list[tuple[float, float]] = []
-        for entry in entries:
-            segments.extend(_expand(entry, parts, name))
-        programs[name] = SpeedProgram(name, tuple(segments))
+        try:
+            if not isinstance(entries, list):
+                raise ValueError(f"programme '{name}': a list of parts or segments was expected")
+            segments: list[tuple[float, float]] = []
+            for entry in entries:
+                segments.extend(_expand(entry, parts, name))
+            programs[name] = SpeedProgram(name, tuple(segments))
+        except (TypeError, ValueError) as exc:
+            raise document.error(("programs", name), str(exc)) from None
     return programs
 
 

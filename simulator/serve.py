@@ -12,23 +12,23 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from drivers.clock import AcceleratedClock, Clock
 from drivers.servers.modbus_cnc import CncModbusServer
 from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from drivers.servers.opcua_cnc import CncOpcUaServer
+from drivers.yaml_loader import KeyPathError, YamlError, first_problem, load_yaml, validate
 from simulator.effects import parse_effects
-from simulator.machine import SimulatedMachine
-from simulator.params import load_params
+from simulator.machine import AMBIENT_CHANNEL, SimulatedMachine
+from simulator.params import load_params, merged_params
 from simulator.programs import program_by_name
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class DeviceConfig(Strict):
@@ -39,7 +39,7 @@ class DeviceConfig(Strict):
 class RtuBusConfig(Strict):
     port: str
     baudrate: int = 19200
-    parity: str = "N"
+    parity: Literal["N", "E", "O"] = "N"
     devices: list[DeviceConfig] = Field(min_length=1)
 
 
@@ -65,6 +65,13 @@ class CncConfig(Strict):
 
 
 class SimulatorConfig(Strict):
+    """The ``simulator`` section; what serving would refuse later is refused here, located.
+
+    The programme and the hidden effects must exist, the machine overrides must
+    fit ``simulator/machine.yaml``'s schema once merged, every channel must name
+    a sensor of the machine, and no two servers may share a host and port.
+    """
+
     program: str = "iso230-spectrum"
     effects: list[str] = Field(default_factory=list)
     seed: int = 0
@@ -74,24 +81,70 @@ class SimulatorConfig(Strict):
     transmitters: TransmittersConfig = TransmittersConfig()
     cnc: CncConfig = CncConfig()
 
+    @field_validator("program")
+    @classmethod
+    def _known_program(cls, value: str) -> str:
+        program_by_name(value)
+        return value
+
+    @field_validator("effects")
+    @classmethod
+    def _known_effects(cls, value: list[str]) -> list[str]:
+        parse_effects(value)
+        return value
+
+    @field_validator("machine")
+    @classmethod
+    def _machine_params(cls, value: dict[str, Any]) -> dict[str, Any]:
+        try:
+            merged_params(value)
+        except ValidationError as exc:
+            loc, message = first_problem(exc)
+            raise KeyPathError(loc, message) from None
+        return value
+
+    @model_validator(mode="after")
+    def _endpoints(self) -> SimulatorConfig:
+        """Every channel names a sensor of the machine; no two servers share a port."""
+        sensors = {*merged_params(self.machine).sensors, AMBIENT_CHANNEL}
+        bound: dict[tuple[str, int], tuple[str, ...]] = {}
+        buses = {"rtu": self.transmitters.rtu, "tcp": self.transmitters.tcp}
+        for bus_name, bus in buses.items():
+            if bus is None:
+                continue
+            for d, device in enumerate(bus.devices):
+                for c, channel in enumerate(device.channels):
+                    if channel is not None and channel not in sensors:
+                        raise KeyPathError(
+                            ("transmitters", bus_name, "devices", d, "channels", c),
+                            f"the simulated machine has no sensor '{channel}' "
+                            f"(it has {', '.join(sorted(sensors))})",
+                        )
+        servers: dict[tuple[str, ...], TcpBusConfig | EndpointConfig | None] = {
+            ("transmitters", "tcp"): self.transmitters.tcp,
+            ("cnc", "opcua"): self.cnc.opcua,
+            ("cnc", "modbus"): self.cnc.modbus,
+        }
+        for key, server in servers.items():
+            if server is None:
+                continue
+            address = (server.host, server.port)
+            if address in bound:
+                raise KeyPathError(
+                    (*key, "port"),
+                    f"{server.host}:{server.port} is already served by "
+                    f"{'.'.join(bound[address])}; each server needs its own port",
+                )
+            bound[address] = key
+        return self
+
 
 def load_simulator_config(path: Path) -> SimulatorConfig:
-    """The ``simulator`` section of a config file, validated (errors name the key path)."""
-    try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
-    except FileNotFoundError:
-        raise ValueError(f"{path}: file not found") from None
-    except yaml.YAMLError as exc:
-        raise ValueError(f"{path}: not valid YAML ({exc})") from None
-    section = raw.get("simulator") if isinstance(raw, dict) else None
-    if section is None:
-        raise ValueError(f"{path}: no 'simulator' section to serve")
-    try:
-        return SimulatorConfig.model_validate(section)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in ("simulator", *first["loc"]))
-        raise ValueError(f"{path}: '{where}': {first['msg']}") from None
+    """The ``simulator`` section of a config file, validated (errors name the line and key)."""
+    document = load_yaml(path)
+    if not isinstance(document.data, dict) or document.data.get("simulator") is None:
+        raise YamlError(f"{path}:1: no 'simulator' section to serve")
+    return validate(document, SimulatorConfig, ("simulator",))
 
 
 class SimulatedPlant:

@@ -74,6 +74,7 @@ class CycleRecord:
     link_errors: list[str] = field(default_factory=list)
     probe_error_um: float | None = None  # a new probe measurement of the real error, µm
     correction_um: float | None = None  # online correction added to predicted_um, µm
+    probe_refused: bool = False  # the online correction refused this cycle's probe value
 
 
 Sink = Callable[[CycleRecord], None]
@@ -427,6 +428,7 @@ class MachineLoop:
             return
         residual_um = record.probe_error_um + basis[1] - basis[0]
         outcome = self.online.update(now, residual_um)
+        record.probe_refused = not outcome.accepted
         if not outcome.accepted:
             log.warning(
                 "%s: probe %.2f µm refused by the online correction (%s; refused so far: %d)",

@@ -9,10 +9,22 @@ correction of the base prediction. A prediction at time t uses probe values
 taken at times ≤ t only; the first probe of a run is at its first sample plus
 one interval, and the filter starts afresh with each run.
 
-Every choice is made without the held-out run, by an inner leave-one-out over
-the training runs (nested validation): the base model's structure (below) and
-the filter's process noise q and outlier threshold k. The probe noise R is
-estimated on the training runs from the target's sample-to-sample scatter.
+Every choice is made without the held-out run, on the training runs only
+(nested validation):
+
+- the base model's structure (below), by an inner leave-one-out whose score is
+  the replay itself (with a provisional filter);
+- the probe noise R: the target's sample-to-sample scatter / √2 (at least
+  ``MIN_PROBE_NOISE_UM``);
+- the process noise q: moment matching on the inner held-out residuals at the
+  probe instants, Var(z_k − z_{k−1}) = q·Δ + 2R;
+- the outlier threshold k: the smallest of ``OUTLIER_SIGMAS`` whose inner
+  replay RMSE is within ``OUTLIER_TOLERANCE`` of the best (a smaller k refuses
+  more, so it is preferred when it costs nothing).
+
+The grids (``LAG_TAU_SETS_S``, ``RIDGE_PENALTIES``, ``LEVEL_WEIGHTS``,
+``OUTLIER_SIGMAS``) are fixed here; the filter's state model is the ``bias``
+random walk (``CorrectionParams`` default).
 
 Bases (``base``):
 

@@ -622,8 +622,10 @@ class LoggingSection(Strict):
     local_store: Path = Path(".cache/data/points.sqlite")
     buffer_path: Path = Path(".cache/data/buffer.sqlite")
     buffer_max_points: int = Field(default=2_000_000, ge=1000)
-    # Retention (gateway/retention.md): points older than *_retention_days go, and the
-    # oldest go while a file holds more than *_max_mb (10⁶ bytes).
+    # Retention (deploy/README.md, "Disk use"): points older than *_retention_days go,
+    # and the oldest go while a file holds more than *_max_mb (10⁶ bytes), checked every
+    # retention_interval_s. Defaults: a 16 GB edge disk; they hold days, not a year, of
+    # ten machines at 1 Hz (~300 bytes a point in the store, ~150 in the buffer).
     local_store_retention_days: float = Field(default=365.0, gt=0)
     local_store_max_mb: float = Field(default=8000.0, ge=1)
     buffer_retention_days: float = Field(default=30.0, gt=0)

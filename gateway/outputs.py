@@ -96,13 +96,17 @@ class Outputs:
         self._next_retention = time.monotonic()
         self._heartbeat_failing = False
 
-    def enforce_retention(self) -> int:
-        """Delete what is past its age or over its size now; the points deleted."""
+    def enforce_retention(self, now_ns: int | None = None) -> int:
+        """Delete what is past its age or over its size; the points deleted.
+
+        ``now_ns`` is the time the ages count from, in the points' own time base (the
+        newest point's stamp: wall time in the plant, machine time in a simulation).
+        """
         self._next_retention = time.monotonic() + self.config.logging.retention_interval_s
         if self.buffer is not None:
-            return self.buffer.enforce_retention()
+            return self.buffer.enforce_retention(now_ns)
         assert self.store is not None
-        return self.store.enforce_retention()
+        return self.store.enforce_retention(now_ns)
 
     def _stamped(self, points: list[Point], record: CycleRecord) -> list[Point]:
         if self.wall_clock is None:
@@ -130,9 +134,10 @@ class Outputs:
         points = points_from_record(record)
         if record.probe_error_um is not None:
             points.append(probe_point(record.machine, record.time_s, record.probe_error_um))
-        self._write(self._stamped(points, record))
+        points = self._stamped(points, record)
+        self._write(points)
         if time.monotonic() >= self._next_retention:
-            self.enforce_retention()
+            self.enforce_retention(points[0].time_ns)
 
     def beat(self, record: CycleRecord) -> None:
         """Write the machine's heartbeat, with its health counters when known."""

@@ -14,10 +14,12 @@ deploy/README.md gives an edge box.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -298,3 +300,6 @@ def test_image_runs_hardened_against_the_simulator_and_influxdb(
     assert all((data / p).stat().st_uid == UID for p in written), "written as uid 10001"
     reference = json.loads((data / "state/vmc-1-reference.json").read_text(encoding="utf-8"))
     assert reference, "the cold reference is saved"
+    with contextlib.closing(sqlite3.connect(data / "log/buffer.sqlite")) as buffer:
+        (left,) = buffer.execute("SELECT COUNT(*) FROM points").fetchone()
+    assert left == 0, "every buffered point was forwarded before the stop"

@@ -358,3 +358,20 @@ def test_outputs_run_retention_every_interval(tmp_path: Path) -> None:
         assert outputs.store.expired == 2 * 2  # cycle and temperature points of two cycles
     finally:
         outputs.store.close()
+
+
+def test_retention_counts_age_in_the_points_own_time_base(tmp_path: Path) -> None:
+    """A simulation logs machine time from 0 (1970): its points are seconds old, not decades."""
+    config = outputs_config(tmp_path, local_store_retention_days=1.0, retention_interval_s=0.001)
+    outputs = Outputs(config)
+    assert outputs.store is not None
+    try:
+        for second in range(0, 600, 60):
+            outputs.sink(record_at(float(second)))
+            time.sleep(0.002)
+        assert len(outputs.store.query("spindle_cycle", "vmc-1")) == 10
+        outputs.sink(record_at(86_400.0 + 300.0))  # a day and 5 min later: the first 5 go
+        kept = outputs.store.query("spindle_cycle", "vmc-1")
+        assert [p.time_s for p in kept] == [300.0, 360.0, 420.0, 480.0, 540.0, 86_700.0]
+    finally:
+        outputs.store.close()

@@ -378,7 +378,7 @@ class _ColumnReader:
         n = self.capacity
         numbers = {name: np.empty(n) for name in self.typed}
         run_code = np.empty(n, dtype=np.int32)
-        lines = np.empty(n, dtype=np.int64)
+        lines = np.empty(n, dtype=np.int32)
         run_ids: dict[str, int] = {}
         text_parts: dict[str, list[np.ndarray]] = {name: [] for name in self.text}
         optional = [name for name in self.typed if name not in self.needed]
@@ -391,7 +391,7 @@ class _ColumnReader:
             m = len(chunk)
             if filled + m > n:
                 raise DataError(self.path, None, None, "not a readable CSV file (rows miscounted)")
-            chunk_lines = np.arange(next_line, next_line + m)
+            chunk_lines = np.arange(next_line, next_line + m, dtype=np.int32)
             next_line += m
             empty = chunk[[RUN_COLUMN, *self.needed]].isna().to_numpy().any(axis=1)
             keep: slice | np.ndarray = slice(None)

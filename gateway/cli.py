@@ -512,6 +512,11 @@ def export(
     finally:
         source.close()
     click.echo(f"wrote {out_csv} from {where}: {result.rows} rows in {len(result.runs)} run(s)")
+    if result.implausible_values:
+        click.echo(
+            f"note: {result.implausible_values} logged value(s) were not plausible for their unit "
+            "(NaN, infinite or out of range) and were left empty"
+        )
     if result.rows_without_probe:
         click.echo(
             f"note: {result.rows_without_probe} cycles had no probe measurement and were left out"

@@ -93,7 +93,7 @@ class Folds:
         scheme, labels = fold_labels(prepared)
         names = tuple(dict.fromkeys(labels))
         number = {name: i for i, name in enumerate(names)}
-        index = np.array([number[label] for label in labels], dtype=int)
+        index = np.fromiter((number[label] for label in labels), np.int32, len(labels))
         rows = tuple(np.flatnonzero(index == i) for i in range(len(names)))
         parts = tuple(_as_slice(r) for r in rows)
         pairs = []

@@ -123,7 +123,7 @@ class MeasuredRuns:
         starts, ends = group_bounds(self.run)
         order = {run_id: i for i, run_id in enumerate(self.run_ids)}
         numbers = [order[str(self.run[s])] for s in starts]
-        return np.repeat(np.array(numbers, dtype=int), ends - starts)
+        return np.repeat(np.array(numbers, dtype=np.int32), ends - starts)
 
     def run_slices(self) -> list[tuple[str, slice]]:
         """(run id, row slice) per run, in file order (runs are contiguous)."""

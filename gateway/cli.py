@@ -109,7 +109,8 @@ def fit(
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list)
     report_skipped(data)
-    prepared = prepare(data, sensor_list, reference)
+    prepared = prepare(data, sensor_list, reference).without_sensor_readings()
+    data = prepared.data  # the readings of the sensors are let go: their rises are kept
     show_progress = sys.stderr.isatty() if progress is None else progress
 
     recordings = prepared.plan.recording_runs
@@ -580,7 +581,8 @@ def analyze(
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list)
     report_skipped(data)
-    prepared = prepare(data, sensor_list, reference)
+    prepared = prepare(data, sensor_list, reference).without_sensor_readings()
+    data = prepared.data  # the readings of the sensors are let go: their rises are kept
     show_progress = sys.stderr.isatty() if progress is None else progress
     click.echo(
         f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, "

@@ -93,6 +93,10 @@ class MeasuredRuns:
         skipped: rows left out and why (empty when none were).
         notes: optional columns not used as signals and why (a bad cell in a
             column the command does not need does not refuse the file).
+        released: columns whose readings were let go after their rises were
+            taken (:meth:`without_readings`), each with whether its readings
+            varied at all; ``column_order`` then keeps every numeric column's
+            place in the file.
     """
 
     source: str
@@ -106,6 +110,8 @@ class MeasuredRuns:
     lines: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     skipped: tuple[SkippedRows, ...] = ()
     notes: tuple[str, ...] = ()
+    released: dict[str, bool] = field(default_factory=dict)
+    column_order: tuple[str, ...] = ()  # every numeric column in file order, once released
 
     @property
     def n_samples(self) -> int:
@@ -169,6 +175,33 @@ class MeasuredRuns:
             lines=self.lines[rows],
             skipped=self.skipped,
             notes=self.notes,
+            released=self.released,
+            column_order=self.column_order,
+        )
+
+    def without_readings(self, names: Sequence[str]) -> MeasuredRuns:
+        """The same runs without the readings of ``names``.
+
+        For a command that has taken the rises of these columns and reads
+        nothing else of them: on a million-row file each column is megabytes.
+        Whether each one varied is kept, for the residual analysis.
+        """
+        released = dict(self.released)
+        released |= {n: bool(np.ptp(self.numeric[n]) > 0) for n in names if n in self.numeric}
+        return MeasuredRuns(
+            source=self.source,
+            run=self.run,
+            time_s=self.time_s,
+            speed_rpm=self.speed_rpm,
+            sensors=self.sensors,
+            target=self.target,
+            numeric={k: v for k, v in self.numeric.items() if k not in released},
+            labels=self.labels,
+            lines=self.lines,
+            skipped=self.skipped,
+            notes=self.notes,
+            released=released,
+            column_order=self.column_order or tuple(self.numeric),
         )
 
     def label_per_run(self, column: str) -> dict[str, str]:

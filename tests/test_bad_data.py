@@ -111,7 +111,7 @@ def _huge_prepared(tmp_path: Path):
 def test_a_model_whose_figures_are_not_finite_is_never_saved(tmp_path: Path) -> None:
     prepared = _huge_prepared(tmp_path)
     store = ModelStore(tmp_path / "store")
-    with pytest.raises(StoreError) as caught:
+    with pytest.raises(StoreError) as caught, np.errstate(over="ignore", invalid="ignore"):
         fit_and_store(prepared, "mlr", store)
     message = str(caught.value)
     assert message.startswith("model 'mlr-error_um-all' not saved: ")

@@ -127,7 +127,8 @@ def fit(
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list)
     report_skipped(data)
-    prepared = prepare(data, sensor_list, reference)
+    prepared = prepare(data, sensor_list, reference).without_sensor_readings()
+    data = prepared.data  # the readings of the sensors are let go: their rises are kept
     show_progress = sys.stderr.isatty() if progress is None else progress
 
     recordings = prepared.plan.recording_runs
@@ -539,6 +540,11 @@ def export(
     finally:
         source.close()
     click.echo(f"wrote {out_csv} from {where}: {result.rows} rows in {len(result.runs)} run(s)")
+    if result.implausible_values:
+        click.echo(
+            f"note: {result.implausible_values} logged value(s) were not plausible for their unit "
+            "(NaN, infinite or out of range) and were left empty"
+        )
     if result.rows_without_probe:
         click.echo(
             f"note: {result.rows_without_probe} cycles had no probe measurement and were left out"
@@ -602,7 +608,8 @@ def analyze(
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list)
     report_skipped(data)
-    prepared = prepare(data, sensor_list, reference)
+    prepared = prepare(data, sensor_list, reference).without_sensor_readings()
+    data = prepared.data  # the readings of the sensors are let go: their rises are kept
     show_progress = sys.stderr.isatty() if progress is None else progress
     click.echo(
         f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, "

@@ -21,7 +21,11 @@ of one machine from a :class:`PointSource` — the embedded
   later; the last one when several do). Rows without a probe value are left out
   and counted (:attr:`ExportResult.rows_without_probe`);
 * a row with a missing temperature or speed keeps an empty cell; ``load_runs``
-  skips such rows and says how many, and the result counts them too.
+  skips such rows and says how many, and the result counts them too;
+* a logged value that is not plausible for its unit (NaN, infinite, or outside
+  the ranges of :mod:`models.plausibility`, e.g. 1e308 °C) is left empty too,
+  and counted (:attr:`ExportResult.implausible_values`), so the file always
+  passes ``load_runs`` and no absurd number reaches a fit.
 
 The file passes :func:`models.dataset.load_runs`.
 """
@@ -48,6 +52,7 @@ from gateway.timeseries import (
     to_time_ns,
 )
 from models.dataset import ambient_sensor_of
+from models.plausibility import DISPLACEMENT_UM, SPEED_RPM, TEMPERATURE_C
 
 SENSOR_PATTERN = re.compile(r"^T(\d+)$")
 
@@ -78,6 +83,7 @@ class ExportResult:
     rows_incomplete: int  # rows written with an empty temperature or speed cell
     cycle_s: float
     ignored_sensors: tuple[str, ...] = ()
+    implausible_values: int = 0  # logged values left empty: not plausible for their unit
 
 
 def export_runs(
@@ -107,10 +113,21 @@ def export_runs(
     temperatures = read(TEMPERATURE_MEASUREMENT)
     probes = read(PROBE_MEASUREMENT)
 
+    implausible = 0
+
+    def plausible(value: float, low: float, high: float) -> bool:
+        nonlocal implausible
+        if low <= value <= high:  # False for NaN
+            return True
+        implausible += 1
+        return False
+
     speed: dict[int, float] = {}
     for point in cycles:
         value = point.fields.get("speed_rpm")
-        if isinstance(value, int | float) and not isinstance(value, bool):
+        if not isinstance(value, int | float) or isinstance(value, bool):
+            continue
+        if plausible(float(value), SPEED_RPM.low, SPEED_RPM.high):
             speed[point.time_ns] = float(value)
     readings: dict[int, dict[str, float | None]] = {}
     sensors: set[str] = set()
@@ -121,8 +138,9 @@ def export_runs(
             continue
         sensors.add(sensor)
         good = point.tags.get("quality", "good") == "good"
+        keep = plausible(float(value), TEMPERATURE_C.low, TEMPERATURE_C.high)
         readings.setdefault(point.time_ns, {})[sensor] = (
-            float(value) if good or not good_only else None
+            float(value) if keep and (good or not good_only) else None
         )
 
     times = sorted({p.time_ns for p in cycles} | set(readings))
@@ -135,6 +153,8 @@ def export_runs(
     for point in sorted(probes, key=lambda p: p.time_ns):
         value = point.fields.get("error_um")
         if not isinstance(value, int | float) or isinstance(value, bool):
+            continue
+        if not plausible(float(value), DISPLACEMENT_UM.low, DISPLACEMENT_UM.high):
             continue
         row = bisect.bisect_right(times, point.time_ns) - 1
         if row >= 0 and point.time_ns - times[row] < cycle_ns:
@@ -192,6 +212,7 @@ def export_runs(
         rows_incomplete=incomplete,
         cycle_s=cycle_ns / NS_PER_S,
         ignored_sensors=ignored,
+        implausible_values=implausible,
     )
 
 

@@ -94,8 +94,8 @@ class Folds:
         scheme, labels = fold_labels(prepared)
         names = tuple(dict.fromkeys(labels if fit_rows is None else labels[fit_rows]))
         number = {name: i for i, name in enumerate(names)}
-        index = np.array([number.get(label, -1) for label in labels], dtype=int)
-        rows = tuple(np.flatnonzero(index == i) for i in range(len(names)))
+        index = np.fromiter((number.get(label, -1) for label in labels), np.int32, len(labels))
+        rows = tuple(np.flatnonzero(index == i).astype(np.int32) for i in range(len(names)))
         parts = tuple(_as_slice(r) for r in rows)
         pairs = []
         for r in rows:
@@ -361,9 +361,8 @@ class ResidualAnalysis:
         """
         rho = _lag1_autocorrelation(self.y - ev.predicted_um, self.folds.index)
         pairs = self.folds.pairs
-        whitened_y = [self.y[now] - rho * self.y[before] for now, before in pairs]
-        yy = np.array([w @ w for w in whitened_y])
-        n_pairs = np.array([w.size for w in whitened_y])
+        yy = np.array([w @ w for w in (self._whitened_y(pair, rho) for pair in pairs)])
+        n_pairs = np.array([_length(now) for now, _ in pairs])
         groups: dict[tuple, list[int]] = {}
         for f in range(self.folds.count):
             key = (*self._fold_design(f, accepted), ev.chosen[f])
@@ -382,7 +381,7 @@ class ResidualAnalysis:
                 lagged *= rho
                 z_w -= lagged
                 del lagged
-                gram[f], cross[f] = z_w.T @ z_w, z_w.T @ whitened_y[f]
+                gram[f], cross[f] = z_w.T @ z_w, z_w.T @ self._whitened_y(pairs[f], rho)
             del extra
             k0 = width - ev.n_added
             for f in folds_in_group:
@@ -396,6 +395,11 @@ class ResidualAnalysis:
                 statistic = max(sse0 - sse1, 0.0) / ev.n_added / (sse1 / df2)
                 worst = max(worst, float(stats.f.sf(statistic, ev.n_added, df2)))
         return worst
+
+    def _whitened_y(self, pair: tuple[slice | np.ndarray, slice | np.ndarray], rho: float):
+        """y_t − ρ y_{t−1} over one fold's pairs (made when needed, never kept for all folds)."""
+        now, before = pair
+        return self.y[now] - rho * self.y[before]
 
     # ---- fitting from Gram matrices --------------------------------------------------
 
@@ -564,6 +568,10 @@ def _shape_sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray)
     so ``gram[0]`` holds the column sums and ``cross[0]`` the sum of y)."""
     mean_residual = (cross[0] - gram[0] @ beta) / gram[0, 0]
     return max(_sse(gram, cross, yy, beta) - gram[0, 0] * mean_residual**2, 0.0)
+
+
+def _length(part: slice | np.ndarray) -> int:
+    return part.stop - part.start if isinstance(part, slice) else int(part.size)
 
 
 def _as_slice(rows: np.ndarray) -> slice | np.ndarray:

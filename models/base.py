@@ -55,7 +55,9 @@ class ModelInputs:
         object.__setattr__(self, "rise_C", rise)
         object.__setattr__(self, "speed_rpm", speed)
         if self.run_index is not None:
-            runs = np.asarray(self.run_index, dtype=int)
+            runs = np.asarray(self.run_index)
+            if not np.issubdtype(runs.dtype, np.integer):
+                runs = runs.astype(int)
             if runs.shape != (rise.shape[0],):
                 raise ValueError(f"run_index must be ({rise.shape[0]},), got {runs.shape}")
             object.__setattr__(self, "run_index", runs)

@@ -93,6 +93,10 @@ class MeasuredRuns:
         skipped: rows left out and why (empty when none were).
         notes: optional columns not used as signals and why (a bad cell in a
             column the command does not need does not refuse the file).
+        released: columns whose readings were let go after their rises were
+            taken (:meth:`without_readings`), each with whether its readings
+            varied at all; ``column_order`` then keeps every numeric column's
+            place in the file.
     """
 
     source: str
@@ -106,6 +110,8 @@ class MeasuredRuns:
     lines: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     skipped: tuple[SkippedRows, ...] = ()
     notes: tuple[str, ...] = ()
+    released: dict[str, bool] = field(default_factory=dict)
+    column_order: tuple[str, ...] = ()  # every numeric column in file order, once released
 
     @property
     def n_samples(self) -> int:
@@ -123,7 +129,7 @@ class MeasuredRuns:
         starts, ends = group_bounds(self.run)
         order = {run_id: i for i, run_id in enumerate(self.run_ids)}
         numbers = [order[str(self.run[s])] for s in starts]
-        return np.repeat(np.array(numbers, dtype=int), ends - starts)
+        return np.repeat(np.array(numbers, dtype=np.int32), ends - starts)
 
     def run_slices(self) -> list[tuple[str, slice]]:
         """(run id, row slice) per run, in file order (runs are contiguous)."""
@@ -169,6 +175,33 @@ class MeasuredRuns:
             lines=self.lines[rows],
             skipped=self.skipped,
             notes=self.notes,
+            released=self.released,
+            column_order=self.column_order,
+        )
+
+    def without_readings(self, names: Sequence[str]) -> MeasuredRuns:
+        """The same runs without the readings of ``names``.
+
+        For a command that has taken the rises of these columns and reads
+        nothing else of them: on a million-row file each column is megabytes.
+        Whether each one varied is kept, for the residual analysis.
+        """
+        released = dict(self.released)
+        released |= {n: bool(np.ptp(self.numeric[n]) > 0) for n in names if n in self.numeric}
+        return MeasuredRuns(
+            source=self.source,
+            run=self.run,
+            time_s=self.time_s,
+            speed_rpm=self.speed_rpm,
+            sensors=self.sensors,
+            target=self.target,
+            numeric={k: v for k, v in self.numeric.items() if k not in released},
+            labels=self.labels,
+            lines=self.lines,
+            skipped=self.skipped,
+            notes=self.notes,
+            released=released,
+            column_order=self.column_order or tuple(self.numeric),
         )
 
     def label_per_run(self, column: str) -> dict[str, str]:
@@ -378,7 +411,7 @@ class _ColumnReader:
         n = self.capacity
         numbers = {name: np.empty(n) for name in self.typed}
         run_code = np.empty(n, dtype=np.int32)
-        lines = np.empty(n, dtype=np.int64)
+        lines = np.empty(n, dtype=np.int32)
         run_ids: dict[str, int] = {}
         text_parts: dict[str, list[np.ndarray]] = {name: [] for name in self.text}
         optional = [name for name in self.typed if name not in self.needed]
@@ -391,7 +424,7 @@ class _ColumnReader:
             m = len(chunk)
             if filled + m > n:
                 raise DataError(self.path, None, None, "not a readable CSV file (rows miscounted)")
-            chunk_lines = np.arange(next_line, next_line + m)
+            chunk_lines = np.arange(next_line, next_line + m, dtype=np.int32)
             next_line += m
             empty = chunk[[RUN_COLUMN, *self.needed]].isna().to_numpy().any(axis=1)
             keep: slice | np.ndarray = slice(None)

@@ -217,14 +217,19 @@ def unused_columns(prepared: Prepared, used_sensors: tuple[str, ...]) -> list[st
     """Measured columns a model could add: sensors it left out, other non-error signals."""
     data = prepared.data
     skip = {data.target, AMBIENT_COLUMN, *used_sensors}
-    names = [name for name in data.numeric if name not in skip]
-    return [
-        name
-        for name in names
-        if not name.endswith(DISPLACEMENT_SUFFIX) and np.ptp(data.numeric[name]) > 0
-    ]
+    names = [name for name in data.column_order or data.numeric if name not in skip]
+
+    def varies(name: str) -> bool:
+        if name in data.released:  # readings let go; their rises are the model's inputs
+            return data.released[name]
+        return bool(np.ptp(data.numeric[name]) > 0)
+
+    return [name for name in names if not name.endswith(DISPLACEMENT_SUFFIX) and varies(name)]
 
 
 def _column_rise(prepared: Prepared, name: str) -> Callable[[], np.ndarray]:
+    if name in prepared.data.released:
+        # prepare() made exactly this rise from the readings that were let go
+        return lambda: prepared.inputs.columns((name,))
     values = prepared.data.numeric[name]
     return lambda: prepared.plan.rises(values)[:, None]

@@ -21,6 +21,16 @@ class Prepared:
     error_um: np.ndarray
     plan: ReferencePlan
 
+    def without_sensor_readings(self) -> Prepared:
+        """The same, without the raw readings of the input sensors (their rises are in
+        ``inputs``): what ``fit`` and ``analyze`` keep of a big file once it is prepared."""
+        return Prepared(
+            data=self.data.without_readings(self.inputs.sensors),
+            inputs=self.inputs,
+            error_um=self.error_um,
+            plan=self.plan,
+        )
+
     def take(self, rows: np.ndarray) -> Prepared:
         return Prepared(
             data=self.data.take(rows),

@@ -29,17 +29,21 @@ def least_squares_with_intercept(
     place. ``numpy.linalg.lstsq`` (and ``scipy.linalg.lstsq``) would copy the
     design first, and on a million-row file that copy is hundreds of megabytes.
     """
-    if rows is not None:
-        y = y[rows]
-    n, columns = y.shape[0], X.shape[1] + 1
+    index = None if rows is None else np.flatnonzero(rows)
+    n = y.shape[0] if index is None else index.size
+    columns = X.shape[1] + 1
     design = np.empty((n, columns), order="F")
     design[:, 0] = 1.0
-    for j in range(X.shape[1]):  # column by column: no (n, k) temporary of the rows
-        design[:, j + 1] = X[:, j] if rows is None else X[rows, j]
-    if not np.all(np.isfinite(design)) or not np.all(np.isfinite(y)):
-        raise ValueError("fit needs finite temperatures and errors (found NaN or inf)")
     rhs = np.zeros(max(n, columns))
-    rhs[:n] = y
+    # Column by column, straight into place: no (n, k) temporary of the chosen rows.
+    targets = [(X[:, j], design[:, j + 1]) for j in range(X.shape[1])] + [(y, rhs[:n])]
+    for source, target in targets:
+        if index is None:
+            target[:] = source
+        else:
+            np.take(source, index, axis=0, out=target)
+        if not np.all(np.isfinite(target)):
+            raise ValueError("fit needs finite temperatures and errors (found NaN or inf)")
     cond = np.finfo(float).eps * max(n, columns)
     gelsd, gelsd_lwork = get_lapack_funcs(("gelsd", "gelsd_lwork"), (design, rhs))
     work, iwork, info = gelsd_lwork(n, columns, 1, cond)

@@ -93,7 +93,7 @@ def plan_references(data: MeasuredRuns, policy: str = "auto") -> ReferencePlan:
             continues = _follows_on(data.time_s, slices[i - 1][1], rows)
         recording_of_run.append(recording_of_run[-1] + (0 if continues else 1))
 
-    recording = np.empty(data.n_samples, dtype=int)
+    recording = np.empty(data.n_samples, dtype=np.int32)  # a few recordings, many rows
     groups: dict[int, list[str]] = {}
     for (run_id, rows), number in zip(slices, recording_of_run, strict=True):
         recording[rows] = number

@@ -106,7 +106,7 @@ def data_fingerprint(inputs: ModelInputs, error_um: np.ndarray) -> str:
     digest = hashlib.sha256()
     digest.update(json.dumps(list(inputs.sensors)).encode())
     for array in (inputs.rise_C, inputs.speed_rpm, np.asarray(error_um, dtype=float)):
-        digest.update(np.ascontiguousarray(array, dtype="<f8").tobytes())
+        digest.update(np.ascontiguousarray(array, dtype="<f8"))  # the buffer itself, no copy
     return digest.hexdigest()
 
 

@@ -111,7 +111,7 @@ def _huge_prepared(tmp_path: Path):
 def test_a_model_whose_figures_are_not_finite_is_never_saved(tmp_path: Path) -> None:
     prepared = _huge_prepared(tmp_path)
     store = ModelStore(tmp_path / "store")
-    with pytest.raises(StoreError) as caught:
+    with pytest.raises(StoreError) as caught, np.errstate(over="ignore", invalid="ignore"):
         fit_and_store(prepared, "mlr", store)
     message = str(caught.value)
     assert message.startswith("model 'mlr-error_um-all' not saved: ")
@@ -185,3 +185,29 @@ def test_inputs_stay_what_the_loader_read(tmp_path: Path) -> None:
     assert isinstance(prepared.inputs, ModelInputs)
     assert prepared.inputs.rise_C.dtype == np.float64
     assert np.all(np.isfinite(prepared.inputs.rise_C))
+
+
+def test_export_leaves_implausible_logged_values_empty(tmp_path: Path) -> None:
+    """A logged 1e308 °C or an infinite probe value never reaches the exported file."""
+    from gateway.export import export_runs
+    from gateway.local_store import LocalStore
+    from gateway.timeseries import Point, points_from_record, probe_point
+    from tests.test_timeseries import EPOCH_S, make_records, true_error_um
+
+    records = make_records("m1", 40)
+    points = [p for r in records for p in points_from_record(r, EPOCH_S)]
+    broken = next(i for i, p in enumerate(points) if p.tags.get("sensor") == "T1" and p.time_ns > 0)
+    points[broken] = Point(points[broken].measurement, points[broken].tags, {"value_C": 1e308},
+                           points[broken].time_ns)  # fmt: skip
+    probes = [probe_point("m1", r.time_s + 0.3, true_error_um(r), EPOCH_S) for r in records]
+    probes[5] = Point(probes[5].measurement, probes[5].tags, {"error_um": math.inf},
+                      probes[5].time_ns)  # fmt: skip
+    out = tmp_path / "export.csv"
+    with LocalStore(tmp_path / "series.sqlite") as store:
+        store.write(points + probes)
+        result = export_runs(store, "m1", None, None, out, epoch_s=EPOCH_S)
+    assert result.implausible_values == 2
+    assert "1e+308" not in out.read_text() and "inf" not in out.read_text()
+    data = load_runs(out)
+    assert data.n_samples == 40 - 2  # the 1e308 row skipped (empty T1), the inf probe row left out
+    assert np.all(np.abs(data.column("T1")) < 400)

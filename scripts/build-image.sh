@@ -5,7 +5,7 @@
 #
 # 1. the base: Debian bookworm with Python 3.11 from Debian's own packages
 #    (mmdebstrap --variant=minbase), imported as localhost/spindle-base:bookworm;
-#    its rootfs tarball is cached in .cache/container/ (made once, ~250 MB);
+#    its rootfs tarball is cached with the images (scripts/podman.sh; made once, ~250 MB);
 # 2. the wheelhouse (scripts/build-wheelhouse.sh, once per requirements.lock);
 # 3. podman build --build-arg BASE=localhost/spindle-base:bookworm; the layers are
 #    cached, so a rebuild after a code change takes seconds.
@@ -15,7 +15,7 @@ cd "$(dirname "$0")/.."
 VERSION=$(python3 -c "import tomllib; print(tomllib.load(open('pyproject.toml','rb'))['project']['version'])")
 TAG=${1:-spindle-thermal-gateway:$VERSION}
 BASE=localhost/spindle-base:bookworm
-ROOTFS=.cache/container/rootfs-bookworm-py311.tar
+ROOTFS="${SPINDLE_CONTAINER_CACHE:-/var/cache/spindle-gateway/container}/rootfs-bookworm-py311.tar"
 PODMAN=scripts/podman.sh
 
 if [ ! -f "$ROOTFS" ]; then

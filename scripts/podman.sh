@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # podman as this repository runs it where no Docker engine runs (tests, build-image.sh):
-# Debian's podman 4.3 with runc, images kept under .cache/container/storage.
+# Debian's podman 4.3 with runc, images kept in one machine-wide cache
+# ($SPINDLE_CONTAINER_CACHE, default /var/cache/spindle-gateway/container), so every
+# checkout on the machine (a fresh clone too) reuses the base and the layers.
 #
 #   scripts/podman.sh images            # any podman command
 #
@@ -9,8 +11,7 @@
 # ("setrlimit RLIMIT_NOFILE: Operation not permitted"). cgroupfs and a file events log:
 # no systemd here.
 set -euo pipefail
-ROOT="$(cd "$(dirname "$0")/.." && pwd)"
-DIR="$ROOT/.cache/container"
+DIR="${SPINDLE_CONTAINER_CACHE:-/var/cache/spindle-gateway/container}"
 mkdir -p "$DIR"
 CONF="$DIR/containers.conf"
 if [ ! -f "$CONF" ]; then
@@ -26,6 +27,6 @@ CONF
     mv "$CONF.tmp" "$CONF"
 fi
 export CONTAINERS_CONF="$CONF"
-# The run root holds locks and mounts: short, on the local disk, one per checkout.
-RUNROOT="/run/spindle-podman-$(printf %s "$ROOT" | sha256sum | cut -c1-12)"
+# The run root holds locks and mounts: short, on the local disk, one per storage.
+RUNROOT="/run/spindle-podman-$(printf %s "$DIR" | sha256sum | cut -c1-12)"
 exec podman --root "$DIR/storage" --runroot "$RUNROOT" --storage-driver overlay "$@"

@@ -1,7 +1,7 @@
 """The edge image, built from the repository's Dockerfile and run as an edge box runs it.
 
 podman (Debian's 4.3, runc) builds the image on a local Debian base
-(``scripts/build-image.sh``; base, wheelhouse and layers cached under ``.cache/``)
+(``scripts/build-image.sh``; base and layers cached machine-wide, see scripts/podman.sh)
 and runs it the way deploy/docker-compose.yml does: uid 10001, read-only root, only
 ``/data`` and ``/tmp`` writable, every capability dropped, no new privileges. The
 container's network is the host's, so it reaches the simulated machine

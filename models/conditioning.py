@@ -120,11 +120,18 @@ def condition_number(design: np.ndarray) -> float:
     X = np.asarray(design, dtype=float)
     if X.ndim != 2 or X.shape[1] == 0:
         return 1.0
-    centred = X - X.mean(axis=0)
-    norms = np.linalg.norm(centred, axis=0)
-    if np.any(norms == 0):
-        return float("inf")  # a constant column cannot be separated from the intercept
-    s = np.linalg.svd(centred / norms, compute_uv=False)
+    with np.errstate(all="ignore"):
+        centred = X - X.mean(axis=0)
+        norms = np.linalg.norm(centred, axis=0)
+        if np.any(norms == 0) or not np.all(np.isfinite(norms)):
+            return float("inf")  # constant (or overflowing) columns cannot be separated
+        scaled = centred / norms
+    if not np.all(np.isfinite(scaled)):
+        return float("inf")
+    try:
+        s = np.linalg.svd(scaled, compute_uv=False)
+    except np.linalg.LinAlgError:
+        return float("inf")
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
@@ -136,10 +143,11 @@ def variance_inflation(design: np.ndarray) -> np.ndarray:
         return np.zeros(0)
     if k == 1:
         return np.ones(1)
-    centred = X - X.mean(axis=0)
-    norms = np.linalg.norm(centred, axis=0)
+    with np.errstate(all="ignore"):
+        centred = X - X.mean(axis=0)
+        norms = np.linalg.norm(centred, axis=0)
     vif = np.full(k, np.inf)
-    ok = norms > 0
+    ok = (norms > 0) & np.isfinite(norms) & np.all(np.isfinite(centred), axis=0)
     if ok.sum() >= 1:
         scaled = centred[:, ok] / norms[ok]
         corr = scaled.T @ scaled

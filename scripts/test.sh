@@ -6,4 +6,5 @@ cd "$(dirname "$0")/.."
 VENV=.venv
 bash scripts/setup-system.sh
 "$VENV/bin/ruff" check .
-"$VENV/bin/pytest" -q "$@"
+# Both cores: one worker per core, each test file on one worker (its servers start once).
+"$VENV/bin/pytest" -q -n 2 --dist loadfile "$@"

@@ -223,6 +223,8 @@ def test_gateway_compensates_on_with_a_full_disk_and_logs_again_after(tmp_path: 
                         }
                     ],
                     "sensors": {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)},
+                    # The simulator runs ×120: its growth is 120 times faster in wall time.
+                    "quality": {"max_prediction_rate_um_per_s": 120 * 0.1},
                     "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
                     "compensation": {"slew_um_per_min": 2000.0},
                     "models": {

@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import itertools
 import math
-import struct
 import time
 from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
 from drivers.backoff import Backoff
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
+from drivers.register_codec import float32_to_registers, registers_to_float32_shortest
 from drivers.transmitters import (
     ModbusConnection,
     ModbusLinkLostError,
@@ -31,30 +31,6 @@ from drivers.transmitters import (
 T = TypeVar("T")
 
 _FLOAT32_MAX = 3.4028234663852886e38
-
-
-def float32_to_registers(value: float) -> list[int]:
-    """IEEE-754 float32, high word first (big-endian word order)."""
-    high, low = struct.unpack(">HH", struct.pack(">f", value))
-    return [high, low]
-
-
-def registers_to_float32(high: int, low: int) -> float:
-    """Two registers, high word first → the shortest decimal with the same float32 bits.
-
-    A written 0.0125 comes back as 0x3C4CCCCD, which widens to 0.012500000186264515;
-    the shortest decimal that encodes to the same bits is what the writer meant, so a
-    read-back compares equal to the value written.
-    """
-    raw = struct.pack(">HH", high, low)
-    value: float = struct.unpack(">f", raw)[0]
-    if not math.isfinite(value):
-        return value
-    for digits in range(1, 10):
-        candidate = float(f"{value:.{digits}g}")
-        if struct.pack(">f", candidate) == raw:
-            return candidate
-    return value
 
 
 class ModbusCnc(ReconnectingSession[ModbusConnection]):
@@ -124,8 +100,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
             if self._run_mode_register is not None:
                 run_mode = words[self._run_mode_register][0]
             return SpeedReading(
-                actual_rpm=registers_to_float32(*words[self._speed_register]),
-                commanded_rpm=registers_to_float32(*words[self._commanded_register]),
+                actual_rpm=registers_to_float32_shortest(*words[self._speed_register]),
+                commanded_rpm=registers_to_float32_shortest(*words[self._commanded_register]),
                 run_mode=run_mode,
             )
 
@@ -140,7 +116,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         register = self.macro_register(number)
         if not math.isfinite(value) or abs(value) > _FLOAT32_MAX:
             raise ValueError(f"macro #{number}: {value!r} is not a finite float32")
-        words = float32_to_registers(value)
+        words = list(float32_to_registers(value))
 
         async def write(link: ModbusConnection) -> None:
             await _refusals_as_cnc(link.write_registers(register, words, self.device_id))
@@ -155,7 +131,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
             high, low = await _refusals_as_cnc(
                 link.read_holding_registers(register, 2, self.device_id)
             )
-            return registers_to_float32(high, low)
+            return registers_to_float32_shortest(high, low)
 
         return await self._call(f"reading macro #{number} (register {register})", read)
 

@@ -1,6 +1,6 @@
 """What this project's OPC UA servers share: engineering units and the server life cycle.
 
-Used by the simulated CNC (``drivers.servers.opcua_cnc``) and the gateway's SCADA
+Used by the simulated CNC (``simulator.servers.opcua_cnc``) and the gateway's SCADA
 server (``gateway.scada``), so both encode units the same way and start, fail
 and stop the same way.
 """

@@ -2,7 +2,7 @@
 
 Pt100 input modules (8 channels each, one device id per module, several per RS-485
 bus or behind one TCP port) report 0.1 °C counts and a status per channel; the map
-is ``drivers/servers/MODBUS.md``. :class:`TransmitterBus` reads every module once per
+is ``simulator/servers/MODBUS.md``. :class:`TransmitterBus` reads every module once per
 cycle and never raises for a field fault: each channel comes back with a value or
 with the reason it has none.
 
@@ -26,6 +26,7 @@ from pymodbus.pdu import ModbusPDU
 
 from drivers.backoff import Backoff
 from drivers.link_health import LinkHealth
+from drivers.register_codec import OPEN_CIRCUIT_CODE, SHORT_CIRCUIT_CODE
 
 CHANNELS = 8
 #: Input registers (FC4): 0–7 channel values (int16, 0.1 °C), 8–15 channel statuses.
@@ -33,7 +34,7 @@ REGISTER_COUNT = 2 * CHANNELS
 STATUS_OK = 0
 STATUS_TEXT = {1: "open circuit", 2: "short circuit", 3: "out of range"}
 #: Value-register fault codes (signed view); never a reading when the status says OK.
-FAULT_CODES = frozenset({32767, -32768})
+FAULT_CODES = frozenset({OPEN_CIRCUIT_CODE, SHORT_CIRCUIT_CODE})
 PARITIES = ("N", "E", "O")
 #: Modbus exceptions with which a TCP gateway says "the device behind me did not answer".
 GATEWAY_NO_DEVICE = frozenset({0x0A, 0x0B})

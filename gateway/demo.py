@@ -12,31 +12,29 @@
    tool would see if the macro stayed at 0); the "with" error is growth minus
    the compensation the CNC applied.
 
-:class:`ClosedLoop` can also be stepped cycle by cycle on a manual clock, which
-the integration tests use to be deterministic.
+The plant–loop pairing (:class:`simulator.closed_loop.ClosedLoop`) lives in the
+simulator, so the integration tests step the same pairing cycle by cycle on a
+manual clock without importing a harness from the product package.
 """
 
 from __future__ import annotations
 
-import asyncio
 import csv
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from drivers.clock import AcceleratedClock, Clock, ManualClock
+from drivers.clock import AcceleratedClock, Clock
 from gateway.app import build_buses, build_cnc, load_bank
 from gateway.config import GatewayConfig, LoggingSection, MachineSection
 from gateway.outputs import Outputs
-from gateway.runtime import CycleRecord, MachineLoop, Sink
+from gateway.runtime import MachineLoop, Sink
 from models.dataset import load_runs
 from models.features import prepare
 from models.fitting import fit_and_store, fit_sensor_fallbacks
 from models.store import ModelStore
+from simulator.closed_loop import ClosedLoop, Trace
 from simulator.params import load_params
 from simulator.programs import program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record
@@ -99,68 +97,13 @@ def machine_config(
     )
 
 
-@dataclass
-class Trace:
-    """Per cycle: the error at the tool without and with compensation, µm."""
-
-    time_s: list[float] = field(default_factory=list)
-    uncompensated_um: list[float] = field(default_factory=list)
-    compensated_um: list[float] = field(default_factory=list)
-    records: list[CycleRecord] = field(default_factory=list)
-
-    def summary(self) -> dict[str, float]:
-        without = np.asarray(self.uncompensated_um)
-        with_ = np.asarray(self.compensated_um)
-        return {
-            "uncompensated_peak_um": float(np.max(np.abs(without))),
-            "compensated_peak_um": float(np.max(np.abs(with_))),
-            "uncompensated_rmse_um": float(np.sqrt(np.mean(without**2))),
-            "compensated_rmse_um": float(np.sqrt(np.mean(with_**2))),
-            "reduction_pct": float(100.0 * (1 - np.max(np.abs(with_)) / np.max(np.abs(without)))),
-            "cycles": len(self.time_s),
-        }
-
-
-class ClosedLoop:
-    """The simulated plant and the gateway loop on one clock."""
-
-    def __init__(self, plant: SimulatedPlant, loop: MachineLoop) -> None:
-        self.plant = plant
-        self.loop = loop
-        self.trace = Trace()
-        loop.sinks.append(self._observe)
-
-    def _observe(self, record: CycleRecord) -> None:
-        machine = self.plant.machine
-        self.trace.time_s.append(record.time_s)
-        self.trace.uncompensated_um.append(machine.growth_um())
-        self.trace.compensated_um.append(machine.true_error_um())
-        self.trace.records.append(record)
-
-    async def step(self, clock: ManualClock) -> CycleRecord:
-        """One deterministic cycle: advance time, update the machine, run the gateway."""
-        clock.advance(self.loop.config.cycle_s)
-        await self.plant.update()
-        return await self.loop.run_cycle()
-
-    async def run_until(self, end_s: float) -> None:
-        stop = asyncio.Event()
-
-        async def watch() -> None:
-            while self.loop.clock.now() < end_s:
-                await asyncio.sleep(0.05)
-            stop.set()
-
-        await asyncio.gather(self.loop.run(stop), watch())
-
-
 async def open_loop(
     plant: SimulatedPlant,
     machine: MachineSection,
     clock: Clock,
     sinks: Sequence[Sink] = (),
     state_dir: Path | None = None,
-) -> ClosedLoop:
+) -> ClosedLoop[MachineLoop]:
     await plant.start()
     loop = MachineLoop(
         machine,

@@ -17,14 +17,14 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from drivers.clock import AcceleratedClock, Clock
-from drivers.servers.modbus_cnc import CncModbusServer
-from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
-from drivers.servers.opcua_cnc import CncOpcUaServer
 from drivers.yaml_loader import KeyPathError, YamlError, first_problem, load_yaml, validate
 from simulator.effects import parse_effects
 from simulator.machine import AMBIENT_CHANNEL, SimulatedMachine
 from simulator.params import load_params, merged_params
 from simulator.programs import program_by_name
+from simulator.servers.modbus_cnc import CncModbusServer
+from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
+from simulator.servers.opcua_cnc import CncOpcUaServer
 
 
 class Strict(BaseModel):

@@ -25,9 +25,10 @@ import pytest
 
 from drivers.clock import ManualClock
 from gateway.config import RegimeSection
-from gateway.demo import ClosedLoop, fit_models, machine_config, open_loop, write_training_data
+from gateway.demo import fit_models, machine_config, open_loop, write_training_data
 from models import augmented
 from models.effect_stream import StreamingAugmented
+from simulator.closed_loop import ClosedLoop
 from simulator.faults import SensorFault
 from simulator.params import load_params
 from simulator.programs import SpeedProgram, production_program, program_by_name

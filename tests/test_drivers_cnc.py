@@ -1,6 +1,6 @@
 """The gateway's CNC clients (OPC UA, Modbus TCP) against the simulator's servers.
 
-Real servers from ``drivers.servers`` with a FixedLink behind them, so a macro write
+Real servers from ``simulator.servers`` with a FixedLink behind them, so a macro write
 is checked where it lands (``FixedLink.writes``) and read back through the client.
 Server restarts happen for real on the same port; nothing in asyncua or pymodbus is
 mocked.
@@ -19,12 +19,13 @@ import pytest
 from asyncua import Server, ua
 
 from drivers.cnc import CncClient, CncError, CncRefusedError, SpeedReading
-from drivers.cnc_modbus import ModbusCnc, registers_to_float32
+from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.link_health import Backoff
-from drivers.servers.modbus_cnc import CncModbusServer
-from drivers.servers.opcua_cnc import CncOpcUaServer
+from drivers.register_codec import registers_to_float32_shortest
 from simulator.link import FixedLink, MachineSnapshot, RunMode
+from simulator.servers.modbus_cnc import CncModbusServer
+from simulator.servers.opcua_cnc import CncOpcUaServer
 from tests.ports import free_tcp_port
 
 T = TypeVar("T")
@@ -76,8 +77,8 @@ def test_float32_read_back_is_the_value_written() -> None:
     """Modbus macros are float32: the read-back must equal the double that was written."""
     for value in (0.0125, -0.0375, 1e-3, 4000.0, 0.1):
         high, low = struct.unpack(">HH", struct.pack(">f", value))
-        assert registers_to_float32(high, low) == value
-    assert math.isnan(registers_to_float32(0x7FC0, 0))
+        assert registers_to_float32_shortest(high, low) == value
+    assert math.isnan(registers_to_float32_shortest(0x7FC0, 0))
 
 
 # -- OPC UA -------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """The gateway's transmitter bus against the simulator's Modbus slaves (TCP and RTU).
 
-Real servers from ``drivers.servers`` with a FixedLink behind them, real sockets and
+Real servers from ``simulator.servers`` with a FixedLink behind them, real sockets and
 a socat pty pair: no protocol library is mocked. Field faults are produced the way
 they happen: a device id nobody answers for (a dead RS-485 slave) and a server that
 goes away and comes back on the same port.
@@ -18,9 +18,9 @@ from typing import TypeVar
 import pytest
 
 from drivers.link_health import Backoff, LinkHealth
-from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from drivers.transmitters import ChannelResult, DeviceMap, TransmitterBus, decode_channels
 from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
+from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from tests.ports import free_tcp_port
 from tests.serial_pty import socat_pty_pair
 

@@ -22,19 +22,19 @@ import pytest
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ModbusIOException
 
-from drivers.servers.modbus_cnc import MACRO_BASE, CncModbusServer, macro_register
-from drivers.servers.modbus_common import (
+from drivers.register_codec import (
     OPEN_CIRCUIT_CODE,
     SHORT_CIRCUIT_CODE,
-    encode_temperature,
     float32_to_registers,
     int16_to_register,
     register_to_int16,
     registers_to_float32,
     registers_to_float32_shortest,
 )
-from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
+from simulator.servers.modbus_cnc import MACRO_BASE, CncModbusServer, macro_register
+from simulator.servers.modbus_common import encode_temperature
+from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from tests.ports import free_tcp_port
 from tests.serial_pty import PtyPair, serial_pty_fixture, socat_pty_pair  # noqa: F401
 

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from gateway.config import CompensationSection, OnlineCorrectionSection
-from gateway.demo import ClosedLoop, fit_models, write_training_data
+from gateway.demo import fit_models, write_training_data
+from simulator.closed_loop import ClosedLoop
 from simulator.programs import production_program
 from tests.test_closed_loop import CYCLE_S, assert_every_write_was_safe, closed_loop
 

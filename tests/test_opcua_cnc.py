@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 from asyncua import Client, ua
 
-from drivers.servers.opcua_cnc import CncOpcUaServer
 from simulator.link import FixedLink, MachineSnapshot, RunMode
+from simulator.servers.opcua_cnc import CncOpcUaServer
 
 NAMESPACE = "urn:spindle-gateway:simulated-cnc"
 NODE_DIR = Path(__file__).parent / "node"

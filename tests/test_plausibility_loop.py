@@ -20,8 +20,9 @@ import numpy as np
 import pytest
 
 from drivers.clock import ManualClock
-from gateway.demo import ClosedLoop, fit_models, machine_config, open_loop, write_training_data
+from gateway.demo import fit_models, machine_config, open_loop, write_training_data
 from gateway.runtime import CycleRecord
+from simulator.closed_loop import ClosedLoop
 from simulator.faults import SensorFault
 from simulator.programs import SpeedProgram, production_program
 from simulator.serve import SimulatedPlant, SimulatorConfig

@@ -15,13 +15,13 @@ import pytest
 from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.clock import ManualClock
-from drivers.servers.modbus_common import encode_temperature
 from simulator.machine import AMBIENT_CHANNEL, SimulatedMachine
 from simulator.noise import PROBE, SENSORS, MachineNoise
 from simulator.params import load_params
 from simulator.programs import SpeedProgram, load_programs
 from simulator.record import REST_BEFORE_S, record
 from simulator.serve import SimulatedPlant, SimulatorConfig
+from simulator.servers.modbus_common import encode_temperature
 from tests.ports import free_tcp_port
 
 PARAMS = load_params()

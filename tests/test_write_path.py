@@ -1,6 +1,6 @@
 """The compensation write path against the real CNC protocols (OPC UA and Modbus TCP).
 
-A CNC server from ``drivers.servers`` with a machine behind it that timestamps every
+A CNC server from ``simulator.servers`` with a machine behind it that timestamps every
 macro write as it lands (on the machine clock the gateway shares), Modbus TCP
 temperature transmitters, a model fitted on synthetic runs, and the gateway's own
 :class:`MachineLoop`, stepped cycle by cycle on a manual clock. Every slew check
@@ -25,10 +25,7 @@ from asyncua import Client, ua
 from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.clock import ManualClock
-from drivers.servers.modbus_cnc import CncModbusServer, macro_register
-from drivers.servers.modbus_common import float32_to_registers
-from drivers.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
-from drivers.servers.opcua_cnc import CncOpcUaServer
+from drivers.register_codec import float32_to_registers
 from gateway.app import build_buses, build_cnc, load_bank
 from gateway.config import ConfigError, MachineSection, load_config
 from gateway.runtime import CycleRecord, MachineLoop
@@ -37,6 +34,9 @@ from models.features import prepare
 from models.registry import make_model
 from models.store import ModelStore, build_document
 from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
+from simulator.servers.modbus_cnc import CncModbusServer, macro_register
+from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
+from simulator.servers.opcua_cnc import CncOpcUaServer
 from tests.ports import free_tcp_port
 from tests.synthetic import write_runs_csv
 

@@ -12,7 +12,7 @@ machine has applied it before the client gets its ``Good``.
 
 This server has no security on purpose (a simulated controller on loopback). The
 production gateway's own OPC UA server for SCADA is a separate, secured thing.
-See ``drivers/servers/OPCUA.md`` for the address space.
+See ``simulator/servers/OPCUA.md`` for the address space.
 """
 
 from __future__ import annotations

@@ -16,7 +16,8 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.servers.modbus_common import (
+from simulator.link import MachineLink, MachineSnapshot
+from simulator.servers.modbus_common import (
     BIT_FUNCTION_CODES,
     ModbusEndpoint,
     bit_table_placeholders,
@@ -24,7 +25,6 @@ from drivers.servers.modbus_common import (
     is_internal_write,
     known_devices_only,
 )
-from simulator.link import MachineLink, MachineSnapshot
 
 CHANNELS = 8
 #: Input registers (FC4): 0–7 channel values (int16, 0.1 °C), 8–15 channel statuses.

@@ -1,7 +1,8 @@
-"""Shared pieces of the simulator's Modbus slaves: value encoding and pymodbus plumbing.
+"""Shared pieces of the simulator's Modbus slaves: temperature encoding and pymodbus plumbing.
 
-The encoders are pure functions so that the exact bit patterns a real device would
-put on the wire (fault codes, clamping, word order) are unit-tested without a socket.
+The register codecs the gateway's clients also use are in ``drivers.register_codec``;
+the channel encoder here is a pure function so that the exact bit patterns a real
+device would put on the wire (fault codes, clamping) are unit-tested without a socket.
 The plumbing wraps pymodbus 3.16's ``SimDevice`` model, whose only hook into a
 request is the device ``action`` coroutine; both servers build on it the same way.
 """
@@ -9,7 +10,6 @@ request is the device ``action`` coroutine; both servers build on it the same wa
 from __future__ import annotations
 
 import math
-import struct
 from collections.abc import Callable, Collection, Coroutine
 from typing import Self, cast
 
@@ -18,13 +18,14 @@ from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData
 
+from drivers.register_codec import (
+    INT16_MAX,
+    INT16_MIN,
+    OPEN_CIRCUIT_CODE,
+    SHORT_CIRCUIT_CODE,
+    int16_to_register,
+)
 from simulator.link import ChannelReading, ChannelStatus
-
-#: Value-register fault codes of a temperature channel (signed int16 view).
-OPEN_CIRCUIT_CODE = 32767  # 0x7FFF
-SHORT_CIRCUIT_CODE = -32768  # 0x8000 as an unsigned register
-INT16_MIN = -32768
-INT16_MAX = 32767
 
 #: Function codes a Modbus client uses to write holding registers.
 WRITE_FUNCTION_CODES = frozenset({6, 16, 22, 23})
@@ -36,20 +37,6 @@ Action = Callable[
     [int, int, int, int, list[int], list[int] | list[bool] | None],
     Coroutine[None, None, ExcCodes | None],
 ]
-
-
-def int16_to_register(value: int) -> int:
-    """Two's-complement int16 → the unsigned 16-bit word that goes on the wire."""
-    if not INT16_MIN <= value <= INT16_MAX:
-        raise ValueError(f"{value} does not fit a signed 16-bit register")
-    return value & 0xFFFF
-
-
-def register_to_int16(register: int) -> int:
-    """Unsigned 16-bit word from the wire → signed int16 (what a client decodes)."""
-    if not 0 <= register <= 0xFFFF:
-        raise ValueError(f"{register} is not a 16-bit register value")
-    return register - 0x10000 if register & 0x8000 else register
 
 
 def encode_temperature(reading: ChannelReading | None) -> tuple[int, int]:
@@ -77,43 +64,6 @@ def encode_temperature(reading: ChannelReading | None) -> tuple[int, int]:
         return int16_to_register(INT16_MIN), int(ChannelStatus.OUT_OF_RANGE)
     nearest = int(math.copysign(math.floor(abs(counts) + 0.5), counts))  # ties away from 0
     return int16_to_register(nearest), int(status)
-
-
-def float32_to_registers(value: float) -> tuple[int, int]:
-    """IEEE-754 float32 → two registers, high word first (big-endian word order).
-
-    A value beyond float32 range becomes ±inf, as a C cast on the CNC would make it.
-    """
-    try:
-        raw = struct.pack(">f", value)
-    except OverflowError:
-        raw = struct.pack(">f", math.copysign(math.inf, value))
-    high, low = struct.unpack(">HH", raw)
-    return high, low
-
-
-def registers_to_float32(high: int, low: int) -> float:
-    """Two registers, high word first → the float32 value (as a Python float)."""
-    return cast(float, struct.unpack(">f", struct.pack(">HH", high, low))[0])
-
-
-def registers_to_float32_shortest(high: int, low: int) -> float:
-    """Like :func:`registers_to_float32`, but the shortest decimal with the same float32 bits.
-
-    A client that writes 0.0125 sends 0x3C4CCCCD, which is 0.012500000186264515 when
-    widened to a double. The machine should apply what the client meant, so the value
-    is the shortest decimal (≤ 9 significant digits) that encodes to the same bits;
-    it is still exactly what the registers hold, so a read-back is bit-identical.
-    """
-    value = registers_to_float32(high, low)
-    if not math.isfinite(value):
-        return value
-    raw = struct.pack(">HH", high, low)
-    for digits in range(1, 10):
-        candidate = float(f"{value:.{digits}g}")
-        if struct.pack(">f", candidate) == raw:
-            return candidate
-    return value
 
 
 def bit_table_placeholders() -> tuple[list[SimData], list[SimData]]:

@@ -20,16 +20,15 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.servers.modbus_common import (
+from drivers.register_codec import float32_to_registers, registers_to_float32_shortest
+from simulator.link import MACRO_FIRST, MACRO_LAST, MachineLink, MachineSnapshot
+from simulator.servers.modbus_common import (
     BIT_FUNCTION_CODES,
     ModbusEndpoint,
     bit_table_placeholders,
-    float32_to_registers,
     is_internal_write,
     known_devices_only,
-    registers_to_float32_shortest,
 )
-from simulator.link import MACRO_FIRST, MACRO_LAST, MachineLink, MachineSnapshot
 
 log = logging.getLogger(__name__)
 

@@ -1,1 +1,0 @@
-"""Protocol servers of the simulated machine (apart from the gateway's clients)."""

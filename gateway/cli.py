@@ -3,6 +3,12 @@
 Commands stay thin: they parse options, call ``models``, and print tables that
 ``gateway.tables`` formats. Any input problem ends with one line on stderr that
 says where it is and what was expected, and exit status 2.
+
+At module level this file imports only click, the standard library and
+``models.catalogue`` (plain names and numbers): numpy, scipy, pandas, sklearn,
+matplotlib and the protocol libraries load inside the command that needs them,
+so ``--help`` and the container's health check start in a fraction of a second
+(benchmarks/cli_start.py, tests/test_cli_start.py).
 """
 
 from __future__ import annotations
@@ -17,18 +23,18 @@ from typing import Any
 import click
 
 from gateway import __version__
-from gateway.tables import accuracy_table, sigma_matrix_table
-from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
-from models.dataset import DataError, load_runs
-from models.features import prepare
-from models.fitting import fit_and_store
-from models.references import POLICIES
-from models.regimes import format_report, rank_regimes, read_sigma_csv
-from models.registry import METHODS
-from models.significance import anova_oneway, format_table, manova_oneway, speed_groups
-from models.store import ModelStore, StoreError
+from models.catalogue import (
+    DEFAULT_MAX_BIAS_ERROR_UM,
+    DEFAULT_SENSOR_ACCURACY_C,
+    METHOD_NAMES,
+    POLICIES,
+)
 
-INPUT_ERRORS = (DataError, StoreError, ValueError, KeyError, OSError)
+#: The project's input errors (``models.dataset.DataError``, ``models.store.StoreError``,
+#: ``gateway.config.ConfigError``, …) are all ``ValueError``s, so catching the
+#: built-in types catches them without importing the modules that define them at
+#: start-up; tests/test_cli_start.py checks that each of them still is one.
+INPUT_ERRORS = (ValueError, KeyError, OSError)
 
 
 def input_errors_exit(command: Callable[..., Any]) -> Callable[..., Any]:
@@ -76,7 +82,7 @@ def main() -> None:
 
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@click.option("--method", type=click.Choice(sorted(METHODS)), default="mlr", show_default=True)
+@click.option("--method", type=click.Choice(METHOD_NAMES), default="mlr", show_default=True)
 @click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
 @click.option("--sensors", help="Declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
 @click.option("--per-run", is_flag=True, help="One model per run, cross-evaluated on every run.")
@@ -124,6 +130,13 @@ def fit(
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
+    from gateway.tables import accuracy_table, sigma_matrix_table
+    from models.dataset import load_runs
+    from models.features import prepare
+    from models.fitting import fit_and_store
+    from models.regimes import format_report
+    from models.store import ModelStore
+
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list)
     report_skipped(data)
@@ -201,6 +214,8 @@ def fit(
 @input_errors_exit
 def regimes(sigma_csv: Path, json_out: Path | None, tolerance_pct: float) -> None:
     """Rank per-regime models from their cross-evaluation σ table (paper 002)."""
+    from models.regimes import format_report, rank_regimes, read_sigma_csv
+
     report = rank_regimes(read_sigma_csv(sigma_csv), tolerance_pct=tolerance_pct)
     click.echo(format_report(report))
     write_json(json_out, report.as_json())
@@ -229,6 +244,9 @@ def significance(
     json_out: Path | None,
 ) -> None:
     """Does spindle speed change the temperatures? MANOVA + per-sensor ANOVA (paper 000)."""
+    from models.dataset import load_runs
+    from models.significance import anova_oneway, format_table, manova_oneway, speed_groups
+
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list)
     report_skipped(data)
@@ -556,7 +574,7 @@ def export(
 @click.option(
     "--model",
     "method",
-    type=click.Choice(sorted(METHODS)),
+    type=click.Choice(METHOD_NAMES),
     default="mlr",
     show_default=True,
     help="The declared model whose residual is analysed.",
@@ -603,6 +621,8 @@ def analyze(
 
     from models import augmented
     from models.analysis import analyze as run_analysis
+    from models.dataset import load_runs
+    from models.features import prepare
     from models.store import data_fingerprint
 
     sensor_list = parse_sensors(sensors)
@@ -664,7 +684,7 @@ def analyze(
 @click.option(
     "--model",
     "method",
-    type=click.Choice(sorted(METHODS)),
+    type=click.Choice(METHOD_NAMES),
     default="mlr",
     show_default=True,
     help="The declared model (its sensors feed the base).",

@@ -31,14 +31,9 @@ from typing import Any
 import numpy as np
 
 from models.base import ModelInputs, ThermalModel
+from models.catalogue import DEFAULT_MAX_BIAS_ERROR_UM as DEFAULT_MAX_BIAS_ERROR_UM
+from models.catalogue import DEFAULT_SENSOR_ACCURACY_C as DEFAULT_SENSOR_ACCURACY_C
 
-#: A stated accuracy of the transmitters' sensors when none is configured: a
-#: class-A Pt100 is ±(0.15 + 0.002·|T|) °C, a transmitter and its wiring add as much.
-DEFAULT_SENSOR_ACCURACY_C = 0.5
-#: Largest compensation error one sensor off by its accuracy may cause before
-#: ``fit`` warns (and, by default, the runtime refuses the model), µm: a fifth
-#: of the default ±50 µm clamp, several times a good model's held-out RMSE.
-DEFAULT_MAX_BIAS_ERROR_UM = 10.0
 #: Finite-difference step for models whose prediction is not linear in the rises.
 _STEP_C = 0.1
 

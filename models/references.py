@@ -39,9 +39,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.catalogue import POLICIES as POLICIES
 from models.dataset import MeasuredRuns, group_bounds
 
-POLICIES = ("auto", "run-start", "recording-start")
 CONTINUITY_FACTOR = 3.0
 REFERENCE_WINDOW_S = 600.0
 

@@ -1,0 +1,22 @@
+"""Names and defaults the command line shows before any maths is imported.
+
+``--help`` and option parsing need the method names, the reference policies and
+two defaults, but not numpy, scipy or sklearn: those load only inside the
+command that fits. ``models.registry``, ``models.references`` and
+``models.conditioning`` take their values from here, and a test checks that
+``METHOD_NAMES`` is exactly the registry's keys.
+"""
+
+from __future__ import annotations
+
+#: The fitting methods by the name used on the command line and in the store.
+METHOD_NAMES = ("grey-mlr", "mlr", "pca-quadratic", "pls", "ridge")
+#: Where rises are measured from (see models/references.py).
+POLICIES = ("auto", "run-start", "recording-start")
+#: A stated accuracy of the transmitters' sensors when none is configured: a
+#: class-A Pt100 is ±(0.15 + 0.002·|T|) °C, a transmitter and its wiring add as much.
+DEFAULT_SENSOR_ACCURACY_C = 0.5
+#: Largest compensation error one sensor off by its accuracy may cause before
+#: ``fit`` warns (and, by default, the runtime refuses the model), µm: a fifth
+#: of the default ±50 µm clamp, several times a good model's held-out RMSE.
+DEFAULT_MAX_BIAS_ERROR_UM = 10.0

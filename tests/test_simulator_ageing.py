@@ -124,7 +124,8 @@ def test_cli_probe_options_win_over_the_config_when_serving(tmp_path: Path) -> N
         process.wait(timeout=10)
     gaps_s = np.diff(arrivals)
     # 3600 machine s at ×3600 is one wall second between probes (60 s would be 1/60 s).
-    assert np.all(gaps_s > 0.6) and np.all(gaps_s < 1.6), gaps_s
+    # (A busy host may delay one publish; the next gap is then shorter by as much.)
+    assert np.all(gaps_s > 0.4) and 0.75 < gaps_s.mean() < 1.3, gaps_s
 
 
 async def watch_probe_macro(port: int, changes: int, timeout_s: float) -> list[float]:

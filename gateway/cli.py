@@ -295,6 +295,16 @@ def significance(
     show_default=True,
     help="Without --record: serve the machine its 'simulator' section describes.",
 )
+@click.option(
+    "--probe-period-s",
+    type=click.FloatRange(min=0, min_open=True),
+    help="Machine seconds between probe measurements (overrides config / machine.yaml).",
+)
+@click.option(
+    "--probe-noise-um",
+    type=click.FloatRange(min=0),
+    help="Probe measurement noise, 1 σ in µm (overrides config / machine.yaml).",
+)
 @input_errors_exit
 def simulate(
     record_path: Path | None,
@@ -304,15 +314,17 @@ def simulate(
     sample_s: float,
     params_file: Path | None,
     config_path: Path,
+    probe_period_s: float | None,
+    probe_noise_um: float | None,
 ) -> None:
     """Run the simulated machine: serve it over its protocols, or record runs (--record)."""
     from simulator.programs import program_by_name
     from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 
     if record_path is None:
-        serve_simulator(config_path)
+        serve_simulator(config_path, probe_period_s, probe_noise_um)
         return
-    params = load_machine_params(params_file)
+    params = with_probe(load_machine_params(params_file), probe_period_s, probe_noise_um)
     chosen = [program_by_name(name) for name in (programs or DEFAULT_PROGRAMS)]
     recording = record(params, chosen, effects or ("none",), seed=seed, sample_s=sample_s)
     write_recording(record_path, recording)
@@ -329,17 +341,27 @@ def load_machine_params(params_file: Path | None):
     return load_params() if params_file is None else load_params_file(params_file)
 
 
-def serve_simulator(config_path: Path) -> None:
+def with_probe(params, period_s: float | None, noise_um: float | None):
+    """The machine parameters with the probe period and/or noise of the command line."""
+    probe = {k: v for k, v in (("period_s", period_s), ("noise_um", noise_um)) if v is not None}
+    return params.model_copy(update={"probe": params.probe.model_copy(update=probe)})
+
+
+def serve_simulator(
+    config_path: Path, probe_period_s: float | None = None, probe_noise_um: float | None = None
+) -> None:
     import asyncio
 
     from simulator.serve import SimulatedPlant, load_simulator_config
 
-    config = load_simulator_config(config_path)
+    config = load_simulator_config(config_path).with_probe(probe_period_s, probe_noise_um)
     plant = SimulatedPlant(config)
     click.echo(
         f"serving simulated machine '{plant.machine.params.name}' (programme {config.program}, "
         f"×{config.speedup:g} machine time); Ctrl-C stops"
     )
+    probe = plant.machine.params.probe
+    click.echo(f"  probe #{probe.macro}: every {probe.period_s:g} s, noise {probe.noise_um:g} µm")
     for endpoint in plant.endpoints:
         click.echo(f"  {type(endpoint).__name__}: {describe_endpoint(endpoint)}")
     try:

@@ -8,6 +8,11 @@ so the measured error is
 
     error = Z growth − sign · #500 · (µm per CNC unit) + probe noise.
 
+With ``ageing`` (machine.yaml) the Z growth also drifts over machine days: the
+bearing's share scaled by 1 + preload_gain_per_day · days, plus
+coolant_offset_um_per_day · days. Both are off (0) by default, and then the
+growth is computed exactly as without them (a recording keeps its bytes).
+
 All randomness (sensor and probe noise) is a function of the seed, the machine
 time and the channel (:mod:`simulator.noise`), never of how often or when (in
 wall-clock time) the machine is read: a recording is reproducible to the byte,
@@ -57,6 +62,7 @@ class SimulatedMachine:
         )
         self.noise = MachineNoise(seed)
         self.program_start_s = start_s
+        self.created_s = start_s
         self.time_s = start_s
         self.reference_C = params.ambient_C
         self.nodes_C = np.full(len(NODES), params.ambient_C)
@@ -123,14 +129,29 @@ class SimulatedMachine:
         """Z thermal growth (µm, positive = tool towards the table), before compensation."""
         rise = {n: self.nodes_C[i] - self.reference_C for i, n in enumerate(NODES)}
         total = 0.0
+        ageing = self.params.ageing
         for node, um_per_K in self.params.growth_um_per_K.items():
-            if node == "shaft":
+            if node == "bearing" and ageing.preload_gain_per_day != 0.0:
+                total += um_per_K * rise[node] * self.preload_factor()
+            elif node == "shaft":
                 total += self.effects.shaft_growth_um(
                     self.nodes_C[NODES.index("shaft")], self.reference_C, um_per_K
                 )
             else:
                 total += um_per_K * rise[node]
+        if ageing.coolant_offset_um_per_day != 0.0:
+            total += ageing.coolant_offset_um_per_day * self.age_days
         return total + self.effects.direct_um(self.commanded_speed_rpm(), self.run_time_s)
+
+    # --- ageing -----------------------------------------------------------------------
+    @property
+    def age_days(self) -> float:
+        """Machine age in days of machine time (``ageing.start_days`` at creation)."""
+        return self.params.ageing.start_days + (self.time_s - self.created_s) / 86400.0
+
+    def preload_factor(self) -> float:
+        """How much the bearing's Z growth is scaled by the drifting preload now."""
+        return 1.0 + self.params.ageing.preload_gain_per_day * self.age_days
 
     def applied_compensation_um(self) -> float:
         comp = self.params.compensation

@@ -66,6 +66,25 @@ class Probe(Strict):
     macro: int = Field(ge=500, le=999)
 
 
+class Ageing(Strict):
+    """Slow machine ageing in machine days (86 400 s of machine time since the start).
+
+    Both rates are 0 by default (no ageing). ``preload_gain_per_day`` (1/day): a
+    drifting bearing preload; the bearing's share of the Z growth is scaled by
+    ``1 + preload_gain_per_day · days``. ``coolant_offset_um_per_day`` (µm/day): a
+    growing coolant offset, an additive Z error of ``rate · days`` µm.
+    ``start_days`` (days): the machine's age when the simulation starts.
+    """
+
+    preload_gain_per_day: float = 0.0
+    coolant_offset_um_per_day: float = 0.0
+    start_days: float = Field(default=0.0, ge=0)
+
+    @property
+    def active(self) -> bool:
+        return self.preload_gain_per_day != 0.0 or self.coolant_offset_um_per_day != 0.0
+
+
 class Compensation(Strict):
     macro: int = Field(ge=500, le=999)
     unit: Literal["mm", "um"]
@@ -126,6 +145,7 @@ class MachineParams(Strict):
     probe: Probe
     compensation: Compensation
     effects: Effects
+    ageing: Ageing = Ageing()
     sub_step_s: float = Field(gt=0, le=60)
 
     @model_validator(mode="after")

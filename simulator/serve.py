@@ -20,7 +20,7 @@ from drivers.clock import AcceleratedClock, Clock
 from drivers.yaml_loader import KeyPathError, YamlError, first_problem, load_yaml, validate
 from simulator.effects import parse_effects
 from simulator.machine import AMBIENT_CHANNEL, SimulatedMachine
-from simulator.params import load_params, merged_params
+from simulator.params import Ageing, deep_merge, load_params, merged_params
 from simulator.programs import program_by_name
 from simulator.servers.modbus_cnc import CncModbusServer
 from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
@@ -64,12 +64,22 @@ class CncConfig(Strict):
     modbus: EndpointConfig | None = None
 
 
+class ProbeSettings(Strict):
+    """The probe cycle on the CNC: how often (machine seconds) and how noisy (µm, 1 σ)."""
+
+    period_s: float | None = Field(default=None, gt=0)
+    noise_um: float | None = Field(default=None, ge=0)
+
+
 class SimulatorConfig(Strict):
     """The ``simulator`` section; what serving would refuse later is refused here, located.
 
     The programme and the hidden effects must exist, the machine overrides must
     fit ``simulator/machine.yaml``'s schema once merged, every channel must name
     a sensor of the machine, and no two servers may share a host and port.
+    ``probe`` (period_s: machine seconds between probes, noise_um: 1 σ) and
+    ``ageing`` (see :class:`simulator.params.Ageing`) are shorthands for the same
+    keys under ``machine``, and win over them.
     """
 
     program: str = "iso230-spectrum"
@@ -78,6 +88,8 @@ class SimulatorConfig(Strict):
     speedup: float = Field(default=60.0, gt=0)
     publish_period_s: float = Field(default=0.2, gt=0)
     machine: dict[str, Any] = Field(default_factory=dict)
+    probe: ProbeSettings = ProbeSettings()
+    ageing: Ageing | None = None
     transmitters: TransmittersConfig = TransmittersConfig()
     cnc: CncConfig = CncConfig()
 
@@ -103,10 +115,31 @@ class SimulatorConfig(Strict):
             raise KeyPathError(loc, message) from None
         return value
 
+    def with_probe(
+        self, period_s: float | None = None, noise_um: float | None = None
+    ) -> SimulatorConfig:
+        """This config with the probe period and/or noise replaced (the CLI's options)."""
+        probe = self.probe.model_dump(exclude_none=True)
+        probe.update(
+            {k: v for k, v in (("period_s", period_s), ("noise_um", noise_um)) if v is not None}
+        )
+        return SimulatorConfig.model_validate({**self.model_dump(), "probe": probe})
+
+    @property
+    def machine_overrides(self) -> dict[str, Any]:
+        """``machine`` with ``probe`` and ``ageing`` merged in (those two win)."""
+        extra: dict[str, Any] = {}
+        probe = self.probe.model_dump(exclude_none=True)
+        if probe:
+            extra["probe"] = probe
+        if self.ageing is not None:
+            extra["ageing"] = self.ageing.model_dump()
+        return deep_merge(self.machine, extra)
+
     @model_validator(mode="after")
     def _endpoints(self) -> SimulatorConfig:
         """Every channel names a sensor of the machine; no two servers share a port."""
-        sensors = {*merged_params(self.machine).sensors, AMBIENT_CHANNEL}
+        sensors = {*merged_params(self.machine_overrides).sensors, AMBIENT_CHANNEL}
         bound: dict[tuple[str, int], tuple[str, ...]] = {}
         buses = {"rtu": self.transmitters.rtu, "tcp": self.transmitters.tcp}
         for bus_name, bus in buses.items():
@@ -153,7 +186,7 @@ class SimulatedPlant:
     def __init__(self, config: SimulatorConfig, clock: Clock | None = None) -> None:
         self.config = config
         self.clock = clock or AcceleratedClock(config.speedup)
-        params = load_params(config.machine, source="simulator.machine")
+        params = load_params(config.machine_overrides, source="simulator.machine")
         self.machine = SimulatedMachine(
             params,
             program_by_name(config.program),

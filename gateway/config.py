@@ -585,6 +585,7 @@ class InfluxSection(Strict):
 
     def bucket_value(self) -> str:
         return self._setting("bucket")
+
     @field_validator("url")
     @classmethod
     def _http_url(cls, value: str | None) -> str | None:

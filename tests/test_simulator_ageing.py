@@ -23,12 +23,12 @@ import yaml
 from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.clock import ManualClock
-from drivers.servers.modbus_cnc import macro_register
 from simulator.machine import SimulatedMachine
 from simulator.params import load_params
 from simulator.programs import SpeedProgram
 from simulator.record import record
 from simulator.serve import SimulatedPlant, SimulatorConfig
+from simulator.servers.modbus_cnc import macro_register
 from simulator.thermal import ThermalNetwork
 from tests.cli import ROOT, gateway
 from tests.ports import free_tcp_port

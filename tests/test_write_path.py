@@ -568,7 +568,10 @@ def test_write_path_settings_and_their_defaults(tmp_path: Path) -> None:
     [
         ("on_disable: freeze", "on_disable: Input should be 'ramp' or 'hold'"),
         ("hold_on_loss_s: -1", "hold_on_loss_s: Input should be greater than or equal to 0"),
-        ("hold_on_loss_s: .inf", "hold_on_loss_s: Input should be a finite number"),
+        (
+            "hold_on_loss_s: .inf",
+            "hold_on_loss_s: .inf is not a finite number; a finite value was expected",
+        ),
         ("fallback_ramp_um_per_min: 0", "fallback_ramp_um_per_min: Input should be greater than 0"),
     ],
 )

@@ -199,7 +199,7 @@ def test_opcua_recovers_after_server_restarts_with_a_new_session() -> None:
             await cnc.close()
             await server.stop()
 
-    run(body)
+    run(body, timeout_s=90.0)  # three OPC UA server start-ups; the recoveries have their own
 
 
 def test_opcua_wrong_endpoint_names_it_and_backs_off() -> None:

@@ -144,7 +144,9 @@ def test_startup_builds_the_tree_and_all_500_macros_quickly() -> None:
 
     elapsed = asyncio.run(scenario())
     print(f"start-up with 500 macro nodes: {elapsed:.2f} s")
-    assert elapsed < 10.0  # a sanity bound (≈ 2 s measured, most of it asyncua's init)
+    # A hang guard, not a benchmark: ≈ 2 s alone, most of it asyncua's init; 13 s was seen
+    # with the suite's other worker building the edge image beside it.
+    assert elapsed < 30.0
 
 
 def test_asyncua_reads_every_node_with_its_type_and_value() -> None:

@@ -26,13 +26,12 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
-from gateway.sqlite_bounds import cap_size, is_out_of_space, used_bytes
+from gateway.sqlite_bounds import bounded_write, cap_size, is_out_of_space, used_bytes
 from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
 
 DELETE_CHUNK_ROWS = 5000  # rows per DELETE: keeps one retention step short (ms)
-MAX_ROUNDS = 50  # delete-and-retry rounds a capped write may take
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS points (
@@ -107,28 +106,21 @@ class LocalStore:
         if not rows:
             return True
         with self._lock:
-            for _ in range(MAX_ROUNDS):
-                try:
-                    self._insert(rows)
-                except sqlite3.Error as exc:
-                    if not is_out_of_space(exc):
-                        raise
-                    # At the file's own cap, the oldest points make room; a full disk
-                    # is waited out (the pages freed are reused once space returns).
-                    if self.max_bytes is not None and self._at_cap() and self._evict_oldest():
-                        continue
-                    self._lost(len(rows), exc)
-                    return False
-                if self._failing:
-                    self._failing = False
-                    log.warning(
-                        "local store %s writable again; %d point(s) dropped in all",
-                        self.path,
-                        self.dropped,
-                    )
-                return True
-            self._lost(len(rows), sqlite3.OperationalError("no room made at the size cap"))
-            return False
+            # At the file's own cap, the oldest points make room; a full disk is waited
+            # out (the pages freed are reused once space returns).
+            kept = bounded_write(
+                lambda: self._insert(rows),
+                lambda: self.max_bytes is not None and self._at_cap() and self._evict_oldest(),
+                lambda exc: self._lost(len(rows), exc),
+            )
+            if kept and self._failing:
+                self._failing = False
+                log.warning(
+                    "local store %s writable again; %d point(s) dropped in all",
+                    self.path,
+                    self.dropped,
+                )
+            return kept
 
     def _insert(self, rows: list[tuple[str, str, str, int, str]]) -> None:
         self._db.execute("BEGIN IMMEDIATE")

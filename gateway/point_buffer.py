@@ -34,13 +34,12 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
-from gateway.sqlite_bounds import cap_size, is_out_of_space, used_bytes
+from gateway.sqlite_bounds import bounded_write, cap_size, is_out_of_space, used_bytes
 from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
 
 DELETE_CHUNK_ROWS = 5000  # rows per DELETE: keeps one retention step short (ms)
-MAX_ROUNDS = 50  # drop-and-retry rounds an append at the size cap may take
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS points (
@@ -112,26 +111,19 @@ class PointBuffer:
         if not rows:
             return True
         with self._lock:
-            for _ in range(MAX_ROUNDS):
-                try:
-                    self._append(rows)
-                except sqlite3.Error as exc:
-                    if not is_out_of_space(exc):
-                        raise
-                    if self.max_bytes is not None and self._at_cap() and self._make_room():
-                        continue
-                    self._lost(len(rows), exc)
-                    return False
-                if self._failing:
-                    self._failing = False
-                    log.warning(
-                        "point buffer %s writable again; %d point(s) dropped in all",
-                        self.path,
-                        self._dropped,
-                    )
-                return True
-            self._lost(len(rows), sqlite3.OperationalError("no room made at the size cap"))
-            return False
+            kept = bounded_write(
+                lambda: self._append(rows),
+                lambda: self.max_bytes is not None and self._at_cap() and self._make_room(),
+                lambda exc: self._lost(len(rows), exc),
+            )
+            if kept and self._failing:
+                self._failing = False
+                log.warning(
+                    "point buffer %s writable again; %d point(s) dropped in all",
+                    self.path,
+                    self._dropped,
+                )
+            return kept
 
     def _append(self, rows: list[tuple[str]]) -> None:
         skipped = max(0, len(rows) - self.max_points)

@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import math
 import sqlite3
+from collections.abc import Callable
 
 SQLITE_FULL = 13
 SQLITE_IOERR = 10
 WAL_LIMIT_BYTES = 4_000_000  # what a checkpointed WAL file is truncated back to
 BYTES_PER_MB = 1_000_000
+MAX_ROUNDS = 50  # make-room-and-retry rounds a write at the size cap may take
 
 
 def cap_size(db: sqlite3.Connection, max_bytes: int) -> None:
@@ -52,3 +54,29 @@ def is_out_of_space(exc: sqlite3.Error) -> bool:
         text = str(exc).lower()
         return "disk is full" in text or "disk i/o error" in text
     return code & 0xFF in (SQLITE_FULL, SQLITE_IOERR)
+
+
+def bounded_write(
+    write: Callable[[], None],
+    make_room: Callable[[], bool],
+    lost: Callable[[sqlite3.Error], None],
+) -> bool:
+    """Run ``write``; when it fails for want of space, let ``make_room`` free the oldest
+    rows (it returns False when it cannot: a full disk, not the file's cap) and retry.
+
+    Returns False, after calling ``lost`` with the cause, when the write could not be
+    kept; any other SQLite error is raised. Never more than ``MAX_ROUNDS`` attempts.
+    """
+    for _ in range(MAX_ROUNDS):
+        try:
+            write()
+        except sqlite3.Error as exc:
+            if not is_out_of_space(exc):
+                raise
+            if make_room():
+                continue
+            lost(exc)
+            return False
+        return True
+    lost(sqlite3.OperationalError("no room made at the size cap"))
+    return False

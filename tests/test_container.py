@@ -108,6 +108,8 @@ def bench_config(bus_port: int, cnc_port: int, scada_port: int) -> dict[str, Any
     machine["cnc"] = {"modbus": {"host": "127.0.0.1", "port": cnc_port}}
     # The simulator runs ×20: its temperatures change faster than a real machine's.
     machine["sensors"] = {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)}
+    # … and its error grows 20 times faster too: the prediction's rate bound follows.
+    machine["quality"] = {"max_prediction_rate_um_per_s": 20 * 0.1}
     config["scada"]["port"] = scada_port
     return config
 

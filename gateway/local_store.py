@@ -26,7 +26,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
-from gateway.sqlite_bounds import bounded_write, cap_size, is_out_of_space, used_bytes
+from gateway.sqlite_bounds import at_cap, bounded_write, cap_size, is_out_of_space, used_bytes
 from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
@@ -110,7 +110,11 @@ class LocalStore:
             # out (the pages freed are reused once space returns).
             kept = bounded_write(
                 lambda: self._insert(rows),
-                lambda: self.max_bytes is not None and self._at_cap() and self._evict_oldest(),
+                lambda: (
+                    self.max_bytes is not None
+                    and at_cap(self._db, self.max_bytes)
+                    and self._evict_oldest()
+                ),
                 lambda exc: self._lost(len(rows), exc),
             )
             if kept and self._failing:
@@ -148,11 +152,6 @@ class LocalStore:
                 self.path,
                 exc,
             )
-
-    def _at_cap(self) -> bool:
-        assert self.max_bytes is not None
-        page_size = self._db.execute("PRAGMA page_size").fetchone()[0]
-        return used_bytes(self._db) + 8 * page_size >= self.max_bytes
 
     def _evict_oldest(self) -> int:
         """Delete the oldest chunk of points (lock held); how many went."""

@@ -34,7 +34,7 @@ import time
 from collections.abc import Iterable
 from pathlib import Path
 
-from gateway.sqlite_bounds import bounded_write, cap_size, is_out_of_space, used_bytes
+from gateway.sqlite_bounds import at_cap, bounded_write, cap_size, is_out_of_space, used_bytes
 from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
@@ -113,7 +113,11 @@ class PointBuffer:
         with self._lock:
             kept = bounded_write(
                 lambda: self._append(rows),
-                lambda: self.max_bytes is not None and self._at_cap() and self._make_room(),
+                lambda: (
+                    self.max_bytes is not None
+                    and at_cap(self._db, self.max_bytes)
+                    and self._make_room()
+                ),
                 lambda exc: self._lost(len(rows), exc),
             )
             if kept and self._failing:
@@ -169,11 +173,6 @@ class PointBuffer:
                 self.path,
                 exc,
             )
-
-    def _at_cap(self) -> bool:
-        assert self.max_bytes is not None
-        page_size = self._db.execute("PRAGMA page_size").fetchone()[0]
-        return used_bytes(self._db) + 8 * page_size >= self.max_bytes
 
     def _make_room(self) -> int:
         """Drop the oldest chunk at the size cap (lock held, counted); how many went."""

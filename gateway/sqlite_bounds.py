@@ -43,6 +43,12 @@ def used_bytes(db: sqlite3.Connection) -> int:
     return (page_count - free) * page_size
 
 
+def at_cap(db: sqlite3.Connection, max_bytes: int) -> bool:
+    """True when the pages in use come within 8 pages of ``max_bytes`` (time to make room)."""
+    page_size = db.execute("PRAGMA page_size").fetchone()[0]
+    return used_bytes(db) + 8 * page_size >= max_bytes
+
+
 def is_out_of_space(exc: sqlite3.Error) -> bool:
     """True when SQLite failed for want of space (the disk, or the file's cap), or on I/O.
 

@@ -1,7 +1,7 @@
 """Command line: ``python -m gateway COMMAND …``.
 
 Commands stay thin: they parse options, call ``models``, and print tables that
-``gateway.tables`` formats. Any input problem ends with one line on stderr that
+``gateway.offline.tables`` formats. Any input problem ends with one line on stderr that
 says where it is and what was expected, and exit status 2.
 
 At module level this file imports only click, the standard library and
@@ -130,7 +130,7 @@ def fit(
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
-    from gateway.tables import accuracy_table, sigma_matrix_table
+    from gateway.offline.tables import accuracy_table, sigma_matrix_table
     from models.dataset import load_runs
     from models.features import prepare
     from models.fitting import fit_and_store
@@ -542,7 +542,7 @@ def export(
 ) -> None:
     """Write logged data as a measured-run CSV (for fit and analyze)."""
     from gateway.config import load_config
-    from gateway.export import ExportError, export_runs
+    from gateway.offline.export import ExportError, export_runs
     from gateway.influx_writer import InfluxReader
     from gateway.local_store import LocalStore
 
@@ -694,7 +694,7 @@ def analyze(
         result = replace(result, stored_model={"model_id": document["model_id"], "path": str(path)})
         click.echo(f"saved {document['model_id']} → {path}")
     if report_dir is not None:
-        from gateway.analysis_report import write_report
+        from gateway.offline.analysis_report import write_report
 
         click.echo(f"wrote {write_report(result, report_dir)}")
     write_json(json_out, result.as_dict())

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.image import imread
 
-from gateway.analysis_report import write_report
+from gateway.offline.analysis_report import write_report
 from models.analysis_result import AnalysisResult, CandidateResult, StepResult
 from models.metrics import accuracy
 

@@ -71,7 +71,7 @@ def test_project_input_errors_are_caught_by_the_cli() -> None:
     from drivers.yaml_loader import KeyPathError, YamlError
     from gateway.cli import INPUT_ERRORS
     from gateway.config import ConfigError
-    from gateway.export import ExportError
+    from gateway.offline.export import ExportError
     from models.dataset import DataError
     from models.regimes import SigmaFileError
     from models.store import StoreError

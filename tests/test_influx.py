@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway.export import export_runs
+from gateway.offline.export import export_runs
 from gateway.influx_writer import Forwarder, InfluxReader, InfluxWriter
 from gateway.local_store import LocalStore
 from gateway.point_buffer import PointBuffer

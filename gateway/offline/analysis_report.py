@@ -13,19 +13,18 @@ which writes ``DIR/index.html`` and the PNG plots it shows:
 Plots are drawn on :class:`matplotlib.figure.Figure` with the Agg canvas, never
 through pyplot: no global figure registry to leak into, no GUI backend needed on
 the gateway, and the figure is freed as soon as it goes out of scope.
-Every string that comes from the data is escaped (HTML) or has its ``$``
+The page itself is :meth:`AnalysisResult.to_html` (a Jinja2 template with
+autoescape on), so it shows exactly the figures of the terminal table and the
+JSON; every string from the data is escaped there, and here has its ``$``
 escaped (matplotlib mathtext), so a sensor or run name cannot break the page.
 """
 
 from __future__ import annotations
 
-import html
-import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -34,8 +33,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
-from models.analysis_result import AnalysisResult, CandidateResult, StepResult
-from models.metrics import Accuracy
+from models.analysis_render import after_label, before_label, effect_name, um_text
+from models.analysis_result import AnalysisResult, StepResult, run_groups
 
 DPI = 100
 MAX_SCATTER_POINTS = 20_000
@@ -73,24 +72,6 @@ CAPTION_CANDIDATES = (
     "improved, not significant) — the reason column of the table above says which."
 )
 
-CSS = """
-body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 72em; color: #222;
-       padding: 0 1em; line-height: 1.4; }
-h1 { font-size: 1.5em; } h2 { font-size: 1.2em; margin-top: 1.6em; }
-.summary { font-size: 1.15em; background: #f3f6fa; padding: 0.6em 0.8em;
-           border-left: 4px solid #1f77b4; }
-table { border-collapse: collapse; margin: 0.6em 0; }
-th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: left;
-         vertical-align: top; }
-th { background: #f0f0f0; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; }
-tr.chosen td { background: #e3f4e1; font-weight: bold; }
-ul.kv { margin: 0; padding-left: 1.2em; }
-figure { margin: 1.2em 0; }
-figure img { max-width: 100%; border: 1px solid #ddd; }
-figcaption { max-width: 60em; color: #444; }
-"""
-
 
 @dataclass(frozen=True)
 class _Plot:
@@ -110,16 +91,11 @@ def write_report(result: AnalysisResult, folder: str | Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     plots = _write_plots(result, out)
     index = out / "index.html"
-    index.write_text(_html_page(result, plots), encoding="utf-8")
+    index.write_text(result.to_html(plots), encoding="utf-8")
     return index
 
 
 # --------------------------------------------------------------------------- text helpers
-
-
-def _esc(value: Any) -> str:
-    """HTML-escape anything that came from the data."""
-    return html.escape(str(value), quote=True)
 
 
 def _plain(text: str) -> str:
@@ -127,93 +103,7 @@ def _plain(text: str) -> str:
     return text.replace("$", r"\$")
 
 
-def _minus(text: str) -> str:
-    """Typographic minus, as an engineer would write it."""
-    return text.replace("-", "−")
-
-
-def _um(value: float) -> str:
-    """A length in µm, to the 0.01 µm the measurements support."""
-    return f"{value:.2f}"
-
-
-def _p_value(value: float) -> str:
-    """Three significant digits (e.g. ``1.2e-05``); a dash when there is no test."""
-    return f"{value:.3g}" if math.isfinite(value) else "—"
-
-
-def _value(value: Any) -> str:
-    """A parameter or dictionary value in short readable form (1800.0 → 1800)."""
-    if isinstance(value, bool | str):
-        return str(value)
-    if isinstance(value, int | np.integer):
-        return str(int(value))
-    if isinstance(value, float | np.floating):
-        return f"{float(value):g}"
-    if isinstance(value, Mapping):
-        return _params(value)
-    if isinstance(value, list | tuple):
-        return ", ".join(_value(v) for v in value)
-    if value is None:
-        return "—"
-    return json.dumps(value, default=str)
-
-
-def _params(params: Mapping[str, Any]) -> str:
-    """``k = v`` pairs, the way the summary and tables name a parameter choice."""
-    return ", ".join(f"{key} = {_value(val)}" for key, val in params.items())
-
-
-def _effect_name(effect: str, params: Mapping[str, Any]) -> str:
-    """Effect with its parameters, e.g. ``thermal_lag (tau_s = 1800)``."""
-    return f"{effect} ({_params(params)})" if params else effect
-
-
-def _added_steps(result: AnalysisResult) -> list[StepResult]:
-    return [step for step in result.steps if step.effect != "none"]
-
-
-def _before_label(result: AnalysisResult) -> str:
-    return f"before: {result.model}"
-
-
-def _after_label(result: AnalysisResult) -> str:
-    effects = result.effects
-    return "after: + " + " + ".join(effects) if effects else "after: nothing added"
-
-
-def _summary(result: AnalysisResult) -> str:
-    """The one sentence the reader needs if they read nothing else."""
-    before, after = result.before.rmse_um, result.after.rmse_um
-    added = _added_steps(result)
-    if not added:
-        return (
-            f"No effect is missing: no candidate passed the rules ({result.effect}). "
-            f"Held-out RMSE stays at {_um(before)} µm."
-        )
-    change = f" ({_minus(f'{100.0 * (after / before - 1.0):+.0f}')} %)" if before > 0 else ""
-    names = ", then ".join(_effect_name(step.effect, step.params) for step in added)
-    return f"Held-out RMSE {_um(before)} µm → {_um(after)} µm{change} by adding {names}."
-
-
 # --------------------------------------------------------------------------- runs
-
-
-def _run_groups(run: np.ndarray, time_s: np.ndarray) -> list[tuple[str, np.ndarray]]:
-    """Row indices of each run, runs in order of first appearance, rows in time order.
-
-    The order of the file is the order the engineer knows the runs by, so it is
-    kept rather than sorting the names.
-    """
-    names = np.asarray(run).astype(str)
-    unique, first, inverse = np.unique(names, return_index=True, return_inverse=True)
-    inverse = inverse.ravel()
-    groups = []
-    for k in np.argsort(first, kind="stable"):
-        rows = np.flatnonzero(inverse == k)
-        rows = rows[np.argsort(time_s[rows], kind="stable")]
-        groups.append((str(unique[k]), rows))
-    return groups
 
 
 def _grid_shape(n_runs: int) -> tuple[int, int]:
@@ -252,7 +142,7 @@ def _save(fig: Figure, path: Path) -> None:
 
 def _write_plots(result: AnalysisResult, out: Path) -> list[_Plot]:
     """Draw every plot the report shows, in the order it shows them."""
-    groups = _run_groups(result.run, result.time_s)
+    groups = run_groups(result.run, result.time_s)
     plots = [
         _residual_runs_plot(result, groups, out),
         _measured_vs_predicted_plot(result, groups, out),
@@ -276,9 +166,9 @@ def _residual_runs_plot(
         hours = result.time_s[rows] / 3600.0
         ax.axhline(0.0, color="0.6", lw=0.6)
         ax.plot(
-            hours, before[rows], color=BEFORE_COLOUR, lw=1.0, label=_plain(_before_label(result))
+            hours, before[rows], color=BEFORE_COLOUR, lw=1.0, label=_plain(before_label(result))
         )
-        ax.plot(hours, after[rows], color=AFTER_COLOUR, lw=1.0, label=_plain(_after_label(result)))
+        ax.plot(hours, after[rows], color=AFTER_COLOUR, lw=1.0, label=_plain(after_label(result)))
         ax.set_title(_plain(name), fontsize=9, loc="left")
         ax.grid(alpha=0.3)
     _finish_run_figure(fig, axes, "residual measured − predicted (µm)")
@@ -299,7 +189,7 @@ def _measured_vs_predicted_plot(
             result.predicted_before_um[rows],
             color=BEFORE_COLOUR,
             lw=1.0,
-            label=_plain(_before_label(result)),
+            label=_plain(before_label(result)),
         )
         ax.plot(
             hours,
@@ -307,7 +197,7 @@ def _measured_vs_predicted_plot(
             color=AFTER_COLOUR,
             lw=1.0,
             ls="--",
-            label=_plain(_after_label(result)),
+            label=_plain(after_label(result)),
         )
         ax.set_title(_plain(name), fontsize=9, loc="left")
         ax.grid(alpha=0.3)
@@ -341,7 +231,7 @@ def _step_signal_plot(
     before = result.measured_um - step.predicted_before_um
     after = result.measured_um - step.predicted_after_um
     rows = _subsample(signal.size)
-    name = _effect_name(step.effect, step.params)
+    name = effect_name(step.effect, step.params)
 
     fig = _new_figure(8.0, 5.0)
     ax = fig.subplots()
@@ -372,7 +262,7 @@ def _candidates_plot(step: StepResult, out: Path) -> _Plot:
         [c.rmse_um for c in candidates],
         color=[BELIEVED_COLOUR if c.believed else OTHER_COLOUR for c in candidates],
     )
-    ax.set_yticks(y, labels=[_plain(_effect_name(c.effect, c.params)) for c in candidates])
+    ax.set_yticks(y, labels=[_plain(effect_name(c.effect, c.params)) for c in candidates])
     ax.tick_params(axis="y", labelsize=8)
     ax.invert_yaxis()
     ax.axvline(step.before.rmse_um, color="black", ls="--", lw=1.0)
@@ -383,7 +273,9 @@ def _candidates_plot(step: StepResult, out: Path) -> _Plot:
         handles=[
             Patch(color=BELIEVED_COLOUR, label="believed (passed every rule)"),
             Patch(color=OTHER_COLOUR, label="not believed"),
-            Line2D([], [], color="black", ls="--", label=f"before: {_um(step.before.rmse_um)} µm"),
+            Line2D(
+                [], [], color="black", ls="--", label=f"before: {um_text(step.before.rmse_um)} µm"
+            ),
         ],
         fontsize=8,
         ncols=3,
@@ -391,155 +283,3 @@ def _candidates_plot(step: StepResult, out: Path) -> _Plot:
     )
     _save(fig, out / "candidates.png")
     return _Plot("candidates.png", "Candidates of the first step", CAPTION_CANDIDATES)
-
-
-# --------------------------------------------------------------------------- HTML
-
-
-def _html_page(result: AnalysisResult, plots: Sequence[_Plot]) -> str:
-    """The whole page: summary first, evidence after, plots last."""
-    title = f"Thermal-error analysis: {result.model} → {result.target}"
-    parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{_esc(title)}</title>",
-        f"<style>{CSS}</style></head><body>",
-        f"<h1>{_esc(title)}</h1>",
-        f'<p class="summary">{_esc(_summary(result))}</p>',
-        _accuracy_section(result),
-        _facts_section(result),
-        *(_step_section(step) for step in result.steps),
-        _plots_section(plots),
-        "</body></html>",
-    ]
-    return "\n".join(parts) + "\n"
-
-
-def _accuracy_row(label: str, acc: Accuracy) -> str:
-    cells = [_um(acc.rmse_um), _um(acc.sigma_um), _um(acc.max_abs_um), str(acc.n_samples)]
-    tds = "".join(f'<td class="num">{c}</td>' for c in cells)
-    return f"<tr><th>{_esc(label)}</th>{tds}</tr>"
-
-
-def _accuracy_section(result: AnalysisResult) -> str:
-    """Before/after held-out figures: the numbers the decision rests on."""
-    return "\n".join(
-        [
-            "<h2>Held-out accuracy</h2>",
-            "<table>",
-            "<tr><th></th><th>RMSE (µm)</th><th>σ (µm)</th><th>max |e| (µm)</th>"
-            "<th>samples</th></tr>",
-            _accuracy_row(_before_label(result), result.before),
-            _accuracy_row(_after_label(result), result.after),
-            "</table>",
-            "<p>e = measured − predicted, each run predicted by a model fitted without it. "
-            "σ ignores a constant offset, RMSE does not.</p>",
-        ]
-    )
-
-
-def _kv_list(data: Mapping[str, Any]) -> str:
-    """A dictionary as ``key: value`` lines."""
-    if not data:
-        return "—"
-    items = "".join(f"<li>{_esc(key)}: {_esc(_value(val))}</li>" for key, val in data.items())
-    return f'<ul class="kv">{items}</ul>'
-
-
-def _runs_text(result: AnalysisResult) -> str:
-    groups = _run_groups(result.run, result.time_s)
-    listed = ", ".join(f"{name} ({rows.size} rows)" for name, rows in groups)
-    return f"{len(groups)}: {listed}"
-
-
-def _facts_section(result: AnalysisResult) -> str:
-    """How the figures were obtained, so the result can be reproduced and trusted."""
-    rows: list[tuple[str, str]] = [
-        ("Model", _esc(result.model)),
-        ("Target", _esc(result.target)),
-        ("Sensors", _esc(", ".join(result.sensors) or "—")),
-        ("Runs", _esc(_runs_text(result))),
-        ("Validation", _esc(result.validation)),
-        ("Reference", _kv_list(result.reference)),
-        ("Rules", _kv_list(result.rules)),
-        ("Source file", _esc(result.source or "—")),
-        ("Data fingerprint", f"<code>{_esc(result.data_fingerprint or '—')}</code>"),
-    ]
-    if result.skipped_rows:
-        rows.append(("Skipped rows", _esc(result.skipped_rows)))
-    if result.stored_model:
-        rows.append(("Stored model", _kv_list(result.stored_model)))
-    body = "".join(f"<tr><th>{_esc(name)}</th><td>{value}</td></tr>" for name, value in rows)
-    return f"<h2>Validation and data</h2>\n<table>{body}</table>"
-
-
-def _chosen_index(step: StepResult) -> int | None:
-    """The candidate that was added: same effect and parameters, else same effect."""
-    if step.effect == "none":
-        return None
-    for i, cand in enumerate(step.candidates):
-        if cand.effect == step.effect and cand.params == step.params:
-            return i
-    for i, cand in enumerate(step.candidates):
-        if cand.effect == step.effect:
-            return i
-    return None
-
-
-def _candidate_row(cand: CandidateResult, chosen: bool) -> str:
-    cells = [
-        ("", _esc(cand.effect)),
-        ("", _esc(_params(cand.params) or "—")),
-        ("", _esc(cand.label)),
-        ("num", _um(cand.rmse_um)),
-        ("num", _minus(f"{cand.gain_pct:.1f}")),
-        ("num", f"{cand.folds_improved}/{cand.folds}"),
-        ("num", _esc(_p_value(cand.p_value))),
-        ("", "yes" if cand.believed else "no"),
-        ("", _esc(cand.reason)),
-    ]
-    tds = "".join(
-        f'<td class="{cls}">{text}</td>' if cls else f"<td>{text}</td>" for cls, text in cells
-    )
-    return f'<tr class="chosen">{tds}</tr>' if chosen else f"<tr>{tds}</tr>"
-
-
-CANDIDATE_HEADER = (
-    "<tr><th>effect</th><th>params</th><th>label</th><th>held-out RMSE (µm)</th>"
-    "<th>gain (%)</th><th>folds improved</th><th>p-value</th><th>believed</th>"
-    "<th>reason</th></tr>"
-)
-
-
-def _step_section(step: StepResult) -> str:
-    """One round of the search: what was tried, what was added, or why it stopped."""
-    if step.effect == "none":
-        heading = f"Step {step.number}: nothing added"
-        text = (
-            f"No candidate passed every rule, so the analysis stopped here; the held-out RMSE "
-            f"stays at {_um(step.before.rmse_um)} µm. The reason column says which rule each "
-            f"candidate failed."
-        )
-    else:
-        name = _effect_name(step.effect, step.params)
-        heading = f"Step {step.number}: added {name}"
-        text = (
-            f"Held-out RMSE {_um(step.before.rmse_um)} µm → {_um(step.after.rmse_um)} µm. "
-            f"The chosen candidate is highlighted."
-        )
-    chosen = _chosen_index(step)
-    if step.candidates:
-        rows = "".join(_candidate_row(c, i == chosen) for i, c in enumerate(step.candidates))
-        table = f"<table>{CANDIDATE_HEADER}{rows}</table>"
-    else:
-        table = "<p>No candidates were tried.</p>"
-    return f"<h2>{_esc(heading)}</h2>\n<p>{_esc(text)}</p>\n{table}"
-
-
-def _plots_section(plots: Sequence[_Plot]) -> str:
-    figures = "\n".join(
-        f'<figure><img src="{_esc(p.file)}" alt="{_esc(p.title)}">'
-        f"<figcaption><b>{_esc(p.title)}.</b> {_esc(p.caption)}</figcaption></figure>"
-        for p in plots
-    )
-    return f"<h2>Plots</h2>\n{figures}"

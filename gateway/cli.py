@@ -542,9 +542,9 @@ def export(
 ) -> None:
     """Write logged data as a measured-run CSV (for fit and analyze)."""
     from gateway.config import load_config
-    from gateway.offline.export import ExportError, export_runs
     from gateway.influx_writer import InfluxReader
     from gateway.local_store import LocalStore
+    from gateway.offline.export import ExportError, export_runs
 
     config = load_config(config_path)
     ids = [m.id for m in config.machines]
@@ -625,6 +625,13 @@ def export(
     type=click.Path(path_type=Path),
     help="Save the augmented model here (sub-folder augmented/).",
 )
+@click.option(
+    "--tolerance-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=2.5,
+    show_default=True,
+    help="The held-out RMSE the compensation must reach (the machine's tolerance), µm.",
+)
 @click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
 @input_errors_exit
 def analyze(
@@ -636,6 +643,7 @@ def analyze(
     json_out: Path | None,
     report_dir: Path | None,
     store_dir: Path | None,
+    tolerance_um: float,
     progress: bool | None,
 ) -> None:
     """Fit the model, trace its held-out residual to the effect it lacks, add it, compare."""
@@ -663,28 +671,9 @@ def analyze(
         result,
         data_fingerprint=data_fingerprint(prepared.inputs, prepared.error_um),
         skipped_rows="; ".join(s.describe() for s in data.skipped) or None,
+        tolerance_um=tolerance_um,
     )
-    click.echo(f"validation: {result.validation}")
-    for step in result.steps:
-        click.echo(f"\nround {step.number}: held-out RMSE before {step.before.rmse_um:.3f} µm")
-        for c in sorted(step.candidates, key=lambda c: c.rmse_um):
-            params = ", ".join(f"{k}={v}" for k, v in c.params.items()) or "-"
-            mark = "*" if c.believed else " "
-            click.echo(
-                f" {mark} {c.effect:<14} {params:<22} RMSE {c.rmse_um:7.3f} µm  "
-                f"gain {c.gain_pct:6.1f} %  folds {c.folds_improved}/{c.folds}  "
-                f"p {c.p_value:9.3g}  {c.reason}"
-            )
-        click.echo(f" → {step.effect}" + (f" {step.params}" if step.params else ""))
-    gain = (
-        100.0 * (1 - result.after.rmse_um / result.before.rmse_um) if result.before.rmse_um else 0
-    )
-    click.echo(
-        f"\neffect: {result.effect}; steps: {' → '.join(result.effects) or 'none'}\n"
-        f"held-out RMSE {result.before.rmse_um:.3f} → {result.after.rmse_um:.3f} µm "
-        f"({gain:.1f} % less), max |e| {result.before.max_abs_um:.2f} → "
-        f"{result.after.max_abs_um:.2f} µm"
-    )
+    click.echo(result.to_text())
     if store_dir is not None:
         model_id = f"{method}-{target}-" + ("-".join(result.effects) or "none")
         document = augmented.build_augmented_document(

@@ -162,7 +162,7 @@ def assert_agree(stdout: str, page: Page, payload: dict) -> None:
             assert number(text["shape"]) == pytest.approx(-cand["gain_pct"], abs=0.051)
             assert cand["shape_gain_pct"] == cand["gain_pct"]
             gain = 100 * (1 - cand["rmse_um"] / cand["rmse_before_um"])
-            assert cand["rmse_gain_pct"] == pytest.approx(gain, abs=0.01)
+            assert cand["rmse_gain_pct"] == pytest.approx(gain, abs=0.05)  # from 4-decimal RMSEs
             assert text["p"] == cand["p_value_text"] != "0"
             assert cand["p_value"] >= P_FLOOR
             if cand["p_value_text"].startswith("<"):

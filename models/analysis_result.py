@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -289,9 +290,9 @@ class AnalysisResult:
         """The final held-out RMSE is at most the tolerance."""
         return self.after.rmse_um <= self.tolerance_um
 
-    @property
+    @cached_property
     def per_run(self) -> tuple[RunFigures, ...]:
-        """Held-out figures of every run, runs in order of first appearance."""
+        """Held-out figures of every run, runs in order of first appearance (made once)."""
         before = self.measured_um - self.predicted_before_um
         after = self.measured_um - self.predicted_after_um
         total_after = float(after @ after)
@@ -309,7 +310,7 @@ class AnalysisResult:
             )
         return tuple(figures)
 
-    @property
+    @cached_property
     def next_steps(self) -> tuple[NextStep, ...]:
         """What to do next, by ``NEXT_STEP_RULE``."""
         from models.analysis_render import effect_name, um_text

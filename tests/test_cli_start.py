@@ -38,8 +38,14 @@ def test_importing_loads_no_heavy_library(module: str) -> None:
 
 @pytest.mark.parametrize(
     "args",
-    [["--help"], ["check-config", "--help"], ["run", "--help"], ["fit", "--help"]]
-    + [["analyze", "--help"], ["export", "--help"]],
+    [
+        ["--help"],
+        ["check-config", "--help"],
+        ["run", "--help"],
+        ["fit", "--help"],
+        ["analyze", "--help"],
+        ["export", "--help"],
+    ],
 )
 def test_help_loads_no_heavy_library(args: list[str]) -> None:
     code = (

@@ -55,8 +55,9 @@ NEXT_STEP_RULE = (
     f"{100 * DOMINANT_SHARE:g} % of the held-out squared error, or a candidate of the last "
     "round that lowered both held-out RMSEs enough but failed the fold or significance "
     "rule): record more cycles, repeating the speeds of the dominant run; otherwise "
-    "add_sensor: the error is spread over the runs and no measured signal explains it, "
-    "so a temperature sensor is missing where the unexplained heat flows."
+    "add_sensor: the error is spread over the runs and no candidate effect of the measured "
+    "signals passes the rules, so a temperature sensor is missing where the unexplained heat "
+    "flows."
 )
 
 
@@ -338,7 +339,7 @@ class AnalysisResult:
                 NextStep(
                     "add_sensor",
                     f"add a temperature sensor: the error left is above {target}, spread over "
-                    "the runs, and no measured signal explains it",
+                    "the runs, and no candidate effect of the measured signals passes the rules",
                 )
             )
         return tuple(steps)

@@ -769,3 +769,12 @@ def replay(
         version=__version__,
     )
     write_json(json_out, result)
+
+
+def _add_models_group() -> None:
+    from gateway.models_cli import models_group  # click only at load, like this module
+
+    main.add_command(models_group)
+
+
+_add_models_group()

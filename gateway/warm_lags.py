@@ -47,7 +47,12 @@ TAUS_S = tuple(sorted({t for t in (*LAG_TAUS_S, *HEAT_TAUS_S, *AMBIENT_TAUS_S) i
 
 
 class WarmLags:
-    """The lag of each input at each τ of :data:`TAUS_S`, since the first cycle."""
+    """The lag of each input at each τ of :data:`TAUS_S`, since the first cycle.
+
+    Its clock (``start_s``, where ``drift`` counts from, and ``time_s``) starts
+    with the first cycle that has a good input, as a stream's starts with its
+    first complete sample.
+    """
 
     def __init__(self, sensors: Iterable[str], ambient_sensor: str | None) -> None:
         self.sensors = tuple(sensors)
@@ -66,24 +71,25 @@ class WarmLags:
         """Advance the lag of every input that is good this cycle."""
         if self.time_s is not None and time_s < self.time_s:
             self.reset()  # the clock went back: start again
-        if self.start_s is None:
-            self.start_s = float(time_s)
-        self.time_s = float(time_s)
         inputs: dict[str, float | None] = {s: rises_C.get(s) for s in self.sensors}
         if self.ambient_sensor is not None:
             inputs[AMBIENT_INPUT] = rises_C.get(self.ambient_sensor)
         if speed_rpm is not None and math.isfinite(speed_rpm):
             n = float(speed_rpm) / SPEED_SCALE_RPM
             inputs[SPEED_COLUMNS[0]], inputs[SPEED_COLUMNS[1]] = n, n * n
-        for name, value in inputs.items():
-            if value is None or not math.isfinite(value):
-                continue
+        good = {n: float(v) for n, v in inputs.items() if v is not None and math.isfinite(v)}
+        if not good:
+            return  # as a stream, whose clock starts with its first complete sample
+        if self.start_s is None:
+            self.start_s = float(time_s)
+        self.time_s = float(time_s)
+        for name, value in good.items():
             previous = self._values.get(name)
             if previous is None:
-                self._values[name] = np.full(self.taus_s.size, float(value))
+                self._values[name] = np.full(self.taus_s.size, value)
             else:
                 a = np.exp(-(time_s - self._times[name]) / self.taus_s)
-                self._values[name] = a * previous + (1.0 - a) * float(value)
+                self._values[name] = a * previous + (1.0 - a) * value
             self._times[name] = float(time_s)
 
     def state_for(self, stream: StreamingAugmented) -> tuple[dict[str, float] | None, str]:

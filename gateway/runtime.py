@@ -217,8 +217,15 @@ class MachineLoop:
                 "%s: checking the promoted models failed; the models in use stay", self.config.id
             )
             return
-        if outcome is not None and outcome.changed:
-            self.effects.set_models(self.bank.augmented())
+        if outcome is None or not outcome.changed:
+            return
+        self.effects.set_models(self.bank.augmented())
+        if self.online is not None:
+            # The filter estimated the residual of the model that served until now; the
+            # promoted model may well explain it (that is why it was proposed).
+            self.online = OnlineCorrection(self.online.params)
+            self._probe_basis = None
+            log.info("%s: online correction restarts with the new models", self.config.id)
 
     def _deliver(self, record: CycleRecord) -> None:
         """Hand the record to every sink; a sink that raises is counted and logged, and

@@ -30,7 +30,12 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.clock import ManualClock
 from gateway.app import Gateway
-from gateway.config import GatewayConfig, ModelsSection
+from gateway.config import (
+    CompensationSection,
+    GatewayConfig,
+    ModelsSection,
+    OnlineCorrectionSection,
+)
 from gateway.demo import machine_config
 from models import augmented
 from models.effect_stream import StreamingAugmented
@@ -117,11 +122,21 @@ def test_cli_promotion_swaps_in_warm_and_rollback_restores(
     model_id = lag_document["model_id"]
     outcome: dict[str, Any] = {}
 
+    # The online correction on, fed by the simulator's probe cycle (macro #600, every 300 s).
+    compensation = CompensationSection(
+        macro=500, unit="mm", clamp_um=50.0, slew_um_per_min=20.0, probe_macro=600
+    )
+    online = {
+        "compensation": compensation,
+        "online_correction": OnlineCorrectionSection(enabled=True),
+    }
+
     async def scenario() -> None:
-        async with closed_loop(tmp_path, store, PROGRAM) as (closed, clock):
+        async with closed_loop(tmp_path, store, PROGRAM, update=online) as (closed, clock):
             loop = closed.loop
             await run_for(closed, clock, 3600.0)  # an hour of plain models: the machine is warm
             assert model_id not in {r.model_id for r in closed.trace.records}
+            assert loop.online is not None and loop.online.accepted >= 5
             proposal = publish(store, lag_document)
             listed = await asyncio.to_thread(
                 gateway, "models", "proposals", "--store", store, "--json"
@@ -139,6 +154,9 @@ def test_cli_promotion_swaps_in_warm_and_rollback_restores(
             promoted_at = len(closed.trace.records)
             await closed.step(clock)  # the next cycle already runs the promoted model
             assert closed.trace.records[-1].model_id == model_id
+            # The correction learnt the old model's residual: it starts again from zero.
+            assert closed.trace.records[-2].correction_um != 0.0
+            assert closed.trace.records[-1].correction_um == 0.0 and loop.online.accepted == 0
             assert loop.promotions.swaps == 1 and loop.promotions.version == 1
             await run_for(closed, clock, 1800.0)
             assert {r.model_id for r in closed.trace.records[promoted_at:]} == {model_id}

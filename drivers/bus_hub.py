@@ -225,9 +225,7 @@ class BusHubs:
     def __len__(self) -> int:
         return len(self._hubs)
 
-    def get(
-        self, key: tuple[object, ...], settings: object, make: Callable[[], BusHub]
-    ) -> BusHub:
+    def get(self, key: tuple[object, ...], settings: object, make: Callable[[], BusHub]) -> BusHub:
         """The hub of ``key``, made by ``make()`` for its first user."""
         known = self._hubs.get(key)
         if known is None:

@@ -122,9 +122,7 @@ class BusHub:
 
     def attach(self, user: object) -> None:
         """``user`` reads on this bus from now on (idempotent)."""
-        if user not in self._users:
-            self._users.add(user)
-            self._seen_opens.setdefault(user, self.opens)
+        self._users.add(user)
 
     def detach(self, user: object) -> None:
         """``user`` is done; the port closes with the last user (idempotent)."""
@@ -141,7 +139,7 @@ class BusHub:
         self.attach(user)
         async with self._lock:
             failure = await self._ensure_open(now_s)
-            reopened = self._seen_opens.get(user) != self.opens
+            reopened = self._seen_opens.get(user) != self.opens  # a first turn counts too
             self._seen_opens[user] = self.opens
             session = Session(failure=failure, reopened=reopened and failure is None)
             self.transactions += 1

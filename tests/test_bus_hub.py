@@ -80,6 +80,11 @@ def line_fixture(tmp_path: Path) -> Iterator[PtyPair]:
         yield pair
 
 
+def wire_log(line: PtyPair) -> Path:
+    assert line.log_path is not None, "the line is opened with hexdump=True"
+    return line.log_path
+
+
 def cnc_plant(clock: AcceleratedClock, seed: int) -> SimulatedPlant:
     """A simulated machine serving only its CNC (Modbus TCP); its transmitters are the line's."""
     config = {"program": "const8000", "seed": seed, "publish_period_s": 0.05}
@@ -245,7 +250,7 @@ def test_two_machines_on_one_line_read_every_cycle_without_collision(
     # Every cycle asked each module once (a cycle may be cut short at the stop).
     for machine in MODULES:
         assert all(read[machine] <= n <= read[machine] + 1 for n in served[machine]), served
-    wire = read_wire(Path(str(line.log_path)))
+    wire = read_wire(wire_log(line))
     requests = [f for f in wire.frames if f.to_server]
     replies = [f for f in wire.frames if not f.to_server]
     assert wire.framing_errors == 0
@@ -310,7 +315,7 @@ def test_a_dead_module_of_one_machine_does_not_stop_the_other_machine(
     assert bus_left.hub is bus_right.hub and bus_left.hub.opens == 1
     assert bus_right.health.total_failures == 0
     assert bus_left.device_health[DEAD_ID].consecutive_failures >= cycles
-    wire = read_wire(Path(str(line.log_path)))
+    wire = read_wire(wire_log(line))
     assert wire.framing_errors == 0
     assert collisions(wire.frames, silent={DEAD_ID}) == 0
     print(

@@ -81,10 +81,29 @@ def speed_powers(speed_rpm: np.ndarray, powers: Sequence[float]) -> np.ndarray:
     return np.column_stack([n**p for p in powers]) if powers else np.empty((n.size, 0))
 
 
+#: The terms last built, with the inputs and structure they were built for: validation
+#: and residual analysis ask for the same inputs' terms once per fold and per candidate.
+_last_terms: list[tuple[ModelInputs, tuple, np.ndarray]] = []
+
+
 def lag_terms(
     inputs: ModelInputs, sensors: Sequence[str], taus_s: Sequence[float], powers: Sequence[float]
 ) -> np.ndarray:
-    """(n, k) terms of :func:`term_names` for ``inputs`` (steady state when it has no time)."""
+    """(n, k) terms of :func:`term_names` for ``inputs`` (steady state when it has no time).
+
+    The last result is kept (one set of terms, for the same inputs object).
+    """
+    key = (tuple(sensors), tuple(taus_s), tuple(powers))
+    if _last_terms and _last_terms[0][0] is inputs and _last_terms[0][1] == key:
+        return _last_terms[0][2]
+    terms = _build_terms(inputs, sensors, taus_s, powers)
+    _last_terms[:] = [(inputs, key, terms)]
+    return terms
+
+
+def _build_terms(
+    inputs: ModelInputs, sensors: Sequence[str], taus_s: Sequence[float], powers: Sequence[float]
+) -> np.ndarray:
     direct = np.column_stack(
         [inputs.columns(tuple(sensors)), speed_powers(inputs.speed_rpm, powers)]
     )
@@ -245,6 +264,7 @@ class LagRidgeModel(ThermalModel):
             ratio = speed_penalty / sensor_penalty
             beta = ridge_path(gram, cross, groups, ratio, (sensor_penalty,))[0]
         mean, scale = standardisation(gram)
+        self._design_cache = None
         self.sensors_used_ = used
         self.intercept_um_ = float(beta[0])
         self.coef_ = beta[1:]
@@ -268,9 +288,14 @@ class LagRidgeModel(ThermalModel):
         Residual analysis refits its base terms by least squares jointly with a
         candidate's; refitting this model's hundreds of terms without their
         penalties would undo the ridge, so the analysis scales the penalised
-        prediction instead (coefficient ≈ 1).
+        prediction instead (coefficient ≈ 1). The last column made is kept.
         """
-        return self.predict(inputs)[:, None]
+        cached = getattr(self, "_design_cache", None)
+        if cached is not None and cached[0] is inputs:
+            return cached[1]
+        column = self.predict(inputs)[:, None]
+        self._design_cache = (inputs, column)
+        return column
 
     def conditioning_design(self, inputs: ModelInputs) -> tuple[np.ndarray, list[str]]:
         """Every term with its name, for the condition number and VIF of the design."""

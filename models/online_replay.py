@@ -340,6 +340,23 @@ def replay_interval(
     defaults: CorrectionParams | None = None,
 ) -> IntervalResult:
     """Leave-one-run-out replay at one probe interval; see the module docstring."""
+    from threadpoolctl import threadpool_limits
+
+    # Hundreds of small solves: one BLAS thread is faster than several fighting for cores.
+    with threadpool_limits(1):
+        return _replay_interval(prepared, interval_min, base, method, sensors, document, defaults)
+
+
+def _replay_interval(
+    prepared: Prepared,
+    interval_min: float,
+    base: str = "lagged",
+    method: str = "mlr",
+    sensors: Sequence[str] | None = None,
+    document: dict[str, Any] | None = None,
+    defaults: CorrectionParams | None = None,
+) -> IntervalResult:
+    """Leave-one-run-out replay at one probe interval; see the module docstring."""
     if base not in BASES:
         raise ValueError(f"unknown base {base!r}; expected one of {BASES}")
     defaults = defaults or CorrectionParams()

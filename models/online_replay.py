@@ -38,7 +38,10 @@ Bases (``base``):
   probe measured, so what remains is how far the model's change since that
   probe misses the real change; the second term fits exactly that, the first
   keeps the level right before the run's first probe. τ set, ridge penalty and
-  w are chosen by the inner leave-one-out for each probe interval.
+  w are chosen by the inner leave-one-out for each probe interval. When the declared model is
+  ``lag-ridge``, the terms are its own (every sensor and speed power with lags at its ten
+  τ, :mod:`models.lag_ridge`) and the grid is ``LAG_RIDGE_PENALTIES`` ×
+  ``LAG_RIDGE_LEVEL_WEIGHTS``, written down before any replay of it was run.
 - ``augmented``: the structure of an ``analyze --store`` document (its base
   model and effects with their parameters) with every coefficient refitted
   without the held-out run.

@@ -88,6 +88,41 @@ class BankedAugmented:
     sensors: frozenset[str]
     ambient_sensor: str | None
     regime: str | None = None
+    #: µm per °C of bias per sensor, for a plain model stepped with lag states
+    #: (:meth:`from_plain`); None for an ``analyze`` result (judged by its analysis).
+    sensitivity_um_per_C: dict[str, float] | None = None
+
+    @classmethod
+    def from_plain(cls, model: ThermalModel, document: StoredModel) -> BankedAugmented:
+        """A plain model whose own terms carry lag states (``lag-ridge``), stepped like an
+        augmented model: its prediction is the one base term, no effects."""
+        wrapped = {
+            "model_id": document.model_id,
+            "base": {
+                "method": document.method,
+                "hyperparams": document.hyperparams,
+                "params": document.params,
+            },
+            "effects": [],
+            "effect_sensors": list(model.sensors_used_),
+            "coefficients": {
+                "intercept_um": 0.0,
+                "all_um_per_unit": [0.0, 1.0],
+                "order": "intercept, the model's prediction",
+            },
+            "target": dict(document.target),
+            "provenance": {"after": (document.validation or {}).get("pooled")},
+            "sha256": document.sha256,
+        }
+        stream = StreamingAugmented(wrapped)
+        return cls(
+            model_id=stream.model_id,
+            document=wrapped,
+            sensors=frozenset(stream.sensors),
+            ambient_sensor=None,
+            regime=document.regime,
+            sensitivity_um_per_C=bias_sensitivity(model, probe_inputs(document)),
+        )
 
     @classmethod
     def from_document(cls, document: dict[str, Any], ambient_sensor: str) -> BankedAugmented:
@@ -184,7 +219,10 @@ class ModelBank:
         loaded: list[Banked] = []
         for path in sorted(folder.glob("*.json")):
             model, document = load_file(path)
-            loaded.append(BankedModel(document.model_id, model, document))
+            if callable(getattr(model, "stream", None)):  # its terms carry lag states
+                loaded.append(BankedAugmented.from_plain(model, document))
+            else:
+                loaded.append(BankedModel(document.model_id, model, document))
         for path in sorted((folder / augmented.FOLDER).glob("*.json")):
             loaded.append(
                 BankedAugmented.from_document(
@@ -228,13 +266,17 @@ class ModelBank:
         A bias that small passes every range, rate and stuck check, so such a
         model would put an error of that size into the part unnoticed
         (:mod:`models.conditioning`). Returns the refused ids with the reason.
-        Augmented models are judged by the residual analysis that made them.
+        Augmented models are judged by the residual analysis that made them; a plain model
+        with lag states (``lag-ridge``) by its steady-state sensitivity.
         """
         refused: dict[str, str] = {}
         for model_id, banked in list(self.models.items()):
-            if not isinstance(banked, BankedModel):
+            if isinstance(banked, BankedModel):
+                sensitivity = banked.bias_sensitivity_um_per_C()
+            elif banked.sensitivity_um_per_C is not None:
+                sensitivity = banked.sensitivity_um_per_C
+            else:
                 continue
-            sensitivity = banked.bias_sensitivity_um_per_C()
             if not sensitivity:
                 continue
             worst = max(sensitivity, key=lambda s: abs(sensitivity[s]))

@@ -156,14 +156,14 @@ class BaseDesigns:
         probe = make_model(method, self.sensors)
         self.fixed = type(probe).fixed_design
         if self.fixed:
-            self.models = [probe.fit(prepared.inputs.take(usable), prepared.error_um[usable])]
+            self.models = [probe.fit_rows(prepared.inputs, prepared.error_um, usable)]
         else:
             self.models = []
             for rows in folds.rows:
                 train = usable.copy()
                 train[rows] = False
                 model = make_model(method, self.sensors)
-                self.models.append(model.fit(prepared.inputs.take(train), prepared.error_um[train]))
+                self.models.append(model.fit_rows(prepared.inputs, prepared.error_um, train))
         self._cache: dict[int, np.ndarray] = {}
 
     @property

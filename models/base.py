@@ -35,12 +35,19 @@ class ModelInputs:
         run_index: (n,) integer run number of each row (0, 1, …), for methods
             that work on whole sequences (grey relational grade); ``None`` means
             one run.
+        time_s: (n,) time of each row, s, for methods whose terms remember the
+            history (first-order lags, :mod:`models.lag_ridge`); ``None`` means
+            rows without a history (each one taken at a steady state).
+        recording: (n,) recording number of each row (lags carry across the runs
+            of one recording, :mod:`models.references`); ``None`` means one.
     """
 
     rise_C: np.ndarray
     sensors: tuple[str, ...]
     speed_rpm: np.ndarray
     run_index: np.ndarray | None = None
+    time_s: np.ndarray | None = None
+    recording: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         rise = np.asarray(self.rise_C, dtype=float)
@@ -61,6 +68,10 @@ class ModelInputs:
             if runs.shape != (rise.shape[0],):
                 raise ValueError(f"run_index must be ({rise.shape[0]},), got {runs.shape}")
             object.__setattr__(self, "run_index", runs)
+        for name in ("time_s", "recording"):
+            values = getattr(self, name)
+            if values is not None and np.shape(values) != (rise.shape[0],):
+                raise ValueError(f"{name} must be ({rise.shape[0]},), got {np.shape(values)}")
 
     @property
     def n_samples(self) -> int:
@@ -83,6 +94,8 @@ class ModelInputs:
             sensors=self.sensors,
             speed_rpm=self.speed_rpm[rows],
             run_index=None if self.run_index is None else self.run_index[rows],
+            time_s=None if self.time_s is None else self.time_s[rows],
+            recording=None if self.recording is None else self.recording[rows],
         )
 
 
@@ -120,6 +133,15 @@ class ThermalModel(ABC):
         of the inputs first is hundreds of megabytes).
         """
         return self.fit(inputs.take(rows), np.asarray(error_um)[rows])
+
+    def predict_rows(self, inputs: ModelInputs, rows: np.ndarray) -> np.ndarray:
+        """The same as ``predict(inputs.take(rows))``.
+
+        A method whose terms remember the history (lags) overrides it to build
+        its terms over all of ``inputs`` first: the rows of a held-out run still
+        follow the heat of the runs before it.
+        """
+        return self.predict(inputs.take(rows))
 
     def predict(self, inputs: ModelInputs) -> np.ndarray:
         if not self.is_fitted:

@@ -10,7 +10,7 @@ command that fits. ``models.registry``, ``models.references`` and
 from __future__ import annotations
 
 #: The fitting methods by the name used on the command line and in the store.
-METHOD_NAMES = ("grey-mlr", "mlr", "pca-quadratic", "pls", "ridge")
+METHOD_NAMES = ("grey-mlr", "lag-ridge", "mlr", "pca-quadratic", "pls", "ridge")
 #: Where rises are measured from (see models/references.py).
 POLICIES = ("auto", "run-start", "recording-start")
 #: A stated accuracy of the transmitters' sensors when none is configured: a

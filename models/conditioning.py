@@ -175,6 +175,9 @@ def bias_sensitivity(model: ThermalModel, inputs: ModelInputs) -> dict[str, floa
 def design_for_conditioning(model: ThermalModel, inputs: ModelInputs) -> tuple[np.ndarray, list]:
     """The model's own design (its terms) with names, or the rises of the sensors it reads."""
     sensors = list(model.sensors_used_)
+    own = getattr(model, "conditioning_design", None)
+    if callable(own):  # a model whose design_matrix is not its terms (models.lag_ridge)
+        return own(inputs)
     try:
         design = model.design_matrix(inputs)
     except NotImplementedError:

@@ -68,7 +68,7 @@ def cross_validate(factory: ModelFactory, prepared: Prepared, progress: bool = F
     for fold in tqdm(folds, desc="held-out folds", disable=not progress, leave=False):
         test = labels == fold
         model = factory().fit_rows(prepared.inputs, prepared.error_um, ~test)
-        predicted[test] = model.predict(prepared.inputs.take(test))
+        predicted[test] = model.predict_rows(prepared.inputs, test)
         per_fold[fold] = accuracy(prepared.error_um[test], predicted[test])
     return Validation(
         scheme=scheme,

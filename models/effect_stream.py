@@ -46,6 +46,7 @@ AMBIENT_INPUT = "ambient_C"
 TIME_KEY = "time_s"
 RUN_START_KEY = "run_start_s"
 RECORDING_START_KEY = "recording_start_s"
+BASE_PREFIX = "base."  # state keys of a base model's own lags
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,9 @@ class StreamingAugmented:
                 f"{self.model_id}: unknown base method {base_info['method']!r}"
             ) from None
         self.base = method.from_params(base_info["hyperparams"], base_info["params"])
+        # A base whose own terms remember the history (models.lag_ridge) steps its own lags.
+        make_stream = getattr(self.base, "stream", None)
+        self.base_stream = make_stream() if callable(make_stream) else None
         self.base_sensors = tuple(self.base.sensors_used_)
         self.effect_sensors = tuple(document.get("effect_sensors", self.base_sensors))
         self.terms = [
@@ -99,7 +103,11 @@ class StreamingAugmented:
                     f"{len(term.columns)} expected"
                 )
         self.coefficients = np.asarray(document["coefficients"]["all_um_per_unit"], dtype=float)
-        base_terms = self._base_row({s: 0.0 for s in self.base_sensors}, 0.0).size
+        base_terms = (
+            1
+            if self.base_stream is not None
+            else self._base_row({s: 0.0 for s in self.base_sensors}, 0.0).size
+        )
         expected = 1 + base_terms + sum(len(t.columns) for t in self.terms)
         if self.coefficients.size != expected:
             raise StoreError(
@@ -152,6 +160,8 @@ class StreamingAugmented:
         self._recording_start_s = self._start_s
         self._run_start_s = self._start_s
         self._lags: dict[int, np.ndarray] = {}
+        if self.base_stream is not None:
+            self.base_stream.reset()
 
     @property
     def time_s(self) -> float | None:
@@ -176,6 +186,10 @@ class StreamingAugmented:
             if term.lagged:
                 values = self._lags[term.index]
                 state.update(zip(term.state_keys(), map(float, values), strict=True))
+        if self.base_stream is not None:
+            state.update(
+                {f"{BASE_PREFIX}{k}": v for k, v in self.base_stream.export_state().items()}
+            )
         return state
 
     def import_state(self, state: Mapping[str, float]) -> None:
@@ -184,6 +198,12 @@ class StreamingAugmented:
             self.reset()
             return
         lag_keys = [key for term in self.terms if term.lagged for key in term.state_keys()]
+        base_state = {
+            k[len(BASE_PREFIX) :]: v for k, v in state.items() if k.startswith(BASE_PREFIX)
+        }
+        state = {k: v for k, v in state.items() if not k.startswith(BASE_PREFIX)}
+        if self.base_stream is None and base_state:
+            raise ValueError(f"{self.model_id}: state holds base lags this model does not have")
         expected = {TIME_KEY, RUN_START_KEY, RECORDING_START_KEY, *lag_keys}
         if set(state) != expected:
             missing, extra = sorted(expected - set(state)), sorted(set(state) - expected)
@@ -194,6 +214,8 @@ class StreamingAugmented:
         values = {key: float(value) for key, value in state.items()}
         if not all(math.isfinite(v) for v in values.values()):
             raise ValueError(f"{self.model_id}: state holds a value that is not finite")
+        if self.base_stream is not None:
+            self.base_stream.import_state(base_state)  # checks its own keys and values
         self._time_s = values[TIME_KEY]
         self._run_start_s = values[RUN_START_KEY]
         self._recording_start_s = values[RECORDING_START_KEY]
@@ -226,7 +248,12 @@ class StreamingAugmented:
             self._run_start_s = float(time_s)
         dt_s = 0.0 if self._time_s is None else time_s - self._time_s
         speed = 0.0 if speed_rpm is None else float(speed_rpm)
-        row = [np.ones(1), self._base_row(rises_C, speed)]
+        if self.base_stream is not None:
+            base = self.base_stream.step(time_s, rises_C, speed)
+            assert base is not None  # _complete checked its inputs
+            row = [np.ones(1), np.array([base])]
+        else:
+            row = [np.ones(1), self._base_row(rises_C, speed)]
         for term in self.terms:
             values = self._inputs(term, time_s, rises_C, speed, ambient_rise_C)
             if term.lagged:

@@ -54,6 +54,8 @@ def prepare(
         sensors=names,
         speed_rpm=data.speed_rpm,
         run_index=data.run_index,
+        time_s=data.time_s,
+        recording=plan.recording,
     )
     return Prepared(
         data=data,

@@ -38,7 +38,10 @@ Bases (``base``):
   probe measured, so what remains is how far the model's change since that
   probe misses the real change; the second term fits exactly that, the first
   keeps the level right before the run's first probe. τ set, ridge penalty and
-  w are chosen by the inner leave-one-out for each probe interval.
+  w are chosen by the inner leave-one-out for each probe interval. When the declared model is
+  ``lag-ridge``, the terms are its own (every sensor and speed power with lags at its ten
+  τ, :mod:`models.lag_ridge`) and the grid is ``LAG_RIDGE_PENALTIES`` ×
+  ``LAG_RIDGE_LEVEL_WEIGHTS``, written down before any replay of it was run.
 - ``augmented``: the structure of an ``analyze --store`` document (its base
   model and effects with their parameters) with every coefficient refitted
   without the held-out run.
@@ -54,6 +57,7 @@ import numpy as np
 
 from models.effect_terms import candidate_families, first_order_lag
 from models.features import Prepared
+from models.lag_ridge import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, lag_terms
 from models.metrics import accuracy
 from models.online_correction import CorrectionParams, OnlineCorrection
 from models.registry import METHODS, make_model
@@ -62,6 +66,11 @@ from models.store import StoreError
 LAG_TAU_SETS_S: tuple[tuple[float, ...], ...] = ((600.0, 3600.0), (1800.0, 7200.0))
 RIDGE_PENALTIES = (0.01, 0.03, 0.1)
 LEVEL_WEIGHTS = (0.5, 1.0)
+#: The grid of the lagged base when the declared model is ``lag-ridge``, written down before
+#: any replay of it was run: the lag-ridge terms (every sensor and speed power with its lags
+#: at ``models.lag_ridge.DEFAULT_TAUS_S``), a penalty per decade, two level weights.
+LAG_RIDGE_PENALTIES = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+LAG_RIDGE_LEVEL_WEIGHTS = (0.25, 1.0)
 CHANGE_LAGS = 8  # lags 1/8 … 8/8 of the probe interval in the change term
 PROCESS_FLOOR_UM2_PER_H = 0.01
 OUTLIER_SIGMAS = (4.0, 6.0, 8.0)
@@ -151,7 +160,15 @@ class LaggedFeatures:
     """Sensor rises and their first-order lags (over the whole recording), per τ set, with
     per-run Gram products of the level and change terms, so that every fit is a sum."""
 
-    def __init__(self, prepared: Prepared, sensors: Sequence[str], interval_s: float):
+    def __init__(
+        self,
+        prepared: Prepared,
+        sensors: Sequence[str],
+        interval_s: float,
+        lag_ridge_terms: bool = False,
+    ):
+        """``lag_ridge_terms``: the terms of ``models.lag_ridge`` (sensors and speed powers with
+        their lags at its ten τ, one set) and its grid, instead of two τ sets of sensor lags."""
         self.prepared = prepared
         data = prepared.data
         rises = prepared.inputs.columns(tuple(sensors))
@@ -162,9 +179,18 @@ class LaggedFeatures:
         self.change_steps = sorted({max(round(s), 1) for s in steps})
         self.designs: dict[tuple[float, ...], np.ndarray] = {}
         self.grams: dict[tuple[float, ...], dict[str, tuple[np.ndarray, ...]]] = {}
-        for taus in LAG_TAU_SETS_S:
-            lags = [first_order_lag(rises, data.time_s, prepared.plan.recording, t) for t in taus]
-            design = np.column_stack([np.ones(data.n_samples), rises, *lags])
+        self.tau_sets = (DEFAULT_TAUS_S,) if lag_ridge_terms else LAG_TAU_SETS_S
+        self.penalties = LAG_RIDGE_PENALTIES if lag_ridge_terms else RIDGE_PENALTIES
+        self.level_weights = LAG_RIDGE_LEVEL_WEIGHTS if lag_ridge_terms else LEVEL_WEIGHTS
+        for taus in self.tau_sets:
+            if lag_ridge_terms:
+                terms = lag_terms(prepared.inputs, tuple(sensors), taus, DEFAULT_SPEED_POWERS)
+                design = np.column_stack([np.ones(data.n_samples), terms])
+            else:
+                lags = [
+                    first_order_lag(rises, data.time_s, prepared.plan.recording, t) for t in taus
+                ]
+                design = np.column_stack([np.ones(data.n_samples), rises, *lags])
             self.designs[taus] = design
             self.grams[taus] = {
                 run: self._run_grams(design, rows) for run, rows in self.slices.items()
@@ -195,11 +221,33 @@ class LaggedFeatures:
         return self.designs[taus][rows] @ beta
 
 
+#: Base predictions already made in this process, by (data, method, sensors, training rows):
+#: the leave-one-out at every probe interval, and the inner leave-one-out of every held-out
+#: run, fit the same training sets again (a lag-ridge fit makes its own nested choice).
+_declared_cache: dict[tuple[int, str, tuple[str, ...] | None, bytes], np.ndarray] = {}
+_DECLARED_CACHE_SIZE = 32
+
+
 def _declared_prediction(
     prepared: Prepared, method: str, sensors: Sequence[str] | None, train: np.ndarray
 ) -> np.ndarray:
-    model = make_model(method, sensors).fit(prepared.inputs.take(train), prepared.error_um[train])
-    return model.predict(prepared.inputs)
+    """The declared model fitted on ``train`` (its lags built over the whole history), predicting
+    every row."""
+    key = (
+        id(prepared),
+        method,
+        None if sensors is None else tuple(sensors),
+        np.packbits(train).tobytes(),
+    )
+    cached = _declared_cache.get(key)
+    if cached is not None and cached.size == prepared.data.n_samples:
+        return cached
+    model = make_model(method, sensors).fit_rows(prepared.inputs, prepared.error_um, train)
+    predicted = model.predict(prepared.inputs)
+    if len(_declared_cache) >= _DECLARED_CACHE_SIZE:
+        _declared_cache.pop(next(iter(_declared_cache)))
+    _declared_cache[key] = predicted
+    return predicted
 
 
 def augmented_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
@@ -295,6 +343,23 @@ def replay_interval(
     defaults: CorrectionParams | None = None,
 ) -> IntervalResult:
     """Leave-one-run-out replay at one probe interval; see the module docstring."""
+    from threadpoolctl import threadpool_limits
+
+    # Hundreds of small solves: one BLAS thread is faster than several fighting for cores.
+    with threadpool_limits(1):
+        return _replay_interval(prepared, interval_min, base, method, sensors, document, defaults)
+
+
+def _replay_interval(
+    prepared: Prepared,
+    interval_min: float,
+    base: str = "lagged",
+    method: str = "mlr",
+    sensors: Sequence[str] | None = None,
+    document: dict[str, Any] | None = None,
+    defaults: CorrectionParams | None = None,
+) -> IntervalResult:
+    """Leave-one-run-out replay at one probe interval; see the module docstring."""
     if base not in BASES:
         raise ValueError(f"unknown base {base!r}; expected one of {BASES}")
     defaults = defaults or CorrectionParams()
@@ -312,7 +377,7 @@ def replay_interval(
         train = np.any([masks[r] for r in train_runs], axis=0)
         used = _used_sensors(prepared, method, sensors, train)
         if used not in lagged:
-            lagged[used] = LaggedFeatures(prepared, used, interval_s)
+            lagged[used] = LaggedFeatures(prepared, used, interval_s, method == "lag-ridge")
         return lagged[used]
 
     design = augmented_design(document, prepared) if base == "augmented" else None
@@ -381,7 +446,7 @@ def _used_sensors(
 ) -> tuple[str, ...]:
     """The sensors the declared model uses when fitted on ``rows`` (grey-mlr selects a few;
     the others use all)."""
-    if method == "mlr":
+    if method in ("mlr", "lag-ridge"):
         return tuple(sensors) if sensors is not None else prepared.inputs.sensors
     model = make_model(method, sensors).fit(prepared.inputs.take(rows), prepared.error_um[rows])
     return tuple(model.sensors_used_)
@@ -411,9 +476,9 @@ def _choose_lagged(
         outlier_sigma=max(OUTLIER_SIGMAS),
     )
     best: tuple[float, dict[str, Any]] | None = None
-    for taus in LAG_TAU_SETS_S:
-        for ridge in RIDGE_PENALTIES:
-            for weight in LEVEL_WEIGHTS:
+    for taus in features.tau_sets:
+        for ridge in features.penalties:
+            for weight in features.level_weights:
                 sse = n = 0.0
                 for inner in train_runs:
                     beta = features.fit(taus, ridge, weight, [r for r in train_runs if r != inner])

@@ -6,6 +6,7 @@ from collections.abc import Sequence
 
 from models.base import ThermalModel
 from models.grey_mlr import GreyMlrModel
+from models.lag_ridge import LagRidgeModel
 from models.mlr import MlrModel
 from models.pca_quadratic import PcaQuadraticModel
 from models.penalised import PlsModel, RidgeModel
@@ -16,6 +17,7 @@ METHODS: dict[str, type[ThermalModel]] = {
     PcaQuadraticModel.method: PcaQuadraticModel,
     RidgeModel.method: RidgeModel,
     PlsModel.method: PlsModel,
+    LagRidgeModel.method: LagRidgeModel,
 }
 
 

@@ -126,7 +126,8 @@ def safe_model_id(text: str) -> str:
 
 def _probe(model: ThermalModel, inputs: ModelInputs) -> Probe:
     rows = np.unique(np.linspace(0, inputs.n_samples - 1, PROBE_ROWS).astype(int))
-    sample = inputs.take(rows)
+    # single rows without their history (no time), as probe_inputs reloads them
+    sample = ModelInputs(inputs.rise_C[rows], inputs.sensors, inputs.speed_rpm[rows])
     return Probe(
         sensors=list(inputs.sensors),
         rise_C=sample.rise_C.tolist(),

@@ -59,7 +59,7 @@ def test_help_loads_no_heavy_library(args: list[str]) -> None:
 def test_help_still_lists_the_choices() -> None:
     done = gateway("fit", "--help")
     assert done.returncode == 0, done.stderr
-    assert "[grey-mlr|mlr|pca-quadratic|pls|ridge]" in " ".join(done.stdout.split())
+    assert "[grey-mlr|lag-ridge|mlr|pca-quadratic|pls|ridge]" in " ".join(done.stdout.split())
     assert "[auto|run-start|recording-start]" in " ".join(done.stdout.split())
 
 

@@ -1,0 +1,443 @@
+"""Ridge regression on the rises, the speed and their first-order lags (``--method lag-ridge``).
+
+The growth at the tool follows the measured temperatures with delays (a part no
+sensor touches, a thick casting) and follows the heat input, the speed, through
+parts no sensor measures. A static map of the rises cannot follow either. This
+model regresses the error on
+
+- every sensor's rise ΔT_i and its first-order lags at the time constants
+  ``lag_taus_s`` (5 min … 24 h by default);
+- the speed powers n^p (n in 1000 r/min, ``speed_powers``: n, n^1.5, n², n^2.5
+  by default) and their lags at the same time constants. The speed's reference
+  is 0 r/min: the cold reference is taken with the spindle stopped (as the
+  runtime's, :mod:`models.effect_stream`);
+
+with one ridge penalty per group of terms: the *sensor* group (the rises and
+their lags) and the *speed* group (the powers and their lags). Terms are
+standardised on the training rows before the penalty applies. Both penalties
+are chosen inside ``fit`` by leave-one-run-out over the training runs only
+(contiguous blocks when it is given one run): lowest pooled held-out squared
+error over the grid ``PENALTIES`` × ``SPEED_PENALTY_RATIOS``, fixed here before
+any data was looked at. The validation around ``fit`` therefore never lets the
+held-out run steer a choice.
+
+A lag is ``x_k = a_k x_{k−1} + (1 − a_k) u_k`` with ``a_k = exp(−Δt_k / τ)``
+(:func:`models.effect_terms.first_order_lag`), started at the recording's first
+sample and carried across the runs of one continuous recording. Inputs without
+a time (``ModelInputs.time_s`` None: single rows such as the store's probe) are
+taken at a steady state, every lag equal to its input; a constant sensor bias
+therefore moves the prediction by the sum of that sensor's coefficients, which
+is what :func:`models.conditioning.bias_sensitivity` reports.
+
+Stored as explicit JSON (no pickle): the term names, the coefficient of every
+term in its own unit, the standardisation (mean and scale of every term), the
+two penalties and the grids they came from. :class:`LagRidgeStream` runs the
+fitted model one sample at a time for the gateway's loop, carrying the lag
+states (exported as plain floats, so a restarted gateway carries on warm).
+
+The nested choice is closed-form: per run the Gram products of the terms are
+summed once; for each penalty ratio one eigendecomposition of the standardised
+training Gram matrix gives the solutions for every penalty at once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from models.base import ModelInputs, ThermalModel
+from models.effect_terms import SPEED_SCALE_RPM, first_order_lag
+from models.penalised import inner_groups
+
+#: Time constants of the lags, s: 5 min, 10 min, 20 min, 30 min, 1 h, 2 h, 4 h, 8 h, 16 h, 24 h.
+DEFAULT_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0, 57600.0, 86400.0)
+#: Powers of the speed n (1000 r/min) among the terms.
+DEFAULT_SPEED_POWERS = (1.0, 1.5, 2.0, 2.5)
+#: Penalty of the sensor group on standardised terms, relative to the row count.
+PENALTIES = tuple(float(a) for a in np.logspace(-6, 1, 15))
+#: Speed-group penalty / sensor-group penalty.
+SPEED_PENALTY_RATIOS = tuple(float(r) for r in np.logspace(-3, 3, 7))
+SENSOR_GROUP, SPEED_GROUP = 0, 1
+
+
+def term_names(
+    sensors: Sequence[str], taus_s: Sequence[float], powers: Sequence[float]
+) -> list[str]:
+    """Names of the terms in column order: rises, speed powers, then both lagged per τ."""
+    direct = [*sensors, *(speed_name(p) for p in powers)]
+    return direct + [f"{name}@lag{tau:g}s" for tau in taus_s for name in direct]
+
+
+def speed_name(power: float) -> str:
+    return "n_krpm" if power == 1 else f"n_krpm^{power:g}"
+
+
+def speed_powers(speed_rpm: np.ndarray, powers: Sequence[float]) -> np.ndarray:
+    """(n, len(powers)) n^p with n in 1000 r/min (never negative)."""
+    n = np.maximum(np.asarray(speed_rpm, dtype=float), 0.0) / SPEED_SCALE_RPM
+    return np.column_stack([n**p for p in powers]) if powers else np.empty((n.size, 0))
+
+
+#: The terms last built, with the inputs and structure they were built for: validation
+#: and residual analysis ask for the same inputs' terms once per fold and per candidate.
+_last_terms: list[tuple[ModelInputs, tuple, np.ndarray]] = []
+
+
+def lag_terms(
+    inputs: ModelInputs, sensors: Sequence[str], taus_s: Sequence[float], powers: Sequence[float]
+) -> np.ndarray:
+    """(n, k) terms of :func:`term_names` for ``inputs`` (steady state when it has no time).
+
+    The last result is kept (one set of terms, for the same inputs object).
+    """
+    key = (tuple(sensors), tuple(taus_s), tuple(powers))
+    if _last_terms and _last_terms[0][0] is inputs and _last_terms[0][1] == key:
+        return _last_terms[0][2]
+    terms = _build_terms(inputs, sensors, taus_s, powers)
+    _last_terms[:] = [(inputs, key, terms)]
+    return terms
+
+
+def _build_terms(
+    inputs: ModelInputs, sensors: Sequence[str], taus_s: Sequence[float], powers: Sequence[float]
+) -> np.ndarray:
+    direct = np.column_stack(
+        [inputs.columns(tuple(sensors)), speed_powers(inputs.speed_rpm, powers)]
+    )
+    if inputs.time_s is None:
+        lags = [direct] * len(taus_s)  # no history: every lag has reached its input
+    else:
+        recording = (
+            np.zeros(inputs.n_samples, dtype=int) if inputs.recording is None else inputs.recording
+        )
+        lags = [first_order_lag(direct, inputs.time_s, recording, tau) for tau in taus_s]
+    return np.column_stack([direct, *lags])
+
+
+def term_groups(n_sensors: int, n_taus: int, n_powers: int) -> np.ndarray:
+    direct = np.r_[np.full(n_sensors, SENSOR_GROUP), np.full(n_powers, SPEED_GROUP)]
+    return np.tile(direct, n_taus + 1)
+
+
+class GroupGrams:
+    """Per group of rows (a run): [1, Z]ᵀ[1, Z], [1, Z]ᵀy and yᵀy, so every fit is a sum."""
+
+    def __init__(self, terms: np.ndarray, y: np.ndarray, labels: np.ndarray, rows=None):
+        self.labels: list[Any] = []
+        self.gram: list[np.ndarray] = []
+        self.cross: list[np.ndarray] = []
+        self.yy: list[float] = []
+        usable = np.ones(y.size, dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
+        for label in dict.fromkeys(labels[usable].tolist()):
+            mask = usable & (labels == label)
+            z = np.column_stack([np.ones(int(mask.sum())), terms[mask]])
+            self.labels.append(label)
+            self.gram.append(z.T @ z)
+            self.cross.append(z.T @ y[mask])
+            self.yy.append(float(y[mask] @ y[mask]))
+
+    def total(self, members: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        return sum(self.gram[i] for i in members), sum(self.cross[i] for i in members)
+
+    def sse(self, member: int, beta: np.ndarray) -> float:
+        g, c = self.gram[member], self.cross[member]
+        return max(self.yy[member] - 2.0 * beta @ c + beta @ g @ beta, 0.0)
+
+
+def standardisation(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(mean, scale) of every term from a Gram matrix of [1, Z] (scale 1 for a constant term)."""
+    n = gram[0, 0]
+    mean = gram[0, 1:] / n
+    variance = np.diag(gram)[1:] / n - mean**2
+    scale = np.sqrt(np.maximum(variance, 0.0))
+    scale[scale <= 1e-12 * max(float(scale.max(initial=0.0)), 1.0)] = 1.0
+    return mean, scale
+
+
+def ridge_path(
+    gram: np.ndarray,
+    cross: np.ndarray,
+    groups: np.ndarray,
+    ratio: float,
+    penalties: Sequence[float] = PENALTIES,
+) -> list[np.ndarray]:
+    """[intercept, coefficients] for every sensor-group penalty at one speed/sensor ratio.
+
+    Minimises Σ(y − b0 − Zb)² + n Σ_j λ_g(j) (s_j b_j)², s_j the term's scale on
+    these rows: ridge on standardised terms with λ on the sensors and ratio·λ on
+    the speed terms. One eigendecomposition serves every λ.
+    """
+    n = gram[0, 0]
+    mean, scale = standardisation(gram)
+    y_mean = cross[0] / n
+    centred = gram[1:, 1:] - n * np.outer(mean, mean)
+    centred_y = cross[1:] - n * mean * y_mean
+    weight = np.where(groups == SPEED_GROUP, 1.0 / math.sqrt(ratio), 1.0) / scale
+    eigenvalues, vectors = np.linalg.eigh(centred * np.outer(weight, weight))
+    projected = vectors.T @ (centred_y * weight)
+    path = []
+    for penalty in penalties:
+        b = weight * (vectors @ (projected / np.maximum(eigenvalues + n * penalty, 1e-300)))
+        path.append(np.r_[y_mean - mean @ b, b])
+    return path
+
+
+def choose_penalties(
+    grams: GroupGrams, groups: np.ndarray, with_speed: bool
+) -> tuple[float, float]:
+    """(sensor penalty, speed penalty) with the lowest leave-one-group-out squared error."""
+    ratios = SPEED_PENALTY_RATIOS if with_speed else (1.0,)
+    scores = np.zeros((len(ratios), len(PENALTIES)))
+    members = range(len(grams.labels))
+    for held in members:
+        gram, cross = grams.total([m for m in members if m != held])
+        for i, ratio in enumerate(ratios):
+            for j, beta in enumerate(ridge_path(gram, cross, groups, ratio)):
+                scores[i, j] += grams.sse(held, beta)
+    i, j = np.unravel_index(int(np.argmin(scores)), scores.shape)
+    return PENALTIES[j], PENALTIES[j] * ratios[i]
+
+
+class LagRidgeModel(ThermalModel):
+    """Rises, speed powers and their lags; one nested ridge penalty per group."""
+
+    method = "lag-ridge"
+
+    def __init__(
+        self,
+        sensors: Sequence[str] | None = None,
+        lag_taus_s: Sequence[float] = DEFAULT_TAUS_S,
+        speed_powers: Sequence[float] = DEFAULT_SPEED_POWERS,
+    ) -> None:
+        self.sensors = None if sensors is None else list(sensors)
+        self.lag_taus_s = [float(t) for t in lag_taus_s]
+        self.speed_powers = [float(p) for p in speed_powers]
+        if any(not (math.isfinite(t) and t > 0) for t in self.lag_taus_s):
+            raise ValueError(f"lag-ridge: every time constant must be > 0 s, got {self.lag_taus_s}")
+
+    def hyperparams(self) -> dict[str, Any]:
+        return {
+            "sensors": self.sensors,
+            "lag_taus_s": self.lag_taus_s,
+            "speed_powers": self.speed_powers,
+        }
+
+    @property
+    def uses_speed(self) -> bool:
+        return bool(self.speed_powers)
+
+    # --- fitting ---------------------------------------------------------------------
+    def _fit(self, inputs: ModelInputs, error_um: np.ndarray) -> None:
+        self._fit_terms(inputs, error_um, None)
+
+    def fit_rows(
+        self, inputs: ModelInputs, error_um: np.ndarray, rows: np.ndarray
+    ) -> LagRidgeModel:
+        """Fit on ``rows``, the lags built over all of ``inputs`` (the whole history)."""
+        y = np.asarray(error_um, dtype=float)
+        if y.shape != (inputs.n_samples,):
+            raise ValueError(f"error_um must be ({inputs.n_samples},), got {y.shape}")
+        mask = np.zeros(inputs.n_samples, dtype=bool)
+        mask[rows] = True
+        if not np.all(np.isfinite(y[mask])) or not np.all(np.isfinite(inputs.rise_C[mask])):
+            raise ValueError("fit needs finite temperatures and errors (found NaN or inf)")
+        self._fit_terms(inputs, y, mask)
+        return self
+
+    def _fit_terms(self, inputs: ModelInputs, y: np.ndarray, rows: np.ndarray | None) -> None:
+        from threadpoolctl import threadpool_limits
+
+        used = tuple(self.sensors) if self.sensors is not None else inputs.sensors
+        terms = lag_terms(inputs, used, self.lag_taus_s, self.speed_powers)
+        groups = term_groups(len(used), len(self.lag_taus_s), len(self.speed_powers))
+        part = inputs if rows is None else inputs.take(rows)
+        labels = np.full(inputs.n_samples, -1)
+        labels[rows if rows is not None else slice(None)] = inner_groups(part)
+        # Small dense problems: one BLAS thread is faster than several fighting for cores.
+        with threadpool_limits(1):
+            grams = GroupGrams(terms, y, labels, labels >= 0)
+            sensor_penalty, speed_penalty = choose_penalties(grams, groups, bool(self.speed_powers))
+            gram, cross = grams.total(range(len(grams.labels)))
+            ratio = speed_penalty / sensor_penalty
+            beta = ridge_path(gram, cross, groups, ratio, (sensor_penalty,))[0]
+        mean, scale = standardisation(gram)
+        self._design_cache = None
+        self.sensors_used_ = used
+        self.intercept_um_ = float(beta[0])
+        self.coef_ = beta[1:]
+        self.term_mean_ = mean
+        self.term_scale_ = scale
+        self.penalties_ = {"sensors": sensor_penalty, "speed": speed_penalty}
+
+    # --- prediction ------------------------------------------------------------------
+    def _terms(self, inputs: ModelInputs) -> np.ndarray:
+        return lag_terms(inputs, self.sensors_used_, self.lag_taus_s, self.speed_powers)
+
+    def _predict(self, inputs: ModelInputs) -> np.ndarray:
+        return self.intercept_um_ + self._terms(inputs) @ self.coef_
+
+    def predict_rows(self, inputs: ModelInputs, rows: np.ndarray) -> np.ndarray:
+        return self.predict(inputs)[rows]
+
+    def design_matrix(self, inputs: ModelInputs) -> np.ndarray:
+        """One column: the fitted prediction, µm.
+
+        Residual analysis refits its base terms by least squares jointly with a
+        candidate's; refitting this model's hundreds of terms without their
+        penalties would undo the ridge, so the analysis scales the penalised
+        prediction instead (coefficient ≈ 1). The last column made is kept.
+        """
+        cached = getattr(self, "_design_cache", None)
+        if cached is not None and cached[0] is inputs:
+            return cached[1]
+        column = self.predict(inputs)[:, None]
+        self._design_cache = (inputs, column)
+        return column
+
+    def conditioning_design(self, inputs: ModelInputs) -> tuple[np.ndarray, list[str]]:
+        """Every term with its name, for the condition number and VIF of the design."""
+        names = term_names(self.sensors_used_, self.lag_taus_s, self.speed_powers)
+        return self._terms(inputs), names
+
+    def input_units(self) -> dict[str, str]:
+        units = {name: "°C rise" for name in self.sensors_used_}
+        if self.uses_speed:
+            units["speed_rpm"] = "r/min"
+        units["time_s"] = "s (lag states carried from sample to sample)"
+        return units
+
+    # --- storage ---------------------------------------------------------------------
+    def fitted_params(self) -> dict[str, Any]:
+        names = term_names(self.sensors_used_, self.lag_taus_s, self.speed_powers)
+        return {
+            "sensors": list(self.sensors_used_),
+            "lag_taus_s": list(self.lag_taus_s),
+            "speed_powers": list(self.speed_powers),
+            "speed_unit": "n in 1000 r/min, reference 0 r/min",
+            "intercept_um": self.intercept_um_,
+            "terms": names,
+            "coefficients_um_per_unit": [float(b) for b in self.coef_],
+            "standardisation": {
+                "mean": [float(m) for m in self.term_mean_],
+                "scale": [float(s) for s in self.term_scale_],
+            },
+            "penalties": dict(self.penalties_),
+            "penalty_grid": {
+                "sensors": list(PENALTIES),
+                "speed_over_sensors": list(SPEED_PENALTY_RATIOS),
+                "chosen_by": "leave-one-run-out on the training runs",
+            },
+        }
+
+    def _load_params(self, params: dict[str, Any]) -> None:
+        self.sensors_used_ = tuple(params["sensors"])
+        self.lag_taus_s = [float(t) for t in params["lag_taus_s"]]
+        self.speed_powers = [float(p) for p in params["speed_powers"]]
+        self.intercept_um_ = float(params["intercept_um"])
+        self.coef_ = np.asarray(params["coefficients_um_per_unit"], dtype=float)
+        names = term_names(self.sensors_used_, self.lag_taus_s, self.speed_powers)
+        if list(params["terms"]) != names or self.coef_.size != len(names):
+            raise ValueError("lag-ridge: the stored terms do not match its sensors, τ and powers")
+        self.term_mean_ = np.asarray(params["standardisation"]["mean"], dtype=float)
+        self.term_scale_ = np.asarray(params["standardisation"]["scale"], dtype=float)
+        self.penalties_ = {k: float(v) for k, v in params["penalties"].items()}
+
+    def summary(self) -> str:
+        taus = ", ".join(f"{t / 60:g}" for t in self.lag_taus_s)
+        return (
+            f"lag-ridge: {len(self.sensors_used_)} sensors and {len(self.speed_powers)} speed "
+            f"powers with lags at τ = {taus} min ({self.coef_.size} terms); penalties "
+            f"sensors {self.penalties_['sensors']:.3g}, speed {self.penalties_['speed']:.3g} "
+            "(nested leave-one-run-out)"
+        )
+
+    def stream(self) -> LagRidgeStream:
+        return LagRidgeStream(self)
+
+
+class LagRidgeStream:
+    """A fitted :class:`LagRidgeModel` stepped one sample at a time.
+
+    Fed the rows of one continuous recording in order it gives the batch
+    predictions (the same recursion, each sample's own Δt). The first sample
+    starts every lag at its input. A sample that lacks an input gives no
+    prediction and leaves the states as they were.
+    """
+
+    def __init__(self, model: LagRidgeModel) -> None:
+        self.model = model
+        self.names = term_names(model.sensors_used_, (), model.speed_powers)
+        self.reset()
+
+    def reset(self) -> None:
+        self._time_s: float | None = None
+        self._lags: np.ndarray | None = None  # (τ, direct terms)
+
+    @property
+    def time_s(self) -> float | None:
+        return self._time_s
+
+    def direct(self, rises_C: Mapping[str, float], speed_rpm: float | None) -> np.ndarray | None:
+        values = [rises_C.get(s) for s in self.model.sensors_used_]
+        if self.model.speed_powers:
+            values.append(speed_rpm)
+        if any(v is None or not math.isfinite(float(v)) for v in values):
+            return None
+        rises = np.array([float(rises_C[s]) for s in self.model.sensors_used_])
+        speed = speed_powers(np.array([float(speed_rpm or 0.0)]), self.model.speed_powers)[0]
+        return np.r_[rises, speed]
+
+    def step_terms(
+        self, time_s: float, rises_C: Mapping[str, float], speed_rpm: float | None
+    ) -> np.ndarray | None:
+        """Advance the lags to ``time_s``; the full term vector (None if an input is missing)."""
+        u = self.direct(rises_C, speed_rpm)
+        if u is None:
+            return None
+        if self._time_s is not None and time_s < self._time_s:
+            raise ValueError(f"lag-ridge: time went back: {time_s} s after {self._time_s} s")
+        taus = np.asarray(self.model.lag_taus_s)
+        if self._lags is None or self._time_s is None:
+            self._lags = np.tile(u, (taus.size, 1))
+        else:
+            a = np.exp(-(time_s - self._time_s) / taus)[:, None]
+            self._lags = a * self._lags + (1.0 - a) * u
+        self._time_s = float(time_s)
+        return np.r_[u, self._lags.ravel()]
+
+    def step(
+        self, time_s: float, rises_C: Mapping[str, float], speed_rpm: float | None
+    ) -> float | None:
+        terms = self.step_terms(time_s, rises_C, speed_rpm)
+        if terms is None:
+            return None
+        return float(self.model.intercept_um_ + terms @ self.model.coef_)
+
+    def state_keys(self) -> list[str]:
+        return [f"{name}@lag{tau:g}s" for tau in self.model.lag_taus_s for name in self.names]
+
+    def export_state(self) -> dict[str, float]:
+        if self._time_s is None or self._lags is None:
+            return {}
+        state = {"time_s": self._time_s}
+        state.update(zip(self.state_keys(), map(float, self._lags.ravel()), strict=True))
+        return state
+
+    def import_state(self, state: Mapping[str, float]) -> None:
+        if not state:
+            self.reset()
+            return
+        expected = {"time_s", *self.state_keys()}
+        if set(state) != expected:
+            missing, unknown = sorted(expected - set(state)), sorted(set(state) - expected)
+            raise ValueError(
+                f"lag-ridge: state does not fit this model (missing {missing}, unknown {unknown})"
+            )
+        values = np.array([float(state[k]) for k in self.state_keys()])
+        if not (np.all(np.isfinite(values)) and math.isfinite(float(state["time_s"]))):
+            raise ValueError("lag-ridge: state holds a value that is not finite")
+        self._time_s = float(state["time_s"])
+        self._lags = values.reshape(len(self.model.lag_taus_s), len(self.names))

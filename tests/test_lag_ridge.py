@@ -1,0 +1,284 @@
+"""``lag-ridge``: the closed-form ridge, its nested penalties, its JSON, its streaming form.
+
+Synthetic runs (each its own cold recording, time from 0) whose error follows a
+lag of one sensor and the speed: the pure maths is checked against scikit-learn
+and by hand; the real ``fl_thermal.csv`` gives the held-out figure.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gateway.app import load_bank
+from gateway.effect_state import EffectStates
+from gateway.model_bank import BankedAugmented, ModelBank
+from models.base import ModelInputs
+from models.dataset import load_runs
+from models.effect_terms import first_order_lag
+from models.features import Prepared, prepare
+from models.fitting import fit_and_store
+from models.lag_ridge import (
+    GroupGrams,
+    LagRidgeModel,
+    lag_terms,
+    ridge_path,
+    term_groups,
+    term_names,
+)
+from models.store import ModelStore, load_file
+from tests.cli import ROOT, gateway
+from tests.test_conditioning import machine
+
+FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
+TAUS_S = (600.0, 3600.0)
+POWERS = (1.0, 2.0)
+
+
+def synthetic_csv(path: Path, runs: int = 4, seed: int = 3) -> Path:
+    """Runs at rest 10 min, then speed steps; T1 follows the heat fast, T2 slowly, and the
+    error follows T1, a 1 h lag of T2 and n² (plus 0.1 µm probe noise)."""
+    rng = np.random.default_rng(seed)
+    lines = ["run,time_s,speed_rpm,T1,T2,T3,error_um"]
+    for r in range(runs):
+        time_s = np.arange(0, 8 * 3600, 60.0)
+        levels = rng.choice([1500.0, 3000.0, 4500.0, 6000.0], size=4)
+        speed = np.where(time_s < 600, 0.0, levels[np.minimum((time_s // 7200).astype(int), 3)])
+        heat = (speed / 1000.0) ** 2
+        rec = np.zeros(time_s.size, dtype=int)
+        t1 = 20 + 0.6 * first_order_lag(heat, time_s, rec, 900.0)
+        t2 = 20 + 0.3 * first_order_lag(heat, time_s, rec, 5400.0)
+        t3 = 20 + 0.05 * rng.normal(size=time_s.size).cumsum() / 10
+        slow = first_order_lag(t2 - 20, time_s, rec, 3600.0)
+        error = 2.0 * (t1 - 20) + 4.0 * slow + 0.3 * heat + rng.normal(0, 0.1, time_s.size)
+        for k in range(time_s.size):
+            lines.append(
+                f"R{r},{time_s[k]:.0f},{speed[k]:.0f},{t1[k]:.4f},{t2[k]:.4f},{t3[k]:.4f},"
+                f"{error[k]:.4f}"
+            )
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory) -> Prepared:
+    return prepare(load_runs(synthetic_csv(tmp_path_factory.mktemp("lag") / "runs.csv")))
+
+
+def small_model() -> LagRidgeModel:
+    return LagRidgeModel(lag_taus_s=TAUS_S, speed_powers=POWERS)
+
+
+def test_the_closed_form_path_is_ridge_on_standardised_terms(synthetic: Prepared) -> None:
+    from sklearn.linear_model import Ridge
+
+    sensors = synthetic.inputs.sensors
+    terms = lag_terms(synthetic.inputs, sensors, TAUS_S, POWERS)
+    groups = term_groups(len(sensors), len(TAUS_S), len(POWERS))
+    grams = GroupGrams(terms, synthetic.error_um, np.zeros(terms.shape[0], dtype=int))
+    gram, cross = grams.total([0])
+    penalty, ratio = 1e-3, 10.0
+    (beta,) = ridge_path(gram, cross, groups, ratio, (penalty,))
+    # The same problem by hand: standardise, scale the speed group by 1/√ratio, sklearn Ridge.
+    mean, scale = terms.mean(axis=0), terms.std(axis=0)
+    weight = np.where(groups == 1, 1 / np.sqrt(ratio), 1.0)
+    n = terms.shape[0]
+    reference = Ridge(alpha=penalty * n).fit((terms - mean) / scale * weight, synthetic.error_um)
+    coef = reference.coef_ * weight / scale
+    assert beta[1:] == pytest.approx(coef, rel=1e-6, abs=1e-9)
+    assert beta[0] == pytest.approx(
+        reference.intercept_ - (mean / scale * weight) @ reference.coef_
+    )
+
+
+def test_held_out_error_follows_the_lag_and_the_penalties_ignore_the_held_out_run(
+    synthetic: Prepared,
+) -> None:
+    runs = synthetic.data.run
+    held = runs == "R3"
+    model = small_model().fit_rows(synthetic.inputs, synthetic.error_um, ~held)
+    changed = synthetic.error_um.copy()
+    changed[held] += 50.0 * np.sin(np.arange(held.sum()))  # the held-out target only
+    other = small_model().fit_rows(synthetic.inputs, changed, ~held)
+    assert other.penalties_ == model.penalties_
+    assert np.array_equal(other.coef_, model.coef_)
+    residual = synthetic.error_um[held] - model.predict_rows(synthetic.inputs, held)
+    # The error spans about 30 µm; the lags and n² carry it to the probe's noise and a little.
+    assert np.sqrt(np.mean(residual**2)) < 0.5
+    assert np.ptp(synthetic.error_um[held]) > 20
+
+
+def test_stored_as_explicit_json_and_reloaded_exactly(synthetic: Prepared, tmp_path: Path) -> None:
+    store = ModelStore(tmp_path / "store")
+    outcome = fit_and_store(synthetic, "lag-ridge", store)
+    (path,) = outcome.saved.values()
+    document = json.loads(path.read_text(encoding="utf-8"))
+    params = document["params"]
+    names = term_names(synthetic.inputs.sensors, params["lag_taus_s"], params["speed_powers"])
+    assert params["terms"] == names and len(params["coefficients_um_per_unit"]) == len(names)
+    assert len(params["standardisation"]["mean"]) == len(names)
+    assert set(params["penalties"]) == {"sensors", "speed"}
+    assert params["penalties"]["sensors"] in params["penalty_grid"]["sensors"]
+    model, _ = load_file(path)
+    assert np.array_equal(model.predict(synthetic.inputs), outcome_model(synthetic, params))
+    # Conditioning is of every term; the bias sensitivity is the steady state: the sum of
+    # each sensor's direct and lagged coefficients.
+    conditioning = document["conditioning"]
+    assert len(conditioning["vif"]) == len(names)
+    coef = dict(zip(names, params["coefficients_um_per_unit"], strict=True))
+    for sensor in synthetic.inputs.sensors:
+        by_hand = coef[sensor] + sum(coef[f"{sensor}@lag{t:g}s"] for t in params["lag_taus_s"])
+        assert conditioning["sensitivity_um_per_C"][sensor] == pytest.approx(by_hand, abs=1e-6)
+
+
+def outcome_model(prepared: Prepared, params: dict) -> np.ndarray:
+    """The stored model's prediction from its JSON numbers alone."""
+    terms = lag_terms(
+        prepared.inputs, tuple(params["sensors"]), params["lag_taus_s"], params["speed_powers"]
+    )
+    return params["intercept_um"] + terms @ np.asarray(params["coefficients_um_per_unit"])
+
+
+def test_the_bank_steps_it_with_lag_states_that_survive_a_restart(
+    synthetic: Prepared, tmp_path: Path
+) -> None:
+    store = ModelStore(tmp_path / "store")
+    fit_and_store(synthetic, "lag-ridge", store)
+    bank = ModelBank.from_store(store.root)
+    (banked,) = bank.models.values()
+    assert isinstance(banked, BankedAugmented)
+    assert banked.sensors == frozenset({"T1", "T2", "T3"})
+    model, _ = load_file(store.path_of(banked.model_id))
+    run = synthetic.data.run == "R1"  # one cold recording
+    part = synthetic.take(run)
+    batch = model.predict(part.inputs)
+    state_file = tmp_path / "m1-effect-state.json"
+    states = EffectStates(bank.augmented(), state_file)
+    streamed = []
+    for k in range(part.data.n_samples):
+        if k == 200:  # the gateway stops and starts again: the lags carry on from the file
+            states.save()
+            states = EffectStates(ModelBank.from_store(store.root).augmented(), state_file)
+        rises = dict(zip(part.inputs.sensors, part.inputs.rise_C[k], strict=True))
+        time_s = float(part.data.time_s[k])
+        streamed.append(
+            states.advance(time_s, rises, float(part.data.speed_rpm[k]))[banked.model_id]
+        )
+    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    # A cycle without one of its sensors predicts nothing and keeps the states.
+    before = states.streams[banked.model_id].export_state()
+    assert states.advance(1e6, {"T1": 1.0, "T2": 1.0}, 3000.0)[banked.model_id] is None
+    assert states.streams[banked.model_id].export_state() == before
+
+
+def test_the_runtime_refuses_it_when_a_small_bias_moves_it_too_far(
+    synthetic: Prepared, tmp_path: Path
+) -> None:
+    store = ModelStore(tmp_path / "store")
+    outcome = fit_and_store(synthetic, "lag-ridge", store)
+    (model_id,) = outcome.saved
+    worst = outcome.conditioning[model_id].worst_single_um
+    assert worst > 0.2
+    with pytest.raises(ValueError, match=rf"'{model_id}', which is refused: a bias of ±0\.5"):
+        load_bank(machine(store.root, model_id, limit_um=worst / 2))
+    assert model_id in load_bank(machine(store.root, model_id, limit_um=worst * 2))
+
+
+def test_steady_state_rows_have_every_lag_at_its_input() -> None:
+    inputs = ModelInputs(np.array([[1.0, 2.0]]), ("T1", "T2"), np.array([2000.0]))
+    terms = lag_terms(inputs, ("T1", "T2"), TAUS_S, POWERS)
+    assert terms[0].tolist() == [1.0, 2.0, 2.0, 4.0] * 3
+
+
+def test_fl_thermal_ch1_held_out_with_nested_penalties(tmp_path: Path) -> None:
+    out = tmp_path / "fit.json"
+    store = tmp_path / "store"
+    done = gateway(
+        "fit",
+        FL_THERMAL,
+        "--method",
+        "lag-ridge",
+        "--target",
+        "ch1_um",
+        "--json",
+        out,
+        "--store",
+        store,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "condition number" in done.stdout
+    result = json.loads(out.read_text(encoding="utf-8"))
+    pooled = result["validations"]["all"]["pooled"]
+    # Measured 1.75 µm (plain mlr on the same rises: 6.86 µm); the target is 2.5 µm.
+    assert pooled["rmse_um"] < 2.0
+    per_cycle = result["validations"]["all"]["per_fold"]
+    assert len(per_cycle) == 6 and max(c["rmse_um"] for c in per_cycle.values()) < 3.3
+    assert (store / "lag-ridge-ch1_um-all.json").exists()
+
+
+def test_replay_fl_thermal_ch5_on_lag_ridge_a_probe_every_hour(tmp_path: Path) -> None:
+    out = tmp_path / "replay.json"
+    done = gateway(
+        "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge",
+        "--probe-interval-min", "60", "--json", out,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text(encoding="utf-8"))
+    assert result["model"] == "lag-ridge" and "lag-ridge terms" in result["base"]["description"]
+    assert 4.5 < result["offline"]["rmse_um"] < 5.3  # lag-ridge without probes: 4.90 µm
+    (online,) = result["online"]
+    # Measured 2.31 µm, every choice (penalty, level weight, q, R, k) made without the held-out
+    # cycle on a grid fixed beforehand; the issue's 2.0 µm target is not met on ch5.
+    assert online["rmse_um"] < 2.5
+    assert online["rmse_um"] < 0.55 * result["offline"]["rmse_um"]
+    for figures in online["per_run"].values():
+        chosen = figures["chosen"]
+        assert chosen["ridge"] in (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+        assert chosen["filter"]["outlier_sigma"] in (4.0, 6.0, 8.0)
+
+
+def test_replay_refuses_to_store_a_lag_ridge_base(tmp_path: Path) -> None:
+    done = gateway(
+        "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge",
+        "--store", tmp_path / "store",
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        "error: --store with --model lag-ridge is not built: save the offline model with "
+        "fit --method lag-ridge --store DIR"
+    ]
+    assert not (tmp_path / "store").exists()
+
+
+def test_analyze_takes_lag_ridge_as_its_base_and_its_result_streams(tmp_path: Path) -> None:
+    from models import augmented
+    from models.effect_stream import StreamingAugmented
+
+    out, store = tmp_path / "analysis.json", tmp_path / "store"
+    done = gateway(
+        "analyze", FL_THERMAL, "--target", "ch1_um", "--model", "lag-ridge",
+        "--json", out, "--store", store, "--no-progress",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text(encoding="utf-8"))
+    # Measured 1.74 µm before any effect (mlr: 6.86 µm); the target is 2.5 µm.
+    assert result["before"]["rmse_um"] < 2.0
+    (path,) = (store / augmented.FOLDER).glob("*.json")
+    document = augmented.load(path)
+    assert document["base"]["method"] == "lag-ridge"
+    prepared = prepare(load_runs(FL_THERMAL, target="ch1_um"))
+    batch = augmented.predict(document, prepared)
+    stream = StreamingAugmented(document)
+    streamed = [
+        stream.step(
+            float(prepared.data.time_s[k]),
+            dict(zip(prepared.inputs.sensors, prepared.inputs.rise_C[k], strict=True)),
+            float(prepared.data.speed_rpm[k]),
+        )
+        for k in range(prepared.data.n_samples)
+    ]
+    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    assert "base.time_s" in stream.export_state()

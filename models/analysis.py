@@ -13,8 +13,8 @@ The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
 3. A candidate is believed only when all of these hold (``RULES``):
    - the pooled held-out RMSE of the residual's shape within each run (about
      the run's own mean) falls by at least ``MIN_GAIN_PCT`` (10 %), and the
-     plain held-out RMSE falls too. A held-out run's offset carries the noise
-     of its reference readings, which no effect can predict;
+     plain held-out RMSE falls too. A held-out run's offset (its room level,
+     its probe's zero) is what no effect can predict;
    - the held-out RMSE falls in at least ``MIN_FOLD_SHARE`` (half) of the folds;
    - on *every* training fold the partial F-test of its terms gives
      p < ``ALPHA`` / (number of families tried in that round), Bonferroni.
@@ -340,8 +340,8 @@ class ResidualAnalysis:
     def _shape_sse(self, predicted: np.ndarray) -> np.ndarray:
         """Per fold: SSE of the held-out residual about its own mean.
 
-        A held-out run's offset carries the noise of its single reference
-        sample, which no effect can predict; judging the shape of the residual
+        A held-out run's offset (its room level, where its probe was zeroed)
+        is what no effect can predict; judging the shape of the residual
         within each run keeps a candidate from being believed for fitting
         offsets by chance.
         """

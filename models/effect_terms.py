@@ -3,9 +3,9 @@
 Every candidate is a *family*: one physical effect with a small grid of
 parameter values (a time constant, a sensor name, a time origin). The analysis
 picks the value inside each validation fold, on that fold's training runs only.
-Every term is a *rise from the same reference* as the temperatures and
-the error (:mod:`models.references`): a term that is not zero at the reference
-would claim an error the target does not contain.
+Every term is zero in the error's reference state, the cold machine at rest
+(:mod:`models.references`): temperatures as rises from their reference, the
+speed from 0 r/min; the model's intercept carries the error's reference.
 
 The families:
 
@@ -116,8 +116,10 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
     # Terms are made when a variant is built, not held: on a million-row file each
     # (n,) column is megabytes, and only one family is tried at a time.
     def speed_terms() -> np.ndarray:
+        # From 0 r/min, the error's reference state (the cold machine at rest), as the
+        # runtime takes them: a run that opens at speed keeps its growth at that speed.
         speed_krpm = data.speed_rpm / SPEED_SCALE_RPM
-        return prepared.plan.rises(np.column_stack([speed_krpm, speed_krpm**2]))
+        return np.column_stack([speed_krpm, speed_krpm**2])
 
     def ambient_rise() -> np.ndarray:
         return prepared.plan.rises(data.ambient_C)
@@ -145,8 +147,8 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
         families.append(
             EffectFamily(
                 "speed_direct",
-                "speed n and n² (n in 1000 r/min), as rises",
-                (Variant({}, speed_terms, "speed rise Δn, 1000 r/min"),),
+                "speed n and n² (n in 1000 r/min), from rest",
+                (Variant({}, speed_terms, "speed n, 1000 r/min"),),
             )
         )
         families.append(
@@ -157,7 +159,7 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
                     Variant(
                         {"tau_s": tau},
                         lagged(speed_terms, tau),
-                        f"lag (τ = {tau:g} s) of Δn, 1000 r/min",
+                        f"lag (τ = {tau:g} s) of n, 1000 r/min",
                     )
                     for tau in HEAT_TAUS_S
                 ),

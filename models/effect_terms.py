@@ -27,7 +27,9 @@ The families:
   gateway without a probe does not have).
 
 Lag states start at the recording's first sample and carry across runs of one
-continuous recording; each recording that starts cold starts its filter afresh.
+continuous recording; each recording that starts cold starts its filter afresh:
+a rise's lag at the rise's first value (≈ 0, the reference), a lag of the speed
+at 0 (the unsensed part is cold, even when the spindle is already turning).
 """
 
 from __future__ import annotations
@@ -69,12 +71,19 @@ class EffectFamily:
 
 
 def first_order_lag(
-    values: np.ndarray, time_s: np.ndarray, recording: np.ndarray, tau_s: float
+    values: np.ndarray,
+    time_s: np.ndarray,
+    recording: np.ndarray,
+    tau_s: float,
+    start_cold: bool = False,
 ) -> np.ndarray:
     """x_k = a_k x_{k−1} + (1 − a_k) u_k, a_k = exp(−Δt_k / τ), per recording.
 
     The state starts at the recording's first value, so a rise that is 0 at the
-    reference stays 0 until the input moves. Evenly sampled recordings use
+    reference stays 0 until the input moves. With ``start_cold`` it starts at 0,
+    the cold machine at rest: the lag of a heat input (the speed) in a recording
+    that opens with the spindle already turning, whose unsensed part has not yet
+    warmed. Evenly sampled recordings use
     ``scipy.signal.lfilter`` (fast on million-row files); others step sample by
     sample with their own Δt.
     """
@@ -84,16 +93,18 @@ def first_order_lag(
     out = np.empty_like(u2)
     for s, e in zip(*group_bounds(recording), strict=True):
         segment = u2[s:e]
+        first = np.zeros_like(segment[:1]) if start_cold else segment[:1]
         dt = np.diff(time_s[s:e])
         if dt.size == 0:
-            out[s:e] = segment
+            out[s:e] = first
             continue
         if np.ptp(dt) <= UNIFORM_TOLERANCE * np.median(dt):
             a = float(np.exp(-np.median(dt) / tau_s))
-            out[s:e], _ = lfilter([1 - a], [1, -a], segment, axis=0, zi=a * segment[:1])
+            out[s] = first
+            out[s + 1 : e], _ = lfilter([1 - a], [1, -a], segment[1:], axis=0, zi=a * first)
         else:
             a_k = np.exp(-dt / tau_s)
-            state = segment[0].copy()
+            state = first[0].copy()
             out[s] = state
             for k in range(1, e - s):
                 state = a_k[k - 1] * state + (1 - a_k[k - 1]) * segment[k]
@@ -124,8 +135,12 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
     def ambient_rise() -> np.ndarray:
         return prepared.plan.rises(data.ambient_C)
 
-    def lagged(values: Callable[[], np.ndarray], tau: float) -> Callable[[], np.ndarray]:
-        return lambda: np.atleast_2d(first_order_lag(values(), time_s, recording, tau).T).T
+    def lagged(
+        values: Callable[[], np.ndarray], tau: float, start_cold: bool = False
+    ) -> Callable[[], np.ndarray]:
+        return lambda: np.atleast_2d(
+            first_order_lag(values(), time_s, recording, tau, start_cold).T
+        ).T
 
     families: list[EffectFamily] = []
     if used_rises is not None:
@@ -158,7 +173,7 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
                 tuple(
                     Variant(
                         {"tau_s": tau},
-                        lagged(speed_terms, tau),
+                        lagged(speed_terms, tau, start_cold=True),
                         f"lag (τ = {tau:g} s) of n, 1000 r/min",
                     )
                     for tau in HEAT_TAUS_S

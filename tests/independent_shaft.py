@@ -107,10 +107,10 @@ AMBIENT_LAG_S = 120.0
 # --- hidden effects -----------------------------------------------------------
 HOLDER_TAU_S, HOLDER_UM_PER_K = 2400.0, 1.2
 SPEED_UM_PER_KRPM, SPEED_UM_PER_KRPM2 = -0.7, -0.08
-ROOM_AMPLITUDE_C, ROOM_PERIOD_S = 2.0, 24 * 3600.0
-COLUMN_TAU_S, COLUMN_UM_PER_K = 3 * 3600.0, 4.0
+ROOM_AMPLITUDE_C, ROOM_PERIOD_S = 3.0, 16 * 3600.0
+COLUMN_TAU_S, COLUMN_UM_PER_K = 3 * 3600.0, 5.0
 DRIFT_UM_PER_H = 1.5
-UNION_TAU_S, UNION_K_PER_KRPM2, UNION_UM_PER_K = 5400.0, 0.12, 1.5
+UNION_TAU_S, UNION_K_PER_KRPM2, UNION_UM_PER_K = 5400.0, 0.12, 3.0
 
 # (minutes, r/min) segments; a leading 0 r/min segment is the run's at-rest lead-in
 _PROGRAMMES: dict[str, list[tuple[float, int]]] = {

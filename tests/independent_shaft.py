@@ -50,13 +50,13 @@ it restarts on each run.
 Hidden effects (``effect``)
 ---------------------------
 ``none`` nothing hidden; ``thermal_lag`` a tool holder following the nose cell
-through a 40 min lag, 1.2 µm/K, seen by no sensor; ``speed_direct`` an axial
+through a 40 min lag, 2 µm/K, seen by no sensor; ``speed_direct`` an axial
 shortening ``−(0.7 n + 0.08 n**2)`` µm as soon as the spindle turns;
-``ambient`` a room sine of 2 °C and 24 h (run-dependent phase) that reaches the
-error through the column (3 h lag, 4 µm/K), which no T sensor sees; ``drift``
+``ambient`` a room sine of 3 °C and 16 h (run-dependent phase) that reaches the
+error through the column (3 h lag, 5 µm/K), which no T sensor sees; ``drift``
 +1.5 µm/h from each run's start; ``unsensed_heat`` a rotary union at the rear
 heated by friction ``∝ n**2`` (heat that no sensor sees), 1.5 h lag, up to about
-8 µm.
+17 µm.
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ TEMP_NOISE_C = 0.03
 ERROR_NOISE_UM = 0.3
 AMBIENT_LAG_S = 120.0
 # --- hidden effects -----------------------------------------------------------
-HOLDER_TAU_S, HOLDER_UM_PER_K = 2400.0, 1.2
+HOLDER_TAU_S, HOLDER_UM_PER_K = 2400.0, 2.0
 SPEED_UM_PER_KRPM, SPEED_UM_PER_KRPM2 = -0.7, -0.08
 ROOM_AMPLITUDE_C, ROOM_PERIOD_S = 3.0, 16 * 3600.0
 COLUMN_TAU_S, COLUMN_UM_PER_K = 3 * 3600.0, 5.0

@@ -138,9 +138,9 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
     def lagged(
         values: Callable[[], np.ndarray], tau: float, start_cold: bool = False
     ) -> Callable[[], np.ndarray]:
-        return lambda: np.atleast_2d(
-            first_order_lag(values(), time_s, recording, tau, start_cold).T
-        ).T
+        return lambda: (
+            np.atleast_2d(first_order_lag(values(), time_s, recording, tau, start_cold).T).T
+        )
 
     families: list[EffectFamily] = []
     if used_rises is not None:

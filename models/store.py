@@ -20,7 +20,8 @@ saved before they existed, which still load). ``error_reference``: the model's
 error at zero rises and 0 r/min, i.e. the error's reference fitted as the
 model's intercept (:mod:`models.references`). ``sensor_relations``: how the
 training sensors' rises relate to each other (:mod:`models.sensor_relations`),
-for the runtime's plausibility check. Both are covered by the checksum like every other field and validated on load.
+for the runtime's plausibility check. Both are covered by the checksum like
+every other field and validated on load.
 
 Writes go to a temporary file that is then renamed, so a crash mid-write never
 leaves half a model behind.

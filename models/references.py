@@ -107,6 +107,16 @@ class ReferencePlan:
             return error_um
         return error_um - self.error_origin_um[self.recording]
 
+    def error_line(self) -> str:
+        """One line for people: where the error is taken from."""
+        own = [
+            f"{'+'.join(runs)} {origin:+.2f} µm"
+            for runs, origin in zip(self.recording_runs, self.error_origin_um, strict=True)
+            if origin != 0.0
+        ]
+        text = "error as measured, its reference the model's intercept"
+        return text + (f"; own origin subtracted: {', '.join(own)}" if own else "")
+
     def describe(self) -> dict[str, object]:
         """The plan as stored with a model (how references are taken)."""
         return {

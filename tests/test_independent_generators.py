@@ -19,10 +19,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models import augmented
 from models.analysis import analyze
 from models.dataset import load_runs
 from models.features import Prepared, prepare
 from tests import independent_machine, independent_shaft
+from tests.test_effect_stream import TOLERANCE_UM, streamed
+from tests.test_effect_stream import analyzed as analyzed_and_stored
 
 NETWORK_PROGRAMS = ("const-6000", "staircase", "spectrum", "rest-cycles", "warmup-production")
 LAG_FAMILIES = ("thermal_lag", "unsensed_heat")
@@ -128,3 +131,18 @@ def test_network_hidden_lag_removed_by_a_lag_family(tmp_path: Path) -> None:
         _, result = analysed(network_csv(tmp_path, "thermal_lag", seed))
         assert result.effect in LAG_FAMILIES, seed
         assert result.after.rmse_um <= 0.7 * result.before.rmse_um, seed
+
+
+def test_runs_opening_at_speed_stream_like_batch(tmp_path: Path) -> None:
+    # The runtime's streaming form starts the speed's lags cold and takes the speed
+    # from 0 r/min, as the analysis does, also when a run opens with the spindle turning.
+    path = shaft_csv(tmp_path, "speed_direct", 0)
+    document = analyzed_and_stored(path, tmp_path / "store")
+    extra = {"effect": "unsensed_heat", "params": {"tau_s": 3600.0}, "terms": 2}
+    document = dict(document, effects=[*document["effects"], extra])
+    coefficients = [*document["coefficients"]["all_um_per_unit"], 1.5, -0.4]
+    document["coefficients"] = dict(document["coefficients"], all_um_per_unit=coefficients)
+    assert [e["effect"] for e in document["effects"]] == ["speed_direct", "unsensed_heat"]
+    prepared = prepare(load_runs(path))
+    batch = augmented.predict(document, prepared)
+    assert np.max(np.abs(streamed(document, prepared) - batch)) < TOLERANCE_UM

@@ -153,6 +153,7 @@ def fit(
         f"references ({reference}): {len(recordings)} recording(s); rises are taken from the "
         "leading at-rest samples of each recording: " + " | ".join(" ".join(r) for r in recordings)
     )
+    click.echo(prepared.plan.error_line())
     outcome = fit_and_store(
         prepared,
         method,

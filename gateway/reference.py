@@ -7,6 +7,11 @@ first starts (``first-reading``), or values set in the configuration (``fixed``)
 It is kept in a small JSON file under the state folder, so a gateway restarted
 mid-shift, with a warm machine, keeps the cold reference instead of taking a
 warm one.
+
+The error has no reference here: a gateway never rebases its error. Models are
+fitted on the error as measured, whose reference is the model's own intercept
+(the stored ``error_reference``), and the loop compensates the prediction as it
+is, from the start of the recording to its end, whatever the spindle did first.
 """
 
 from __future__ import annotations

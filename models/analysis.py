@@ -13,8 +13,8 @@ The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
 3. A candidate is believed only when all of these hold (``RULES``):
    - the pooled held-out RMSE of the residual's shape within each run (about
      the run's own mean) falls by at least ``MIN_GAIN_PCT`` (10 %), and the
-     plain held-out RMSE falls too. A held-out run's offset is set by its
-     error reference (:mod:`models.references`), which no effect can predict.
+     plain held-out RMSE falls too. A held-out run's offset (its room level,
+     its probe's zero) is what no effect can predict.
      Both gains are reported, each under its own name (``shape_gain_pct``,
      ``rmse_gain_pct``, :mod:`models.analysis_result`);
    - the held-out RMSE falls in at least ``MIN_FOLD_SHARE`` (half) of the folds;
@@ -352,10 +352,10 @@ class ResidualAnalysis:
     def _shape_sse(self, predicted: np.ndarray) -> np.ndarray:
         """Per fold: SSE of the held-out residual about its own mean.
 
-        A held-out run's constant offset is set by its error reference (how the
-        run's zero was taken, :mod:`models.references`), which no effect term can
-        predict; judging the shape of the residual within each run keeps a
-        candidate from being believed for fitting offsets by chance.
+        A held-out run's offset (its room level, where its probe was zeroed)
+        is what no effect can predict; judging the shape of the residual
+        within each run keeps a candidate from being believed for fitting
+        offsets by chance.
         """
         residual = self.y - predicted
         return np.array(

@@ -8,7 +8,8 @@ model store never needs pickle.
 
 Inputs are a :class:`ModelInputs`: temperature *rises* (°C above the reference
 sample, see :mod:`models.references`) for named sensors, and the spindle speed in
-r/min. The target is the thermal error in µm, also taken from its reference.
+r/min. The target is the thermal error in µm as measured; its reference is the
+model's intercept.
 """
 
 from __future__ import annotations

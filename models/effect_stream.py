@@ -9,6 +9,9 @@ own Δt, using the same recursion as :func:`models.effect_terms.first_order_lag`
 
     x_k = a_k x_{k−1} + (1 − a_k) u_k,   a_k = exp(−Δt_k / τ),   x_0 = u_0
 
+(x_0 = 0 for the lags of the speed, ``unsensed_heat``: the part they stand
+for is cold when the stream starts, even with the spindle already turning)
+
 so that, fed the rows of one continuous recording in order, it gives the batch
 predictions (within float rounding).
 
@@ -261,6 +264,8 @@ class StreamingAugmented:
                 if previous is not None:
                     a = math.exp(-dt_s / term.tau_s)
                     values = a * previous + (1.0 - a) * values
+                elif term.effect == "unsensed_heat":
+                    values = np.zeros_like(values)  # the unsensed part starts cold
                 self._lags[term.index] = values
             row.append(values)
         self._time_s = float(time_s)

@@ -3,9 +3,9 @@
 Every candidate is a *family*: one physical effect with a small grid of
 parameter values (a time constant, a sensor name, a time origin). The analysis
 picks the value inside each validation fold, on that fold's training runs only.
-Every term is a *rise from the same reference* as the temperatures and
-the error (:mod:`models.references`): a term that is not zero at the reference
-would claim an error the target does not contain.
+Every term is zero in the error's reference state, the cold machine at rest
+(:mod:`models.references`): temperatures as rises from their reference, the
+speed from 0 r/min; the model's intercept carries the error's reference.
 
 The families:
 
@@ -27,7 +27,9 @@ The families:
   gateway without a probe does not have).
 
 Lag states start at the recording's first sample and carry across runs of one
-continuous recording; each recording that starts cold starts its filter afresh.
+continuous recording; each recording that starts cold starts its filter afresh:
+a rise's lag at the rise's first value (≈ 0, the reference), a lag of the speed
+at 0 (the unsensed part is cold, even when the spindle is already turning).
 """
 
 from __future__ import annotations
@@ -69,12 +71,19 @@ class EffectFamily:
 
 
 def first_order_lag(
-    values: np.ndarray, time_s: np.ndarray, recording: np.ndarray, tau_s: float
+    values: np.ndarray,
+    time_s: np.ndarray,
+    recording: np.ndarray,
+    tau_s: float,
+    start_cold: bool = False,
 ) -> np.ndarray:
     """x_k = a_k x_{k−1} + (1 − a_k) u_k, a_k = exp(−Δt_k / τ), per recording.
 
     The state starts at the recording's first value, so a rise that is 0 at the
-    reference stays 0 until the input moves. Evenly sampled recordings use
+    reference stays 0 until the input moves. With ``start_cold`` it starts at 0,
+    the cold machine at rest: the lag of a heat input (the speed) in a recording
+    that opens with the spindle already turning, whose unsensed part has not yet
+    warmed. Evenly sampled recordings use
     ``scipy.signal.lfilter`` (fast on million-row files); others step sample by
     sample with their own Δt.
     """
@@ -84,16 +93,18 @@ def first_order_lag(
     out = np.empty_like(u2)
     for s, e in zip(*group_bounds(recording), strict=True):
         segment = u2[s:e]
+        first = np.zeros_like(segment[:1]) if start_cold else segment[:1]
         dt = np.diff(time_s[s:e])
         if dt.size == 0:
-            out[s:e] = segment
+            out[s:e] = first
             continue
         if np.ptp(dt) <= UNIFORM_TOLERANCE * np.median(dt):
             a = float(np.exp(-np.median(dt) / tau_s))
-            out[s:e], _ = lfilter([1 - a], [1, -a], segment, axis=0, zi=a * segment[:1])
+            out[s] = first
+            out[s + 1 : e], _ = lfilter([1 - a], [1, -a], segment[1:], axis=0, zi=a * first)
         else:
             a_k = np.exp(-dt / tau_s)
-            state = segment[0].copy()
+            state = first[0].copy()
             out[s] = state
             for k in range(1, e - s):
                 state = a_k[k - 1] * state + (1 - a_k[k - 1]) * segment[k]
@@ -116,14 +127,20 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
     # Terms are made when a variant is built, not held: on a million-row file each
     # (n,) column is megabytes, and only one family is tried at a time.
     def speed_terms() -> np.ndarray:
+        # From 0 r/min, the error's reference state (the cold machine at rest), as the
+        # runtime takes them: a run that opens at speed keeps its growth at that speed.
         speed_krpm = data.speed_rpm / SPEED_SCALE_RPM
-        return prepared.plan.rises(np.column_stack([speed_krpm, speed_krpm**2]))
+        return np.column_stack([speed_krpm, speed_krpm**2])
 
     def ambient_rise() -> np.ndarray:
         return prepared.plan.rises(data.ambient_C)
 
-    def lagged(values: Callable[[], np.ndarray], tau: float) -> Callable[[], np.ndarray]:
-        return lambda: np.atleast_2d(first_order_lag(values(), time_s, recording, tau).T).T
+    def lagged(
+        values: Callable[[], np.ndarray], tau: float, start_cold: bool = False
+    ) -> Callable[[], np.ndarray]:
+        return lambda: (
+            np.atleast_2d(first_order_lag(values(), time_s, recording, tau, start_cold).T).T
+        )
 
     families: list[EffectFamily] = []
     if used_rises is not None:
@@ -145,8 +162,8 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
         families.append(
             EffectFamily(
                 "speed_direct",
-                "speed n and n² (n in 1000 r/min), as rises",
-                (Variant({}, speed_terms, "speed rise Δn, 1000 r/min"),),
+                "speed n and n² (n in 1000 r/min), from rest",
+                (Variant({}, speed_terms, "speed n, 1000 r/min"),),
             )
         )
         families.append(
@@ -156,8 +173,8 @@ def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> lis
                 tuple(
                     Variant(
                         {"tau_s": tau},
-                        lagged(speed_terms, tau),
-                        f"lag (τ = {tau:g} s) of Δn, 1000 r/min",
+                        lagged(speed_terms, tau, start_cold=True),
+                        f"lag (τ = {tau:g} s) of n, 1000 r/min",
                     )
                     for tau in HEAT_TAUS_S
                 ),

@@ -14,7 +14,7 @@ from models.references import ReferencePlan, plan_references
 
 @dataclass(frozen=True)
 class Prepared:
-    """Row-aligned model inputs and target (µm rise), with the reference plan used."""
+    """Row-aligned model inputs and target (µm), with the reference plan used."""
 
     data: MeasuredRuns
     inputs: ModelInputs
@@ -43,7 +43,8 @@ class Prepared:
 def prepare(
     data: MeasuredRuns, sensors: Sequence[str] | None = None, reference: str = "auto"
 ) -> Prepared:
-    """Rises of the declared sensors (°C) and of the target (µm) from their references."""
+    """Rises of the declared sensors (°C) from their references, and the target (µm) as
+    measured unless a recording reads from an origin of its own (``models/references.py``)."""
     names = tuple(sensors) if sensors is not None else data.sensors
     plan = plan_references(data, reference)
     rise_C = np.empty((data.n_samples, len(names)))
@@ -60,6 +61,6 @@ def prepare(
     return Prepared(
         data=data,
         inputs=inputs,
-        error_um=plan.rises(data.error_um),
+        error_um=plan.error(data.error_um),
         plan=plan,
     )

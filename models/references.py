@@ -1,17 +1,19 @@
 """Where temperature rises and errors are measured from.
 
-Every model works on *rises*: ΔT = T − T_ref and Δe = e − e_ref (paper 002 §4:
-"ΔT1 is the change of T1 relative to its initial temperature"). The question is
-which sample is the reference.
+Every model works on *rises*: ΔT = T − T_ref (paper 002 §4: "ΔT1 is the change
+of T1 relative to its initial temperature") and on the error as the probe measured
+it. The questions are which samples are the temperatures' reference, and what the
+error's reference is.
 
+Recordings
+----------
 - A run that starts cold (its own experiment, the machine at rest and at room
-  temperature) is its own reference: its first samples (see below).
+  temperature) is its own recording.
 - A run that is one part of a continuous recording (the heating–cooling cycles of
   ``fl_thermal.csv``) does *not* start cold: the machine is still warm from the
-  cycle before, and the displacement probe was not re-zeroed. Taking that run's
-  first samples as reference would claim zero error in a warm machine. Its
-  reference is the start of the recording it belongs to, so the rises
-  carry across cycles exactly as the machine carried its heat.
+  cycle before, and the displacement probe was not re-zeroed. Its references are
+  those of the recording it belongs to, so the rises carry across cycles exactly
+  as the machine carried its heat.
 
 Policies (``--reference``):
 
@@ -20,17 +22,46 @@ Policies (``--reference``):
 - ``auto`` (default): a run continues the recording of the run before it in the
   file when its first ``time_s`` follows that run's last ``time_s`` by more than
   0 and at most ``CONTINUITY_FACTOR`` (3) × that run's median sample interval —
-  i.e. the clock ran on without a break. Otherwise (time restarts, or a gap) it
-  starts a new recording and is taken to start cold.
+  i.e. the clock ran on without a break. Otherwise (time restarts, clock-of-day
+  stamps of another day, or a gap) it starts a new recording and is taken to
+  start cold.
 
+Temperatures (and ``ambient_C`` and other candidate signals)
+------------------------------------------------------------
 The reference of a recording is the mean of its leading samples taken *at rest*
 (``speed_rpm`` = 0) within its first ``REFERENCE_WINDOW_S`` (600 s): a thermal
 test zeroes its probes on the cold machine before the spindle starts (ISO 230-3;
-``fl_thermal.csv`` opens with 7.5 min at rest). One probe reading carries the
-probe's noise into every later rise of its run as a constant offset; the mean of
-several at-rest readings does not. A recording whose first sample is already at
-speed has its first sample as reference. The speed's own reference is then 0
-whenever the recording starts at rest, the convention the runtime uses too.
+``fl_thermal.csv`` opens with 7.5 min at rest). A recording whose first sample
+is already at speed has its first sample as reference (a temperature sensor's
+noise, a few hundredths of a °C, is negligible next to the rises). The speed's
+own reference is 0 r/min: the cold reference is the machine at rest.
+
+The error: a model parameter, not one reading
+----------------------------------------------
+The error is **never** rebased on a reading of the recording it belongs to by
+default. One probe reading carries the probe's noise (and, when the spindle is
+already turning, the direct speed growth at that speed) into every later sample
+of the recording as a constant offset that no model can predict. The error's
+reference is instead the model's intercept, fitted with the model on every
+training recording together: one common zero, the probe's zero on the cold
+machine at rest, as a gauge is zeroed before a test. A gateway works the same
+way: it never rebases its error mid-recording; it compensates the model's
+prediction, intercept included, from its cold temperature reference
+(``gateway/reference.py``).
+
+Only when the data say that a recording's probe reads from an origin of its own
+is that recording's error taken from a reference of its own. The test
+(``own_origin``): the recording opens *at rest* (its first sample has
+``speed_rpm`` = 0) and the mean of its at-rest lead-in (the same rows as the
+temperatures' reference) lies more than ``ZERO_TOLERANCE_UM`` (1 µm) from zero.
+A cold machine at rest has no thermal error, so a probe that reads far from zero
+there was not zeroed on this machine state (an absolute gauge, or one zeroed for
+another test); the lead-in mean is then that recording's origin and is
+subtracted. A recording that opens at speed never has an origin of its own (its
+first readings already hold the speed's growth); one that opens at rest reading
+zero within the tolerance keeps the error as measured (subtracting its lead-in
+mean would only add the mean's noise). 1 µm is several times a probe's noise
+(0.1–0.5 µm) and well below any growth worth compensating.
 """
 
 from __future__ import annotations
@@ -44,6 +75,7 @@ from models.dataset import MeasuredRuns, group_bounds
 
 CONTINUITY_FACTOR = 3.0
 REFERENCE_WINDOW_S = 600.0
+ZERO_TOLERANCE_UM = 1.0
 
 
 @dataclass(frozen=True)
@@ -54,10 +86,36 @@ class ReferencePlan:
     recording: np.ndarray  # (n,) recording number of each row
     recording_runs: tuple[tuple[str, ...], ...]  # run ids of each recording
     reference_rows: np.ndarray  # (n,) bool: the rows each recording's reference is the mean of
+    #: (recordings,) origin of each recording's error, µm: 0 where the error is kept as
+    #: measured (the model's intercept is its reference), else the at-rest lead-in mean
+    error_origin_um: np.ndarray
 
     def rises(self, values: np.ndarray) -> np.ndarray:
         """``values`` above each recording's reference (see :func:`rises`)."""
         return rises(values, self.recording, self.reference_rows)
+
+    @property
+    def own_origin(self) -> np.ndarray:
+        """(recordings,) bool: whose error is taken from an origin of its own."""
+        return self.error_origin_um != 0.0
+
+    def error(self, error_um: np.ndarray) -> np.ndarray:
+        """The error a model is fitted on: as measured, less an own origin where the data
+        show one (module docstring); never a subtraction of one reading."""
+        error_um = np.asarray(error_um, dtype=float)
+        if not self.own_origin.any():
+            return error_um
+        return error_um - self.error_origin_um[self.recording]
+
+    def error_line(self) -> str:
+        """One line for people: where the error is taken from."""
+        own = [
+            f"{'+'.join(runs)} {origin:+.2f} µm"
+            for runs, origin in zip(self.recording_runs, self.error_origin_um, strict=True)
+            if origin != 0.0
+        ]
+        text = "error as measured, its reference the model's intercept"
+        return text + (f"; own origin subtracted: {', '.join(own)}" if own else "")
 
     def describe(self) -> dict[str, object]:
         """The plan as stored with a model (how references are taken)."""
@@ -73,6 +131,16 @@ class ReferencePlan:
                 "sample interval"
             ),
             "recordings": [list(runs) for runs in self.recording_runs],
+            "error_reference": {
+                "rule": (
+                    "the error as measured, its reference the model's intercept fitted on "
+                    "every training recording; a recording that opens at rest with an at-rest "
+                    f"lead-in mean more than {ZERO_TOLERANCE_UM:g} um from zero reads from an "
+                    "origin of its own, and that mean is subtracted"
+                ),
+                "zero_tolerance_um": ZERO_TOLERANCE_UM,
+                "origin_um": [float(v) for v in self.error_origin_um],
+            },
         }
 
 
@@ -98,11 +166,13 @@ def plan_references(data: MeasuredRuns, policy: str = "auto") -> ReferencePlan:
     for (run_id, rows), number in zip(slices, recording_of_run, strict=True):
         recording[rows] = number
         groups.setdefault(number, []).append(run_id)
+    chosen = reference_rows(recording, data.time_s, data.speed_rpm)
     return ReferencePlan(
         policy=policy,
         recording=recording,
         recording_runs=tuple(tuple(groups[k]) for k in sorted(groups)),
-        reference_rows=reference_rows(recording, data.time_s, data.speed_rpm),
+        reference_rows=chosen,
+        error_origin_um=error_origins(data.error_um, recording, chosen, data.speed_rpm),
     )
 
 
@@ -118,6 +188,26 @@ def reference_rows(recording: np.ndarray, time_s: np.ndarray, speed_rpm: np.ndar
         moving = np.flatnonzero(speed_rpm[start : start + window] != 0)
         chosen[start : start + (moving[0] if moving.size else window)] = True
     return chosen
+
+
+def error_origins(
+    error_um: np.ndarray, recording: np.ndarray, reference: np.ndarray, speed_rpm: np.ndarray
+) -> np.ndarray:
+    """(recordings,) origin of each recording's error, µm (the test of the module docstring).
+
+    0 for a recording that opens at speed or whose at-rest lead-in (the ``reference``
+    rows) reads zero within ``ZERO_TOLERANCE_UM``; else the lead-in mean.
+    """
+    starts, ends = group_bounds(recording)
+    origins = np.zeros(starts.size)
+    for k, (start, end) in enumerate(zip(starts, ends, strict=True)):
+        if speed_rpm[start] != 0:
+            continue
+        lead_in = np.asarray(error_um[start:end], dtype=float)[reference[start:end]]
+        mean = float(lead_in.mean())
+        if abs(mean) > ZERO_TOLERANCE_UM:
+            origins[k] = mean
+    return origins
 
 
 def _follows_on(time_s: np.ndarray, previous: slice, current: slice) -> bool:

@@ -15,10 +15,13 @@ compensating a machine wrongly:
   made for them when it was saved. The loaded model must reproduce them exactly;
   this catches a file written by a different, incompatible version of the maths.
 
-Optional field ``sensor_relations`` (absent in files saved before it existed,
-which still load): how the training sensors' rises relate to each other
-(:mod:`models.sensor_relations`), for the runtime's plausibility check. It is
-covered by the checksum like every other field and validated on load.
+Optional fields ``error_reference`` and ``sensor_relations`` (absent in files
+saved before they existed, which still load). ``error_reference``: the model's
+error at zero rises and 0 r/min, i.e. the error's reference fitted as the
+model's intercept (:mod:`models.references`). ``sensor_relations``: how the
+training sensors' rises relate to each other (:mod:`models.sensor_relations`),
+for the runtime's plausibility check. Both are covered by the checksum like
+every other field and validated on load.
 
 Writes go to a temporary file that is then renamed, so a crash mid-write never
 leaves half a model behind.
@@ -93,6 +96,10 @@ class StoredModel(BaseModel):
     conditioning: dict[str, Any] | None = None
     # Optional, so that files saved before it existed still load (see the module docstring).
     sensor_relations: dict[str, Any] | None = None
+    #: the error's reference (:mod:`models.references`): the fitted model's error at zero
+    #: rises and 0 r/min (its intercept) and each training recording's own origin; absent
+    #: in files written when the error was rebased on each recording's leading readings.
+    error_reference: dict[str, Any] | None = None
 
     def relations(self) -> SensorRelations | None:
         """The training sensors' relations, or None for a file saved without them."""
@@ -167,7 +174,7 @@ def build_document(
         "target": {
             "name": target,
             "unit": "µm",
-            "meaning": "thermal Z error rise from the reference; positive = tool towards table",
+            "meaning": "thermal Z error as measured; positive = tool towards table",
         },
         "reference": reference,
         "params": model.fitted_params(),
@@ -188,10 +195,28 @@ def build_document(
         document["conditioning"] = conditioning
     if sensor_relations is not None:
         document["sensor_relations"] = sensor_relations
+    document["error_reference"] = error_reference_record(model, inputs.sensors, reference)
     # Round-trip through JSON so the checksum covers exactly what is written.
     document = json.loads(json.dumps(document, ensure_ascii=False))
     document["sha256"] = _checksum(document)
     return document
+
+
+def error_reference_record(
+    model: ThermalModel, sensors: tuple[str, ...], reference: dict[str, Any]
+) -> dict[str, Any]:
+    """The error's reference as stored with a model (field ``error_reference``)."""
+    cold = ModelInputs(rise_C=np.zeros((1, len(sensors))), sensors=sensors, speed_rpm=np.zeros(1))
+    origins = reference.get("error_reference", {}).get("origin_um", [])
+    return {
+        "intercept_um": float(model.predict(cold)[0]),
+        "meaning": (
+            "the model's error at zero rises and 0 r/min: the probe's zero on the cold machine "
+            "at rest, fitted with the model on every training recording; the runtime "
+            "compensates the prediction as it is and never rebases the error"
+        ),
+        "recording_origin_um": [float(v) for v in origins],
+    }
 
 
 def refuse_non_finite(document: dict[str, Any]) -> None:

@@ -90,13 +90,14 @@ def rows_of(prepared: Prepared, sensors: tuple[str, ...]) -> Iterator[Row]:
 
 
 def streamed(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
-    """Every row stepped in order; each recording starts a fresh stream at its reference."""
+    """Every row stepped in order; each recording starts a fresh stream at its reference
+    (speed from 0 r/min, as the runtime takes it)."""
     out = np.empty(prepared.data.n_samples)
     sensors = StreamingAugmented(document).sensors
     stream = None
     for k, row in enumerate(rows_of(prepared, sensors)):
         if stream is None or row.starts_recording:
-            stream = StreamingAugmented(document, speed_ref_rpm=row.speed_rpm)
+            stream = StreamingAugmented(document)
         if row.starts_run:
             stream.start_run(row.time_s)
         value = stream.step(row.time_s, row.rises_C, row.speed_rpm, row.ambient_rise_C)

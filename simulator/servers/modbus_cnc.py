@@ -135,7 +135,7 @@ class CncModbusServer(ModbusEndpoint):
         return ModbusTcpServer(
             [device],
             address=(self._host, self._port),
-            trace_pdu=known_devices_only([self._device_id]),
+            trace_pdu=known_devices_only([self._device_id], received=self.received),
         )
 
     async def publish(self) -> None:

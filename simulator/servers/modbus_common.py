@@ -12,7 +12,10 @@ request is the device ``action`` coroutine; both servers build on it the same wa
 from __future__ import annotations
 
 import math
+import time
+from collections import deque
 from collections.abc import Callable, Collection, Coroutine
+from dataclasses import dataclass
 from functools import cache
 from typing import Self, cast
 
@@ -25,6 +28,8 @@ from drivers.register_map import DeviceRegisters, FieldCodec
 from drivers.schema import TRANSMITTER_MAP, load_register_map
 from simulator.link import ChannelReading, ChannelStatus
 
+#: Requests an endpoint remembers in ``received``.
+RECEIVED_KEPT = 1000
 #: Function codes a Modbus client uses to write holding registers.
 WRITE_FUNCTION_CODES = frozenset({6, 16, 22, 23})
 #: Function codes that address bits (coils, discrete inputs): none of our devices has any.
@@ -109,8 +114,21 @@ def is_internal_write(function_code: int, values: object) -> bool:
     return values is not None and function_code in (3, 4)
 
 
+@dataclass(frozen=True)
+class ReceivedRequest:
+    """One request a simulated device answered: when (monotonic s), what, where, how many."""
+
+    at_s: float
+    device_id: int
+    function_code: int
+    address: int
+    count: int
+
+
 def known_devices_only(
-    device_ids: Collection[int], silenced: Collection[int] = frozenset()
+    device_ids: Collection[int],
+    silenced: Collection[int] = frozenset(),
+    received: deque[ReceivedRequest] | None = None,
 ) -> Callable[[bool, ModbusPDU], ModbusPDU]:
     """A pymodbus ``trace_pdu`` hook that drops requests for device ids nobody has.
 
@@ -119,13 +137,22 @@ def known_devices_only(
     traceback. Returning no PDU makes the request handler skip the request, so clients
     see the same timeout as on a real bus. ``silenced`` (a live collection the
     caller may change) makes present devices fall silent too, as a slave that lost
-    power or its cable does.
+    power or its cable does. Every request that is let through is appended to
+    ``received`` (a bounded deque), so a test can count what a client sent.
     """
     known = frozenset(device_ids)
 
     def trace_pdu(sending: bool, pdu: ModbusPDU) -> ModbusPDU:
-        if not sending and (pdu.dev_id not in known or pdu.dev_id in silenced):
+        if sending:
+            return pdu
+        if pdu.dev_id not in known or pdu.dev_id in silenced:
             return cast(ModbusPDU, None)
+        if received is not None:
+            count = getattr(pdu, "count", 0)
+            address = getattr(pdu, "address", 0)
+            received.append(
+                ReceivedRequest(time.monotonic(), pdu.dev_id, pdu.function_code, address, count)
+            )
         return pdu
 
     return trace_pdu
@@ -142,6 +169,8 @@ class ModbusEndpoint:
 
     def __init__(self) -> None:
         self._server: ModbusTcpServer | ModbusSerialServer | None = None
+        #: The latest requests the server let through (oldest dropped), for tests.
+        self.received: deque[ReceivedRequest] = deque(maxlen=RECEIVED_KEPT)
 
     def _make_server(self) -> ModbusTcpServer | ModbusSerialServer:
         raise NotImplementedError

@@ -161,7 +161,7 @@ class TransmitterServer(ModbusEndpoint):
             for device in self._devices
         ]
         trace_pdu = known_devices_only(
-            [device.device_id for device in self._devices], self.silenced
+            [device.device_id for device in self._devices], self.silenced, self.received
         )
         if self._tcp is not None:
             return ModbusTcpServer(sim_devices, address=self._tcp, trace_pdu=trace_pdu)

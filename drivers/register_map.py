@@ -98,22 +98,50 @@ class FieldCodec:
         return int(math.copysign(math.floor(abs(counts) + 0.5), counts)), False
 
 
-@dataclass(frozen=True)
 class _Run:
-    """Consecutive same-typed fields inside one request: decoded by one pymodbus call."""
+    """Consecutive same-typed fields inside one request: decoded by one pymodbus call.
 
-    offset: int  # first register, counted in the concatenated replies
-    fields: tuple[FieldCodec, ...]
+    The last registers and their values are kept: a temperature changes its
+    0.1 °C counts every few seconds, so most cycles convert nothing.
+    """
+
+    def __init__(self, offset: int, fields: tuple[FieldCodec, ...]) -> None:
+        self.offset = offset  # first register, counted in the concatenated replies
+        self.fields = fields
+        self._end = offset + fields[0].width * len(fields)
+        self._last: tuple[list[int], list[float]] | None = None
 
     def decode(self, registers: Sequence[int], into: dict[str, float]) -> None:
-        first = self.fields[0]
-        width = first.width
-        words = registers[self.offset : self.offset + width * len(self.fields)]
-        values = decode_many(words, first.data_type, first.byte_order, first.word_order)
-        if first.data_type == "float32":
-            values = [shortest_float32(v) for v in values]
+        words = list(registers[self.offset : self._end])
+        last = self._last
+        if last is not None and last[0] == words:
+            values = last[1]
+        else:
+            first = self.fields[0]
+            if first.width == 1:
+                values = _single_registers(words, first.data_type, first.byte_order)
+            else:
+                values = decode_many(words, first.data_type, first.byte_order, first.word_order)
+                if first.data_type == "float32":
+                    values = [shortest_float32(v) for v in values]
+            self._last = (words, values)
         for codec, raw in zip(self.fields, values, strict=True):
             into[codec.name] = raw
+
+
+#: Values of single 16-bit registers already converted, by (data type, byte order).
+#: At most 65 536 entries each: a register has no more values.
+_WORDS: dict[tuple[str, str], dict[int, float]] = {}
+
+
+def _single_registers(words: list[int], data_type: str, byte_order: Order) -> list[float]:
+    """int16/uint16 values of registers; pymodbus converts only words not seen before."""
+    known = _WORDS.setdefault((data_type, byte_order), {})
+    missing = [w for w in words if w not in known]
+    if missing:
+        for word, value in zip(missing, decode_many(missing, data_type, byte_order), strict=True):
+            known[word] = value
+    return [known[w] for w in words]
 
 
 class MacroLayout:
@@ -158,6 +186,17 @@ class DeviceRegisters:
         self.workarounds = workarounds if workarounds is not None else register_map.workarounds
         self.fields = {item.name: self._resolve(item) for item in register_map.fields}
         self.faults: FaultConvention | None = register_map.faults
+        faults = register_map.faults
+        #: The fault convention as look-ups: the good status, texts by status, names by code.
+        self.ok_status = faults.status_codes["ok"] if faults is not None else 0
+        self.status_texts = (
+            {c: fault_meaning(n) for n, c in faults.status_codes.items() if n != "ok"}
+            if faults is not None
+            else {}
+        )
+        self.value_code_names = (
+            {c: n for n, c in faults.value_codes.items()} if faults is not None else {}
+        )
         self.channels = tuple(self.fields[name] for name in register_map.channels)
         self.requests = self._plan()
         self._runs = self._runs_of(self.requests)

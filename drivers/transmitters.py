@@ -30,8 +30,8 @@ from pymodbus.pdu import ModbusPDU
 
 from drivers.backoff import Backoff
 from drivers.link_health import LinkHealth
-from drivers.register_map import DeviceRegisters, ReadRequest, fault_meaning
-from drivers.schema import TRANSMITTER_MAP, FaultConvention, load_register_map
+from drivers.register_map import DeviceRegisters, FieldCodec, ReadRequest, fault_meaning
+from drivers.schema import TRANSMITTER_MAP, load_register_map
 
 PARITIES = ("N", "E", "O")
 #: Modbus exceptions with which a TCP gateway says "the device behind me did not answer".
@@ -238,6 +238,15 @@ def _shipped(name: str) -> DeviceRegisters:
     return DeviceRegisters(load_register_map(name))
 
 
+@dataclass
+class _DecodeMemo:
+    """A device's last registers and results, and per sensor its last (raw, status, result)."""
+
+    registers: list[int] = field(default_factory=list)
+    results: dict[str, ChannelResult] = field(default_factory=dict)
+    channels: dict[str, tuple[float, int | None, ChannelResult]] = field(default_factory=dict)
+
+
 @dataclass(frozen=True)
 class DeviceMap:
     """One input module: its device id, the sensor wired to each channel, its register map.
@@ -253,6 +262,8 @@ class DeviceMap:
     registers: DeviceRegisters = field(
         default_factory=lambda: _shipped(TRANSMITTER_MAP), compare=False, repr=False
     )
+    #: What :func:`decode_channels` decoded last, to reuse what did not change.
+    memo: _DecodeMemo = field(default_factory=lambda: _DecodeMemo(), compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not 1 <= self.device_id <= 247:
@@ -293,51 +304,49 @@ def decode_channels(device: DeviceMap, registers: Sequence[int]) -> dict[str, Ch
     even with status OK: a clamped reading has the same counts, so only the status
     tells them apart, and a module that says OK next to a fault code is not to be
     trusted. Without a status field, a value code is the fault it names.
+    A channel whose raw value and status are those of the previous call keeps its
+    previous (immutable) result object.
     """
+    memo = device.memo
+    if memo.results and memo.registers == registers:
+        return dict(memo.results)
     layout = device.registers
     raws = layout.decode_raw(registers)
-    faults = layout.faults
     results: dict[str, ChannelResult] = {}
     for codec, sensor in zip(layout.channels, device.channels, strict=False):
         if sensor is None:
             continue
         raw = raws[codec.name]
-        if faults is None:
-            results[sensor] = ChannelResult(sensor, codec.value(raw), None, None)
+        status = int(raws[codec.status]) if codec.status is not None else None
+        previous = memo.channels.get(sensor)
+        if previous is not None and previous[0] == raw and previous[1] == status:
+            results[sensor] = previous[2]
             continue
-        ok = faults.status_codes["ok"]
-        code_name = _value_code_name(faults, raw)
-        if codec.status is not None:
-            status = int(raws[codec.status])
-            if status != ok:
-                text = _status_text(faults, status)
-                results[sensor] = ChannelResult(sensor, None, status, text)
-                continue
-            if code_name is not None:
-                results[sensor] = ChannelResult(
-                    sensor, None, status, f"fault code {_number(raw)} with status OK"
-                )
-                continue
-        elif code_name is not None:
-            status_code = faults.status_codes.get(code_name)
-            results[sensor] = ChannelResult(sensor, None, status_code, fault_meaning(code_name))
-            continue
-        results[sensor] = ChannelResult(sensor, codec.value(raw), ok, None)
-    return results
+        results[sensor] = _channel_result(layout, codec, sensor, raw, status)
+        memo.channels[sensor] = (raw, status, results[sensor])
+    memo.registers, memo.results = list(registers), results
+    return dict(results)
 
 
-def _value_code_name(faults: FaultConvention, raw: float) -> str | None:
-    for name, code in faults.value_codes.items():
-        if raw == code:
-            return name
-    return None
-
-
-def _status_text(faults: FaultConvention, status: int) -> str:
-    for name, code in faults.status_codes.items():
-        if code == status:
-            return fault_meaning(name)
-    return f"unknown status {status}"
+def _channel_result(
+    layout: DeviceRegisters, codec: FieldCodec, sensor: str, raw: float, status: int | None
+) -> ChannelResult:
+    """One channel's result from its raw value and status, under the map's fault convention."""
+    faults = layout.faults
+    if faults is None:
+        return ChannelResult(sensor, codec.value(raw), None, None)
+    ok = layout.ok_status
+    code_name = layout.value_code_names.get(raw)
+    if status is not None:
+        if status != ok:
+            text = layout.status_texts.get(status, f"unknown status {status}")
+            return ChannelResult(sensor, None, status, text)
+        if code_name is not None:
+            return ChannelResult(sensor, None, status, f"fault code {_number(raw)} with status OK")
+    elif code_name is not None:
+        status_code = faults.status_codes.get(code_name)
+        return ChannelResult(sensor, None, status_code, fault_meaning(code_name))
+    return ChannelResult(sensor, codec.value(raw), ok, None)
 
 
 def _number(raw: float) -> str:

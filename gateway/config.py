@@ -6,9 +6,12 @@ never live in the file: a password is named by ``password_env`` (an environment
 variable) or ``password_file`` (a file readable by the gateway only).
 
 The file is read by :mod:`drivers.yaml_loader` (duplicate keys, alias bombs,
-non-finite numbers, encodings: refused with the line). The ``simulator``
-section (served by ``python -m gateway simulate``) follows the schema of
-:mod:`simulator.serve`, checked here by the same code, with line numbers.
+non-finite numbers, encodings: refused with the line). Buses, ports, devices
+and their register maps are the shared models of :mod:`drivers.schema`; a
+device's ``map`` (a shipped map's name, a file relative to this one, or inline)
+is checked with it, and a problem inside a map file names that file's line. The
+``simulator`` section (served by ``python -m gateway simulate``) follows the
+schema of :mod:`simulator.serve`, checked here by the same code, with line numbers.
 
 What the CNC cannot hold or a machine tool should never do is refused too:
 a clamp beyond :data:`MAX_CLAMP_UM` or beyond the ±9999 units a macro variable

@@ -24,7 +24,7 @@ from drivers.cnc import SpeedReading
 from drivers.cnc_modbus import ModbusCnc
 from drivers.register_map import DeviceRegisters, ReadRequest
 from drivers.schema import MAPS_DIR, RegisterMap, load_register_map
-from drivers.transmitters import ChannelResult, DeviceMap, TransmitterBus
+from drivers.transmitters import ChannelResult, DeviceMap, TransmitterBus, decode_channels
 from drivers.yaml_loader import YamlError
 from gateway.config import ConfigError, load_config
 from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
@@ -408,3 +408,18 @@ def test_a_device_names_a_map_by_name_or_path_and_the_default_is_the_pt100(tmp_p
         ConfigError, match=r"config.yaml:\d+: machines\[0\].*map: no register map 'pt9'"
     ):
         load_config(config_naming(tmp_path, "pt9"))
+
+
+def test_decoding_reuses_only_what_did_not_change() -> None:
+    device = DeviceMap(1, ("T1", "T2", None, "T4"))
+    registers = [235, 0xFFCC, 0, 0x7FFF] + [0] * 4 + [0, 0, 0, 0] + [0] * 4
+    first = decode_channels(device, registers)
+    assert first["T1"] == ChannelResult("T1", 23.5, 0, None)
+    assert first["T4"] == ChannelResult("T4", None, 0, "fault code 32767 with status OK")
+    again = decode_channels(device, list(registers))
+    assert again == first and again is not first  # the caller may change its copy
+    registers[0], registers[11] = 236, 1  # T1 warms by one count, T4's status says open
+    changed = decode_channels(device, registers)
+    assert changed["T1"] == ChannelResult("T1", 23.6, 0, None)
+    assert changed["T4"] == ChannelResult("T4", None, 1, "open circuit")
+    assert changed["T2"] is first["T2"]  # unchanged channel: the same result object

@@ -1,9 +1,13 @@
 """The CNC over Modbus TCP: spindle state in holding registers, macros as float32.
 
-For controllers reached through an option board or a PLC gateway. The register
-addresses are configurable; the defaults are the simulator's map (MODBUS.md):
-float32 values in big-endian word order (high word at the lower address), the run
-mode as uint16, macro #n at ``macro_base + 2·(n − macro_first)``, written with FC16.
+For controllers reached through an option board or a PLC gateway. The registers
+are a :class:`drivers.schema.RegisterMap` (fields ``actual_speed_rpm``,
+``commanded_speed_rpm``, optional ``run_mode``, and a ``macros`` block), in any
+byte and word order; without one, the ``*_register`` addresses describe the
+simulator's layout (``drivers/maps/sim_cnc.yaml``, MODBUS.md): float32 with the
+high word at the lower address, the run mode as uint16, macro #n at
+``macro_base + 2·(n − macro_first)``, written with FC16. The spindle state is
+read in one request per contiguous block.
 
 The connection is :class:`drivers.transmitters.ModbusConnection` (the gateway's one
 pymodbus client, with a life cycle the gateway owns); the reconnect policy is
@@ -12,7 +16,7 @@ pymodbus client, with a life cycle the gateway owns); the reconnect policy is
 
 from __future__ import annotations
 
-import itertools
+import asyncio
 import math
 import time
 from collections.abc import Awaitable, Callable
@@ -20,7 +24,8 @@ from typing import TypeVar
 
 from drivers.backoff import Backoff
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
-from drivers.register_codec import float32_to_registers, registers_to_float32_shortest
+from drivers.register_map import DeviceRegisters, MacroLayout, ReadRequest
+from drivers.schema import RegisterMap, Workarounds, check_cnc_map, cnc_map
 from drivers.transmitters import (
     ModbusConnection,
     ModbusLinkLostError,
@@ -55,6 +60,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         macro_first: int = 500,
         timeout_s: float = 1.0,
         *,
+        register_map: RegisterMap | None = None,
+        workarounds: Workarounds | None = None,
         backoff: Backoff | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
@@ -69,25 +76,23 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         self.host = host
         self.port = port
         self.device_id = device_id
-        self._speed_register = speed_register
-        self._commanded_register = commanded_register
-        self._run_mode_register = run_mode_register
-        self._macro_base = macro_base_register
-        self._macro_first = macro_first
-        #: (start register, count) of each value read by read_speed.
-        self._items = [(speed_register, 2), (commanded_register, 2)]
-        if run_mode_register is not None:
-            self._items.append((run_mode_register, 1))
-        self._span = _contiguous_span(self._items)
+        if register_map is None:
+            register_map = cnc_map(
+                speed_register,
+                commanded_register,
+                run_mode_register,
+                macro_base_register,
+                macro_first,
+            )
+        check_cnc_map(register_map)
+        self.registers = DeviceRegisters(register_map, workarounds)
+        assert self.registers.macros is not None  # check_cnc_map made sure
+        self._macros: MacroLayout = self.registers.macros
+        self._has_run_mode = "run_mode" in self.registers.fields
 
     def macro_register(self, number: int) -> int:
-        """First (high-word) register of macro #number."""
-        if number < self._macro_first:
-            raise ValueError(f"macro #{number} is below the mapped range from #{self._macro_first}")
-        register = self._macro_base + 2 * (number - self._macro_first)
-        if register + 1 > 0xFFFF:
-            raise ValueError(f"macro #{number} maps beyond register 65535")
-        return register
+        """First register of macro #number."""
+        return self._macros.register(number)
 
     # -- CncClient ----------------------------------------------------------------
 
@@ -95,14 +100,11 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         """Actual and commanded speed and run mode; one request when they are adjacent."""
 
         async def read(link: ModbusConnection) -> SpeedReading:
-            words = await self._read_items(link)
-            run_mode = None
-            if self._run_mode_register is not None:
-                run_mode = words[self._run_mode_register][0]
+            values = self.registers.decode(await self._read_requests(link))
             return SpeedReading(
-                actual_rpm=registers_to_float32_shortest(*words[self._speed_register]),
-                commanded_rpm=registers_to_float32_shortest(*words[self._commanded_register]),
-                run_mode=run_mode,
+                actual_rpm=values["actual_speed_rpm"],
+                commanded_rpm=values["commanded_speed_rpm"],
+                run_mode=int(values["run_mode"]) if self._has_run_mode else None,
             )
 
         return await self._call("reading spindle speed", read)
@@ -116,7 +118,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         register = self.macro_register(number)
         if not math.isfinite(value) or abs(value) > _FLOAT32_MAX:
             raise ValueError(f"macro #{number}: {value!r} is not a finite float32")
-        words = list(float32_to_registers(value))
+        words = self._macros.encode(value)
 
         async def write(link: ModbusConnection) -> None:
             await _refusals_as_cnc(link.write_registers(register, words, self.device_id))
@@ -128,10 +130,10 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         register = self.macro_register(number)
 
         async def read(link: ModbusConnection) -> float:
-            high, low = await _refusals_as_cnc(
-                link.read_holding_registers(register, 2, self.device_id)
+            words = await _refusals_as_cnc(
+                link.read_holding_registers(register, self._macros.width, self.device_id)
             )
-            return registers_to_float32_shortest(high, low)
+            return self._macros.decode(words)
 
         return await self._call(f"reading macro #{number} (register {register})", read)
 
@@ -145,18 +147,20 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
     async def _discard(self, session: ModbusConnection) -> None:
         session.close()
 
-    async def _read_items(self, link: ModbusConnection) -> dict[int, list[int]]:
-        """The registers of speed, commanded speed and run mode, by start address."""
-        if self._span is not None:
-            start, count = self._span
-            registers = await _refusals_as_cnc(
-                link.read_holding_registers(start, count, self.device_id)
-            )
-            return {a: registers[a - start : a - start + n] for a, n in self._items}
-        return {
-            a: await _refusals_as_cnc(link.read_holding_registers(a, n, self.device_id))
-            for a, n in self._items
-        }
+    async def _read_requests(self, link: ModbusConnection) -> list[int]:
+        """The map's read requests in turn (one per contiguous block), replies concatenated."""
+        pause_s = self.registers.workarounds.pause_between_requests_s
+        registers: list[int] = []
+        for index, request in enumerate(self.registers.requests):
+            if index and pause_s > 0:
+                await asyncio.sleep(pause_s)
+            registers += await _refusals_as_cnc(self._read(link, request))
+        return registers
+
+    async def _read(self, link: ModbusConnection, request: ReadRequest) -> list[int]:
+        if request.register_type == "input":
+            return await link.read_input_registers(request.address, request.count, self.device_id)
+        return await link.read_holding_registers(request.address, request.count, self.device_id)
 
 
 async def _refusals_as_cnc(request: Awaitable[T]) -> T:
@@ -165,18 +169,3 @@ async def _refusals_as_cnc(request: Awaitable[T]) -> T:
         return await request
     except ModbusRefusedError as exc:
         raise CncRefusedError(str(exc)) from exc
-
-
-def _contiguous_span(blocks: list[tuple[int, int]]) -> tuple[int, int] | None:
-    """(start, count) when the register blocks tile one range without gaps, else None.
-
-    Reading them in one request gives values from the same instant; a gap could be
-    unmapped on the CNC (an exception for the whole request), so then each is read
-    on its own.
-    """
-    ordered = sorted(blocks)
-    for (start, count), (next_start, _) in itertools.pairwise(ordered):
-        if start + count != next_start:
-            return None
-    first, last = ordered[0], ordered[-1]
-    return first[0], last[0] + last[1] - first[0]

@@ -1,10 +1,11 @@
 """Temperature transmitters over Modbus RTU or TCP, and the gateway's one pymodbus client.
 
 Pt100 input modules (8 channels each, one device id per module, several per RS-485
-bus or behind one TCP port) report 0.1 °C counts and a status per channel; the map
-is ``simulator/servers/MODBUS.md``. :class:`TransmitterBus` reads every module once per
-cycle and never raises for a field fault: each channel comes back with a value or
-with the reason it has none.
+bus or behind one TCP port) report 0.1 °C counts and a status per channel; each
+device's registers are a :class:`drivers.schema.RegisterMap` (by default
+``drivers/maps/pt100_8ch.yaml``, documented in ``simulator/servers/MODBUS.md``).
+:class:`TransmitterBus` reads every module once per cycle and never raises for a
+field fault: each channel comes back with a value or with the reason it has none.
 
 :class:`ModbusConnection` is the only place in the gateway that uses pymodbus (the
 CNC Modbus driver builds on it too), so the next pymodbus API change is fixed once.
@@ -17,8 +18,11 @@ slave on the bus down with one dead one (#1654).
 from __future__ import annotations
 
 import asyncio
+import math
+import time
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
+from functools import cache
 
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -27,15 +31,9 @@ from pymodbus.pdu import ModbusPDU
 from drivers.backoff import Backoff
 from drivers.bus_hub import BusHub, rtu_silence_s
 from drivers.link_health import LinkHealth
-from drivers.register_codec import OPEN_CIRCUIT_CODE, SHORT_CIRCUIT_CODE
+from drivers.register_map import DeviceRegisters, FieldCodec, ReadRequest, fault_meaning
+from drivers.schema import TRANSMITTER_MAP, load_register_map
 
-CHANNELS = 8
-#: Input registers (FC4): 0–7 channel values (int16, 0.1 °C), 8–15 channel statuses.
-REGISTER_COUNT = 2 * CHANNELS
-STATUS_OK = 0
-STATUS_TEXT = {1: "open circuit", 2: "short circuit", 3: "out of range"}
-#: Value-register fault codes (signed view); never a reading when the status says OK.
-FAULT_CODES = frozenset({OPEN_CIRCUIT_CODE, SHORT_CIRCUIT_CODE})
 PARITIES = ("N", "E", "O")
 #: Modbus exceptions with which a TCP gateway says "the device behind me did not answer".
 GATEWAY_NO_DEVICE = frozenset({0x0A, 0x0B})
@@ -236,23 +234,46 @@ class ModbusConnection:
         return response
 
 
+@cache
+def _shipped(name: str) -> DeviceRegisters:
+    return DeviceRegisters(load_register_map(name))
+
+
+@dataclass
+class _DecodeMemo:
+    """A device's last registers and results, and per sensor its last (raw, status, result)."""
+
+    registers: list[int] = field(default_factory=list)
+    results: dict[str, ChannelResult] = field(default_factory=dict)
+    channels: dict[str, tuple[float, int | None, ChannelResult]] = field(default_factory=dict)
+
+
 @dataclass(frozen=True)
 class DeviceMap:
-    """One input module: its device id and the sensor name wired to each channel.
+    """One input module: its device id, the sensor wired to each channel, its register map.
 
-    ``channels[i]`` is the sensor on channel i+1; ``None`` (or a missing trailing
-    entry) is a channel without a probe, which is not reported.
+    ``channels[i]`` is the sensor on the map's channel i+1; ``None`` (or a missing
+    trailing entry) is a channel without a probe, which is not reported.
+    ``registers`` is the device's register map ready for the wire (by default the
+    8-channel Pt100 module, ``drivers/maps/pt100_8ch.yaml``).
     """
 
     device_id: int
     channels: tuple[str | None, ...]
+    registers: DeviceRegisters = field(
+        default_factory=lambda: _shipped(TRANSMITTER_MAP), compare=False, repr=False
+    )
+    #: What :func:`decode_channels` decoded last, to reuse what did not change.
+    memo: _DecodeMemo = field(default_factory=lambda: _DecodeMemo(), compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not 1 <= self.device_id <= 247:
             raise ValueError(f"device id {self.device_id} is outside the Modbus range 1–247")
-        if len(self.channels) > CHANNELS:
+        available = len(self.registers.channels)
+        if len(self.channels) > available:
             raise ValueError(
-                f"device {self.device_id}: {len(self.channels)} channels, a module has {CHANNELS}"
+                f"device {self.device_id}: {len(self.channels)} channels, its register map "
+                f"{self.registers.map.label} has {available}"
             )
         object.__setattr__(self, "channels", tuple(self.channels))
 
@@ -277,28 +298,60 @@ class ChannelResult:
 
 
 def decode_channels(device: DeviceMap, registers: Sequence[int]) -> dict[str, ChannelResult]:
-    """The 16 input registers of one module → a result per wired sensor.
+    """The replies to a device's read requests (concatenated) → a result per wired sensor.
 
-    A fault code in the value register is never a temperature, even with status OK:
-    a clamped reading has the same counts, so only the status tells them apart, and
-    a module that says OK next to a fault code is not to be trusted.
+    Under the map's fault convention, a status other than ``ok`` is that fault;
+    a value code (the Pt100 module's 32767 and −32768) is never a temperature,
+    even with status OK: a clamped reading has the same counts, so only the status
+    tells them apart, and a module that says OK next to a fault code is not to be
+    trusted. Without a status field, a value code is the fault it names.
+    A channel whose raw value and status are those of the previous call keeps its
+    previous (immutable) result object.
     """
+    memo = device.memo
+    if memo.results and memo.registers == registers:
+        return dict(memo.results)
+    layout = device.registers
+    raws = layout.decode_raw(registers)
     results: dict[str, ChannelResult] = {}
-    for index, sensor in enumerate(device.channels):
+    for codec, sensor in zip(layout.channels, device.channels, strict=False):
         if sensor is None:
             continue
-        raw, status = registers[index], registers[CHANNELS + index]
-        counts = raw - 0x10000 if raw & 0x8000 else raw
-        if status != STATUS_OK:
-            text = STATUS_TEXT.get(status, f"unknown status {status}")
-            results[sensor] = ChannelResult(sensor, None, status, text)
-        elif counts in FAULT_CODES:
-            results[sensor] = ChannelResult(
-                sensor, None, status, f"fault code {counts} with status OK"
-            )
-        else:
-            results[sensor] = ChannelResult(sensor, counts / 10, status, None)
-    return results
+        raw = raws[codec.name]
+        status = int(raws[codec.status]) if codec.status is not None else None
+        previous = memo.channels.get(sensor)
+        if previous is not None and previous[0] == raw and previous[1] == status:
+            results[sensor] = previous[2]
+            continue
+        results[sensor] = _channel_result(layout, codec, sensor, raw, status)
+        memo.channels[sensor] = (raw, status, results[sensor])
+    memo.registers, memo.results = list(registers), results
+    return dict(results)
+
+
+def _channel_result(
+    layout: DeviceRegisters, codec: FieldCodec, sensor: str, raw: float, status: int | None
+) -> ChannelResult:
+    """One channel's result from its raw value and status, under the map's fault convention."""
+    faults = layout.faults
+    if faults is None:
+        return ChannelResult(sensor, codec.value(raw), None, None)
+    ok = layout.ok_status
+    code_name = layout.value_code_names.get(raw)
+    if status is not None:
+        if status != ok:
+            text = layout.status_texts.get(status, f"unknown status {status}")
+            return ChannelResult(sensor, None, status, text)
+        if code_name is not None:
+            return ChannelResult(sensor, None, status, f"fault code {_number(raw)} with status OK")
+    elif code_name is not None:
+        status_code = faults.status_codes.get(code_name)
+        return ChannelResult(sensor, None, status_code, fault_meaning(code_name))
+    return ChannelResult(sensor, codec.value(raw), ok, None)
+
+
+def _number(raw: float) -> str:
+    return str(int(raw)) if float(raw).is_integer() else repr(raw)
 
 
 @dataclass
@@ -313,8 +366,9 @@ class _Cycle:
 class TransmitterBus:
     """One RS-485 bus (Modbus RTU) or one TCP gateway with several modules behind it.
 
-    Each ``read_all`` sends one FC4 request (16 registers) per device, in turn (a bus
-    carries one request at a time). A silent device costs one timeout
+    Each ``read_all`` sends each device's read requests in turn (a bus carries one
+    request at a time): one per contiguous block of its register map, so one FC4
+    request of 16 registers for the Pt100 module. A silent device costs one timeout
     (``timeout_s × (retries + 1)``) and does not close the port for the others. The
     connection is dropped and reopened after a :class:`Backoff` when it breaks, and
     also when no device at all answered in a cycle: that is how a half-open TCP
@@ -365,6 +419,7 @@ class TransmitterBus:
         self._hub = hub
         self._devices = tuple(devices)
         self._lock = asyncio.Lock()
+        self._last_request_end_s = -math.inf
         self.health = LinkHealth()
         self.device_health: dict[int, LinkHealth] = {d.device_id: LinkHealth() for d in devices}
 
@@ -412,9 +467,7 @@ class TransmitterBus:
             cycle.results.update(_failed(device, cycle.lost))
             return
         try:
-            registers = await self._hub.request(
-                lambda: self._link.read_input_registers(0, REGISTER_COUNT, device.device_id)
-            )
+            registers = await self._read_requests(device)
         except ModbusLinkLostError as exc:
             cycle.lost = str(exc)
             error = str(exc)
@@ -436,6 +489,36 @@ class TransmitterBus:
         link = self._hub.link
         assert isinstance(link, ModbusConnection)
         return link
+
+    async def _read_requests(self, device: DeviceMap) -> list[int]:
+        """The device's read requests in turn (one per contiguous block), replies concatenated.
+
+        A device whose workarounds ask for a pause gets it before each of its requests,
+        counted from the end of the previous request on this link.
+        """
+        layout = device.registers
+        pause_s = layout.workarounds.pause_between_requests_s
+        registers: list[int] = []
+        for request in layout.requests:
+            if pause_s > 0:
+                wait_s = self._last_request_end_s + pause_s - time.monotonic()
+                if wait_s > 0:
+                    await asyncio.sleep(wait_s)
+            try:
+                registers += await self._read(request, device.device_id)
+            finally:
+                self._last_request_end_s = time.monotonic()
+        return registers
+
+    async def _read(self, request: ReadRequest, device_id: int) -> list[int]:
+        link = self._link
+        if request.register_type == "input":
+            return await self._hub.request(
+                lambda: link.read_input_registers(request.address, request.count, device_id)
+            )
+        return await self._hub.request(
+            lambda: link.read_holding_registers(request.address, request.count, device_id)
+        )
 
     def _all_failed(self, reason: str) -> dict[str, ChannelResult]:
         results: dict[str, ChannelResult] = {}

@@ -49,6 +49,18 @@ class YamlError(ValueError):
     """A file that cannot be used, located: ``file:line: key.path: what was expected``."""
 
 
+class ReferencedFileError(Exception):
+    """A file that the document being validated names (a register map) is bad.
+
+    Not a ``ValueError``, so pydantic does not fold it into the naming document's
+    errors: :func:`validate` re-raises the other file's own located error.
+    """
+
+    def __init__(self, error: YamlError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
 class KeyPathError(ValueError):
     """Raised by a validator to blame ``key`` (a path below the object it validates)."""
 
@@ -266,9 +278,16 @@ class _Walker:
 
 
 def validate(document: YamlDocument, model: type[Model], section: Loc = ()) -> Model:
-    """``model`` built from the data at ``section``; the first problem as a located error."""
+    """``model`` built from the data at ``section``; the first problem as a located error.
+
+    Files the section names (register maps) are found relative to the document's folder.
+    """
     try:
-        return model.model_validate(document.section(section))
+        return model.model_validate(
+            document.section(section), context={"source_dir": document.path.parent}
+        )
+    except ReferencedFileError as exc:
+        raise exc.error from None
     except ValidationError as exc:
         loc, message = first_problem(exc)
         raise document.error((*section, *loc), message) from None

@@ -21,6 +21,7 @@ from drivers.clock import Clock, WallClock
 from drivers.cnc import CncClient, CncError
 from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
+from drivers.register_map import DeviceRegisters
 from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.bus_hubs import shared_hubs
 from gateway.config import GatewayConfig, MachineSection
@@ -44,7 +45,12 @@ def build_buses(
     hubs = shared_hubs([machine]) if hubs is None else hubs
     buses = []
     for bus in machine.transmitters:
-        devices = [DeviceMap(d.device_id, tuple(d.channels)) for d in bus.devices]
+        devices = [
+            DeviceMap(
+                d.device_id, tuple(d.channels), DeviceRegisters(d.map, d.effective_workarounds)
+            )
+            for d in bus.devices
+        ]
         if bus.tcp is not None:
             buses.append(
                 TransmitterBus(
@@ -99,6 +105,8 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
         run_mode_register=m.run_mode_register,
         macro_base_register=m.macro_base_register,
         timeout_s=m.timeout_s,
+        register_map=m.register_map(),
+        workarounds=m.workarounds,
         clock=now,
     )
 

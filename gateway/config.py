@@ -6,9 +6,12 @@ never live in the file: a password is named by ``password_env`` (an environment
 variable) or ``password_file`` (a file readable by the gateway only).
 
 The file is read by :mod:`drivers.yaml_loader` (duplicate keys, alias bombs,
-non-finite numbers, encodings: refused with the line). The ``simulator``
-section (served by ``python -m gateway simulate``) follows the schema of
-:mod:`simulator.serve`, checked here by the same code, with line numbers.
+non-finite numbers, encodings: refused with the line). Buses, ports, devices
+and their register maps are the shared models of :mod:`drivers.schema`; a
+device's ``map`` (a shipped map's name, a file relative to this one, or inline)
+is checked with it, and a problem inside a map file names that file's line. The
+``simulator`` section (served by ``python -m gateway simulate``) follows the
+schema of :mod:`simulator.serve`, checked here by the same code, with line numbers.
 
 What the CNC cannot hold or a machine tool should never do is refused too:
 a clamp beyond :data:`MAX_CLAMP_UM` or beyond the ±9999 units a macro variable
@@ -28,9 +31,28 @@ from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
-from drivers.yaml_loader import KeyPathError, Loc, YamlDocument, YamlError, load_yaml
+from drivers.schema import (
+    Bus,
+    Device,
+    RegisterMap,
+    RtuPort,
+    Strict,
+    TcpEndpoint,
+    Workarounds,
+    check_cnc_map,
+    cnc_map,
+    map_from_source,
+)
+from drivers.yaml_loader import (
+    KeyPathError,
+    Loc,
+    YamlDocument,
+    YamlError,
+    first_problem,
+    load_yaml,
+)
 from drivers.yaml_loader import validate as validate_section
 from gateway.compensation import CompensationLimits
 from gateway.plausibility import PlausibilityLimits
@@ -49,10 +71,6 @@ MAX_SLEW_UM_PER_MIN = 6000.0
 
 class ConfigError(ValueError):
     """A configuration problem, located: file, line, key path."""
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 def _located(exc: ValueError, prefix: str) -> KeyPathError:
@@ -78,36 +96,11 @@ def _host_port(value: str) -> tuple[str, int | None]:
     return parts.hostname.lower(), port
 
 
-class DeviceSection(Strict):
-    device_id: int = Field(ge=1, le=247)
-    channels: list[str | None] = Field(min_length=1, max_length=8)
-
-
-class RtuSection(Strict):
-    port: str
-    baudrate: int = 19200
-    parity: Literal["N", "E", "O"] = "N"
-    #: Pause between frames when a device needs more than the RTU t3.5 (the longer wins).
-    min_silence_s: float = Field(default=0.0, ge=0, le=1.0)
-
-
-class TcpSection(Strict):
-    host: str
-    port: int = Field(ge=1, le=65535)
-
-
-class BusSection(Strict):
-    name: str
-    rtu: RtuSection | None = None
-    tcp: TcpSection | None = None
-    timeout_s: float = Field(default=0.3, gt=0)
-    devices: list[DeviceSection] = Field(min_length=1)
-
-    @model_validator(mode="after")
-    def _one_transport(self) -> BusSection:
-        if (self.rtu is None) == (self.tcp is None):
-            raise ValueError("give exactly one of 'rtu' or 'tcp'")
-        return self
+# Buses, ports and devices are the shared schema of drivers.schema (the simulator uses it too).
+DeviceSection = Device
+RtuSection = RtuPort
+TcpSection = TcpEndpoint
+BusSection = Bus
 
 
 class SensorSection(Strict):
@@ -230,15 +223,53 @@ class OpcUaCncSection(Credentials):
         return value
 
 
-class ModbusCncSection(Strict):
-    host: str
-    port: int = Field(ge=1, le=65535)
+class ModbusCncSection(TcpEndpoint):
+    """The CNC over Modbus TCP: its registers as a map (``map``) or by the ``*_register`` keys.
+
+    Without ``map`` the keys give the addresses of the simulated CNC's layout
+    (``drivers/maps/sim_cnc.yaml``: float32, big byte and word order); with it,
+    the map says everything and the keys must be left out.
+    """
+
     device_id: int = Field(default=1, ge=1, le=247)
-    speed_register: int = 0
-    commanded_register: int = 2
-    run_mode_register: int = 4
-    macro_base_register: int = 1000
+    speed_register: int = Field(default=0, ge=0, le=65534)
+    commanded_register: int = Field(default=2, ge=0, le=65534)
+    run_mode_register: int = Field(default=4, ge=0, le=65535)
+    macro_base_register: int = Field(default=1000, ge=0, le=65535)
     timeout_s: float = Field(default=1.0, gt=0)
+    map: RegisterMap | None = None
+    workarounds: Workarounds | None = None
+
+    _load_map = field_validator("map", mode="before")(map_from_source)
+
+    @model_validator(mode="after")
+    def _map_or_registers(self) -> ModbusCncSection:
+        keys = ("speed_register", "commanded_register", "run_mode_register")
+        if self.map is None:
+            try:
+                self.register_map()
+            except ValidationError as exc:  # e.g. two registers overlap
+                loc, message = first_problem(exc)
+                index = loc[1] if len(loc) > 1 and loc[0] == "fields" else None
+                key = keys[index] if isinstance(index, int) else "macro_base_register"
+                raise KeyPathError((key,), message) from None
+            return self
+        given = [k for k in (*keys, "macro_base_register") if k in self.model_fields_set]
+        if given:
+            raise KeyPathError((given[0],), "give 'map' or the *_register keys, not both")
+        check_cnc_map(self.map)
+        return self
+
+    def register_map(self) -> RegisterMap:
+        """The CNC's registers: the ``map``, or the one the ``*_register`` keys describe."""
+        if self.map is not None:
+            return self.map
+        return cnc_map(
+            self.speed_register,
+            self.commanded_register,
+            self.run_mode_register,
+            self.macro_base_register,
+        )
 
 
 class CncSection(Strict):

@@ -10,17 +10,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
+from drivers.schema import Strict
 from drivers.yaml_loader import YamlError, first_problem, format_path, load_yaml, validate
 
 NODES = ("bearing", "shaft", "motor", "headstock", "column")
 DEFAULTS = Path(__file__).with_name("machine.yaml")
 EFFECTS = ("thermal_lag", "speed_direct", "ambient", "drift", "cooler")
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Convection(Strict):

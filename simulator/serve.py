@@ -12,11 +12,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from drivers.clock import AcceleratedClock, Clock
+from drivers.register_map import DeviceRegisters
+from drivers.schema import ModbusServerEndpoint, RtuBus, Strict, TcpBus, TcpEndpoint
 from drivers.yaml_loader import KeyPathError, YamlError, first_problem, load_yaml, validate
 from simulator.effects import parse_effects
 from simulator.machine import AMBIENT_CHANNEL, SimulatedMachine
@@ -27,41 +29,18 @@ from simulator.servers.modbus_transmitters import TransmitterDevice, Transmitter
 from simulator.servers.opcua_cnc import CncOpcUaServer
 
 
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-
-
-class DeviceConfig(Strict):
-    device_id: int = Field(ge=1, le=247)
-    channels: list[str | None] = Field(min_length=1, max_length=8)
-
-
-class RtuBusConfig(Strict):
-    port: str
-    baudrate: int = 19200
-    parity: Literal["N", "E", "O"] = "N"
-    devices: list[DeviceConfig] = Field(min_length=1)
-
-
-class TcpBusConfig(Strict):
-    host: str = "127.0.0.1"
-    port: int = Field(ge=1, le=65535)
-    devices: list[DeviceConfig] = Field(min_length=1)
-
-
 class TransmittersConfig(Strict):
-    rtu: RtuBusConfig | None = None
-    tcp: TcpBusConfig | None = None
+    """The simulated transmitter modules: an RS-485 bus and/or a Modbus TCP port."""
 
-
-class EndpointConfig(Strict):
-    host: str = "127.0.0.1"
-    port: int = Field(ge=1, le=65535)
+    rtu: RtuBus | None = None
+    tcp: TcpBus | None = None
 
 
 class CncConfig(Strict):
-    opcua: EndpointConfig | None = None
-    modbus: EndpointConfig | None = None
+    """The simulated CNC's servers; ``modbus`` may name the register map it serves."""
+
+    opcua: TcpEndpoint | None = None
+    modbus: ModbusServerEndpoint | None = None
 
 
 class ProbeSettings(Strict):
@@ -153,7 +132,7 @@ class SimulatorConfig(Strict):
                             f"the simulated machine has no sensor '{channel}' "
                             f"(it has {', '.join(sorted(sensors))})",
                         )
-        servers: dict[tuple[str, ...], TcpBusConfig | EndpointConfig | None] = {
+        servers: dict[tuple[str, ...], TcpEndpoint | None] = {
             ("transmitters", "tcp"): self.transmitters.tcp,
             ("cnc", "opcua"): self.cnc.opcua,
             ("cnc", "modbus"): self.cnc.modbus,
@@ -204,8 +183,15 @@ class SimulatedPlant:
     def _endpoint_factories(self, config: SimulatorConfig) -> dict[str, Any]:
         buses, cnc, machine = config.transmitters, config.cnc, self.machine
 
-        def devices(bus: RtuBusConfig | TcpBusConfig) -> list[TransmitterDevice]:
-            return [TransmitterDevice(d.device_id, list(d.channels)) for d in bus.devices]
+        def devices(bus: RtuBus | TcpBus) -> list[TransmitterDevice]:
+            return [
+                TransmitterDevice(
+                    d.device_id,
+                    list(d.channels),
+                    DeviceRegisters(d.map, d.effective_workarounds),
+                )
+                for d in bus.devices
+            ]
 
         factories: dict[str, Any] = {}
         if buses.rtu is not None:
@@ -230,7 +216,11 @@ class SimulatedPlant:
         if cnc.modbus is not None:
             modbus = cnc.modbus
             factories["cnc_modbus"] = lambda: CncModbusServer(
-                machine, host=modbus.host, port=modbus.port
+                machine,
+                host=modbus.host,
+                port=modbus.port,
+                device_id=modbus.device_id,
+                registers=DeviceRegisters(modbus.map),
             )
         return factories
 

@@ -1,7 +1,8 @@
 """The simulated CNC's values over Modbus TCP: spindle state to read, macro variables to write.
 
 Real controllers expose this through an option board or a PLC gateway with a
-vendor-specific map; the simulator offers one fixed, documented map (MODBUS.md) so
+vendor-specific map; the simulator serves a register map (by default
+``drivers/maps/sim_cnc.yaml``, documented in MODBUS.md; any byte or word order) so
 the gateway's compensation loop can be exercised end to end: it reads speed and run
 mode, and hands its compensation value over in a retained macro variable (#500–#999),
 which the machine applies.
@@ -15,12 +16,14 @@ from __future__ import annotations
 
 import logging
 import math
+from functools import cache
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.register_codec import float32_to_registers, registers_to_float32_shortest
+from drivers.register_map import DeviceRegisters
+from drivers.schema import CNC_MAP, load_register_map
 from simulator.link import MACRO_FIRST, MACRO_LAST, MachineLink, MachineSnapshot
 from simulator.servers.modbus_common import (
     BIT_FUNCTION_CODES,
@@ -32,34 +35,43 @@ from simulator.servers.modbus_common import (
 
 log = logging.getLogger(__name__)
 
-#: Holding registers 0–6 (read-only): speeds and probe error float32, run mode uint16.
+#: The shipped map's layout (drivers/maps/sim_cnc.yaml): holding registers 0–6 (read-only)
+#: hold speeds and probe error as float32 and the run mode as uint16; macro #n
+#: (n = 500…999) is the float32 at registers MACRO_BASE + 2·(n − 500) and +1.
 ACTUAL_SPEED_REGISTER = 0
 COMMANDED_SPEED_REGISTER = 2
 RUN_MODE_REGISTER = 4
 PROBE_ERROR_REGISTER = 5
 STATUS_REGISTER_COUNT = 7
-#: Macro #n (n = 500…999) is the float32 at registers MACRO_BASE + 2·(n − 500) and +1.
 MACRO_BASE = 1000
 MACRO_COUNT = MACRO_LAST - MACRO_FIRST + 1
 MACRO_REGISTER_COUNT = 2 * MACRO_COUNT
 
 
+@cache
+def sim_cnc_layout() -> DeviceRegisters:
+    """The shipped simulated-CNC map, ready for the wire."""
+    return DeviceRegisters(load_register_map(CNC_MAP))
+
+
 def macro_register(number: int) -> int:
-    """First (high-word) register of macro variable #number."""
+    """First (high-word) register of macro variable #number in the shipped map."""
     if not MACRO_FIRST <= number <= MACRO_LAST:
         raise ValueError(f"macro #{number} is outside #{MACRO_FIRST}–#{MACRO_LAST}")
-    return MACRO_BASE + 2 * (number - MACRO_FIRST)
+    macros = sim_cnc_layout().macros
+    assert macros is not None
+    return macros.register(number)
 
 
-def status_registers(snapshot: MachineSnapshot) -> list[int]:
-    """Registers 0–6 for a snapshot: actual and commanded speed, run mode, probe error."""
+def status_values(snapshot: MachineSnapshot) -> dict[str, float]:
+    """The values of the map's spindle-state fields for a snapshot (engineering units)."""
     probe = math.nan if snapshot.probe_error_um is None else snapshot.probe_error_um
-    return [
-        *float32_to_registers(snapshot.actual_speed_rpm),
-        *float32_to_registers(snapshot.commanded_speed_rpm),
-        int(snapshot.run_mode),
-        *float32_to_registers(probe),
-    ]
+    return {
+        "actual_speed_rpm": snapshot.actual_speed_rpm,
+        "commanded_speed_rpm": snapshot.commanded_speed_rpm,
+        "run_mode": int(snapshot.run_mode),
+        "probe_error_um": probe,
+    }
 
 
 class CncModbusServer(ModbusEndpoint):
@@ -72,6 +84,7 @@ class CncModbusServer(ModbusEndpoint):
         host: str = "127.0.0.1",
         port: int,
         device_id: int = 1,
+        registers: DeviceRegisters | None = None,
     ) -> None:
         super().__init__()
         if not 1 <= device_id <= 247:
@@ -82,6 +95,11 @@ class CncModbusServer(ModbusEndpoint):
         self._host = host
         self._port = port
         self._device_id = device_id
+        self._layout = registers if registers is not None else sim_cnc_layout()
+        if self._layout.macros is None:
+            raise ValueError(f"register map {self._layout.map.label} has no macro block")
+        self._macros = self._layout.macros
+        self._blocks = [b for b in self._layout.blocks() if b[0] == "holding"]
 
     @property
     def device_id(self) -> int:
@@ -98,10 +116,16 @@ class CncModbusServer(ModbusEndpoint):
     def _make_server(self) -> ModbusTcpServer:
         coils, discrete_inputs = bit_table_placeholders()
         holding = [
-            SimData(0, count=STATUS_REGISTER_COUNT, values=0, datatype=DataType.REGISTERS),
-            # Vacant macros read as NaN until the machine or a client gives them a value.
-            SimData(MACRO_BASE, count=MACRO_COUNT, values=math.nan, datatype=DataType.FLOAT32),
+            SimData(
+                start, count=sum(c.width for c in members), values=0, datatype=DataType.REGISTERS
+            )
+            for _, start, members in self._blocks
         ]
+        # Vacant macros read as NaN until the machine or a client gives them a value.
+        macros = self._macros
+        vacant = macros.encode(math.nan) * (macros.last - macros.first + 1)
+        holding.append(SimData(macros.address, values=vacant, datatype=DataType.REGISTERS))
+        holding.sort(key=lambda block: block.address)
         inputs = [SimData(0, datatype=DataType.REGISTERS)]  # placeholder, refused by the action
         device = SimDevice(
             id=self._device_id,
@@ -111,7 +135,7 @@ class CncModbusServer(ModbusEndpoint):
         return ModbusTcpServer(
             [device],
             address=(self._host, self._port),
-            trace_pdu=known_devices_only([self._device_id]),
+            trace_pdu=known_devices_only([self._device_id], received=self.received),
         )
 
     async def publish(self) -> None:
@@ -125,15 +149,25 @@ class CncModbusServer(ModbusEndpoint):
         """
         server = self._require_server()
         snapshot = self._link.snapshot()
-        await server.async_setValues(self._device_id, 3, 0, status_registers(snapshot))
-        current = await server.async_getValues(self._device_id, 3, MACRO_BASE, MACRO_REGISTER_COUNT)
+        values = status_values(snapshot)
+        raws = {
+            name: codec.raw(values[name])[0]
+            for name, codec in self._layout.fields.items()
+            if name in values
+        }
+        for _, start, members in self._blocks:
+            registers = self._layout.encode_block(members, raws)
+            await server.async_setValues(self._device_id, 3, start, registers)
+        macros = self._macros
+        count = macros.end - macros.address
+        current = await server.async_getValues(self._device_id, 3, macros.address, count)
         image = [int(register) for register in current]
         for number, value in snapshot.macros.items():
-            if MACRO_FIRST <= number <= MACRO_LAST:
-                offset = macro_register(number) - MACRO_BASE
-                image[offset : offset + 2] = float32_to_registers(value)
+            if macros.first <= number <= macros.last:
+                offset = macros.register(number) - macros.address
+                image[offset : offset + macros.width] = macros.encode(value)
         if image != current:
-            await server.async_setValues(self._device_id, 3, MACRO_BASE, image)
+            await server.async_setValues(self._device_id, 3, macros.address, image)
 
     async def _action(
         self,
@@ -157,18 +191,18 @@ class CncModbusServer(ModbusEndpoint):
 
     def _apply_client_write(self, address: int, values: list[int]) -> ExcCodes | None:
         """Forward a client's macro write to the machine, or say why it is refused."""
+        macros = self._macros
         end = address + len(values)
-        if address < MACRO_BASE or end > MACRO_BASE + MACRO_REGISTER_COUNT:
+        if address < macros.address or end > macros.end:
             return ExcCodes.ILLEGAL_ADDRESS  # spindle state is read-only
-        if (address - MACRO_BASE) % 2 or len(values) % 2:
-            return ExcCodes.ILLEGAL_ADDRESS  # half a float32 would corrupt the variable
+        if (address - macros.address) % macros.width or len(values) % macros.width:
+            return ExcCodes.ILLEGAL_ADDRESS  # half a value would corrupt the variable
         writes: list[tuple[int, float]] = []
-        for offset in range(0, len(values), 2):
-            value = registers_to_float32_shortest(values[offset], values[offset + 1])
+        for offset in range(0, len(values), macros.width):
+            value = macros.decode(values[offset : offset + macros.width])
             if not math.isfinite(value):
                 return ExcCodes.ILLEGAL_VALUE  # never hand NaN/inf to a machine offset
-            number = MACRO_FIRST + (address - MACRO_BASE + offset) // 2
-            writes.append((number, value))
+            writes.append((macros.number(address + offset), value))
         for number, value in writes:
             try:
                 self._link.write_macro(number, value)

@@ -1,8 +1,10 @@
 """Shared pieces of the simulator's Modbus slaves: temperature encoding and pymodbus plumbing.
 
-The register codecs the gateway's clients also use are in ``drivers.register_codec``;
-the channel encoder here is a pure function so that the exact bit patterns a real
-device would put on the wire (fault codes, clamping) are unit-tested without a socket.
+A device's registers are its register map (``drivers/maps/``), made ready for the
+wire by ``drivers.register_map`` — the same code the gateway's clients decode
+with, so both ends agree by construction in any byte or word order. The channel
+encoder here is a pure function so that the exact bit patterns a real device would
+put on the wire (fault codes, clamping) are unit-tested without a socket.
 The plumbing wraps pymodbus 3.16's ``SimDevice`` model, whose only hook into a
 request is the device ``action`` coroutine; both servers build on it the same way.
 """
@@ -10,7 +12,11 @@ request is the device ``action`` coroutine; both servers build on it the same wa
 from __future__ import annotations
 
 import math
+import time
+from collections import deque
 from collections.abc import Callable, Collection, Coroutine
+from dataclasses import dataclass
+from functools import cache
 from typing import Self, cast
 
 from pymodbus.constants import ExcCodes
@@ -18,15 +24,12 @@ from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData
 
-from drivers.register_codec import (
-    INT16_MAX,
-    INT16_MIN,
-    OPEN_CIRCUIT_CODE,
-    SHORT_CIRCUIT_CODE,
-    int16_to_register,
-)
+from drivers.register_map import DeviceRegisters, FieldCodec
+from drivers.schema import TRANSMITTER_MAP, load_register_map
 from simulator.link import ChannelReading, ChannelStatus
 
+#: Requests an endpoint remembers in ``received``.
+RECEIVED_KEPT = 1000
 #: Function codes a Modbus client uses to write holding registers.
 WRITE_FUNCTION_CODES = frozenset({6, 16, 22, 23})
 #: Function codes that address bits (coils, discrete inputs): none of our devices has any.
@@ -39,31 +42,57 @@ Action = Callable[
 ]
 
 
-def encode_temperature(reading: ChannelReading | None) -> tuple[int, int]:
-    """One transmitter channel → (value register, status register), as a Pt100 module shows it.
+def encode_channel(
+    layout: DeviceRegisters, channel: FieldCodec, reading: ChannelReading | None
+) -> tuple[float, int | None]:
+    """One transmitter channel → (raw value, raw status) under the map's fault convention.
 
-    Counts are 0.1 °C, rounded to the nearest count, ties away from zero so that
-    +x.x5 °C and −x.x5 °C stay symmetric. ``None`` is a channel without a
-    probe attached: a real module sees an open input, so it reports the open-circuit
-    code and status. A value that does not fit int16 (or is not a number) is clamped
-    and flagged OUT_OF_RANGE, so a client never mistakes a saturated reading for a
-    good one even though the clamped counts equal the fault codes.
+    Counts are rounded to the nearest count, ties away from zero so that +x.x5 °C
+    and −x.x5 °C stay symmetric. ``None`` is a channel without a probe attached: a
+    real module sees an open input, so it reports the open-circuit code and
+    status. A value that does not fit the data type (or is not a number) is
+    clamped and flagged out of range, so a client never mistakes a saturated
+    reading for a good one even though the clamped counts equal the fault codes.
+    The status is None when the map's channel has no status field.
     """
-    if reading is None or reading.status == ChannelStatus.OPEN_CIRCUIT:
-        return int16_to_register(OPEN_CIRCUIT_CODE), int(ChannelStatus.OPEN_CIRCUIT)
-    if reading.status == ChannelStatus.SHORT_CIRCUIT:
-        return int16_to_register(SHORT_CIRCUIT_CODE), int(ChannelStatus.SHORT_CIRCUIT)
-    status = ChannelStatus(reading.status)
-    value = reading.value_C
-    if math.isnan(value):
-        return int16_to_register(INT16_MAX), int(ChannelStatus.OUT_OF_RANGE)
-    counts = value * 10.0
-    if counts > INT16_MAX:
-        return int16_to_register(INT16_MAX), int(ChannelStatus.OUT_OF_RANGE)
-    if counts < INT16_MIN:
-        return int16_to_register(INT16_MIN), int(ChannelStatus.OUT_OF_RANGE)
-    nearest = int(math.copysign(math.floor(abs(counts) + 0.5), counts))  # ties away from 0
-    return int16_to_register(nearest), int(status)
+    faults = layout.faults
+    status_codes = faults.status_codes if faults is not None else {"ok": 0}
+    value_codes = faults.value_codes if faults is not None else {}
+
+    def status_of(status: ChannelStatus) -> int:
+        return status_codes.get(status.name.lower(), int(status))
+
+    status = ChannelStatus.OPEN_CIRCUIT if reading is None else ChannelStatus(reading.status)
+    if status in (ChannelStatus.OPEN_CIRCUIT, ChannelStatus.SHORT_CIRCUIT):
+        code = value_codes.get(status.name.lower())
+        raw = code if code is not None else channel.raw(math.nan)[0]
+    else:
+        assert reading is not None
+        raw, clamped = channel.raw(reading.value_C)
+        if clamped or math.isnan(reading.value_C):
+            status = ChannelStatus.OUT_OF_RANGE
+    return raw, (status_of(status) if channel.status is not None else None)
+
+
+def encode_temperature(
+    reading: ChannelReading | None, layout: DeviceRegisters | None = None, channel: int = 0
+) -> tuple[int, int]:
+    """One channel of a one-register map (by default the Pt100 module) → (value, status) words."""
+    layout = layout if layout is not None else pt100_layout()
+    codec = layout.channels[channel]
+    raw, status = encode_channel(layout, codec, reading)
+    (value,) = layout.encode_block([codec], {codec.name: raw})
+    if codec.status is None or status is None:
+        raise ValueError(f"channel {channel + 1} of {layout.map.label} has no status field")
+    status_codec = layout.fields[codec.status]
+    (status_word,) = layout.encode_block([status_codec], {status_codec.name: status})
+    return value, status_word
+
+
+@cache
+def pt100_layout() -> DeviceRegisters:
+    """The shipped 8-channel Pt100 module's map, ready for the wire."""
+    return DeviceRegisters(load_register_map(TRANSMITTER_MAP))
 
 
 def bit_table_placeholders() -> tuple[list[SimData], list[SimData]]:
@@ -85,8 +114,21 @@ def is_internal_write(function_code: int, values: object) -> bool:
     return values is not None and function_code in (3, 4)
 
 
+@dataclass(frozen=True)
+class ReceivedRequest:
+    """One request a simulated device answered: when (monotonic s), what, where, how many."""
+
+    at_s: float
+    device_id: int
+    function_code: int
+    address: int
+    count: int
+
+
 def known_devices_only(
-    device_ids: Collection[int], silenced: Collection[int] = frozenset()
+    device_ids: Collection[int],
+    silenced: Collection[int] = frozenset(),
+    received: deque[ReceivedRequest] | None = None,
 ) -> Callable[[bool, ModbusPDU], ModbusPDU]:
     """A pymodbus ``trace_pdu`` hook that drops requests for device ids nobody has.
 
@@ -95,13 +137,22 @@ def known_devices_only(
     traceback. Returning no PDU makes the request handler skip the request, so clients
     see the same timeout as on a real bus. ``silenced`` (a live collection the
     caller may change) makes present devices fall silent too, as a slave that lost
-    power or its cable does.
+    power or its cable does. Every request that is let through is appended to
+    ``received`` (a bounded deque), so a test can count what a client sent.
     """
     known = frozenset(device_ids)
 
     def trace_pdu(sending: bool, pdu: ModbusPDU) -> ModbusPDU:
-        if not sending and (pdu.dev_id not in known or pdu.dev_id in silenced):
+        if sending:
+            return pdu
+        if pdu.dev_id not in known or pdu.dev_id in silenced:
             return cast(ModbusPDU, None)
+        if received is not None:
+            count = getattr(pdu, "count", 0)
+            address = getattr(pdu, "address", 0)
+            received.append(
+                ReceivedRequest(time.monotonic(), pdu.dev_id, pdu.function_code, address, count)
+            )
         return pdu
 
     return trace_pdu
@@ -118,6 +169,8 @@ class ModbusEndpoint:
 
     def __init__(self) -> None:
         self._server: ModbusTcpServer | ModbusSerialServer | None = None
+        #: The latest requests the server let through (oldest dropped), for tests.
+        self.received: deque[ReceivedRequest] = deque(maxlen=RECEIVED_KEPT)
 
     def _make_server(self) -> ModbusTcpServer | ModbusSerialServer:
         raise NotImplementedError

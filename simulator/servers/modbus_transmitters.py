@@ -11,69 +11,92 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from pymodbus.constants import ExcCodes
 from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
+from drivers.register_map import DeviceRegisters
 from simulator.link import MachineLink, MachineSnapshot
 from simulator.servers.modbus_common import (
     BIT_FUNCTION_CODES,
+    Action,
     ModbusEndpoint,
     bit_table_placeholders,
-    encode_temperature,
+    encode_channel,
     is_internal_write,
     known_devices_only,
+    pt100_layout,
 )
 
 CHANNELS = 8
-#: Input registers (FC4): 0–7 channel values (int16, 0.1 °C), 8–15 channel statuses.
+#: The Pt100 module's input registers (FC4): 0–7 channel values, 8–15 statuses.
 VALUE_REGISTER = 0
 STATUS_REGISTER = CHANNELS
 #: Holding registers (FC3), read-only: channel count, resolution (0.001 °C/count), firmware.
+#: Served at 0 when the device's map has no holding registers of its own.
 INFO_REGISTERS = (CHANNELS, 100, 100)
 PARITIES = ("N", "E", "O")
 
 
 @dataclass(frozen=True)
 class TransmitterDevice:
-    """One input module: its Modbus device id and which sensor is wired to each channel.
+    """One input module: its Modbus device id, the sensor on each channel, its register map.
 
-    ``channels[i]`` names the key in ``MachineSnapshot.channels`` that channel i+1
-    reports; ``None`` (or a missing trailing entry) is a channel with no probe, which a
-    real module reports as open circuit.
+    ``channels[i]`` names the key in ``MachineSnapshot.channels`` that the map's
+    channel i+1 reports; ``None`` (or a missing trailing entry) is a channel with
+    no probe, which a real module reports as open circuit. ``registers`` is the
+    map the module serves (by default the 8-channel Pt100 module), the same
+    object the gateway decodes with.
     """
 
     device_id: int
     channels: Sequence[str | None]
+    registers: DeviceRegisters = field(default_factory=pt100_layout, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         if not 1 <= self.device_id <= 247:
             raise ValueError(f"device id {self.device_id} is outside the Modbus range 1–247")
-        if len(self.channels) > CHANNELS:
+        available = len(self.registers.channels)
+        if len(self.channels) > available:
             raise ValueError(
                 f"device {self.device_id}: {len(self.channels)} channels given, "
-                f"a module has {CHANNELS}"
+                f"a module has {available}"
             )
-        padded = tuple(self.channels) + (None,) * (CHANNELS - len(self.channels))
+        padded = tuple(self.channels) + (None,) * (available - len(self.channels))
         object.__setattr__(self, "channels", padded)
 
-    def input_registers(self, snapshot: MachineSnapshot) -> list[int]:
-        """The 16 input registers (values then statuses) this module shows for a snapshot.
+    def raw_values(self, snapshot: MachineSnapshot) -> dict[str, float]:
+        """Raw value of every channel field and its status field for a snapshot.
 
         A sensor name the snapshot does not contain reads like an unplugged probe, as
         the module cannot know the sensor exists.
         """
-        values: list[int] = []
-        statuses: list[int] = []
-        for name in self.channels:
+        layout = self.registers
+        raws: dict[str, float] = {}
+        for codec, name in zip(layout.channels, self.channels, strict=True):
             reading = snapshot.channels.get(name) if name is not None else None
-            value, status = encode_temperature(reading)
-            values.append(value)
-            statuses.append(status)
-        return values + statuses
+            raw, status = encode_channel(layout, codec, reading)
+            raws[codec.name] = raw
+            if codec.status is not None and status is not None:
+                raws[codec.status] = status
+        return raws
+
+    def register_blocks(self, snapshot: MachineSnapshot) -> list[tuple[int, int, list[int]]]:
+        """(function code, first address, registers) of every block of the map."""
+        raws = self.raw_values(snapshot)
+        layout = self.registers
+        return [
+            (3 if kind == "holding" else 4, start, layout.encode_block(members, raws))
+            for kind, start, members in layout.blocks()
+        ]
+
+    def input_registers(self, snapshot: MachineSnapshot) -> list[int]:
+        """The input registers this module shows for a snapshot (the Pt100's 16: values,
+        then statuses), blocks in address order."""
+        return [r for fc, _, block in self.register_blocks(snapshot) if fc == 4 for r in block]
 
 
 class TransmitterServer(ModbusEndpoint):
@@ -134,11 +157,15 @@ class TransmitterServer(ModbusEndpoint):
 
     def _make_server(self) -> ModbusTcpServer | ModbusSerialServer:
         sim_devices = [
-            SimDevice(id=device.device_id, simdata=_register_tables(), action=_module_action)
+            SimDevice(
+                id=device.device_id,
+                simdata=_register_tables(device.registers),
+                action=_module_action(device.registers),
+            )
             for device in self._devices
         ]
         answer_known = known_devices_only(
-            [device.device_id for device in self._devices], self.silenced
+            [device.device_id for device in self._devices], self.silenced, self.received
         )
 
         def trace_pdu(sending: bool, pdu: ModbusPDU) -> ModbusPDU:
@@ -168,34 +195,47 @@ class TransmitterServer(ModbusEndpoint):
         server = self._require_server()
         snapshot = self._link.snapshot()
         for device in self._devices:
-            await server.async_setValues(
-                device.device_id, 4, VALUE_REGISTER, device.input_registers(snapshot)
-            )
+            for function_code, start, registers in device.register_blocks(snapshot):
+                await server.async_setValues(device.device_id, function_code, start, registers)
 
 
-def _register_tables() -> tuple[list[SimData], list[SimData], list[SimData], list[SimData]]:
-    """Separate holding and input tables (a plain list would alias FC3 and FC4)."""
+def _register_tables(
+    layout: DeviceRegisters,
+) -> tuple[list[SimData], list[SimData], list[SimData], list[SimData]]:
+    """The map's blocks as separate holding and input tables (a plain list would alias
+    FC3 and FC4); the module's information registers when the map has no holding ones."""
     coils, discrete_inputs = bit_table_placeholders()
-    holding = [SimData(0, values=list(INFO_REGISTERS), datatype=DataType.REGISTERS, readonly=True)]
-    inputs = [SimData(0, count=2 * CHANNELS, values=0, datatype=DataType.REGISTERS)]
+    tables: dict[str, list[SimData]] = {"holding": [], "input": []}
+    for kind, start, members in layout.blocks():
+        count = sum(codec.width for codec in members)
+        tables[kind].append(SimData(start, count=count, values=0, datatype=DataType.REGISTERS))
+    holding = tables["holding"] or [
+        SimData(0, values=list(INFO_REGISTERS), datatype=DataType.REGISTERS, readonly=True)
+    ]
+    inputs = tables["input"] or [SimData(0, datatype=DataType.REGISTERS)]  # refused below
     return coils, discrete_inputs, holding, inputs
 
 
-async def _module_action(
-    function_code: int,
-    _start_address: int,
-    _address: int,
-    _count: int,
-    _registers: list[int],
-    values: list[int] | list[bool] | None,
-) -> ExcCodes | None:
+def _module_action(layout: DeviceRegisters) -> Action:
     """Refusals a real module makes that pymodbus's register flags do not cover.
 
-    The module has no coils or discrete inputs, and none of its registers is writable
-    (the read-only flag already refuses holding-register writes; this is the backstop).
+    The module has no coils or discrete inputs (nor input registers, if its map has
+    none), and none of its registers is writable.
     """
-    if function_code in BIT_FUNCTION_CODES:
-        return ExcCodes.ILLEGAL_FUNCTION
-    if values is not None and not is_internal_write(function_code, values):
-        return ExcCodes.ILLEGAL_ADDRESS
-    return None
+    has_inputs = any(kind == "input" for kind, _, _ in layout.blocks())
+
+    async def action(
+        function_code: int,
+        _start_address: int,
+        _address: int,
+        _count: int,
+        _registers: list[int],
+        values: list[int] | list[bool] | None,
+    ) -> ExcCodes | None:
+        if function_code in BIT_FUNCTION_CODES or (function_code == 4 and not has_inputs):
+            return ExcCodes.ILLEGAL_FUNCTION
+        if values is not None and not is_internal_write(function_code, values):
+            return ExcCodes.ILLEGAL_ADDRESS
+        return None
+
+    return action

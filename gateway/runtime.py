@@ -31,7 +31,7 @@ import asyncio
 import contextlib
 import logging
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -133,6 +133,8 @@ class MachineLoop:
         self._probe_basis: tuple[float, float] | None = None  # (predicted, applied) µm, last cycle
         self._link_down: set[str] = set()
         self._external_note = ""  # this cycle's external change, for the write status
+        #: Machine time the cycle in progress (or the last one) was due at.
+        self.due_s = 0.0
 
     # --- one cycle ----------------------------------------------------------------------
     async def run_cycle(self) -> CycleRecord:
@@ -475,6 +477,7 @@ class MachineLoop:
         next_due = self.clock.now()
         done = 0
         while not stop.is_set() and (cycles is None or done < cycles):
+            self.due_s = next_due
             if not await self._cycle_unless_stopped(stop):
                 return
             done += 1
@@ -512,3 +515,23 @@ class MachineLoop:
         for bus in self.buses:
             await bus.close()
         await self.cnc.close()
+
+
+async def run_every(
+    clock: Clock,
+    period_s: float,
+    action: Callable[[float, float], Awaitable[None]],
+    stop: asyncio.Event,
+    key: str = "",
+) -> None:
+    """Call ``action(now, late_s)`` every ``period_s`` of machine time until ``stop``."""
+    next_due = clock.now()
+    while not stop.is_set():
+        now = clock.now()
+        await action(now, now - next_due)
+        next_due += period_s
+        wait = next_due - clock.now()
+        if wait > 0:
+            await clock.sleep(wait, stop)
+        else:
+            next_due = clock.now()

@@ -279,43 +279,60 @@ def project_section(store: Path, port: int, index: int):
 
 
 class Stats:
+    """Start time, start delay and outcome of every cycle; the window is cut at the end."""
+
     def __init__(self) -> None:
-        self.cycles = 0
-        self.failed_cycles = 0
-        self.delays_s: list[float] = []
-        self.recording = False
+        self.cycles: list[tuple[float, float, bool]] = []  # (start, late by, failed)
+        self.marks: list[float] = []
+
+    def window(self) -> dict[str, Any]:
+        """The cycles that started between the first and the last mark."""
+        start, end = self.marks[0], self.marks[-1]
+        inside = [c for c in self.cycles if start <= c[0] < end]
+        delays = sorted(c[1] for c in inside) or [0.0]
+        return {
+            "cycles": len(inside),
+            "failed": sum(1 for c in inside if c[2]),
+            "start_delay_p50_ms": round(1000 * delays[len(delays) // 2], 2),
+            "start_delay_p99_ms": round(1000 * delays[int(0.99 * (len(delays) - 1))], 2),
+        }
 
 
-async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats) -> None:
-    """One machine's poll: the transmitters and the speed together, then the macro."""
-    from drivers.cnc import CncError
+async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, scheduler) -> None:
+    """One machine's poll on the gateway's scheduler: transmitters and speed together, then
+    the macro (the reads of a full cycle, without the rest of it)."""
     from gateway.app import build_buses, build_cnc
-    from gateway.runtime import run_every
 
     buses, cnc = build_buses(section), build_cnc(section, clock)
-
-    async def poll(now: float, late_s: float) -> None:
-        outcomes = await asyncio.gather(
-            *(bus.read_all(now) for bus in buses), cnc.read_speed(), return_exceptions=True
-        )
-        failed = any(isinstance(o, BaseException) for o in outcomes) or any(
-            r.error for o in outcomes[:-1] if isinstance(o, dict) for r in o.values()
-        )
-        try:
-            await cnc.read_macro(MACRO)
-        except CncError:
-            failed = True
-        stats.cycles += 1
-        stats.failed_cycles += failed
-        if stats.recording:
-            stats.delays_s.append(late_s)
-
+    due = clock.now() + scheduler.phase_s(section.cycle_s)
     try:
-        await run_every(clock, section.cycle_s, poll, stop, key=section.id)
+        while not stop.is_set():
+            await scheduler.wait_until(due, stop)
+            if stop.is_set():
+                break
+            now = clock.now()
+            await poll_once(buses, cnc, now, now - due, stats)
+            due = max(due + section.cycle_s, clock.now())
     finally:
         for bus in buses:
             await bus.close()
         await cnc.close()
+
+
+async def poll_once(buses, cnc, now: float, late_s: float, stats: Stats) -> None:
+    from drivers.cnc import CncError
+
+    outcomes = await asyncio.gather(
+        *(bus.read_all(now) for bus in buses), cnc.read_speed(), return_exceptions=True
+    )
+    failed = any(isinstance(o, BaseException) for o in outcomes) or any(
+        r.error for o in outcomes[:-1] if isinstance(o, dict) for r in o.values()
+    )
+    try:
+        await cnc.read_macro(MACRO)
+    except CncError:
+        failed = True
+    stats.cycles.append((now, late_s, failed))
 
 
 async def _poller_main(args: argparse.Namespace) -> None:
@@ -323,6 +340,7 @@ async def _poller_main(args: argparse.Namespace) -> None:
 
     from drivers.clock import WallClock
     from gateway.app import build_buses, build_cnc, load_bank
+    from gateway.cycle_scheduler import CycleScheduler
     from gateway.runtime import MachineLoop
 
     logging.disable(logging.CRITICAL)  # a benchmark: no log formatting in the measurement
@@ -331,25 +349,32 @@ async def _poller_main(args: argparse.Namespace) -> None:
     clock = WallClock()
     stop = asyncio.Event()
     stats = Stats()
+    scheduler = CycleScheduler(clock)
     sections = [project_section(store, port, i) for i, port in enumerate(ports)]
     tasks = []
     loops: list[MachineLoop] = []
     if args.role == "project_poll":
-        tasks = [asyncio.create_task(_poll_only(s, clock, stop, stats)) for s in sections]
+        tasks = [
+            asyncio.create_task(_poll_only(s, clock, stop, stats, scheduler)) for s in sections
+        ]
     else:
         bank = load_bank(sections[0])  # the same store for every machine; the bank is read-only
         for section in sections:
-            loop = MachineLoop(section, clock, build_buses(section), build_cnc(section, clock), bank)
+            buses, cnc = build_buses(section), build_cnc(section, clock)
+            loop = MachineLoop(section, clock, buses, cnc, bank)
 
             def sink(record, loop=loop) -> None:
-                stats.cycles += 1
-                stats.failed_cycles += bool(record.link_errors)
-                if stats.recording:
-                    stats.delays_s.append(record.time_s - loop.due_s)
+                late_s = record.time_s - loop.due_s
+                stats.cycles.append((record.time_s, late_s, bool(record.link_errors)))
 
             loop.sinks.append(sink)
             loops.append(loop)
-        tasks = [asyncio.create_task(loop.run(stop)) for loop in loops]
+        tasks = [
+            asyncio.create_task(
+                loop.run(stop, scheduler=scheduler, phase_s=scheduler.phase_s(CYCLE_S))
+            )
+            for loop in loops
+        ]
 
     reader = asyncio.StreamReader()
     await asyncio.get_running_loop().connect_read_pipe(
@@ -358,24 +383,15 @@ async def _poller_main(args: argparse.Namespace) -> None:
     print(json.dumps({"ready": len(sections)}), flush=True)
     while line := (await reader.readline()).decode().strip():
         if line == "mark":
-            stats.recording = True
-            print(json.dumps({"cycles": stats.cycles, "failed": stats.failed_cycles}), flush=True)
+            stats.marks.append(clock.now())
+            print(json.dumps({"marked": len(stats.marks)}), flush=True)
         elif line == "stop":
             stop.set()
             break
     await asyncio.gather(*tasks, return_exceptions=True)
     for loop in loops:
         await loop.close()
-    delays = sorted(stats.delays_s) or [0.0]
-    print(
-        json.dumps(
-            {
-                "start_delay_p50_ms": round(1000 * delays[len(delays) // 2], 2),
-                "start_delay_p99_ms": round(1000 * delays[int(0.99 * (len(delays) - 1))], 2),
-            }
-        ),
-        flush=True,
-    )
+    print(json.dumps(stats.window()), flush=True)
 
 
 # --- one measured run ------------------------------------------------------------------------
@@ -479,8 +495,8 @@ def measure(side: str, devices: Devices, folder: Path, store: Path, args) -> dic
         cycles = requests / REQUESTS_PER_MACHINE_CYCLE
         failed = None
     else:
-        cycles = last["cycles"] - first["cycles"]
-        failed = last["failed"] - first["failed"]
+        cycles = final.pop("cycles")
+        failed = final.pop("failed")
     due = machines * window_s / CYCLE_S
     poller_share = cpu_s / window_s
     server_share = (servers1 - servers0) / window_s

@@ -28,7 +28,6 @@ tests).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 from collections.abc import Awaitable, Callable, Mapping, Sequence
@@ -42,6 +41,7 @@ from drivers.cnc import CncClient, CncError
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.compensation import CompensationPolicy
 from gateway.config import MachineSection
+from gateway.cycle_scheduler import CycleScheduler
 from gateway.effect_state import EffectStates
 from gateway.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.plausibility import Plausibility
@@ -464,8 +464,20 @@ class MachineLoop:
         log.warning("%s: %s (failed writes: %d)", self.config.id, reason, self.failed_writes)
 
     # --- running ------------------------------------------------------------------------
-    async def run(self, stop: asyncio.Event | None = None, cycles: int | None = None) -> None:
+    async def run(
+        self,
+        stop: asyncio.Event | None = None,
+        cycles: int | None = None,
+        scheduler: CycleScheduler | None = None,
+        phase_s: float = 0.0,
+    ) -> None:
         """Cycle every ``cycle_s`` of machine time until ``stop`` is set or ``cycles`` ran.
+
+        With a ``scheduler`` (the gateway's, shared by every machine) the loop waits on
+        its one timer, and its first cycle is due ``phase_s`` after the start, so the
+        machines' polls are spread over the cycle; without one it sleeps on its own
+        and starts at once. An overrun starts the next cycle at once, without catching
+        up in a burst.
 
         ``stop`` cuts the wait between cycles short, so a stop request is served at
         once whatever ``cycle_s`` is. A cycle in progress gets ``STOP_GRACE_S`` (wall)
@@ -474,41 +486,28 @@ class MachineLoop:
         the next start reads what the macro holds before it writes.
         """
         stop = stop or asyncio.Event()
-        next_due = self.clock.now()
+        next_due = self.clock.now() + phase_s
         done = 0
-        while not stop.is_set() and (cycles is None or done < cycles):
-            self.due_s = next_due
-            if not await self._cycle_unless_stopped(stop):
-                return
-            done += 1
-            next_due += self.config.cycle_s
-            wait = next_due - self.clock.now()
-            if wait > 0:
-                await self.clock.sleep(wait, stop)
-            else:
-                next_due = self.clock.now()  # overrun: do not try to catch up in a burst
-                await asyncio.sleep(0)
-
-    async def _cycle_unless_stopped(self, stop: asyncio.Event) -> bool:
-        """Run one cycle; False when ``stop`` came and the cycle did not end in the grace."""
-        cycle = asyncio.ensure_future(self.run_cycle())
-        stopped = asyncio.ensure_future(stop.wait())
+        guard = _StopGuard(stop, self.config.id)
         try:
-            await asyncio.wait({cycle, stopped}, return_when=asyncio.FIRST_COMPLETED)
-            if not cycle.done():
-                await asyncio.wait({cycle}, timeout=STOP_GRACE_S)
-            if not cycle.done():
-                log.warning("%s: stop requested; cancelling the cycle in progress", self.config.id)
-                cycle.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await cycle
-                return False
-            cycle.result()  # an exception of the cycle goes to the supervisor
-            return True
+            while not stop.is_set() and (cycles is None or done < cycles):
+                if scheduler is not None:
+                    await scheduler.wait_until(next_due, stop)
+                    if stop.is_set():
+                        return
+                self.due_s = next_due
+                if not await guard.cycle(self.run_cycle):
+                    return
+                done += 1
+                next_due += self.config.cycle_s
+                now = self.clock.now()
+                if next_due <= now:
+                    next_due = now  # overrun: do not try to catch up in a burst
+                    await asyncio.sleep(0)
+                elif scheduler is None:
+                    await self.clock.sleep(next_due - now, stop)
         finally:
-            stopped.cancel()
-            if not cycle.done():  # this task itself was cancelled
-                cycle.cancel()
+            guard.close()
 
     async def close(self) -> None:
         self.effects.save()
@@ -517,21 +516,46 @@ class MachineLoop:
         await self.cnc.close()
 
 
-async def run_every(
-    clock: Clock,
-    period_s: float,
-    action: Callable[[float, float], Awaitable[None]],
-    stop: asyncio.Event,
-    key: str = "",
-) -> None:
-    """Call ``action(now, late_s)`` every ``period_s`` of machine time until ``stop``."""
-    next_due = clock.now()
-    while not stop.is_set():
-        now = clock.now()
-        await action(now, now - next_due)
-        next_due += period_s
-        wait = next_due - clock.now()
-        if wait > 0:
-            await clock.sleep(wait, stop)
-        else:
-            next_due = clock.now()
+class _StopGuard:
+    """Gives a cycle in progress ``STOP_GRACE_S`` after a stop request, then cancels it.
+
+    One watcher task per run of a loop instead of two futures per cycle: the cycle
+    runs in the loop's own task, and the watcher cancels that task only while it is
+    inside a cycle; :meth:`cycle` turns that one cancellation into "stopped".
+    """
+
+    def __init__(self, stop: asyncio.Event, machine: str) -> None:
+        task = asyncio.current_task()
+        assert task is not None, "a machine loop runs in a task"
+        self._task = task
+        self._machine = machine
+        self._in_cycle = False
+        self._cancelled = False
+        self._watcher = asyncio.create_task(self._watch(stop))
+
+    async def _watch(self, stop: asyncio.Event) -> None:
+        await stop.wait()
+        if not self._in_cycle:
+            return  # between cycles: the loop sees the stop itself
+        await asyncio.sleep(STOP_GRACE_S)
+        if self._in_cycle:
+            log.warning("%s: stop requested; cancelling the cycle in progress", self._machine)
+            self._cancelled = True
+            self._task.cancel()
+
+    async def cycle(self, run_cycle: Callable[[], Awaitable[CycleRecord]]) -> bool:
+        """Run one cycle; False when the stop's grace ran out and it was cancelled."""
+        self._in_cycle = True
+        try:
+            await run_cycle()  # an exception of the cycle goes to the supervisor
+        except asyncio.CancelledError:
+            if self._cancelled:
+                self._task.uncancel()
+                return False
+            raise
+        finally:
+            self._in_cycle = False
+        return True
+
+    def close(self) -> None:
+        self._watcher.cancel()

@@ -21,7 +21,10 @@ fi
 mkdir -p "$BIN_DIR"
 # GOBIN puts the binary straight into .cache/bin; GOPATH/GOMODCACHE are left
 # at their defaults (~/go) so the module downloads are shared between builds.
+# The version is stamped the way Telegraf's Makefile does (go install alone says
+# "unknown"), so the benchmark's JSON and the check above can name it.
 GOBIN="$BIN_DIR" "$GO" install \
     -tags "custom,inputs.modbus,inputs.opcua,outputs.discard" \
+    -ldflags "-X github.com/influxdata/telegraf/internal.Version=${TELEGRAF_VERSION#v}" \
     "github.com/influxdata/telegraf/cmd/telegraf@${TELEGRAF_VERSION}"
 "$TARGET" --version

@@ -15,8 +15,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Awaitable, Callable
-from typing import TypeVar
+from collections.abc import Callable
 
 from drivers.backoff import Backoff
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
@@ -27,8 +26,6 @@ from drivers.transmitters import (
     ModbusNoResponseError,
     ModbusRefusedError,
 )
-
-T = TypeVar("T")
 
 _FLOAT32_MAX = 3.4028234663852886e38
 
@@ -79,6 +76,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         if run_mode_register is not None:
             self._items.append((run_mode_register, 1))
         self._span = _contiguous_span(self._items)
+        self._macro_requests: dict[tuple[int, str], tuple[int, str]] = {}
 
     def macro_register(self, number: int) -> int:
         """First (high-word) register of macro #number."""
@@ -93,19 +91,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
 
     async def read_speed(self) -> SpeedReading:
         """Actual and commanded speed and run mode; one request when they are adjacent."""
-
-        async def read(link: ModbusConnection) -> SpeedReading:
-            words = await self._read_items(link)
-            run_mode = None
-            if self._run_mode_register is not None:
-                run_mode = words[self._run_mode_register][0]
-            return SpeedReading(
-                actual_rpm=registers_to_float32_shortest(*words[self._speed_register]),
-                commanded_rpm=registers_to_float32_shortest(*words[self._commanded_register]),
-                run_mode=run_mode,
-            )
-
-        return await self._call("reading spindle speed", read)
+        return await self._call("reading spindle speed", self._read_speed)
 
     async def write_macro(self, number: int, value: float) -> None:
         """FC16 write of macro #number as float32.
@@ -113,27 +99,55 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         Non-finite values and values beyond float32 raise ``ValueError`` before any
         I/O: a NaN or a saturated value must never reach a machine offset.
         """
-        register = self.macro_register(number)
+        register, what = self._macro_request(number, "writing")
         if not math.isfinite(value) or abs(value) > _FLOAT32_MAX:
             raise ValueError(f"macro #{number}: {value!r} is not a finite float32")
-        words = list(float32_to_registers(value))
-
-        async def write(link: ModbusConnection) -> None:
-            await _refusals_as_cnc(link.write_registers(register, words, self.device_id))
-
-        await self._call(f"writing macro #{number} (register {register})", write)
+        await self._call(what, self._write_words, register, list(float32_to_registers(value)))
 
     async def read_macro(self, number: int) -> float:
         """Read macro #number back (NaN for a vacant variable, as the CNC reports it)."""
-        register = self.macro_register(number)
+        register, what = self._macro_request(number, "reading")
+        return await self._call(what, self._read_float32, register)
 
-        async def read(link: ModbusConnection) -> float:
-            high, low = await _refusals_as_cnc(
-                link.read_holding_registers(register, 2, self.device_id)
-            )
-            return registers_to_float32_shortest(high, low)
+    def _macro_request(self, number: int, verb: str) -> tuple[int, str]:
+        """Register of macro #number and the words for an error message (built once)."""
+        key = (number, verb)
+        request = self._macro_requests.get(key)
+        if request is None:
+            register = self.macro_register(number)
+            request = (register, f"{verb} macro #{number} (register {register})")
+            self._macro_requests[key] = request
+        return request
 
-        return await self._call(f"reading macro #{number} (register {register})", read)
+    # -- requests (run by ReconnectingSession._call on the open connection) ----------
+
+    async def _read_speed(self, link: ModbusConnection) -> SpeedReading:
+        words = await self._read_items(link)
+        run_mode = None
+        if self._run_mode_register is not None:
+            run_mode = words[self._run_mode_register][0]
+        return SpeedReading(
+            actual_rpm=registers_to_float32_shortest(*words[self._speed_register]),
+            commanded_rpm=registers_to_float32_shortest(*words[self._commanded_register]),
+            run_mode=run_mode,
+        )
+
+    async def _write_words(self, link: ModbusConnection, register: int, words: list[int]) -> None:
+        try:
+            await link.write_registers(register, words, self.device_id)
+        except ModbusRefusedError as exc:
+            raise CncRefusedError(str(exc)) from exc
+
+    async def _read_float32(self, link: ModbusConnection, register: int) -> float:
+        high, low = await self._read_holding(link, register, 2)
+        return registers_to_float32_shortest(high, low)
+
+    async def _read_holding(self, link: ModbusConnection, register: int, count: int) -> list[int]:
+        """Holding registers; an exception reply becomes :class:`CncRefusedError`."""
+        try:
+            return await link.read_holding_registers(register, count, self.device_id)
+        except ModbusRefusedError as exc:
+            raise CncRefusedError(str(exc)) from exc
 
     # -- session life cycle ---------------------------------------------------------
 
@@ -149,22 +163,9 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         """The registers of speed, commanded speed and run mode, by start address."""
         if self._span is not None:
             start, count = self._span
-            registers = await _refusals_as_cnc(
-                link.read_holding_registers(start, count, self.device_id)
-            )
+            registers = await self._read_holding(link, start, count)
             return {a: registers[a - start : a - start + n] for a, n in self._items}
-        return {
-            a: await _refusals_as_cnc(link.read_holding_registers(a, n, self.device_id))
-            for a, n in self._items
-        }
-
-
-async def _refusals_as_cnc(request: Awaitable[T]) -> T:
-    """Await a Modbus request; an exception reply becomes :class:`CncRefusedError`."""
-    try:
-        return await request
-    except ModbusRefusedError as exc:
-        raise CncRefusedError(str(exc)) from exc
+        return {a: await self._read_holding(link, a, n) for a, n in self._items}
 
 
 def _contiguous_span(blocks: list[tuple[int, int]]) -> tuple[int, int] | None:

@@ -60,6 +60,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from drivers.cnc import CncError  # noqa: E402
+from gateway.runtime import read_together  # noqa: E402
+
 TELEGRAF = ROOT / ".cache" / "bin" / "telegraf"
 POLLER_CORE = 0
 SERVER_CORE = 1
@@ -320,11 +323,7 @@ async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, schedule
 
 
 async def poll_once(buses, cnc, now: float, late_s: float, stats: Stats) -> None:
-    from drivers.cnc import CncError
-
-    outcomes = await asyncio.gather(
-        *(bus.read_all(now) for bus in buses), cnc.read_speed(), return_exceptions=True
-    )
+    outcomes = await read_together([bus.read_all(now) for bus in buses], cnc.read_speed())
     failed = any(isinstance(o, BaseException) for o in outcomes) or any(
         r.error for o in outcomes[:-1] if isinstance(o, dict) for r in o.values()
     )

@@ -116,17 +116,17 @@ class ReconnectingSession(Generic[SessionT]):
     ) -> T:
         """Run ``operation(session, *args)`` on the session, connecting first if needed.
 
-        ``what`` says what was attempted, for the error message. Each request is
-        bounded by the library's own timeout; the whole operation also has a
-        deadline of twice the request timeout (a timer in the caller's task, no
-        task of its own), a backstop should the library's timeout not fire.
+        ``what`` says what was attempted, for the error message. The operation
+        runs in the caller's task; each of its requests is bounded by the library's
+        own request timeout (pymodbus's ``timeout``, asyncua's client ``timeout``,
+        both ``timeout_s``), the one timer on a request: a wrapping
+        ``asyncio.wait_for`` would add a task and a timer to every request.
         """
         session = self._session
         if session is None or self._closed:
             session = await self._ensure_session(what)
         try:
-            async with asyncio.timeout(2 * self._timeout_s):
-                result = await operation(session, *args)
+            result = await operation(session, *args)
         except CncRefusedError as exc:
             self.health.record_ok(self._clock())  # the peer answered: the link is fine
             raise CncRefusedError(f"{self._where}: {what} refused: {exc}") from exc

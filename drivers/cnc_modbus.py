@@ -12,6 +12,7 @@ pymodbus client, with a life cycle the gateway owns); the reconnect policy is
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import time
@@ -28,6 +29,9 @@ from drivers.transmitters import (
 )
 
 _FLOAT32_MAX = 3.4028234663852886e38
+#: Register pairs → value, remembered: speeds and macros repeat from cycle to cycle, and
+#: finding the shortest decimal takes up to nine formatting rounds.
+_float32 = functools.lru_cache(maxsize=1024)(registers_to_float32_shortest)
 
 
 class ModbusCnc(ReconnectingSession[ModbusConnection]):
@@ -127,8 +131,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         if self._run_mode_register is not None:
             run_mode = words[self._run_mode_register][0]
         return SpeedReading(
-            actual_rpm=registers_to_float32_shortest(*words[self._speed_register]),
-            commanded_rpm=registers_to_float32_shortest(*words[self._commanded_register]),
+            actual_rpm=_float32(*words[self._speed_register]),
+            commanded_rpm=_float32(*words[self._commanded_register]),
             run_mode=run_mode,
         )
 
@@ -140,7 +144,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
 
     async def _read_float32(self, link: ModbusConnection, register: int) -> float:
         high, low = await self._read_holding(link, register, 2)
-        return registers_to_float32_shortest(high, low)
+        return _float32(high, low)
 
     async def _read_holding(self, link: ModbusConnection, register: int, count: int) -> list[int]:
         """Holding registers; an exception reply becomes :class:`CncRefusedError`."""

@@ -47,6 +47,7 @@ import multiprocessing
 import os
 import platform
 import select
+import shutil
 import statistics
 import struct
 import subprocess
@@ -639,18 +640,21 @@ def main() -> None:
     if hasattr(os, "sched_setaffinity") and (os.cpu_count() or 1) > 1:
         os.sched_setaffinity(0, {SERVER_CORE})  # the conductor stays off the poller's core
     folder = Path(tempfile.mkdtemp(prefix="poll-vs-telegraf-"))
-    store = fit_store(folder)
     runs = []
-    for count in args.machines:
-        devices = Devices(count)
-        try:
-            for repeat in range(args.repeats):
-                for side in args.sides:
-                    run = measure(side, devices, folder, store, args)
-                    runs.append({"repeat": repeat, **run})
-                    print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
-        finally:
-            devices.close()
+    try:
+        store = fit_store(folder)
+        for count in args.machines:
+            devices = Devices(count)
+            try:
+                for repeat in range(args.repeats):
+                    for side in args.sides:
+                        run = measure(side, devices, folder, store, args)
+                        runs.append({"repeat": repeat, **run})
+                        print(json.dumps(runs[-1]), file=sys.stderr, flush=True)
+            finally:
+                devices.close()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
     summary = summarise(runs, args.machines)
     import pymodbus
 

@@ -99,9 +99,17 @@ class CycleScheduler:
         elif self._timer_due is not None and due_s < self._timer_due:
             self._rearm.set()  # it sleeps past this one: let it look again
 
+    @property
+    def idle(self) -> bool:
+        """No timer task runs (nothing is waiting)."""
+        return self._timer is None or self._timer.done()
+
     async def _run_timer(self) -> None:
         heap = self._heap
         while heap:
+            if heap[0][2].done():  # woken by a stop, or cancelled: nothing to time
+                heapq.heappop(heap)
+                continue
             due_s = heap[0][0]
             wait_s = due_s + self.tick_s - self.clock.now()
             if wait_s > 0:
@@ -122,5 +130,6 @@ class CycleScheduler:
             for future in self._waiting.pop(stop, set()):
                 if not future.done():
                     future.set_result(None)
+            self._rearm.set()  # the timer drops what was woken, and ends if that was all
         finally:
             self._watchers.pop(stop, None)

@@ -23,8 +23,9 @@ speed block, the macro), at a 1 s interval:
 The poller under test is pinned to core 0; the devices are served by lean
 server processes (an asyncio protocol answering from a register image, a few
 hundred ports per process) pinned to core 1, and they count every request they
-answer. CPU is the poller process's own (utime + stime from ``/proc/<pid>/stat``,
-all threads), over the window. Reported per run and as medians:
+answer. Pollers and servers run at nice −10 (as root), so other work on the
+machine does not starve either side. CPU is the poller process's own (utime +
+stime from ``/proc/<pid>/stat``, all threads), over the window. Reported per run and as medians:
 
 - ``cpu_s_per_1000_requests`` and ``cpu_ms_per_machine_cycle``;
 - ``due_cycles_share`` (cycles run / machines × window) and the core shares of
@@ -42,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import multiprocessing
 import os
@@ -76,6 +78,16 @@ SATURATED_CORE_SHARE = 0.9
 KEPT_UP_SHARE = 0.97
 CLOCK_TICKS_S = os.sysconf("SC_CLK_TCK")
 SIDES = ("telegraf", "project_poll", "project_cycle")
+#: Scheduling priority of the pollers and servers (nice value): above the machine's other
+#: work, so a busy neighbour does not starve either side; alike for both sides.
+PRIORITY = -10
+
+
+def raise_priority() -> int:
+    """Give this process the benchmark's priority; the nice value it runs at."""
+    with contextlib.suppress(PermissionError):  # not root: both sides at normal priority
+        os.setpriority(os.PRIO_PROCESS, 0, PRIORITY)
+    return os.getpriority(os.PRIO_PROCESS, 0)
 
 
 # --- the simulated machines: lean Modbus TCP responders -------------------------------------
@@ -156,6 +168,7 @@ def _serve(count: int, counter: Any, ports_out: Connection) -> None:
     """Server process: ``count`` machine ports; sends their numbers, serves until killed."""
     if hasattr(os, "sched_setaffinity") and (os.cpu_count() or 1) > 1:
         os.sched_setaffinity(0, {SERVER_CORE})
+    raise_priority()
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
@@ -515,15 +528,22 @@ def measure(side: str, devices: Devices, folder: Path, store: Path, args) -> dic
         "due_cycles_share": round(kept_up, 4),
         "poller_core_share": round(poller_share, 3),
         "server_core_share": round(server_share, 3),
-        "saturated": (
-            "poller"
-            if poller_share >= SATURATED_CORE_SHARE or kept_up < KEPT_UP_SHARE
-            else "servers"
-            if server_share >= SATURATED_CORE_SHARE
-            else None
-        ),
+        "saturated": saturated(poller_share, server_share, kept_up),
         **final,
     }
+
+
+def saturated(poller_share: float, server_share: float, kept_up: float) -> str | None:
+    """Which side ran out of CPU: the poller's core, the servers' core, or None.
+
+    Cycles missed while both cores had headroom are ``"neither"``: the machine's
+    other load held the poller up (the run's CPU figures stay valid).
+    """
+    if poller_share >= SATURATED_CORE_SHARE:
+        return "poller"
+    if server_share >= SATURATED_CORE_SHARE:
+        return "servers"
+    return "neither" if kept_up < KEPT_UP_SHARE else None
 
 
 def _median(values: list[float]) -> float | None:
@@ -549,7 +569,9 @@ def summarise(runs: list[dict[str, Any]], machines: list[int]) -> dict[str, Any]
                 "poller_core_share": _median(
                     [r["poller_core_share"] for r in mine if r["side"] == side]
                 ),
-                "saturated_runs": sum(1 for r in mine if r["side"] == side and r["saturated"]),
+                "runs_short_of_due_cycles": sum(
+                    1 for r in mine if r["side"] == side and r["due_cycles_share"] < KEPT_UP_SHARE
+                ),
                 "saturated": sorted(
                     {r["saturated"] for r in mine if r["side"] == side and r["saturated"]}
                 ),
@@ -594,9 +616,7 @@ def ceiling(runs: list[dict[str, Any]], summary: dict[str, Any]) -> dict[str, An
     kept = [
         r["machines"]
         for r in runs
-        if r["side"] == "project_cycle"
-        and r["due_cycles_share"] >= KEPT_UP_SHARE
-        and r["saturated"] != "poller"
+        if r["side"] == "project_cycle" and r["due_cycles_share"] >= KEPT_UP_SHARE
     ]
     largest = max((m for m in set(kept) if kept.count(m) >= 2), default=0)
     costs = {n: s["project_cycle"]["cpu_ms_per_machine_cycle"] for n, s in summary.items()}
@@ -631,6 +651,7 @@ def main() -> None:
     parser.add_argument("--store", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.poller:
+        raise_priority()
         args.role = args.poller
         asyncio.run(_poller_main(args))
         return
@@ -639,6 +660,7 @@ def main() -> None:
         raise SystemExit(2)
     if hasattr(os, "sched_setaffinity") and (os.cpu_count() or 1) > 1:
         os.sched_setaffinity(0, {SERVER_CORE})  # the conductor stays off the poller's core
+    nice = raise_priority()
     folder = Path(tempfile.mkdtemp(prefix="poll-vs-telegraf-"))
     runs = []
     try:
@@ -667,6 +689,7 @@ def main() -> None:
                 "cycle_s": CYCLE_S,
                 "requests_per_machine_cycle": REQUESTS_PER_MACHINE_CYCLE,
                 "cores": {"poller": POLLER_CORE, "servers": SERVER_CORE},
+                "nice": nice,
                 "window_s": args.window_s,
                 "repeats": args.repeats,
                 "summary": summary,

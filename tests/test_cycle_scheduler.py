@@ -8,7 +8,7 @@ import asyncio
 import pytest
 
 from drivers.clock import ManualClock, WallClock
-from gateway.cycle_scheduler import CycleScheduler, spread_fraction
+from gateway.cycle_scheduler import SLOTS, CycleScheduler, spread_fraction
 
 
 def test_phases_stay_evenly_spread_whatever_the_number_of_loops() -> None:
@@ -29,6 +29,10 @@ def test_phases_stay_evenly_spread_whatever_the_number_of_loops() -> None:
         assert max(gaps) <= 2.0 / count
     scheduler = CycleScheduler(ManualClock())
     assert [scheduler.phase_s(2.0) for _ in range(4)] == [0.0, 1.0, 0.5, 1.5]
+    # Beyond SLOTS loops, slots are shared evenly: 100 loops, 5 per slot.
+    phases = [scheduler.phase_s(2.0) for _ in range(96)]
+    counts = {p: phases.count(p) for p in set(phases)}
+    assert len(counts) == SLOTS and set(counts.values()) <= {4, 5, 6}
 
 
 def test_loops_wake_in_due_order_never_early_and_at_most_a_tick_late() -> None:

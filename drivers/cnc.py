@@ -111,15 +111,22 @@ class ReconnectingSession(Generic[SessionT]):
         """Bound for a whole connect sequence (several round trips)."""
         return 3 * self._timeout_s
 
-    async def _call(self, what: str, operation: Callable[[SessionT], Awaitable[T]]) -> T:
-        """Run ``operation`` on the session, connecting first if needed.
+    async def _call(
+        self, what: str, operation: Callable[[SessionT], Awaitable[T]], *args: object
+    ) -> T:
+        """Run ``operation(session, *args)`` on the session, connecting first if needed.
 
-        ``what`` says what was attempted, for the error message. The operation is
-        bounded by twice the request timeout as a backstop for the library's own.
+        ``what`` says what was attempted, for the error message. The operation
+        runs in the caller's task; each of its requests is bounded by the library's
+        own request timeout (pymodbus's ``timeout``, asyncua's client ``timeout``,
+        both ``timeout_s``), the one timer on a request: a wrapping
+        ``asyncio.wait_for`` would add a task and a timer to every request.
         """
-        session = await self._ensure_session(what)
+        session = self._session
+        if session is None or self._closed:
+            session = await self._ensure_session(what)
         try:
-            result = await asyncio.wait_for(operation(session), 2 * self._timeout_s)
+            result = await operation(session, *args)
         except CncRefusedError as exc:
             self.health.record_ok(self._clock())  # the peer answered: the link is fine
             raise CncRefusedError(f"{self._where}: {what} refused: {exc}") from exc
@@ -147,7 +154,8 @@ class ReconnectingSession(Generic[SessionT]):
                     f"{self._backoff.wait_s(now):.2f} s (last error: {reason})"
                 )
             try:
-                session = await asyncio.wait_for(self._open(), self._connect_timeout_s)
+                async with asyncio.timeout(self._connect_timeout_s):
+                    session = await self._open()
             except self.link_errors as exc:
                 message = f"{self._where}: cannot connect ({_describe(exc)})"
                 await self._lose(message, None)

@@ -18,15 +18,18 @@ slave on the bus down with one dead one (#1654).
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
+import struct
 import time
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Awaitable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 
 from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
-from pymodbus.pdu import ModbusPDU
+from pymodbus.logging import Log
+from pymodbus.pdu import DecodePDU, ModbusPDU
 
 from drivers.backoff import Backoff
 from drivers.bus_hub import BusHub, rtu_silence_s
@@ -42,6 +45,35 @@ GATEWAY_NO_DEVICE = frozenset({0x0A, 0x0B})
 _LIBRARY_RECONNECT_DELAY_S = 24 * 3600.0
 #: Silent requests pymodbus tolerates before closing the connection: never, we decide.
 _LIBRARY_MAX_NO_RESPONSES = 2**31 - 1
+
+
+class _ReplyDecoder(DecodePDU):
+    """pymodbus's reply decoder without the debug text it builds for every reply.
+
+    pymodbus 3.16 passes ``str(pdu)`` to its debug log call, so every reply is
+    formatted as text even with debug logging off (a few per cent of the poll's
+    CPU). With debug off, the plain replies (no sub-function) are decoded here the
+    way the library does; everything else, and everything with debug on, goes to
+    the library's own ``decode``.
+    """
+
+    def decode(self, frame: bytes) -> ModbusPDU | None:
+        function_code = frame[0] if frame else 0
+        if (
+            function_code >= 0x80
+            or function_code in self.pdu_sub_table
+            or Log._logger.isEnabledFor(logging.DEBUG)
+        ):
+            return super().decode(frame)
+        pdu_class = self.pdu_table.get(function_code, (None, None))[self.pdu_inx]
+        if pdu_class is None:
+            return super().decode(frame)
+        pdu = pdu_class()
+        try:
+            pdu.decode(frame[1:])
+        except (ModbusException, ValueError, IndexError, struct.error):
+            return super().decode(frame)  # the library logs what was wrong
+        return pdu
 
 
 class ModbusRequestError(Exception):
@@ -71,6 +103,9 @@ class ModbusConnection:
     connection; ``close()`` also cancels any reconnect task pymodbus started. A
     request ends after ``timeout_s × (retries + 1)`` at most and raises one of
     :class:`ModbusLinkLostError`, :class:`ModbusNoResponseError`, :class:`ModbusRefusedError`.
+    That bound is pymodbus's own per-request timeout, the only one on a request:
+    a request runs in the caller's task, with no task or timer of ours around it
+    (the client is used by one request at a time, so nothing else can hold it up).
     The constructor does no I/O.
     """
 
@@ -108,11 +143,6 @@ class ModbusConnection:
     def connected(self) -> bool:
         return self._client is not None and self._client.connected
 
-    @property
-    def _request_bound_s(self) -> float:
-        """Backstop for one request: pymodbus's own limit plus a margin."""
-        return self.timeout_s * (self.retries + 1) + 0.5
-
     def _make_client(self) -> AsyncModbusTcpClient | AsyncModbusSerialClient:
         name = self._name or "gateway"
         if self._tcp is not None:
@@ -145,6 +175,7 @@ class ModbusConnection:
         self.close()
         client = self._make_client()
         client.set_max_no_responses(_LIBRARY_MAX_NO_RESPONSES)
+        client.ctx.framer.decoder = _ReplyDecoder(False)
         try:
             ok = await asyncio.wait_for(client.connect(), self.timeout_s + 0.5)
         except (OSError, TimeoutError, ModbusException) as exc:
@@ -167,28 +198,32 @@ class ModbusConnection:
             client.close()
 
     async def read_input_registers(self, address: int, count: int, device_id: int) -> list[int]:
+        client = self._usable_client()
         response = await self._execute(
+            client,
             device_id,
-            lambda c: c.read_input_registers(address, count=count, device_id=device_id),
+            client.read_input_registers(address, count=count, device_id=device_id),
         )
         return self._registers(response, count, device_id)
 
     async def read_holding_registers(self, address: int, count: int, device_id: int) -> list[int]:
+        client = self._usable_client()
         response = await self._execute(
+            client,
             device_id,
-            lambda c: c.read_holding_registers(address, count=count, device_id=device_id),
+            client.read_holding_registers(address, count=count, device_id=device_id),
         )
         return self._registers(response, count, device_id)
 
     async def write_registers(self, address: int, values: list[int], device_id: int) -> None:
         """FC16 write of ``values`` from ``address``."""
+        client = self._usable_client()
         await self._execute(
-            device_id,
-            lambda c: c.write_registers(address, values, device_id=device_id),
+            client, device_id, client.write_registers(address, values, device_id=device_id)
         )
 
     def _registers(self, response: ModbusPDU, count: int, device_id: int) -> list[int]:
-        registers = list(response.registers)
+        registers = response.registers
         if len(registers) != count:
             raise ModbusNoResponseError(
                 f"device {device_id} on {self.where}: {len(registers)} registers in the "
@@ -196,16 +231,20 @@ class ModbusConnection:
             )
         return registers
 
-    async def _execute(
-        self,
-        device_id: int,
-        request: Callable[[AsyncModbusTcpClient | AsyncModbusSerialClient], Awaitable[ModbusPDU]],
-    ) -> ModbusPDU:
+    def _usable_client(self) -> AsyncModbusTcpClient | AsyncModbusSerialClient:
         client = self._client
         if client is None or not client.connected:
             raise ModbusLinkLostError(f"{self.where}: connection lost")
+        return client
+
+    async def _execute(
+        self,
+        client: AsyncModbusTcpClient | AsyncModbusSerialClient,
+        device_id: int,
+        request: Awaitable[ModbusPDU],
+    ) -> ModbusPDU:
         try:
-            response = await asyncio.wait_for(request(client), self._request_bound_s)
+            response = await request
         except ConnectionException as exc:
             raise ModbusLinkLostError(f"{self.where}: connection lost ({exc})") from exc
         except ModbusIOException as exc:
@@ -218,8 +257,7 @@ class ModbusConnection:
                 ) from exc
             raise ModbusNoResponseError(f"bad reply from device {device_id}: {exc}") from exc
         except (OSError, TimeoutError) as exc:
-            # pymodbus's own timeout did not end the request: the client is wedged.
-            raise ModbusLinkLostError(f"{self.where}: request hung ({_text(exc)})") from exc
+            raise ModbusLinkLostError(f"{self.where}: request failed ({_text(exc)})") from exc
         if response.isError():
             code = getattr(response, "exception_code", None)
             if code in GATEWAY_NO_DEVICE:

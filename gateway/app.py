@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -25,6 +26,7 @@ from drivers.register_map import DeviceRegisters
 from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.bus_hubs import shared_hubs
 from gateway.config import GatewayConfig, MachineSection
+from gateway.cycle_scheduler import CycleScheduler
 from gateway.login_throttle import ThrottlePolicy
 from gateway.model_bank import ModelBank
 from gateway.outputs import Outputs
@@ -175,9 +177,17 @@ class Gateway:
             )
             for machine in config.machines
         ]
+        # One timer for every loop, and each loop's polls at its own phase of the cycle.
+        self.scheduler = CycleScheduler(self.clock)
         self.supervisors = {
             loop.config.id: Supervised(
-                f"machine {loop.config.id} loop", loop.run, progress=_cycles_of(loop)
+                f"machine {loop.config.id} loop",
+                functools.partial(
+                    loop.run,
+                    scheduler=self.scheduler,
+                    phase_s=self.scheduler.phase_s(loop.config.cycle_s),
+                ),
+                progress=_cycles_of(loop),
             )
             for loop in self.loops
         }

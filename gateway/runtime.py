@@ -28,12 +28,12 @@ tests).
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -42,6 +42,7 @@ from drivers.cnc import CncClient, CncError
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.compensation import CompensationPolicy
 from gateway.config import MachineSection
+from gateway.cycle_scheduler import CycleScheduler
 from gateway.effect_state import EffectStates
 from gateway.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.plausibility import Plausibility
@@ -55,6 +56,9 @@ from models.online_correction import CorrectionParams, OnlineCorrection
 from models.regime_rules import RegimeSelector
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+S = TypeVar("S")
 
 
 @dataclass
@@ -140,6 +144,8 @@ class MachineLoop:
         self._probe_basis: tuple[float, float] | None = None  # (predicted, applied) µm, last cycle
         self._link_down: set[str] = set()
         self._external_note = ""  # this cycle's external change, for the write status
+        #: Machine time the cycle in progress (or the last one) was due at.
+        self.due_s = 0.0
 
     # --- one cycle ----------------------------------------------------------------------
     async def run_cycle(self) -> CycleRecord:
@@ -259,7 +265,7 @@ class MachineLoop:
         self, now: float
     ) -> tuple[dict[str, ChannelResult], float | None, list[str]]:
         bus_reads = [bus.read_all(now) for bus in self.buses]
-        outcomes = await asyncio.gather(*bus_reads, self.cnc.read_speed(), return_exceptions=True)
+        outcomes = await read_together(bus_reads, self.cnc.read_speed())
         results: dict[str, ChannelResult] = {}
         failures: dict[str, str] = {}  # source → what failed
         for bus_config, outcome in zip(self.config.transmitters, outcomes[:-1], strict=True):
@@ -493,8 +499,20 @@ class MachineLoop:
         log.warning("%s: %s (failed writes: %d)", self.config.id, reason, self.failed_writes)
 
     # --- running ------------------------------------------------------------------------
-    async def run(self, stop: asyncio.Event | None = None, cycles: int | None = None) -> None:
+    async def run(
+        self,
+        stop: asyncio.Event | None = None,
+        cycles: int | None = None,
+        scheduler: CycleScheduler | None = None,
+        phase_s: float = 0.0,
+    ) -> None:
         """Cycle every ``cycle_s`` of machine time until ``stop`` is set or ``cycles`` ran.
+
+        With a ``scheduler`` (the gateway's, shared by every machine) the loop waits on
+        its one timer, and its first cycle is due ``phase_s`` after the start, so the
+        machines' polls are spread over the cycle; without one it sleeps on its own
+        and starts at once. An overrun starts the next cycle at once, without catching
+        up in a burst.
 
         ``stop`` cuts the wait between cycles short, so a stop request is served at
         once whatever ``cycle_s`` is. A cycle in progress gets ``STOP_GRACE_S`` (wall)
@@ -503,43 +521,106 @@ class MachineLoop:
         the next start reads what the macro holds before it writes.
         """
         stop = stop or asyncio.Event()
-        next_due = self.clock.now()
+        next_due = self.clock.now() + phase_s
         done = 0
-        while not stop.is_set() and (cycles is None or done < cycles):
-            if not await self._cycle_unless_stopped(stop):
-                return
-            done += 1
-            next_due += self.config.cycle_s
-            wait = next_due - self.clock.now()
-            if wait > 0:
-                await self.clock.sleep(wait, stop)
-            else:
-                next_due = self.clock.now()  # overrun: do not try to catch up in a burst
-                await asyncio.sleep(0)
-
-    async def _cycle_unless_stopped(self, stop: asyncio.Event) -> bool:
-        """Run one cycle; False when ``stop`` came and the cycle did not end in the grace."""
-        cycle = asyncio.ensure_future(self.run_cycle())
-        stopped = asyncio.ensure_future(stop.wait())
+        guard = _StopGuard(stop, self.config.id)
         try:
-            await asyncio.wait({cycle, stopped}, return_when=asyncio.FIRST_COMPLETED)
-            if not cycle.done():
-                await asyncio.wait({cycle}, timeout=STOP_GRACE_S)
-            if not cycle.done():
-                log.warning("%s: stop requested; cancelling the cycle in progress", self.config.id)
-                cycle.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await cycle
-                return False
-            cycle.result()  # an exception of the cycle goes to the supervisor
-            return True
+            while not stop.is_set() and (cycles is None or done < cycles):
+                if scheduler is not None:
+                    await scheduler.wait_until(next_due, stop)
+                    if stop.is_set():
+                        return
+                self.due_s = next_due
+                if not await guard.cycle(self.run_cycle):
+                    return
+                done += 1
+                next_due += self.config.cycle_s
+                now = self.clock.now()
+                if next_due <= now:
+                    next_due = now  # overrun: do not try to catch up in a burst
+                    await asyncio.sleep(0)
+                elif scheduler is None:
+                    await self.clock.sleep(next_due - now, stop)
         finally:
-            stopped.cancel()
-            if not cycle.done():  # this task itself was cancelled
-                cycle.cancel()
+            guard.close()
 
     async def close(self) -> None:
         self.effects.save()
         for bus in self.buses:
             await bus.close()
         await self.cnc.close()
+
+
+async def read_together(
+    bus_reads: Sequence[Awaitable[T]], speed_read: Awaitable[S]
+) -> list[T | S | BaseException]:
+    """Await the reads concurrently, as ``gather(..., return_exceptions=True)`` does.
+
+    The speed read runs in the calling task and only the bus reads get tasks of
+    their own: one task fewer per machine and cycle than ``gather`` (which also
+    adds a gathering future and its callbacks). Outcomes come in the order given,
+    the speed last; an ``Exception`` is returned in its place, a cancellation
+    cancels every read and propagates.
+    """
+    tasks = [asyncio.ensure_future(read) for read in bus_reads]
+    try:
+        try:
+            speed: S | BaseException = await speed_read
+        except Exception as exc:
+            speed = exc
+        outcomes: list[T | S | BaseException] = []
+        for task in tasks:
+            try:
+                outcomes.append(await task)
+            except Exception as exc:
+                outcomes.append(exc)
+    finally:
+        for task in tasks:
+            task.cancel()  # a no-op on the finished ones
+    outcomes.append(speed)
+    return outcomes
+
+
+class _StopGuard:
+    """Gives a cycle in progress ``STOP_GRACE_S`` after a stop request, then cancels it.
+
+    One watcher task per run of a loop instead of two futures per cycle: the cycle
+    runs in the loop's own task, and the watcher cancels that task only while it is
+    inside a cycle; :meth:`cycle` turns that one cancellation into "stopped".
+    """
+
+    def __init__(self, stop: asyncio.Event, machine: str) -> None:
+        task = asyncio.current_task()
+        assert task is not None, "a machine loop runs in a task"
+        self._task = task
+        self._machine = machine
+        self._in_cycle = False
+        self._cancelled = False
+        self._watcher = asyncio.create_task(self._watch(stop))
+
+    async def _watch(self, stop: asyncio.Event) -> None:
+        await stop.wait()
+        if not self._in_cycle:
+            return  # between cycles: the loop sees the stop itself
+        await asyncio.sleep(STOP_GRACE_S)
+        if self._in_cycle:
+            log.warning("%s: stop requested; cancelling the cycle in progress", self._machine)
+            self._cancelled = True
+            self._task.cancel()
+
+    async def cycle(self, run_cycle: Callable[[], Awaitable[CycleRecord]]) -> bool:
+        """Run one cycle; False when the stop's grace ran out and it was cancelled."""
+        self._in_cycle = True
+        try:
+            await run_cycle()  # an exception of the cycle goes to the supervisor
+        except asyncio.CancelledError:
+            if self._cancelled:
+                self._task.uncancel()
+                return False
+            raise
+        finally:
+            self._in_cycle = False
+        return True
+
+    def close(self) -> None:
+        self._watcher.cancel()

@@ -452,7 +452,9 @@ def test_loss_of_prediction_holds_then_ramps_at_the_configured_rate(
             last_prediction_s = b.records[-1].time_s
             before = len(b.cnc.received)
             b.set_fault("T1")  # open circuit: no model without T1, no prediction
-            records = await b.cycles(16)
+            # The hold, the ramp from what is held to 0, and two cycles more.
+            ramp_s = held_um / ramp_um_per_min * 60.0
+            records = await b.cycles(math.ceil((hold_s + ramp_s) / CYCLE_S) + 2)
             assert all(r.predicted_um is None for r in records)
             holding = [r for r in records if r.time_s - last_prediction_s < hold_s]
             assert holding and all("holding" in r.write_status for r in holding)

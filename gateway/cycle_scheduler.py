@@ -1,0 +1,142 @@
+"""One timer for every machine loop of a gateway process, with the loops spread over the cycle.
+
+A loop that sleeps on its own between cycles costs a timer, a task watching the stop
+event and a wake-up per cycle; a thousand such loops that all started together also
+fire together, every cycle, so the last machine of the burst is read up to a whole
+burst late and a burst as long as a transmitter timeout collapses into reconnects.
+
+:class:`CycleScheduler` keeps the waiting loops in one heap ordered by due time and
+wakes once per ``tick_s`` for everything due by then (one timer for the process);
+each loop gets a phase within its cycle (:meth:`CycleScheduler.phase_s`: one of
+``SLOTS`` slots, filled evenly whatever the number of loops) so the polls are
+spread over the cycle in small batches. One
+watcher per stop event wakes every loop waiting on it at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+
+from drivers.clock import Clock
+
+#: Loops due within this much of each other are released by one wake-up (machine s).
+DEFAULT_TICK_S = 0.005
+#: Phases are whole multiples of ``period / SLOTS``: the loops of one slot poll
+#: together, so their replies share the event loop's wake-ups (one wake-up per
+#: reply costs more CPU than the reply), while each burst is 1/SLOTS of the machines.
+SLOTS = 20
+
+
+def spread_fraction(index: int) -> float:
+    """The ``index``-th point of the base-2 van der Corput sequence, in [0, 1).
+
+    The first n points of it are spread evenly over [0, 1) for every n (0, ½, ¼, ¾,
+    ⅛, …), so loops added one by one stay evenly spaced without knowing how many
+    will come.
+    """
+    fraction, scale = 0.0, 0.5
+    while index:
+        if index & 1:
+            fraction += scale
+        index >>= 1
+        scale /= 2
+    return fraction
+
+
+class CycleScheduler:
+    """Wakes loops at their due times (machine time of ``clock``) from one shared timer.
+
+    A due loop is released at most ``tick_s`` late and never early. Construction does
+    no I/O and needs no running event loop; the timer task starts with the first wait.
+    """
+
+    def __init__(self, clock: Clock, tick_s: float = DEFAULT_TICK_S) -> None:
+        if tick_s < 0:
+            raise ValueError(f"tick_s must be >= 0, got {tick_s}")
+        self.clock = clock
+        self.tick_s = tick_s
+        self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
+        self._order = itertools.count()
+        self._phases = itertools.count()
+        self._timer: asyncio.Task[None] | None = None
+        self._timer_due: float | None = None
+        self._rearm = asyncio.Event()
+        self._watchers: dict[asyncio.Event, asyncio.Task[None]] = {}
+        self._waiting: dict[asyncio.Event, set[asyncio.Future[None]]] = {}
+
+    def phase_s(self, period_s: float) -> float:
+        """The next loop's offset within its cycle: one of ``SLOTS`` slots, the loops so far
+        spread evenly over them."""
+        slot = int(spread_fraction(next(self._phases)) * SLOTS)
+        return slot * period_s / SLOTS
+
+    @property
+    def waiting(self) -> int:
+        """Loops waiting for their due time now."""
+        return sum(1 for _, _, future in self._heap if not future.done())
+
+    async def wait_until(self, due_s: float, stop: asyncio.Event) -> None:
+        """Return at ``due_s`` (machine time), or at once when ``stop`` is or gets set."""
+        if stop.is_set():
+            return
+        if due_s <= self.clock.now():
+            await asyncio.sleep(0)  # let the others run, as a sleep would
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._heap, (due_s, next(self._order), future))
+        waiting = self._waiting.setdefault(stop, set())
+        waiting.add(future)
+        if stop not in self._watchers:
+            self._watchers[stop] = asyncio.create_task(self._watch(stop))
+        self._arm(due_s)
+        try:
+            await future
+        finally:
+            waiting.discard(future)
+            if not future.done():  # the waiter was cancelled: never wake it
+                future.cancel()
+
+    def _arm(self, due_s: float) -> None:
+        """Make sure the timer runs and wakes by ``due_s``."""
+        if self._timer is None or self._timer.done():
+            self._timer_due = None
+            self._timer = asyncio.create_task(self._run_timer())
+        elif self._timer_due is not None and due_s < self._timer_due:
+            self._rearm.set()  # it sleeps past this one: let it look again
+
+    @property
+    def idle(self) -> bool:
+        """No timer task runs (nothing is waiting)."""
+        return self._timer is None or self._timer.done()
+
+    async def _run_timer(self) -> None:
+        heap = self._heap
+        while heap:
+            if heap[0][2].done():  # woken by a stop, or cancelled: nothing to time
+                heapq.heappop(heap)
+                continue
+            due_s = heap[0][0]
+            wait_s = due_s + self.tick_s - self.clock.now()
+            if wait_s > 0:
+                self._timer_due = due_s + self.tick_s
+                self._rearm.clear()
+                await self.clock.sleep(wait_s, self._rearm)
+                self._timer_due = None
+            now = self.clock.now()
+            while heap and heap[0][0] <= now:
+                _, _, future = heapq.heappop(heap)
+                if not future.done():
+                    future.set_result(None)
+
+    async def _watch(self, stop: asyncio.Event) -> None:
+        """Wake everyone waiting on ``stop`` once it is set."""
+        try:
+            await stop.wait()
+            for future in self._waiting.pop(stop, set()):
+                if not future.done():
+                    future.set_result(None)
+            self._rearm.set()  # the timer drops what was woken, and ends if that was all
+        finally:
+            self._watchers.pop(stop, None)

@@ -95,6 +95,8 @@ class Folds:
         names = tuple(dict.fromkeys(labels if fit_rows is None else labels[fit_rows]))
         number = {name: i for i, name in enumerate(names)}
         index = np.fromiter((number.get(label, -1) for label in labels), np.int32, len(labels))
+        if fit_rows is not None:
+            index[~fit_rows] = -1  # e.g. the rows between probes of a logged history
         rows = tuple(np.flatnonzero(index == i).astype(np.int32) for i in range(len(names)))
         parts = tuple(_as_slice(r) for r in rows)
         # Row t pairs with the fold's previous usable row: the row before it, or with a

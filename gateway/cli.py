@@ -625,6 +625,13 @@ def export(
     type=click.Path(path_type=Path),
     help="Save the augmented model here (sub-folder augmented/).",
 )
+@click.option(
+    "--probe-rows",
+    is_flag=True,
+    help="The target is known only at some rows (a logged history: the probe's measured "
+    "error): rows with an empty target feed the effect terms; fit and figures use the others, "
+    "the target as measured (no reference subtracted).",
+)
 @click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
 @input_errors_exit
 def analyze(
@@ -636,10 +643,13 @@ def analyze(
     json_out: Path | None,
     report_dir: Path | None,
     store_dir: Path | None,
+    probe_rows: bool,
     progress: bool | None,
 ) -> None:
     """Fit the model, trace its held-out residual to the effect it lacks, add it, compare."""
     from dataclasses import replace
+
+    import numpy as np
 
     from models import augmented
     from models.analysis import analyze as run_analysis
@@ -648,17 +658,29 @@ def analyze(
     from models.store import data_fingerprint
 
     sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list)
+    data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=probe_rows)
     report_skipped(data)
     prepared = prepare(data, sensor_list, reference).without_sensor_readings()
+    fit_rows = None
+    if probe_rows:  # a probe measures the error itself: the target is used as measured
+        prepared = replace(prepared, error_um=np.asarray(data.error_um, dtype=float))
+        fit_rows = np.isfinite(prepared.error_um)
+        if int(fit_rows.sum()) < 10:
+            raise click.UsageError(
+                f"{data_csv}: --probe-rows: {int(fit_rows.sum())} rows with a {target} value; "
+                "expected at least 10"
+            )
     data = prepared.data  # the readings of the sensors are let go: their rises are kept
     show_progress = sys.stderr.isatty() if progress is None else progress
+    known = "" if fit_rows is None else f" ({int(fit_rows.sum())} with {target})"
     click.echo(
-        f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, "
+        f"{data_csv.name}: {data.n_samples} rows{known}, {len(data.run_ids)} runs, "
         f"{len(prepared.plan.recording_runs)} recording(s), target {target} (µm), "
         f"model {method} on {','.join(prepared.inputs.sensors)} (°C)"
     )
-    result, accepted, analysis = run_analysis(prepared, method, sensor_list, show_progress)
+    result, accepted, analysis = run_analysis(
+        prepared, method, sensor_list, show_progress, fit_rows=fit_rows
+    )
     result = replace(
         result,
         data_fingerprint=data_fingerprint(prepared.inputs, prepared.error_um),

@@ -86,6 +86,18 @@ class History:
             numeric=numeric,
         )
 
+    def write_csv(self, path: str) -> None:
+        """The measured-run CSV of the history (one run; ``error_um`` empty between probes),
+        what ``analyze --probe-rows`` reads."""
+        header = ["run", "time_s", "speed_rpm", *self.sensors, TARGET]
+        with open(path, "w", encoding="utf-8", newline="") as out:
+            out.write(",".join(header) + "\n")
+            for i in range(self.n_samples):
+                cells = [HISTORY_RUN, f"{self.time_s[i]:.3f}", _cell(self.speed_rpm[i], 1)]
+                cells += [_cell(v, 2) for v in self.temperatures_C[i]]
+                cells.append(_cell(self.error_um[i], 4))
+                out.write(",".join(cells) + "\n")
+
     def save(self, path: str) -> None:
         """One .npz file (the background analysis reads it in its own process)."""
         arrays = {
@@ -156,3 +168,7 @@ def analyse_history(
             analysis, accepted, result, model_id, software_version
         )
     return summary
+
+
+def _cell(value: float, decimals: int) -> str:
+    return "" if not np.isfinite(value) else f"{value:.{decimals}f}"

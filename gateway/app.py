@@ -24,6 +24,7 @@ from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.config import GatewayConfig, MachineSection
 from gateway.login_throttle import ThrottlePolicy
 from gateway.model_bank import ModelBank
+from gateway.monitor import MonitorSink, build_monitor
 from gateway.outputs import Outputs
 from gateway.runtime import CycleRecord, MachineLoop, Sink
 from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
@@ -155,6 +156,7 @@ class Gateway:
             )
             for machine in config.machines
         ]
+        self.monitors = attach_monitors(self.loops, Path(config.state_dir))
         self.supervisors = {
             loop.config.id: Supervised(
                 f"machine {loop.config.id} loop", loop.run, progress=_cycles_of(loop)
@@ -238,12 +240,27 @@ class Gateway:
                     await loop.close()
                 except Exception:  # one machine's failure to close must not keep the others open
                     log.exception("%s: closing the loop failed", loop.config.id)
+            for monitor in self.monitors.values():
+                monitor.close()
             if self.scada is not None:
                 log.debug("stopping: SCADA server")
                 await self.scada.stop()
             log.debug("stopping: logging outputs")
             await self.outputs.stop()
             log.debug("stopped")
+
+
+def attach_monitors(loops: Sequence[MachineLoop], state_dir: Path) -> dict[str, MonitorSink]:
+    """The residual monitor of every machine that has one on, as a sink before the heartbeat."""
+    from gateway import __version__
+
+    monitors = {}
+    for loop in loops:
+        monitor = build_monitor(loop.config, state_dir / "monitor", __version__)
+        if monitor is not None:
+            loop.sinks.insert(max(len(loop.sinks) - 1, 0), monitor)
+            monitors[loop.config.id] = monitor
+    return monitors
 
 
 def _cycles_of(loop: MachineLoop) -> Callable[[], int]:

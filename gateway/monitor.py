@@ -163,10 +163,13 @@ class MonitorSink:
             value if value is not None and record.quality.get(name) == "good" else math.nan
             for name, value in ((n, record.temperatures_C.get(n)) for n in self.sensors)
         ]
-        basis, self._basis = self._basis, (
-            None
-            if record.predicted_um is None or record.applied_um is None
-            else (record.predicted_um, record.applied_um)
+        basis, self._basis = (
+            self._basis,
+            (
+                None
+                if record.predicted_um is None or record.applied_um is None
+                else (record.predicted_um, record.applied_um)
+            ),
         )
         error_um = math.nan
         if record.probe_error_um is not None and basis is not None:
@@ -207,20 +210,28 @@ class MonitorSink:
         self.state.alarms.append(alarm)
         if self._pending is not None:
             self.state.alarms_ignored += 1
-            log.info("%s: residual monitor: %s (an analysis is running)", self.machine,
-                     alarm.describe())
+            log.info(
+                "%s: residual monitor: %s (an analysis is running)", self.machine, alarm.describe()
+            )
             return
         probes = int(np.isfinite(self.history._error[: self.history.n]).sum())
         if probes < self.min_history_probes:
             log.info(
                 "%s: residual monitor: %s; %d probes logged, the analysis waits for %d",
-                self.machine, alarm.describe(), probes, self.min_history_probes,
+                self.machine,
+                alarm.describe(),
+                probes,
+                self.min_history_probes,
             )
             self.state.alarms_ignored += 1
             return
         log.warning(
             "%s: residual monitor: %s; residual analysis of %d logged cycles (%d probes) "
-            "started in the background", self.machine, alarm.describe(), self.history.n, probes,
+            "started in the background",
+            self.machine,
+            alarm.describe(),
+            self.history.n,
+            probes,
         )
         self._start(alarm)
 
@@ -264,7 +275,9 @@ class MonitorSink:
         if summary["effect"] == "none":
             log.info(
                 "%s: residual monitor: the analysis of %d probes finds no missing effect "
-                "(held-out RMSE %.2f µm)", self.machine, summary["probes"],
+                "(held-out RMSE %.2f µm)",
+                self.machine,
+                summary["probes"],
                 summary["before"]["rmse_um"],
             )
             return
@@ -272,8 +285,12 @@ class MonitorSink:
         effects = ", ".join(f"{e['effect']} {e['params']}" for e in summary["effects"])
         log.warning(
             "%s: residual monitor proposes %s: held-out RMSE on %d logged probes %.2f → %.2f µm "
-            "(model %s; promote it to use it)", self.machine, effects, summary["probes"],
-            summary["before"]["rmse_um"], summary["after"]["rmse_um"],
+            "(model %s; promote it to use it)",
+            self.machine,
+            effects,
+            summary["probes"],
+            summary["before"]["rmse_um"],
+            summary["after"]["rmse_um"],
             summary["document"]["model_id"],
         )
         if self.publish is not None:
@@ -293,3 +310,58 @@ class MonitorSink:
         if self._executor is not None:
             self._executor.shutdown(wait=False, cancel_futures=True)
             self._executor = None
+
+
+def store_publisher(store_dir: Path, machine_id: str) -> Publisher:
+    """Publish a monitor proposal in the model store's proposals (:mod:`models.proposals`)."""
+
+    def publish(summary: dict[str, Any]) -> None:
+        from models.proposals import ProposalStore
+
+        first = summary["effects"][0]
+        alarm = summary.get("alarm") or {}
+        proposal = ProposalStore(store_dir).publish(
+            machine_id=machine_id,
+            effect=" + ".join(e["effect"] for e in summary["effects"]),
+            params=first["params"]
+            if len(summary["effects"]) == 1
+            else {f"{i + 1}.{e['effect']}": e["params"] for i, e in enumerate(summary["effects"])},
+            before_rmse_um=summary["before"]["rmse_um"],
+            after_rmse_um=summary["after"]["rmse_um"],
+            probe_rows=summary["probes"],
+            document=summary["document"],
+            note=(
+                f"residual monitor: {alarm.get('test', '?')} alarm on regime "
+                f"{alarm.get('regime', '?')}; {summary['validation']}, "
+                f"{summary['rows']} logged cycles"
+            ),
+        )
+        summary["proposal_id"] = proposal.id
+        log.warning("%s: published proposal %s", machine_id, proposal.describe())
+
+    return publish
+
+
+def build_monitor(
+    machine: Any, workdir: Path | None, version: str = "unknown"
+) -> MonitorSink | None:
+    """The monitor sink of one machine's config (``machines[].monitor``), or None when off."""
+    section = machine.monitor
+    if not section.enabled:
+        return None
+    correction = machine.online_correction.params().with_limits(
+        process_um2_per_h=section.process_um2_per_h, kind="bias", reversion_tau_s=None
+    )
+    return MonitorSink(
+        machine.id,
+        tuple(machine.sensor_names),
+        section.params(),
+        correction,
+        method=section.method,
+        history_days=section.history_days,
+        cycle_s=machine.cycle_s,
+        min_history_probes=section.min_history_probes,
+        publish=store_publisher(Path(machine.models.store), machine.id),
+        workdir=workdir,
+        version=version,
+    )

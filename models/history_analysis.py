@@ -157,8 +157,12 @@ def analyse_history(
         "probes": probes,
         "history_s": float(usable.time_s[-1] - usable.time_s[0]) if usable.n_samples else 0.0,
         "steps": [
-            {"effect": s.effect, "params": s.params, "before_rmse_um": s.before.rmse_um,
-             "after_rmse_um": s.after.rmse_um}
+            {
+                "effect": s.effect,
+                "params": s.params,
+                "before_rmse_um": s.before.rmse_um,
+                "after_rmse_um": s.after.rmse_um,
+            }
             for s in result.steps
         ],
     }

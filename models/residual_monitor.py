@@ -51,7 +51,6 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import optimize, stats
 
 SECONDS_PER_MONTH = 30 * 86400.0
 SIEGMUND_OFFSET = 1.166  # the CUSUM's overshoot correction (Siegmund 1985)
@@ -120,8 +119,11 @@ def cusum_arl(k: float, h: float) -> float:
     return one_sided / 2.0
 
 
+@functools.lru_cache(maxsize=64)
 def cusum_threshold(k: float, arl_probes: float) -> float:
     """The h (σ) whose two-sided in-control ARL is ``arl_probes``."""
+    from scipy import optimize  # here, not at import: the config loads this module
+
     return float(optimize.brentq(lambda h: cusum_arl(k, h) - arl_probes, 0.0, 200.0))
 
 
@@ -214,12 +216,16 @@ class RegimeTests:
             "degrees_of_freedom": rank,
             "coefficients_sigma": dict(zip(REGRESSORS, (float(b) for b in beta), strict=True)),
         }
-        return Alarm("regression", probe.regime, probe.time_s, statistic, threshold, self.probes, detail)
+        return Alarm(
+            "regression", probe.regime, probe.time_s, statistic, threshold, self.probes, detail
+        )
 
 
 @functools.lru_cache(maxsize=64)
 def chi2_threshold(alpha: float, degrees_of_freedom: int) -> float:
     """The χ² value exceeded with probability ``alpha`` (cached: one per window rank)."""
+    from scipy import stats
+
     return float(stats.chi2.isf(alpha, degrees_of_freedom))
 
 
@@ -267,7 +273,7 @@ def simulated_false_alarms(
     on average), as the regressors need one; under the null z does not depend on it.
     """
     rng = np.random.default_rng(seed)
-    n = int(round(months * params.probes_per_month))
+    n = round(months * params.probes_per_month)
     monitor = ResidualMonitor(params)
     speed = last_step = 0.0
     step_time = 0.0
@@ -275,9 +281,15 @@ def simulated_false_alarms(
         t = i * params.probe_period_s
         if rng.random() < 1.0 / step_every_probes:
             new = float(rng.choice([0.0, 1500.0, 3500.0, 6000.0, 8000.0]))
-            last_step, speed, step_time = new - speed, new, t - rng.uniform(0, params.probe_period_s)
+            last_step, speed, step_time = (
+                new - speed,
+                new,
+                t - rng.uniform(0, params.probe_period_s),
+            )
         monitor.observe(
-            ProbeInnovation(t, float(rng.standard_normal()) * 0.5, 0.5, speed, last_step, t - step_time)
+            ProbeInnovation(
+                t, float(rng.standard_normal()) * 0.5, 0.5, speed, last_step, t - step_time
+            )
         )
     by_test: dict[str, float] = {}
     for alarm in monitor.alarms:

@@ -36,7 +36,7 @@ def history(tmp_path_factory: pytest.TempPathFactory):
 
 
 def test_probe_rows_find_the_drift_like_the_monitor(history, tmp_path: Path):
-    folder, logged = history
+    _folder, logged = history
     probes = int(logged.probe_rows.sum())
     assert 100 <= probes <= 125 and logged.n_samples >= 20 * probes
     csv_path = tmp_path / "history.csv"

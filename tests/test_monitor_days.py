@@ -34,7 +34,9 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def monitored(store: Path, effects: tuple[str, ...], seed: int, days: int):
     plant = InProcessPlant(store, programme_days(seed, days), effects, seed=seed)
-    sink = MonitorSink("vmc", SENSORS, MonitorParams(), MONITOR_FILTER, cycle_s=15.0, in_process=True)
+    sink = MonitorSink(
+        "vmc", SENSORS, MonitorParams(), MONITOR_FILTER, cycle_s=15.0, in_process=True
+    )
     plant.sinks.append(sink)
     return plant, sink
 

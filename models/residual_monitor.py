@@ -124,7 +124,8 @@ def cusum_threshold(k: float, arl_probes: float) -> float:
     """The h (σ) whose two-sided in-control ARL is ``arl_probes``."""
     from scipy import optimize  # here, not at import: the config loads this module
 
-    return float(optimize.brentq(lambda h: cusum_arl(k, h) - arl_probes, 0.0, 200.0))
+    highest = 700.0 / (2 * k) - SIEGMUND_OFFSET  # e^{2kb} stays a finite float up to here
+    return float(optimize.brentq(lambda h: cusum_arl(k, h) - arl_probes, 0.0, highest))
 
 
 @dataclass(frozen=True)

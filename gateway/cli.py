@@ -479,6 +479,12 @@ def run(config_path: Path, log_level: str) -> None:
 @click.option(
     "--log-level", default="warning", type=click.Choice(["debug", "info", "warning", "error"])
 )
+@click.option(
+    "--effect",
+    type=click.Choice(["thermal_lag", "speed_direct", "ambient", "drift", "cooler"]),
+    help="Hide this effect in the machine (the models lack it): the residual monitor finds it, "
+    "the demo promotes its proposal, the compensation runs with it.",
+)
 @input_errors_exit
 def demo(
     json_out: Path | None,
@@ -488,6 +494,7 @@ def demo(
     cycle_s: float,
     workdir: Path,
     log_level: str,
+    effect: str | None,
 ) -> None:
     """Simulate a machine, fit its models, compensate an unseen programme, show the gain."""
     import asyncio
@@ -504,6 +511,7 @@ def demo(
             cycle_s=cycle_s,
             version=__version__,
             say=click.echo,
+            effect=effect,
         )
     )
     write_json(json_out, result)

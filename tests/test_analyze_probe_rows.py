@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from gateway.demo_effect import SENSORS, InProcessPlant
 from gateway.monitor import MonitorSink
 from models.history_analysis import analyse_history
 from models.residual_monitor import MonitorParams
 from simulator.programs import production_program
 from tests.cli import gateway
 from tests.gateway_rig import fit_store
-from tests.monitor_plant import SENSORS, InProcessPlant
 
 
 @pytest.fixture(scope="module")

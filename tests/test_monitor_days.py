@@ -15,11 +15,11 @@ from pathlib import Path
 
 import pytest
 
+from gateway.demo_effect import SENSORS, InProcessPlant, programme_days
 from gateway.monitor import MonitorSink
 from models.online_correction import CorrectionParams
 from models.residual_monitor import MonitorParams
 from tests.gateway_rig import fit_store
-from tests.monitor_plant import SENSORS, InProcessPlant, programme_days
 
 DAY_S = 86400.0
 #: Machine time within which the effect must be proposed.

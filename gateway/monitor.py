@@ -5,7 +5,8 @@ the loop logs, after the cycle has done its work. Per cycle it
 
 1. appends the cycle to its history (time, speed, the good temperature readings,
    and at a probe cycle the measured error: probe + compensation applied then,
-   contracts §7), capped at ``history_days``;
+   contracts §7), one cycle per 15 s and every probe cycle, capped at
+   ``history_days`` (the oldest quarter dropped when full);
 2. at a new probe, computes the model's residual (probe + applied − predicted,
    both of the cycle before, as the runtime's online correction does) and runs
    it through a shadow online filter with the machine's correction parameters:
@@ -38,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from models.history_analysis import History, analyse_history
+from models.history_analysis import GRID_STEP_S, History, analyse_history
 from models.online_correction import CorrectionParams, OnlineCorrection
 from models.residual_monitor import Alarm, MonitorParams, ProbeInnovation, ResidualMonitor
 
@@ -140,7 +141,12 @@ class MonitorSink:
         self.filter = OnlineCorrection(correction or CorrectionParams())
         self.monitor = ResidualMonitor(params)
         self.method = method
-        self.history = HistoryBuffer(sensors, max(int(history_days * 86400 / cycle_s), 1024))
+        # The analysis runs on a 15 s grid (models.history_analysis.GRID_STEP_S): a faster
+        # cycle is kept once per step (and at every probe), so 30 days take ~11 MB, not 150.
+        self.history_step_s = max(cycle_s, GRID_STEP_S)
+        rows = history_days * 86400 / self.history_step_s * (1 + self.history_step_s / 300.0)
+        self.history = HistoryBuffer(sensors, max(int(rows), 1024))
+        self._kept_s: float | None = None
         self.min_history_probes = min_history_probes
         self.publish = publish
         self.workdir = workdir
@@ -176,7 +182,12 @@ class MonitorSink:
             error_um = record.probe_error_um + basis[1]  # the machine's error when probed
             self._probe(record, record.probe_error_um + basis[1] - basis[0])
         self._track_speed(record.time_s, speed)
-        self.history.append(record.time_s, math.nan if speed is None else speed, temps, error_um)
+        due = self._kept_s is None or record.time_s - self._kept_s >= 0.999 * self.history_step_s
+        if due or math.isfinite(error_um):  # one cycle per history step, and every probe
+            self._kept_s = record.time_s
+            self.history.append(
+                record.time_s, math.nan if speed is None else speed, temps, error_um
+            )
 
     def _track_speed(self, time_s: float, speed: float | None) -> None:
         if speed is None:

@@ -33,6 +33,7 @@ from models.features import prepare
 
 HISTORY_RUN = "logged-history"
 TARGET = "error_um"
+GRID_STEP_S = 15.0  # the analysis's time grid (History.on_grid)
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,37 @@ class History:
             self.error_um[keep],
             None if self.ambient_C is None else self.ambient_C[keep],
         )
+
+    def on_grid(self, step_s: float) -> History:
+        """The history on an even time grid of ``step_s``, from its first to its last row.
+
+        Temperatures are interpolated linearly between their good readings, the speed
+        held from the last reading, and each probe's error moved to the nearest grid
+        row (at most ``step_s``/2 away; of two probes on one row the later stays). An
+        even grid lets the lag terms run as one filter (:func:`models.effect_terms.
+        first_order_lag`), where jittered cycle times would step them sample by
+        sample; a grid of 15 s changes a lag of τ ≥ 5 min by a fraction of its input's
+        change over 15 s.
+        """
+        rows = self.complete()
+        if rows.n_samples < 2:
+            return rows
+        grid = np.arange(rows.time_s[0], rows.time_s[-1] + step_s / 2, step_s)
+        temps = np.column_stack(
+            [
+                np.interp(grid, rows.time_s, rows.temperatures_C[:, j])
+                for j in range(len(self.sensors))
+            ]
+        )
+        held = np.clip(np.searchsorted(rows.time_s, grid, side="right") - 1, 0, None)
+        error = np.full(grid.size, np.nan)
+        probe = rows.probe_rows
+        nearest = np.clip(
+            np.rint((rows.time_s[probe] - grid[0]) / step_s).astype(int), 0, grid.size - 1
+        )
+        error[nearest] = rows.error_um[probe]
+        ambient = None if rows.ambient_C is None else np.interp(grid, rows.time_s, rows.ambient_C)
+        return History(grid, rows.speed_rpm[held], self.sensors, temps, error, ambient)
 
     def as_runs(self, source: str = "logged history") -> MeasuredRuns:
         numeric = {
@@ -130,13 +162,15 @@ def analyse_history(
     sensors: tuple[str, ...] | None = None,
     software_version: str = "unknown",
     model_prefix: str = "monitor",
+    step_s: float | None = GRID_STEP_S,
 ) -> dict[str, Any]:
     """The analysis of the module docstring; a plain-JSON summary (and the model, if any).
 
-    Returns ``{"effect": "none", …}`` when nothing is believed, else the proposal's
-    content with ``"document"``, the augmented model.
+    The history is put on an even grid of ``step_s`` first (:meth:`History.on_grid`;
+    None: as logged). Returns ``{"effect": "none", …}`` when nothing is believed,
+    else the proposal's content with ``"document"``, the augmented model.
     """
-    usable = history.complete()
+    usable = history.complete() if step_s is None else history.on_grid(step_s)
     probes = int(usable.probe_rows.sum())
     data = usable.as_runs()
     prepared = prepare(data, sensors, "recording-start")

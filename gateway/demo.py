@@ -248,6 +248,7 @@ async def demo(
             "models": models,
             "regime_switches": [list(s) for s in closed.loop.selector.switches],
             "failed_writes": closed.loop.failed_writes,
+            "models_used": sorted({r.model_id for r in closed.trace.records if r.model_id}),
         }
     )
     write_trace(workdir / "trace.csv", closed.trace)

@@ -22,7 +22,10 @@ the loop logs, after the cycle has done its work. Per cycle it
    promotes a proposal.
 
 One analysis runs at a time; alarms while one runs are logged and counted but
-start nothing, and after an analysis the tests start from fresh evidence.
+start nothing, and after an analysis the tests start from fresh evidence, as
+they do when a model never seen before comes into use (a promotion). An effect
+already proposed is not proposed again (the analysis refits the declared model
+from scratch, so after a promotion it would name the same effect).
 """
 
 from __future__ import annotations
@@ -160,10 +163,13 @@ class MonitorSink:
         self._pending: Future | None = None
         self._pending_alarm: Alarm | None = None
         self._executor: ProcessPoolExecutor | None = None
+        self._models_seen: set[str] = set()
+        self._proposed_effects: set[str] = set()  # effects published: never proposed twice
 
     # --- per cycle ----------------------------------------------------------------------
     def __call__(self, record: Any) -> None:
         self._collect()
+        self._note_model(record.model_id)
         speed = record.speed_rpm
         temps = [
             value if value is not None and record.quality.get(name) == "good" else math.nan
@@ -188,6 +194,22 @@ class MonitorSink:
             self.history.append(
                 record.time_s, math.nan if speed is None else speed, temps, error_um
             )
+
+    def _note_model(self, model_id: str | None) -> None:
+        """A model never seen before (a promotion, a rollback to another) restarts the
+        evidence: the residual it leaves is a new one. The history stays: it is the
+        machine's measured error, whatever the model."""
+        if model_id is None or model_id in self._models_seen:
+            return
+        if self._models_seen:
+            log.info(
+                "%s: residual monitor: model %s in use; the tests start afresh",
+                self.machine,
+                model_id,
+            )
+            self.monitor.reset()
+            self.filter.reset()
+        self._models_seen.add(model_id)
 
     def _track_speed(self, time_s: float, speed: float | None) -> None:
         if speed is None:
@@ -292,6 +314,16 @@ class MonitorSink:
                 summary["before"]["rmse_um"],
             )
             return
+        named = {e["effect"] for e in summary["effects"]}
+        if named <= self._proposed_effects:
+            log.info(
+                "%s: residual monitor: the analysis names %s again, already proposed; "
+                "not published again",
+                self.machine,
+                ", ".join(sorted(named)),
+            )
+            return
+        self._proposed_effects |= named
         self.state.proposals.append(summary)
         effects = ", ".join(f"{e['effect']} {e['params']}" for e in summary["effects"])
         log.warning(

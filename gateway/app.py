@@ -26,6 +26,7 @@ from gateway.login_throttle import ThrottlePolicy
 from gateway.model_bank import ModelBank
 from gateway.monitor import MonitorSink, build_monitor
 from gateway.outputs import Outputs
+from gateway.promotion import Promotions, proposals_view
 from gateway.runtime import CycleRecord, MachineLoop, Sink
 from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
 from gateway.supervision import Supervised
@@ -115,6 +116,7 @@ def load_bank(machine: MachineSection) -> ModelBank:
             )
     if not bank.models:
         raise ValueError(f"machine {machine.id}: every model in {machine.models.store} is refused")
+    Promotions(machine).load(bank)  # the promoted set in force, checked like the rest
     for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
         if model_id is not None and model_id not in bank:
             raise ValueError(
@@ -140,6 +142,7 @@ class Gateway:
         )
         # The heartbeat last: it carries the counts of this cycle's sink failures too.
         sinks = [self.outputs.log_points, *sinks]
+        self._proposals_shown: dict[str, tuple[int, int]] = {}  # machine → what SCADA shows
         self.scada = self._build_scada()
         if self.scada is not None:
             sinks = [*sinks, self._publish_to_scada]
@@ -196,7 +199,13 @@ class Gateway:
             ),
         )
         machines = {m.id: m.sensor_names for m in self.config.machines}
-        return ScadaServer(settings, machines, self._set_enabled)
+        return ScadaServer(
+            settings,
+            machines,
+            self._set_enabled,
+            on_promote=self.promote,
+            on_rollback=self.rollback,
+        )
 
     def _loop_of(self, machine_id: str) -> MachineLoop:
         return next(loop for loop in self.loops if loop.config.id == machine_id)
@@ -210,10 +219,37 @@ class Gateway:
             )
         loop.compensation_enabled = enabled
 
+    def promote(self, machine_id: str, proposal_id: str, by: str = "SCADA operator") -> str:
+        """Promote a proposal for a machine (the SCADA method): checked here against the
+        machine's bank first, then a new version that the loop takes in between cycles.
+
+        KeyError: no such proposal; ValueError: the machine would refuse it, or it is
+        not open.
+        """
+        loop = self._loop_of(machine_id)
+        proposal = loop.promotions.store.get(proposal_id)
+        loop.promotions.check(proposal, loop.bank)
+        version = loop.promotions.store.versions.promote(proposal_id, by=by)
+        return f"{version.describe()}; machine {machine_id} takes it within a cycle"
+
+    def rollback(self, machine_id: str, by: str = "SCADA operator") -> str:
+        """Restore the promoted set in force before the current version (the SCADA method)."""
+        loop = self._loop_of(machine_id)
+        version = loop.promotions.store.versions.rollback(by=by)
+        return f"{version.describe()}; machine {machine_id} takes it within a cycle"
+
     def _publish_to_scada(self, record: CycleRecord) -> None:
         assert self.scada is not None
         health = self.health(record.machine)
         self.scada.publish_soon(record, {k: v for k, v in health.items() if _scalar(v)})
+        promotions = self._loop_of(record.machine).promotions
+        shown = self._proposals_shown.get(record.machine)
+        if shown != (promotions.proposals_revision, promotions.version):
+            self._proposals_shown[record.machine] = (
+                promotions.proposals_revision,
+                promotions.version,
+            )
+            self.scada.show_proposals_soon(record.machine, proposals_view(promotions))
 
     async def run(self, stop: asyncio.Event | None = None) -> None:
         """Run every machine until ``stop``; on the way out save state and close links."""

@@ -416,7 +416,8 @@ def check_config(config_path: Path, connect: bool) -> None:
         click.echo(
             f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
             f"{len(bank.models)} models in {machine.models.store} (target {bank.target}), "
-            f"compensation → #{machine.compensation.macro} ({machine.compensation.unit})"
+            f"compensation → #{machine.compensation.macro} ({machine.compensation.unit}), "
+            f"{promotion_summary(machine)}"
         )
     if connect:
         problems = asyncio.run(check_connections(config))
@@ -424,6 +425,18 @@ def check_config(config_path: Path, connect: bool) -> None:
             raise ValueError("; ".join(problems))
         click.echo("every CNC and transmitter answered")
     click.echo(f"{config_path}: ok")
+
+
+def promotion_summary(machine) -> str:
+    """The promoted-models version in force and the open proposals (gateway.promotion)."""
+    from models.proposals import ProposalStore
+
+    store = ProposalStore(machine.models.store)
+    opened = [p for p in store.list(machine_id=machine.id) if p.open]
+    auto = "auto-promote" if machine.models.auto_promote else "promoted by an operator only"
+    return (
+        f"models version {store.versions.current().number}, {len(opened)} open proposal(s) ({auto})"
+    )
 
 
 @main.command()
@@ -799,3 +812,12 @@ def replay(
         version=__version__,
     )
     write_json(json_out, result)
+
+
+def _add_models_group() -> None:
+    from gateway.models_cli import models_group  # click only at load, like this module
+
+    main.add_command(models_group)
+
+
+_add_models_group()

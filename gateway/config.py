@@ -443,6 +443,8 @@ class ModelsSection(Strict):
     sensor_accuracy_C: float = Field(default=DEFAULT_SENSOR_ACCURACY_C, gt=0, le=10)
     #: a model that one sensor off by its accuracy would move by more is refused, µm
     max_bias_error_um: float = Field(default=DEFAULT_MAX_BIAS_ERROR_UM, gt=0, le=1000)
+    #: promote a new proposal of the residual monitor without an operator (gateway.promotion)
+    auto_promote: bool = False
 
 
 class MachineSection(Strict):

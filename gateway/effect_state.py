@@ -25,6 +25,8 @@ from pathlib import Path
 
 from gateway.model_bank import BankedAugmented
 from gateway.reference import write_json_atomic
+from gateway.warm_lags import WarmLags
+from models.effect_stream import StreamingAugmented
 
 log = logging.getLogger(__name__)
 
@@ -39,13 +41,43 @@ class EffectStates:
         models: Iterable[BankedAugmented],
         state_file: Path | None,
         save_every_s: float = SAVE_EVERY_S,
+        warm: WarmLags | None = None,
     ) -> None:
+        """``warm``: lags of every input kept for models added later (:meth:`set_models`)."""
         self.models = list(models)
         self.streams = {m.model_id: m.stream() for m in self.models}
         self.state_file = state_file
         self.save_every_s = save_every_s
+        self.warm = warm
         self._saved_s: float | None = None
         self._restore()
+
+    def set_models(self, models: Iterable[BankedAugmented]) -> None:
+        """Carry these models from now on: a kept model keeps its state, a new one starts
+        warm from :attr:`warm` (as if it had been stepped since the first cycle)."""
+        streams = {}
+        for model in models:
+            kept = next((m for m in self.models if m.model_id == model.model_id), None)
+            if kept is not None and kept.document.get("sha256") == model.document.get("sha256"):
+                streams[model.model_id] = self.streams[model.model_id]
+                continue
+            stream = model.stream()
+            self._start_warm(model, stream)
+            streams[model.model_id] = stream
+        self.models = list(models)
+        self.streams = streams
+
+    def _start_warm(self, model: BankedAugmented, stream: StreamingAugmented) -> None:
+        """Give a new model's stream the lags it would have had since the first cycle."""
+        if self.warm is None:
+            state, why = None, "no warm lags kept"
+        else:
+            state, why = self.warm.state_for(stream)
+        if state is None:
+            log.warning("%s: its lags start from the present inputs (%s)", model.model_id, why)
+            return
+        stream.import_state(state)
+        log.info("%s: lag states taken warm from the first cycle on", model.model_id)
 
     def advance(
         self, time_s: float, rises_C: Mapping[str, float], speed_rpm: float | None
@@ -55,6 +87,8 @@ class EffectStates:
         A model whose inputs are incomplete this cycle predicts None and keeps
         its state for the next complete cycle.
         """
+        if self.warm is not None:
+            self.warm.step(time_s, rises_C, speed_rpm)
         predicted: dict[str, float | None] = {}
         for model in self.models:
             stream = self.streams[model.model_id]
@@ -71,13 +105,15 @@ class EffectStates:
             value = stream.step(time_s, rises_C, speed_rpm, ambient_rise_C)
             finite = value is not None and math.isfinite(value)
             predicted[model.model_id] = value if finite else None
-        if self.models and (self._saved_s is None or time_s - self._saved_s >= self.save_every_s):
+        if (self.models or self.warm) and (
+            self._saved_s is None or time_s - self._saved_s >= self.save_every_s
+        ):
             self.save()
             self._saved_s = time_s
         return predicted
 
     def save(self) -> None:
-        if self.state_file is None or not self.models:
+        if self.state_file is None or not (self.models or self.warm):
             return
         states = {
             m.model_id: {
@@ -86,8 +122,11 @@ class EffectStates:
             }
             for m in self.models
         }
+        payload: dict[str, object] = {"models": states}
+        if self.warm is not None:
+            payload["warm_lags"] = self.warm.export_state()
         try:
-            write_json_atomic(self.state_file, {"models": states})
+            write_json_atomic(self.state_file, payload)
         except OSError as exc:  # compensation goes on; a restart would start the lags again
             log.warning("%s: cannot save the lag states: %s", self.state_file, exc)
 
@@ -95,15 +134,26 @@ class EffectStates:
         if self.state_file is None or not self.state_file.exists():
             return
         try:
-            saved = json.loads(self.state_file.read_text(encoding="utf-8"))["models"]
+            document = json.loads(self.state_file.read_text(encoding="utf-8"))
+            saved = document["models"]
             if not isinstance(saved, dict):
                 raise TypeError("'models' is not an object")
         except (OSError, ValueError, KeyError, TypeError) as exc:
             log.warning("%s: unreadable (%s); every lag starts again", self.state_file, exc)
             return
+        if self.warm is not None and isinstance(document.get("warm_lags"), dict):
+            try:
+                self.warm.import_state(document["warm_lags"])
+            except (KeyError, TypeError, ValueError) as exc:
+                log.warning(
+                    "%s: saved warm lags refused (%s); they start again", self.state_file, exc
+                )
+                self.warm.reset()
         for model in self.models:
             entry = saved.get(model.model_id)
-            if not isinstance(entry, dict):
+            if not isinstance(entry, dict):  # new since the save (a promotion): warm if we can
+                if self.warm is not None and self.warm.time_s is not None:
+                    self._start_warm(model, self.streams[model.model_id])
                 continue
             if entry.get("sha256") != model.document.get("sha256"):
                 log.warning(

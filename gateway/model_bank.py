@@ -144,6 +144,28 @@ class ModelBank:
                 raise ValueError(f"model id '{model.model_id}' is in the store twice")
             self.models[model.model_id] = model
         refuse_mixed_targets(self.models.values(), where)
+        #: Promoted models (:mod:`gateway.promotion`): the id of the model each one serves
+        #: in place of (None: every regime) → the promoted model's id.
+        self.promoted: dict[str | None, str] = {}
+
+    def set_promoted(self, promoted: Iterable[tuple[BankedAugmented, str | None]]) -> None:
+        """Replace the promoted models: each serves in place of the model it names (or all).
+
+        The caller has checked them (:func:`gateway.promotion.check_promoted`); their
+        ids must not be those of the store's own models.
+        """
+        for model_id in self.promoted.values():
+            self.models.pop(model_id, None)
+        self.promoted = {}
+        for banked, replaces in promoted:
+            self.models[banked.model_id] = banked
+            self.promoted[replaces] = banked.model_id
+
+    def serving(self, model_id: str | None) -> str | None:
+        """The id of the model that serves where the regime rules name ``model_id``."""
+        if model_id in self.promoted:
+            return self.promoted[model_id]
+        return self.promoted.get(None, model_id)
 
     @property
     def target(self) -> Target | None:
@@ -226,7 +248,9 @@ class ModelBank:
         return refused
 
     def usable(self, model_id: str | None, good: set[str]) -> Banked | None:
-        """``model_id`` if all its sensors are good, else the best fallback, else None."""
+        """``model_id`` (or the model promoted in its place) if all its sensors are good,
+        else the best fallback, else None."""
+        model_id = self.serving(model_id)
         preferred = self.models.get(model_id) if model_id else None
         if preferred is not None and preferred.sensors <= good:
             return preferred

@@ -45,9 +45,12 @@ from gateway.config import MachineSection
 from gateway.effect_state import EffectStates
 from gateway.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.plausibility import Plausibility
+from gateway.promotion import Promotions
 from gateway.quality import Quality, QualityMonitor
 from gateway.reference import TemperatureReference
+from gateway.warm_lags import WarmLags
 from models.base import ModelInputs
+from models.dataset import ambient_sensor_of
 from models.online_correction import CorrectionParams, OnlineCorrection
 from models.regime_rules import RegimeSelector
 
@@ -115,7 +118,11 @@ class MachineLoop:
         state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
         self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
         effect_file = None if state_dir is None else state_dir / f"{config.id}-effect-state.json"
-        self.effects = EffectStates(bank.augmented(), effect_file)
+        #: The promoted set of the store, swapped into the bank between cycles.
+        self.promotions = Promotions(config)
+        self.promotions.load(bank)
+        warm = WarmLags(self.sensors, ambient_sensor_of(self.sensors))
+        self.effects = EffectStates(bank.augmented(), effect_file, warm=warm)
         self.policy: CompensationPolicy | None = None
         self.compensation_enabled = config.compensation.enabled
         self.handshake = 0
@@ -136,6 +143,7 @@ class MachineLoop:
 
     # --- one cycle ----------------------------------------------------------------------
     async def run_cycle(self) -> CycleRecord:
+        self._swap_promoted()
         now = self.clock.now()
         results, speed_rpm, errors = await self._read_inputs(now)
         self.link_errors += len(errors)
@@ -195,6 +203,29 @@ class MachineLoop:
         self.cycles += 1
         self._deliver(record)
         return record
+
+    def _swap_promoted(self) -> None:
+        """Between cycles: take a newly promoted (or rolled back) set into the bank.
+
+        A store that cannot be read is logged and the models in use stay; a cycle
+        never fails for it.
+        """
+        try:
+            outcome = self.promotions.poll(self.bank)
+        except Exception:
+            log.exception(
+                "%s: checking the promoted models failed; the models in use stay", self.config.id
+            )
+            return
+        if outcome is None or not outcome.changed:
+            return
+        self.effects.set_models(self.bank.augmented())
+        if self.online is not None:
+            # The filter estimated the residual of the model that served until now; the
+            # promoted model may well explain it (that is why it was proposed).
+            self.online = OnlineCorrection(self.online.params)
+            self._probe_basis = None
+            log.info("%s: online correction restarts with the new models", self.config.id)
 
     def _deliver(self, record: CycleRecord) -> None:
         """Hand the record to every sink; a sink that raises is counted and logged, and

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import asyncio
 import hmac
+import json
 import logging
 import math
 import re
@@ -138,6 +139,8 @@ def health_of(loop: Any) -> dict[str, int | bool]:
         "sink_failures": int(sum(getattr(loop, "sink_failures", {}).values())),
         "cycles": int(loop.cycles),
         "compensation_enabled": bool(loop.compensation_enabled),
+        "model_swaps": int(getattr(getattr(loop, "promotions", None), "swaps", 0)),
+        "model_swaps_refused": int(getattr(getattr(loop, "promotions", None), "refused", 0)),
     }
 
 
@@ -159,7 +162,26 @@ HEALTH_COUNTERS = {
         "Health.ForwarderRestarts",
         "Restarts of the InfluxDB forwarder after a failure",
     ),
+    "model_swaps": ("Health.ModelSwaps", "Promoted model sets taken into the bank"),
+    "model_swaps_refused": (
+        "Health.ModelSwapsRefused",
+        "Promoted models refused by the machine's checks",
+    ),
 }
+
+#: Nodes under ``Machines/<id>/Proposals`` (see :meth:`ScadaServer.show_proposals`).
+PROPOSAL_NODES = (
+    ("Proposals.OpenJson", "String", "Open proposals, a JSON list (no model documents)"),
+    ("Proposals.OpenCount", "UInt32", "Number of open proposals"),
+    ("Proposals.NewestId", "String", "Id of the newest proposal (empty: none)"),
+    ("Proposals.NewestEffect", "String", "Effect the newest proposal adds"),
+    ("Proposals.NewestParamsJson", "String", "Parameters of that effect, a JSON object"),
+    ("Proposals.NewestBeforeUm", "Double", "Held-out RMSE before, on the logged data"),
+    ("Proposals.NewestAfterUm", "Double", "Held-out RMSE after, on the logged data"),
+    ("Proposals.NewestStatus", "String", "proposed, promoted, rejected or superseded"),
+    ("Proposals.ModelsVersion", "UInt32", "Version of the promoted set the machine runs"),
+    ("Proposals.LastAction", "String", "Outcome of the last PromoteProposal/RollbackModels"),
+)
 
 
 # -- identities and permissions -------------------------------------------------------
@@ -426,8 +448,19 @@ class ScadaServer(ServerLifecycle):
         machines: Sequence[str] | Mapping[str, Sequence[str]],
         on_enable: Callable[[str, bool], None],
         clock: Callable[[], float] = time.monotonic,
+        *,
+        on_promote: Callable[[str, str], str] | None = None,
+        on_rollback: Callable[[str], str] | None = None,
     ) -> None:
-        """``clock`` (seconds) times login lockouts; tests pass a manual one."""
+        """``clock`` (seconds) times login lockouts; tests pass a manual one.
+
+        ``on_promote(machine, proposal_id)`` and ``on_rollback(machine)`` serve the
+        operators' ``PromoteProposal`` and ``RollbackModels`` methods: they return a
+        line for ``Proposals.LastAction``; KeyError means an unknown id
+        (``BadNotFound``), ValueError a change refused (``BadInvalidState``), the
+        reason going to ``LastAction`` and the log. Without them the methods answer
+        ``BadNotImplemented``.
+        """
         if isinstance(machines, Mapping):
             sensors = {str(m): tuple(s) for m, s in machines.items()}
         else:
@@ -441,6 +474,8 @@ class ScadaServer(ServerLifecycle):
         self._settings = settings
         self._sensors = sensors
         self._on_enable = on_enable
+        self._on_promote = on_promote
+        self._on_rollback = on_rollback
         self.login_throttle = LoginThrottle(settings.login_throttle, clock)
         self._server: Server | None = None
         self._ns: int | None = None
@@ -558,6 +593,41 @@ class ScadaServer(ServerLifecycle):
             if "compensation_enabled" in health:
                 await self._show_enabled(machine, bool(health["compensation_enabled"]))
 
+    async def show_proposals(self, machine: str, view: Mapping[str, Any]) -> None:
+        """Show a machine's proposals: ``view`` holds ``open`` (proposal summaries as
+        :meth:`models.proposals.Proposal.summary` gives them), ``newest`` (one summary
+        or None) and ``models_version`` (int)."""
+        server = self._require_started()
+        if machine not in self._sensors:
+            raise KeyError(f"machine {machine!r} is not served (known: {list(self._sensors)})")
+        newest = view.get("newest") or {}
+        opened = list(view.get("open") or [])
+        values = {
+            "Proposals.OpenJson": _string(json.dumps(opened, ensure_ascii=False)),
+            "Proposals.OpenCount": _uint32(len(opened)),
+            "Proposals.NewestId": _string(newest.get("id")),
+            "Proposals.NewestEffect": _string(newest.get("effect")),
+            "Proposals.NewestParamsJson": _string(
+                json.dumps(newest.get("params") or {}, ensure_ascii=False)
+            ),
+            "Proposals.NewestBeforeUm": _double(newest.get("before_rmse_um")),
+            "Proposals.NewestAfterUm": _double(newest.get("after_rmse_um")),
+            "Proposals.NewestStatus": _string(newest.get("status")),
+            "Proposals.ModelsVersion": _uint32(int(view.get("models_version") or 0)),
+        }
+        async with self._lock:
+            for name, datavalue in values.items():
+                await server.write_attribute_value(
+                    self._nodeids[self.node_id(machine, name)], datavalue
+                )
+
+    def show_proposals_soon(self, machine: str, view: Mapping[str, Any]) -> asyncio.Task[None]:
+        """Schedule :meth:`show_proposals` from synchronous code on the running loop."""
+        task = asyncio.get_running_loop().create_task(self.show_proposals(machine, dict(view)))
+        self._tasks.add(task)
+        task.add_done_callback(self._publish_done)
+        return task
+
     def publish_soon(
         self, record: CycleRecord, health: Mapping[str, float | int | str]
     ) -> asyncio.Task[None]:
@@ -633,6 +703,99 @@ class ScadaServer(ServerLifecycle):
             # asyncua calls the setter after its own checks (access level, Boolean type)
             # in place of storing the value, synchronously within the Write service.
             server.set_attribute_value_setter(switch.nodeid, self._set_enabled)
+            await self._build_proposals(obj, machine)
+
+    async def _build_proposals(self, obj: Node, machine: str) -> None:
+        """The machine's proposal nodes and the operators' two methods."""
+        ns = self.namespace_index
+        proposals = await self._object(
+            obj, f"{machine}.Proposals", "Proposals", "Model proposals and promotions"
+        )
+        initial = {
+            "String": ua.Variant("", ua.VariantType.String),
+            "UInt32": ua.Variant(0, ua.VariantType.UInt32),
+            "Double": ua.Variant(math.nan, ua.VariantType.Double),
+        }
+        for name, kind, description in PROPOSAL_NODES:
+            unit = MICROMETRE if name.endswith("Um") else None
+            await self._variable(proposals, machine, name, initial[kind], description, unit)
+        proposal_id = ua.Argument()
+        proposal_id.Name = "ProposalId"
+        proposal_id.DataType = ua.NodeId(ua.ObjectIds.String)
+        proposal_id.ValueRank = -1
+        proposal_id.Description = ua.LocalizedText("Id of the proposal, e.g. P0001")
+        result = ua.Argument()
+        result.Name = "Result"
+        result.DataType = ua.NodeId(ua.ObjectIds.String)
+        result.ValueRank = -1
+        result.Description = ua.LocalizedText("What changed")
+        for name, call, inputs in (
+            ("PromoteProposal", self._promote_method, [proposal_id]),
+            ("RollbackModels", self._rollback_method, []),
+        ):
+            await obj.add_method(
+                ua.NodeId(self.node_id(machine, name), ns),
+                ua.QualifiedName(name, ns),
+                call,
+                inputs,
+                [result],
+            )
+
+    async def _promote_method(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        """``PromoteProposal(ProposalId)``: operators only (the ruleset refuses others)."""
+        machine = self._machine_of_object(parent)
+        if self._on_promote is None:
+            return ua.StatusCode(ua.StatusCodes.BadNotImplemented)
+        if len(args) != 1 or args[0].VariantType != ua.VariantType.String:
+            return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+        proposal_id = str(args[0].Value or "")
+        on_promote = self._on_promote
+        return await self._operator_action(
+            machine, f"PromoteProposal({proposal_id})", lambda: on_promote(machine, proposal_id)
+        )
+
+    async def _rollback_method(self, parent: ua.NodeId, *args: ua.Variant) -> Any:
+        """``RollbackModels()``: operators only (the ruleset refuses others)."""
+        machine = self._machine_of_object(parent)
+        if self._on_rollback is None:
+            return ua.StatusCode(ua.StatusCodes.BadNotImplemented)
+        if args:
+            return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
+        on_rollback = self._on_rollback
+        return await self._operator_action(
+            machine, "RollbackModels()", lambda: on_rollback(machine)
+        )
+
+    async def _operator_action(self, machine: str, what: str, action: Callable[[], str]) -> Any:
+        """Run an operator's action; its outcome goes to ``LastAction`` and the log."""
+        status = ua.StatusCodes.Good
+        try:
+            text = action()
+        except KeyError as exc:
+            status, text = ua.StatusCodes.BadNotFound, str(exc.args[0] if exc.args else exc)
+        except ValueError as exc:
+            status, text = ua.StatusCodes.BadInvalidState, str(exc)
+        except Exception:
+            _logger.exception("SCADA %s on %s failed", what, machine)
+            status, text = ua.StatusCodes.BadInternalError, "internal error (see the log)"
+        line = f"{what}: {text}" if status == ua.StatusCodes.Good else f"{what} refused: {text}"
+        (_logger.warning if status == ua.StatusCodes.Good else _logger.error)(
+            "SCADA operator on %s: %s", machine, line
+        )
+        server = self._require_started()
+        async with self._lock:
+            await server.write_attribute_value(
+                self._nodeids[self.node_id(machine, "Proposals.LastAction")], _string(line)
+            )
+        if status != ua.StatusCodes.Good:
+            return ua.StatusCode(status)
+        return [ua.Variant(text, ua.VariantType.String)]
+
+    def _machine_of_object(self, parent: ua.NodeId) -> str:
+        text = parent.Identifier if isinstance(parent.Identifier, str) else ""
+        if text not in self._sensors:
+            raise KeyError(f"{parent} is not a machine")
+        return text
 
     async def _object(self, parent: Node, nodeid: str, browse: str, description: str) -> Node:
         node = await parent.add_object(

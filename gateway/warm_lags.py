@@ -1,0 +1,138 @@
+"""First-order lags of every input at every searched time constant, so a new model starts warm.
+
+An augmented model's lag terms depend on every sample since the cold reference
+(:mod:`models.effect_stream`). A model in the bank from the start is stepped
+every cycle, so it is warm whenever it is selected. A model promoted while the
+gateway runs was not there: started from the present rises, its lags would
+claim the machine had sat at today's temperatures forever.
+
+The residual analysis picks its time constants from fixed grids
+(:data:`models.effect_terms.LAG_TAUS_S` and its neighbours), so the loop keeps
+the lag of every machine sensor's rise, of the speed terms and of the ambient
+rise at each of those τ, with the very recursion a stream uses::
+
+    x_k = a_k x_{k−1} + (1 − a_k) u_k,   a_k = exp(−Δt_k / τ),   x_0 = u_0
+
+A model promoted later takes its lag states from here (:meth:`WarmLags.state_for`)
+and predicts what it would have predicted had it been in the bank from the
+first cycle. One difference: here each input steps whenever it is good, where a
+stream holds all its lags in a cycle that lacks any of its inputs; the two agree
+whenever every input was read, which is the normal case. A τ off the grids has
+no warm state; that model's lags start from the present inputs (logged).
+
+The cost is 19 inputs × 9 τ multiply-adds per cycle, and a few kB of state,
+saved with the models' lag states (:mod:`gateway.effect_state`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+
+from models.effect_stream import (
+    AMBIENT_INPUT,
+    RECORDING_START_KEY,
+    RUN_START_KEY,
+    SPEED_COLUMNS,
+    TIME_KEY,
+    StreamingAugmented,
+)
+from models.effect_terms import AMBIENT_TAUS_S, HEAT_TAUS_S, LAG_TAUS_S, SPEED_SCALE_RPM
+
+#: Every time constant the residual analysis searches (s), zero (no lag) left out.
+TAUS_S = tuple(sorted({t for t in (*LAG_TAUS_S, *HEAT_TAUS_S, *AMBIENT_TAUS_S) if t > 0}))
+
+
+class WarmLags:
+    """The lag of each input at each τ of :data:`TAUS_S`, since the first cycle.
+
+    Its clock (``start_s``, where ``drift`` counts from, and ``time_s``) starts
+    with the first cycle that has a good input, as a stream's starts with its
+    first complete sample.
+    """
+
+    def __init__(self, sensors: Iterable[str], ambient_sensor: str | None) -> None:
+        self.sensors = tuple(sensors)
+        self.ambient_sensor = ambient_sensor
+        self.taus_s = np.array(TAUS_S)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every lag: the next cycle starts them from its inputs."""
+        self.start_s: float | None = None  # first cycle stepped: where drift counts from
+        self.time_s: float | None = None  # last cycle stepped
+        self._values: dict[str, np.ndarray] = {}
+        self._times: dict[str, float] = {}
+
+    def step(self, time_s: float, rises_C: Mapping[str, float], speed_rpm: float | None) -> None:
+        """Advance the lag of every input that is good this cycle."""
+        if self.time_s is not None and time_s < self.time_s:
+            self.reset()  # the clock went back: start again
+        inputs: dict[str, float | None] = {s: rises_C.get(s) for s in self.sensors}
+        if self.ambient_sensor is not None:
+            inputs[AMBIENT_INPUT] = rises_C.get(self.ambient_sensor)
+        if speed_rpm is not None and math.isfinite(speed_rpm):
+            n = float(speed_rpm) / SPEED_SCALE_RPM
+            inputs[SPEED_COLUMNS[0]], inputs[SPEED_COLUMNS[1]] = n, n * n
+        good = {n: float(v) for n, v in inputs.items() if v is not None and math.isfinite(v)}
+        if not good:
+            return  # as a stream, whose clock starts with its first complete sample
+        if self.start_s is None:
+            self.start_s = float(time_s)
+        self.time_s = float(time_s)
+        for name, value in good.items():
+            previous = self._values.get(name)
+            if previous is None:
+                self._values[name] = np.full(self.taus_s.size, value)
+            else:
+                a = np.exp(-(time_s - self._times[name]) / self.taus_s)
+                self._values[name] = a * previous + (1.0 - a) * value
+            self._times[name] = float(time_s)
+
+    def state_for(self, stream: StreamingAugmented) -> tuple[dict[str, float] | None, str]:
+        """``stream``'s state as if it had been stepped since the first cycle, or (None, why)."""
+        if self.time_s is None or self.start_s is None:
+            return None, "no cycle has run yet"
+        state = {
+            TIME_KEY: self.time_s,
+            RUN_START_KEY: self.start_s,
+            RECORDING_START_KEY: self.start_s,
+        }
+        for term in stream.terms:
+            if not term.lagged:
+                continue
+            matches = np.flatnonzero(np.isclose(self.taus_s, term.tau_s, rtol=0, atol=1e-9))
+            if matches.size == 0:
+                return None, f"{term.effect} τ = {term.tau_s:g} s is not a searched time constant"
+            for key, column in zip(term.state_keys(), term.columns, strict=True):
+                values = self._values.get(column)
+                if values is None:
+                    return None, f"no good value of {column} has been seen yet"
+                state[key] = float(values[matches[0]])
+        return state, ""
+
+    def export_state(self) -> dict[str, Any]:
+        return {
+            "taus_s": [float(t) for t in self.taus_s],
+            "start_s": self.start_s,
+            "time_s": self.time_s,
+            "inputs": {
+                name: {"time_s": self._times[name], "values": [float(v) for v in values]}
+                for name, values in self._values.items()
+            },
+        }
+
+    def import_state(self, state: Mapping[str, Any]) -> None:
+        """Carry on from :meth:`export_state`; raises ValueError for a state that does not fit."""
+        if [float(t) for t in state["taus_s"]] != [float(t) for t in self.taus_s]:
+            raise ValueError("saved for other time constants")
+        values = {str(k): np.asarray(v["values"], dtype=float) for k, v in state["inputs"].items()}
+        times = {str(k): float(v["time_s"]) for k, v in state["inputs"].items()}
+        if any(v.shape != self.taus_s.shape or not np.isfinite(v).all() for v in values.values()):
+            raise ValueError("a saved lag is not a finite row of the right length")
+        self.start_s = None if state["start_s"] is None else float(state["start_s"])
+        self.time_s = None if state["time_s"] is None else float(state["time_s"])
+        self._values, self._times = values, times

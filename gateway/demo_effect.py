@@ -187,7 +187,7 @@ def monitor_phase(
     import copy
 
     from gateway.monitor import MonitorSink, store_publisher
-    from models.proposals import ProposalStore  # noqa: I001 (merged from the promotion work)
+    from models.proposals import ProposalStore
 
     effects = () if effect is None else (effect,)
     days = int(np.ceil(learn_days)) + 2

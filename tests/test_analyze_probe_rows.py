@@ -76,3 +76,19 @@ def test_probe_rows_refuse_a_file_without_enough_probes(history, tmp_path: Path)
     done = gateway("analyze", tmp_path / "few.csv", "--probe-rows")
     assert done.returncode == 2
     assert "expected at least 10" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_probe_rows_still_refuse_an_absurd_target_value(history, tmp_path: Path):
+    _, logged = history
+    csv_path = tmp_path / "history.csv"
+    logged.write_csv(str(csv_path))
+    lines = csv_path.read_text().splitlines()
+    probe_line = next(i for i, line in enumerate(lines[1:], start=1) if not line.endswith(","))
+    cells = lines[probe_line].split(",")
+    cells[-1] = "1e308"
+    lines[probe_line] = ",".join(cells)
+    csv_path.write_text("\n".join(lines) + "\n")
+    done = gateway("analyze", csv_path, "--probe-rows")
+    assert done.returncode == 2
+    assert f"history.csv:{probe_line + 1}: column 'error_um'" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr

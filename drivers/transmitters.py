@@ -25,6 +25,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ModbusPDU
 
 from drivers.backoff import Backoff
+from drivers.bus_hub import BusHub, rtu_silence_s
 from drivers.link_health import LinkHealth
 from drivers.register_codec import OPEN_CIRCUIT_CODE, SHORT_CIRCUIT_CODE
 
@@ -319,6 +320,10 @@ class TransmitterBus:
     also when no device at all answered in a cycle: that is how a half-open TCP
     connection or a re-plugged cable (no error, just silence) is recovered.
 
+    The port itself belongs to a :class:`drivers.bus_hub.BusHub`: give ``hub`` when
+    several buses (machines) share one RS-485 line, and each ``read_all`` is then one
+    turn under the hub's lock; without it the bus has a hub of its own.
+
     ``health`` is the bus's, ``device_health[device_id]`` each module's. Times are
     the caller's ``now_s`` (monotonic seconds); the backoff counts in them too.
     """
@@ -335,6 +340,7 @@ class TransmitterBus:
         retries: int = 0,
         name: str = "",
         backoff: Backoff | None = None,
+        hub: BusHub | None = None,
     ) -> None:
         if not devices:
             raise ValueError("a transmitter bus needs at least one device")
@@ -344,25 +350,31 @@ class TransmitterBus:
         sensors = [sensor for device in devices for sensor in device.sensors]
         if len(set(sensors)) != len(sensors):
             raise ValueError(f"sensor names must be unique on one bus, got {sensors}")
-        self._link = ModbusConnection(
-            tcp=tcp,
-            serial_port=serial_port,
-            baudrate=baudrate,
-            parity=parity,
-            timeout_s=timeout_s,
-            retries=retries,
-            name=name,
-        )
+        if hub is None:
+            link = ModbusConnection(
+                tcp=tcp,
+                serial_port=serial_port,
+                baudrate=baudrate,
+                parity=parity,
+                timeout_s=timeout_s,
+                retries=retries,
+                name=name,
+            )
+            silence_s = rtu_silence_s(baudrate) if serial_port is not None else 0.0
+            hub = BusHub(link, silence_s=silence_s, backoff=backoff)
+        self._hub = hub
         self._devices = tuple(devices)
-        self._backoff = backoff if backoff is not None else Backoff()
-        self._down_reason: str | None = None
         self._lock = asyncio.Lock()
         self.health = LinkHealth()
         self.device_health: dict[int, LinkHealth] = {d.device_id: LinkHealth() for d in devices}
 
     @property
     def where(self) -> str:
-        return self._link.where
+        return self._hub.where
+
+    @property
+    def hub(self) -> BusHub:
+        return self._hub
 
     @property
     def devices(self) -> tuple[DeviceMap, ...]:
@@ -375,21 +387,19 @@ class TransmitterBus:
             return await self._read_all(now_s)
 
     async def _read_all(self, now_s: float) -> dict[str, ChannelResult]:
-        if not self._link.connected:
-            reason = await self._connect(now_s)
-            if reason is not None:
-                return self._all_failed(reason)
-        cycle = _Cycle()
-        for device in self._devices:
-            await self._read_device(device, now_s, cycle)
-        if cycle.answered:
-            self._backoff.reset()
+        async with self._hub.transaction(self, now_s) as turn:
+            if turn.failure is not None:
+                self.health.record_failure(turn.failure)
+                return self._all_failed(turn.failure)
+            if turn.reopened:
+                self.health.record_connect()
+            cycle = _Cycle()
+            for device in self._devices:
+                await self._read_device(device, now_s, cycle)
+            turn.report(answered=cycle.answered, lost=cycle.lost)
         if cycle.lost is None and not cycle.answered:
             cycle.lost = f"{self.where}: no device answered"
         if cycle.lost is not None:
-            self._link.close()
-            self._down_reason = cycle.lost
-            self._backoff.failed(now_s)
             self.health.record_failure(cycle.lost)
         else:
             self.health.record_ok(now_s)
@@ -402,7 +412,9 @@ class TransmitterBus:
             cycle.results.update(_failed(device, cycle.lost))
             return
         try:
-            registers = await self._link.read_input_registers(0, REGISTER_COUNT, device.device_id)
+            registers = await self._hub.request(
+                lambda: self._link.read_input_registers(0, REGISTER_COUNT, device.device_id)
+            )
         except ModbusLinkLostError as exc:
             cycle.lost = str(exc)
             error = str(exc)
@@ -419,22 +431,11 @@ class TransmitterBus:
         health.record_failure(error)
         cycle.results.update(_failed(device, error))
 
-    async def _connect(self, now_s: float) -> str | None:
-        """Open the connection if the backoff allows; None on success, else the reason."""
-        if not self._backoff.ready(now_s):
-            reason = self._down_reason or f"{self.where}: not connected"
-            self.health.record_failure(reason)
-            wait_s = self._backoff.wait_s(now_s)
-            return f"{reason} (next connection attempt in {wait_s:.2f} s)"
-        try:
-            await self._link.open()
-        except ModbusLinkLostError as exc:
-            self._down_reason = str(exc)
-            self._backoff.failed(now_s)
-            self.health.record_failure(str(exc))
-            return str(exc)
-        self.health.record_connect()
-        return None
+    @property
+    def _link(self) -> ModbusConnection:
+        link = self._hub.link
+        assert isinstance(link, ModbusConnection)
+        return link
 
     def _all_failed(self, reason: str) -> dict[str, ChannelResult]:
         results: dict[str, ChannelResult] = {}
@@ -444,8 +445,9 @@ class TransmitterBus:
         return results
 
     async def close(self) -> None:
-        """Close the port or connection (idempotent); a later read_all reopens it."""
-        self._link.close()
+        """Leave the hub (idempotent): the port closes with its last user; a later
+        read_all reopens it."""
+        self._hub.detach(self)
         self.health.connected = False
 
 

@@ -16,11 +16,13 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from drivers.bus_hub import BusHub
 from drivers.clock import Clock, WallClock
 from drivers.cnc import CncClient, CncError
 from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.transmitters import DeviceMap, TransmitterBus
+from gateway.bus_hubs import shared_hubs
 from gateway.config import GatewayConfig, MachineSection
 from gateway.login_throttle import ThrottlePolicy
 from gateway.model_bank import ModelBank
@@ -35,7 +37,12 @@ from models.dataset import ambient_sensor_of
 log = logging.getLogger(__name__)
 
 
-def build_buses(machine: MachineSection) -> list[TransmitterBus]:
+def build_buses(
+    machine: MachineSection, hubs: dict[str, BusHub] | None = None
+) -> list[TransmitterBus]:
+    """The machine's buses; an RTU bus reads through ``hubs[port]`` when given (a line
+    shared with other machines, :func:`gateway.bus_hubs.shared_hubs`)."""
+    hubs = shared_hubs([machine]) if hubs is None else hubs
     buses = []
     for bus in machine.transmitters:
         devices = [DeviceMap(d.device_id, tuple(d.channels)) for d in bus.devices]
@@ -58,6 +65,7 @@ def build_buses(machine: MachineSection) -> list[TransmitterBus]:
                     parity=bus.rtu.parity,
                     timeout_s=bus.timeout_s,
                     name=bus.name,
+                    hub=hubs[bus.rtu.port],
                 )
             )
     return buses
@@ -147,11 +155,12 @@ class Gateway:
         if self.scada is not None:
             sinks = [*sinks, self._publish_to_scada]
         sinks = [*sinks, self.outputs.beat]
+        hubs = shared_hubs(config.machines)
         self.loops = [
             MachineLoop(
                 machine,
                 self.clock,
-                build_buses(machine),
+                build_buses(machine, hubs),
                 build_cnc(machine, self.clock),
                 load_bank(machine),
                 state_dir=Path(config.state_dir),
@@ -310,6 +319,7 @@ def _scalar(value: object) -> bool:
 async def check_connections(config: GatewayConfig) -> list[str]:
     """Try every machine's CNC and transmitters once; the problems found, in words."""
     problems = []
+    hubs = shared_hubs(config.machines)
     for machine in config.machines:
         cnc = build_cnc(machine)
         try:
@@ -318,7 +328,7 @@ async def check_connections(config: GatewayConfig) -> list[str]:
             problems.append(f"machine {machine.id}: CNC unreachable: {exc}")
         finally:
             await cnc.close()
-        for bus in build_buses(machine):
+        for bus in build_buses(machine, hubs):
             try:
                 results = await bus.read_all(0.0)
                 # status None: no answer at all (a sensor fault still means the device answered)

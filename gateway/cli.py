@@ -1,7 +1,7 @@
 """Command line: ``python -m gateway COMMAND …``.
 
 Commands stay thin: they parse options, call ``models``, and print tables that
-``gateway.tables`` formats. Any input problem ends with one line on stderr that
+``gateway.offline.tables`` formats. Any input problem ends with one line on stderr that
 says where it is and what was expected, and exit status 2.
 
 At module level this file imports only click, the standard library and
@@ -130,7 +130,7 @@ def fit(
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
-    from gateway.tables import accuracy_table, sigma_matrix_table
+    from gateway.offline.tables import accuracy_table, sigma_matrix_table
     from models.dataset import load_runs
     from models.features import prepare
     from models.fitting import fit_and_store
@@ -563,9 +563,9 @@ def export(
 ) -> None:
     """Write logged data as a measured-run CSV (for fit and analyze)."""
     from gateway.config import load_config
-    from gateway.export import ExportError, export_runs
     from gateway.influx_writer import InfluxReader
     from gateway.local_store import LocalStore
+    from gateway.offline.export import ExportError, export_runs
 
     config = load_config(config_path)
     ids = [m.id for m in config.machines]
@@ -647,6 +647,13 @@ def export(
     help="Save the augmented model here (sub-folder augmented/).",
 )
 @click.option(
+    "--tolerance-um",
+    type=click.FloatRange(min=0, min_open=True),
+    default=2.5,
+    show_default=True,
+    help="The held-out RMSE the compensation must reach (the machine's tolerance), µm.",
+)
+@click.option(
     "--probe-rows",
     is_flag=True,
     help="The target is known only at some rows (a logged history: the probe's measured "
@@ -664,6 +671,7 @@ def analyze(
     json_out: Path | None,
     report_dir: Path | None,
     store_dir: Path | None,
+    tolerance_um: float,
     probe_rows: bool,
     progress: bool | None,
 ) -> None:
@@ -706,28 +714,9 @@ def analyze(
         result,
         data_fingerprint=data_fingerprint(prepared.inputs, prepared.error_um),
         skipped_rows="; ".join(s.describe() for s in data.skipped) or None,
+        tolerance_um=tolerance_um,
     )
-    click.echo(f"validation: {result.validation}")
-    for step in result.steps:
-        click.echo(f"\nround {step.number}: held-out RMSE before {step.before.rmse_um:.3f} µm")
-        for c in sorted(step.candidates, key=lambda c: c.rmse_um):
-            params = ", ".join(f"{k}={v}" for k, v in c.params.items()) or "-"
-            mark = "*" if c.believed else " "
-            click.echo(
-                f" {mark} {c.effect:<14} {params:<22} RMSE {c.rmse_um:7.3f} µm  "
-                f"gain {c.gain_pct:6.1f} %  folds {c.folds_improved}/{c.folds}  "
-                f"p {c.p_value:9.3g}  {c.reason}"
-            )
-        click.echo(f" → {step.effect}" + (f" {step.params}" if step.params else ""))
-    gain = (
-        100.0 * (1 - result.after.rmse_um / result.before.rmse_um) if result.before.rmse_um else 0
-    )
-    click.echo(
-        f"\neffect: {result.effect}; steps: {' → '.join(result.effects) or 'none'}\n"
-        f"held-out RMSE {result.before.rmse_um:.3f} → {result.after.rmse_um:.3f} µm "
-        f"({gain:.1f} % less), max |e| {result.before.max_abs_um:.2f} → "
-        f"{result.after.max_abs_um:.2f} µm"
-    )
+    click.echo(result.to_text())
     if store_dir is not None:
         model_id = f"{method}-{target}-" + ("-".join(result.effects) or "none")
         document = augmented.build_augmented_document(
@@ -737,7 +726,7 @@ def analyze(
         result = replace(result, stored_model={"model_id": document["model_id"], "path": str(path)})
         click.echo(f"saved {document['model_id']} → {path}")
     if report_dir is not None:
-        from gateway.analysis_report import write_report
+        from gateway.offline.analysis_report import write_report
 
         click.echo(f"wrote {write_report(result, report_dir)}")
     write_json(json_out, result.as_dict())

@@ -88,6 +88,8 @@ class RtuSection(Strict):
     port: str
     baudrate: int = 19200
     parity: Literal["N", "E", "O"] = "N"
+    #: Pause between frames when a device needs more than the RTU t3.5 (the longer wins).
+    min_silence_s: float = Field(default=0.0, ge=0, le=1.0)
 
 
 class TcpSection(Strict):
@@ -718,6 +720,14 @@ class GatewayConfig(Strict):
         duplicates = sorted({i for i in ids if ids.count(i) > 1})
         if duplicates:
             raise ValueError(f"machine id(s) {duplicates} used twice")
+        return self
+
+    @model_validator(mode="after")
+    def _one_setting_per_line(self) -> GatewayConfig:
+        """Buses on one serial port are one RS-485 line (gateway.bus_hubs)."""
+        from gateway.bus_hubs import check_shared_lines
+
+        check_shared_lines(self.machines)
         return self
 
     @model_validator(mode="after")

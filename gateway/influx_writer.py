@@ -143,7 +143,7 @@ class InfluxWriter:
 
 
 class InfluxReader:
-    """Reads points back with Flux (the ``query`` of :class:`gateway.export.PointSource`)."""
+    """Reads points back with Flux (``query`` of :class:`gateway.offline.export.PointSource`)."""
 
     def __init__(
         self, url: str, token: str, org: str, bucket: str, timeout_s: float = 30.0

@@ -1,7 +1,7 @@
 """The embedded time-series store: points in one SQLite file, no server needed.
 
 The default destination of the gateway's time series when no InfluxDB is
-configured, and a source for :func:`gateway.export.export_runs`. It keeps
+configured, and a source for :func:`gateway.offline.export.export_runs`. It keeps
 InfluxDB's identity rule: a point is identified by measurement, tags and time, so
 writing the same point again stores it once (its fields are merged, a field
 written again takes the new value, as InfluxDB does).

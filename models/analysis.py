@@ -13,8 +13,10 @@ The loop, for one declared model (``mlr``, ``grey-mlr``, ``pca-quadratic``):
 3. A candidate is believed only when all of these hold (``RULES``):
    - the pooled held-out RMSE of the residual's shape within each run (about
      the run's own mean) falls by at least ``MIN_GAIN_PCT`` (10 %), and the
-     plain held-out RMSE falls too. A held-out run's offset carries the noise
-     of its reference readings, which no effect can predict;
+     plain held-out RMSE falls too. A held-out run's offset is set by its
+     error reference (:mod:`models.references`), which no effect can predict.
+     Both gains are reported, each under its own name (``shape_gain_pct``,
+     ``rmse_gain_pct``, :mod:`models.analysis_result`);
    - the held-out RMSE falls in at least ``MIN_FOLD_SHARE`` (half) of the folds;
    - on *every* training fold the partial F-test of its terms gives
      p < ``ALPHA`` / (number of families tried in that round), Bonferroni.
@@ -45,11 +47,12 @@ import numpy as np
 from scipy import stats
 from tqdm import tqdm
 
-from models.analysis_result import AnalysisResult, CandidateResult, StepResult
+from models.analysis_render import change_text, p_text
+from models.analysis_result import AnalysisResult, CandidateResult, StepResult, gain_pct
 from models.crossval import fold_labels
 from models.effect_terms import EffectFamily, Variant, candidate_families
 from models.features import Prepared
-from models.metrics import accuracy
+from models.metrics import Accuracy, accuracy
 from models.registry import make_model
 
 MIN_GAIN_PCT = 10.0
@@ -220,13 +223,13 @@ class ResidualAnalysis:
                 break
             tried: list[tuple[EffectFamily, Evaluation | None]] = []
             candidates: list[CandidateResult] = []
+            before = self._accuracy(current.predicted_um)
             for family in self._bar(families):
                 ev = self.evaluate(accepted, family)
-                candidates.append(self._judge(family, ev, current, accepted, len(families)))
+                candidates.append(self._judge(family, ev, current, before, accepted, len(families)))
                 # Only a believed candidate can be added: the others' predictions are dropped.
                 tried.append((family, ev if candidates[-1].believed else None))
             believed = [i for i, c in enumerate(candidates) if c.believed]
-            before = self._accuracy(current.predicted_um)
             if not believed:
                 steps.append(
                     StepResult(
@@ -301,29 +304,36 @@ class ResidualAnalysis:
         family: EffectFamily,
         ev: Evaluation,
         current: Evaluation,
+        before: Accuracy,
         accepted: list[Accepted],
         n_families: int,
     ) -> CandidateResult:
+        """The rules of the module docstring. ``gain`` is the shape gain (rule 1); the plain
+        held-out RMSEs come from the same :func:`accuracy` as the round's before/after, so a
+        candidate's figures and its step's are one number."""
         before_shape = self._shape_sse(current.predicted_um)
         after_shape = self._shape_sse(ev.predicted_um)
-        after = float(np.sqrt(ev.per_fold_sse.sum() / self.n_fit))
+        after = self._accuracy(ev.predicted_um).rmse_um
         gain = 100.0 * (1.0 - np.sqrt(after_shape.sum() / before_shape.sum()))
+        rmse_gain = gain_pct(before.rmse_um, after)
         improved = int(np.sum(after_shape < before_shape))
         p_value = self._p_value(family, ev, accepted)
         alpha = ALPHA / n_families
         failures = []
         if gain < MIN_GAIN_PCT:
-            failures.append(f"held-out RMSE falls {gain:.1f} % < {MIN_GAIN_PCT:g} %")
-        if after >= float(np.sqrt(current.per_fold_sse.sum() / self.n_fit)):
-            failures.append("held-out RMSE with offsets does not fall")
+            failures.append(
+                f"shape within runs changes {change_text(gain)} %, needs ≤ −{MIN_GAIN_PCT:g} %"
+            )
+        if after >= before.rmse_um:
+            failures.append(f"held-out RMSE does not fall ({change_text(rmse_gain)} %)")
         if improved < MIN_FOLD_SHARE * self.folds.count:
             failures.append(f"improves {improved}/{self.folds.count} held-out folds")
         if not p_value < alpha:
-            failures.append(f"p = {p_value:.3g} ≥ {alpha:.3g} on a training fold")
+            failures.append(f"p = {p_text(p_value)} ≥ {alpha:.3g} on a training fold")
         believed = not failures
         reason = (
-            f"held-out RMSE −{gain:.1f} %, {improved}/{self.folds.count} folds better, "
-            f"p = {p_value:.3g} < {alpha:.3g}"
+            f"held-out RMSE {change_text(rmse_gain)} %, shape within runs {change_text(gain)} %, "
+            f"{improved}/{self.folds.count} folds better, p {_p_phrase(p_value)} < {alpha:.3g}"
             if believed
             else "; ".join(failures)
         )
@@ -340,15 +350,17 @@ class ResidualAnalysis:
             believed=believed,
             reason=reason,
             n_terms=ev.n_added,
+            rmse_before_um=before.rmse_um,
+            alpha=alpha,
         )
 
     def _shape_sse(self, predicted: np.ndarray) -> np.ndarray:
         """Per fold: SSE of the held-out residual about its own mean.
 
-        A held-out run's offset carries the noise of its single reference
-        sample, which no effect can predict; judging the shape of the residual
-        within each run keeps a candidate from being believed for fitting
-        offsets by chance.
+        A held-out run's constant offset is set by its error reference (how the
+        run's zero was taken, :mod:`models.references`), which no effect term can
+        predict; judging the shape of the residual within each run keeps a
+        candidate from being believed for fitting offsets by chance.
         """
         residual = self.y - predicted
         return np.array(
@@ -608,6 +620,12 @@ def _overall_choice(ev: Evaluation, family: EffectFamily) -> int:
 
 def _first_column(variant: Variant) -> np.ndarray:
     return np.asarray(variant.build(), dtype=float)[:, 0]
+
+
+def _p_phrase(p_value: float) -> str:
+    """``= 1.2e-05`` or ``< 1e-16``, to read after a "p"."""
+    text = p_text(p_value)
+    return text if text.startswith("<") else f"= {text}"
 
 
 def _lag1_autocorrelation(residual: np.ndarray, fold_index: np.ndarray) -> float:

@@ -372,11 +372,13 @@ class ProposalStore:
                     f"proposal {proposal_id} is {proposal.status}; only a proposed one can be "
                     "rejected (roll back a promoted one)"
                 )
-            return self._set_status(proposal, REJECTED, note or "rejected", time_s)
+            return self.set_status(proposal, REJECTED, note or "rejected", time_s)
 
-    def _set_status(
+    def set_status(
         self, proposal: Proposal, status: str, note: str, time_s: float | None
     ) -> Proposal:
+        """Record a status change in the proposal's file and history (the caller holds
+        :meth:`ModelVersions.locked`; promote, rollback and reject change statuses)."""
         if proposal.status == status:
             return proposal
         stamp = time.time() if time_s is None else float(time_s)
@@ -553,11 +555,11 @@ class ModelVersions:
             except KeyError:
                 continue  # a version may outlive a proposal file moved away by hand
             if proposal_id in now_in:
-                self.proposals._set_status(
+                self.proposals.set_status(
                     proposal, PROMOTED, f"in force in version {new.number}", new.created_s
                 )
             else:
-                self.proposals._set_status(proposal, left_as, note, new.created_s)
+                self.proposals.set_status(proposal, left_as, note, new.created_s)
 
 
 # -- helpers --------------------------------------------------------------------------------

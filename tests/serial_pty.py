@@ -3,7 +3,9 @@
 Use the ``serial_pty`` fixture (import ``serial_pty_fixture`` into a test module) or
 the ``socat_pty_pair`` context manager. The server opens ``pair.server_port``
 (ttyA), the client ``pair.client_port`` (ttyB). A pty ignores baud rate, parity and
-inter-frame timing, so those must be tested separately.
+inter-frame timing, so those must be tested separately. With ``hexdump`` socat logs
+every chunk it passes (direction, time stamp, bytes) to ``pair.log_path``: a wire
+tap for tests that check the frames themselves (``tests/rtu_wire.py`` reads it).
 """
 
 from __future__ import annotations
@@ -25,10 +27,13 @@ START_TIMEOUT_S = 5.0
 class PtyPair:
     server_port: str
     client_port: str
+    log_path: Path | None = None
 
 
 @contextmanager
-def socat_pty_pair(directory: Path, timeout_s: float = START_TIMEOUT_S) -> Iterator[PtyPair]:
+def socat_pty_pair(
+    directory: Path, timeout_s: float = START_TIMEOUT_S, *, hexdump: bool = False
+) -> Iterator[PtyPair]:
     """Run socat with two linked ptys in ``directory``; stop it on exit.
 
     Waits until both symlinks exist, since socat creates them after it has started
@@ -42,7 +47,14 @@ def socat_pty_pair(directory: Path, timeout_s: float = START_TIMEOUT_S) -> Itera
     # The log goes to a file, not a pipe, so socat never blocks on a full pipe.
     with log_path.open("wb") as log_file:
         process = subprocess.Popen(
-            [socat, "-d", "-d", f"pty,raw,echo=0,link={tty_a}", f"pty,raw,echo=0,link={tty_b}"],
+            [
+                socat,
+                "-d",
+                "-d",
+                *(["-x"] if hexdump else []),
+                f"pty,raw,echo=0,link={tty_a}",
+                f"pty,raw,echo=0,link={tty_b}",
+            ],
             stdout=subprocess.DEVNULL,
             stderr=log_file,
         )
@@ -55,7 +67,7 @@ def socat_pty_pair(directory: Path, timeout_s: float = START_TIMEOUT_S) -> Itera
                 if time.monotonic() > deadline:
                     raise RuntimeError(f"socat made no pty pair within {timeout_s} s")
                 time.sleep(0.01)
-            yield PtyPair(server_port=str(tty_a), client_port=str(tty_b))
+            yield PtyPair(server_port=str(tty_a), client_port=str(tty_b), log_path=log_path)
         finally:
             if process.poll() is None:
                 process.terminate()

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.image import imread
 
-from gateway.analysis_report import write_report
+from gateway.offline.analysis_report import write_report
 from models.analysis_result import AnalysisResult, CandidateResult, StepResult
 from models.metrics import accuracy
 
@@ -31,6 +31,8 @@ def _candidate(
         believed=believed,
         reason=reason,
         n_terms=1,
+        rmse_before_um=before,
+        alpha=0.01 / 3,
     )
 
 
@@ -195,7 +197,7 @@ def test_report_with_one_added_effect(tmp_path: Path) -> None:
     assert f"{result.before.rmse_um:.2f}" in page
     assert f"{result.after.rmse_um:.2f}" in page
     assert f"Held-out RMSE {result.before.rmse_um:.2f} µm → {result.after.rmse_um:.2f} µm" in page
-    assert "by adding thermal_lag (tau_s = 1800)." in page
+    assert "by adding thermal_lag (τ = 30 min); tolerance 2.50 µm: met." in page
     assert "1.23e-05" in page and "3/3" in page
     assert page.count('class="chosen"') == 1
     # Runs are listed in order of first appearance, not sorted.
@@ -228,7 +230,7 @@ def test_report_when_nothing_is_missing(tmp_path: Path) -> None:
     assert "linear_T2" in page
     assert "No effect is missing: no candidate passed the rules (none)." in page
     assert "Step 1: nothing added" in page
-    assert "ambient" in page and "unsensed_heat" in page and "tau_s = 600" in page
+    assert "ambient" in page and "unsensed_heat" in page and "τ = 10 min" in page
     assert f"{result.before.rmse_um:.2f}" in page
     assert 'class="chosen"' not in page
 

@@ -189,8 +189,8 @@ def test_inputs_stay_what_the_loader_read(tmp_path: Path) -> None:
 
 def test_export_leaves_implausible_logged_values_empty(tmp_path: Path) -> None:
     """A logged 1e308 °C or an infinite probe value never reaches the exported file."""
-    from gateway.export import export_runs
     from gateway.local_store import LocalStore
+    from gateway.offline.export import export_runs
     from gateway.timeseries import Point, points_from_record, probe_point
     from tests.test_timeseries import EPOCH_S, make_records, true_error_um
 

@@ -16,7 +16,7 @@ import pytest
 from tests.cli import ROOT, gateway
 
 HEAVY = {"numpy", "scipy", "pandas", "matplotlib", "sklearn", "asyncua", "pymodbus"}
-HEAVY |= {"influxdb_client"}
+HEAVY |= {"influxdb_client", "jinja2"}
 
 
 def heavy_modules_after(code: str) -> list[str]:
@@ -37,7 +37,15 @@ def test_importing_loads_no_heavy_library(module: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "args", [["--help"], ["check-config", "--help"], ["run", "--help"], ["fit", "--help"]]
+    "args",
+    [
+        ["--help"],
+        ["check-config", "--help"],
+        ["run", "--help"],
+        ["fit", "--help"],
+        ["analyze", "--help"],
+        ["export", "--help"],
+    ],
 )
 def test_help_loads_no_heavy_library(args: list[str]) -> None:
     code = (
@@ -71,7 +79,7 @@ def test_project_input_errors_are_caught_by_the_cli() -> None:
     from drivers.yaml_loader import KeyPathError, YamlError
     from gateway.cli import INPUT_ERRORS
     from gateway.config import ConfigError
-    from gateway.export import ExportError
+    from gateway.offline.export import ExportError
     from models.dataset import DataError
     from models.regimes import SigmaFileError
     from models.store import StoreError

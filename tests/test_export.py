@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.export import ExportError, export_runs
 from gateway.local_store import LocalStore
+from gateway.offline.export import ExportError, export_runs
 from gateway.runtime import CycleRecord
 from gateway.timeseries import points_from_record, probe_point
 from models.dataset import load_runs

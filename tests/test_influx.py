@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from gateway.export import export_runs
 from gateway.influx_writer import Forwarder, InfluxReader, InfluxWriter
 from gateway.local_store import LocalStore
+from gateway.offline.export import export_runs
 from gateway.point_buffer import PointBuffer
 from gateway.runtime import CycleRecord
 from gateway.timeseries import (

@@ -29,7 +29,7 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.clock import ManualClock
-from gateway.app import Gateway
+from gateway.app import Gateway, build_buses, build_cnc, load_bank
 from gateway.config import (
     CompensationSection,
     GatewayConfig,
@@ -37,6 +37,8 @@ from gateway.config import (
     OnlineCorrectionSection,
 )
 from gateway.demo import machine_config
+from gateway.runtime import MachineLoop
+from gateway.warm_lags import WarmLags
 from models import augmented
 from models.effect_stream import StreamingAugmented
 from models.proposals import PROMOTED, REJECTED, Proposal, ProposalStore
@@ -433,3 +435,64 @@ def test_auto_promote_only_when_the_config_says_so(
             assert served[-2:] == [model_id, model_id] and status == PROMOTED
         else:
             assert model_id not in served and status == "proposed"
+
+
+def test_warm_lags_give_a_new_stream_the_state_of_one_stepped_from_the_start(
+    lag_document: dict[str, Any],
+) -> None:
+    """Pure arithmetic: the same recursion, so the same numbers; and the state survives a save."""
+    rng = np.random.default_rng(3)
+    sensors = [f"T{i}" for i in range(1, 10)]
+    warm = WarmLags(sensors, None)
+    from_start = StreamingAugmented(lag_document)
+    time_s, rises = 0.0, dict.fromkeys(sensors, 0.0)
+    for k in range(2000):
+        time_s += float(rng.uniform(20.0, 40.0))
+        rises = {s: v + float(rng.normal(0.0, 0.05)) + 0.01 for s, v in rises.items()}
+        speed = 1000.0 * (k // 200 % 7)
+        warm.step(time_s, rises, speed)
+        from_start.step(time_s, rises, speed)
+    restored = WarmLags(sensors, None)
+    restored.import_state(json.loads(json.dumps(warm.export_state())))
+    late = StreamingAugmented(lag_document)
+    state, why = restored.state_for(late)
+    assert state is not None, why
+    late.import_state(state)
+    for _ in range(100):
+        time_s += 30.0
+        expected = from_start.step(time_s, rises, 4000.0)
+        assert late.step(time_s, rises, 4000.0) == pytest.approx(expected, abs=1e-9)
+    off_grid = json.loads(json.dumps(lag_document))
+    next(e for e in off_grid["effects"] if e["effect"] == "thermal_lag")["params"]["tau_s"] = 1234
+    state, why = warm.state_for(StreamingAugmented(off_grid))
+    assert state is None and "1234 s is not a searched time constant" in why
+
+
+def test_a_restarted_loop_starts_with_the_promoted_set(
+    tmp_path: Path, models_dir: Path, lag_document: dict[str, Any]
+) -> None:
+    store = fresh_store(tmp_path, models_dir)
+    ProposalStore(store).versions.promote(publish(store, lag_document).id, by="test")
+    plant = rig.plant(ManualClock())
+    machine = GatewayConfig.model_validate(
+        {"machines": [rig.machine_entry(MACHINE, plant, store)]}
+    ).machines[0]
+    bank = load_bank(machine)
+    assert bank.serving("mlr-error_um-variable") == lag_document["model_id"]
+    loop = MachineLoop(machine, ManualClock(), build_buses(machine), build_cnc(machine), bank)
+    assert loop.promotions.version == 1 and loop.promotions.swaps == 0
+    assert [m.model_id for m in loop.effects.models] == [lag_document["model_id"]]
+    done = gateway("check-config", "--config", write_machine_config(tmp_path, machine))
+    assert done.returncode == 0, done.stderr
+    assert "models version 1, 0 open proposal(s) (promoted by an operator only)" in done.stdout
+
+
+def write_machine_config(tmp_path: Path, machine: Any) -> Path:
+    path = tmp_path / "config.yaml"
+    document = {
+        "machines": [machine.model_dump(mode="json", exclude_none=True)],
+        "state_dir": str(tmp_path / "state"),
+        "logging": {"local_store": str(tmp_path / "points.sqlite")},
+    }
+    path.write_text(yaml.safe_dump(document))
+    return path

@@ -45,14 +45,16 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
         "logging": {"local_store": str(tmp_path / "data" / "points.sqlite")},
         "simulator": {
             "program": "const8000",
-            "speedup": 120,
+            "speedup": 300,
+            # A probe every 2 machine minutes: 0.4 s of wall time at ×300.
+            "probe": {"period_s": 120.0},
             "transmitters": {"tcp": {"port": bus, "devices": devices}},
             "cnc": {"modbus": {"port": cnc}},
         },
         "machines": [
             {
                 "id": "bench-1",
-                "cycle_s": 0.5,
+                "cycle_s": 0.2,
                 "transmitters": [
                     {
                         "name": "bus1",
@@ -61,8 +63,8 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
                     }
                 ],
                 "sensors": {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)},
-                # The machine runs ×120 faster than the gateway's wall clock: so does its growth.
-                "quality": {"max_prediction_rate_um_per_s": 120 * 0.1},
+                # The machine runs ×300 faster than the gateway's wall clock: so does its growth.
+                "quality": {"max_prediction_rate_um_per_s": 300 * 0.1},
                 "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
                 "compensation": {"slew_um_per_min": 2000.0, "probe_macro": 600},
                 "models": {
@@ -84,14 +86,22 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
     try:
         wait_for_port(cnc)
         gateway = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
-        # ×120: 20 s of wall time are 40 min at 8000 r/min; the spindle grows > 10 µm.
-        values = []
+        # ×300: 8 s of wall time are 40 min at 8000 r/min; the spindle grows > 10 µm.
+        # Every wait below ends on what the machine shows, not on a fixed sleep.
+        values: list[float] = []
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not (values and values[-1] > 0.005):
-            time.sleep(1.0)
+            time.sleep(0.2)
             values.append(read_macro_mm(cnc))
         assert values and values[-1] > 0.005, values  # > 5 µm of compensation written
-        time.sleep(25)  # ×120: another 50 min of machine time, 10 more probe measurements
+        # Then at least 12 more probe measurements (#600 changes at each one).
+        probes = {read_macro_mm(cnc, 600)}
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(probes) < 13:
+            time.sleep(0.1)
+            probes.add(read_macro_mm(cnc, 600))
+            values.append(read_macro_mm(cnc))
+        assert len(probes) >= 13, probes
         assert all(abs(v) <= 0.050 for v in values)  # within the ±50 µm clamp
         gateway.send_signal(signal.SIGTERM)
         out, err = gateway.communicate(timeout=30)
@@ -106,7 +116,7 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
         assert result.returncode == 0, result.stderr
         assert "from local store" in result.stdout
         data = load_runs(exported)
-        assert data.n_samples >= 10  # one row per probe measurement (every 300 s)
+        assert data.n_samples >= 10  # one row per probe measurement (every 120 s)
         assert data.sensors == tuple(f"T{i}" for i in range(1, 10))
         fitted = gateway_cli("fit", exported, "--store", tmp_path / "refit")
         assert fitted.returncode == 0, fitted.stderr

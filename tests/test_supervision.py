@@ -248,8 +248,11 @@ def test_health_is_published_over_scada_and_in_the_heartbeat(tmp_path: Path, sto
         "DroppedPoints",
         "RejectedPoints",
         "ForwarderRestarts",
+        "ModelSwaps",
+        "ModelSwapsRefused",
     }
     assert set(values) == names
+    assert values["ModelSwaps"] == 0 and values["ModelSwapsRefused"] == 0  # nothing promoted
     # Published after each cycle: the client read what the gateway counted a cycle or two before.
     assert 20 <= values["Cycles"] <= expected["cycles"]
     assert 5 <= values["LinkErrorsTotal"] <= expected["link_errors_total"]

@@ -9,10 +9,12 @@ against what it will meet in the cabinet. The map is documented in MODBUS.md.
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 from pymodbus.constants import ExcCodes
+from pymodbus.pdu import ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
@@ -104,6 +106,8 @@ class TransmitterServer(ModbusEndpoint):
         self._link = link
         self._devices = tuple(devices)
         self.silenced: set[int] = set()  # device ids that do not answer (a dead slave)
+        #: Requests received per device id (answered or not): what the bus carried.
+        self.requests: Counter[int] = Counter()
         self._tcp = tcp
         self._serial_port = serial_port
         self._baudrate = baudrate
@@ -133,9 +137,15 @@ class TransmitterServer(ModbusEndpoint):
             SimDevice(id=device.device_id, simdata=_register_tables(), action=_module_action)
             for device in self._devices
         ]
-        trace_pdu = known_devices_only(
+        answer_known = known_devices_only(
             [device.device_id for device in self._devices], self.silenced
         )
+
+        def trace_pdu(sending: bool, pdu: ModbusPDU) -> ModbusPDU:
+            if not sending:
+                self.requests[pdu.dev_id] += 1
+            return answer_known(sending, pdu)
+
         if self._tcp is not None:
             return ModbusTcpServer(sim_devices, address=self._tcp, trace_pdu=trace_pdu)
         assert self._serial_port is not None

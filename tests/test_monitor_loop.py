@@ -14,6 +14,7 @@ be ≤ 0.7 × that of the four hours before the proposal.
 from __future__ import annotations
 
 import asyncio
+import logging
 import shutil
 from pathlib import Path
 
@@ -42,7 +43,10 @@ def fitted(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder / "models"
 
 
-def test_drift_proposed_promoted_and_removed_over_the_protocols(tmp_path: Path, fitted: Path):
+def test_drift_proposed_promoted_and_removed_over_the_protocols(
+    tmp_path: Path, fitted: Path, caplog: pytest.LogCaptureFixture
+):
+    caplog.set_level(logging.INFO, logger="gateway.monitor")
     store = tmp_path / "models"
     shutil.copytree(fitted, store)
     compensation = CompensationSection(
@@ -91,3 +95,9 @@ def test_drift_proposed_promoted_and_removed_over_the_protocols(tmp_path: Path, 
     used = {r.model_id for r in closed.trace.records[proposed_at + 2 :]}
     assert used == {proposal.model_id}, used
     assert after <= 0.7 * before, (before, after)
+    # In the logs: the alarm, the proposal, its publication; and the evidence restarted.
+    text = caplog.text
+    assert "residual analysis of" in text and "started in the background" in text
+    assert "residual monitor proposes drift" in text
+    assert f"published proposal {proposal.id}" in text
+    assert f"model {proposal.model_id} in use; the tests start afresh" in text

@@ -29,6 +29,7 @@ from gateway.config import GatewayConfig, MachineSection
 from gateway.cycle_scheduler import CycleScheduler
 from gateway.login_throttle import ThrottlePolicy
 from gateway.model_bank import ModelBank
+from gateway.monitor import MonitorSink, build_monitor
 from gateway.outputs import Outputs
 from gateway.promotion import Promotions, proposals_view
 from gateway.runtime import CycleRecord, MachineLoop, Sink
@@ -179,6 +180,7 @@ class Gateway:
         ]
         # One timer for every loop, and each loop's polls at its own phase of the cycle.
         self.scheduler = CycleScheduler(self.clock)
+        self.monitors = attach_monitors(self.loops, Path(config.state_dir))
         self.supervisors = {
             loop.config.id: Supervised(
                 f"machine {loop.config.id} loop",
@@ -301,12 +303,27 @@ class Gateway:
                     await loop.close()
                 except Exception:  # one machine's failure to close must not keep the others open
                     log.exception("%s: closing the loop failed", loop.config.id)
+            for monitor in self.monitors.values():
+                monitor.close()
             if self.scada is not None:
                 log.debug("stopping: SCADA server")
                 await self.scada.stop()
             log.debug("stopping: logging outputs")
             await self.outputs.stop()
             log.debug("stopped")
+
+
+def attach_monitors(loops: Sequence[MachineLoop], state_dir: Path) -> dict[str, MonitorSink]:
+    """The residual monitor of every machine that has one on, as a sink before the heartbeat."""
+    from gateway import __version__
+
+    monitors = {}
+    for loop in loops:
+        monitor = build_monitor(loop.config, state_dir / "monitor", __version__)
+        if monitor is not None:
+            loop.sinks.insert(max(len(loop.sinks) - 1, 0), monitor)
+            monitors[loop.config.id] = monitor
+    return monitors
 
 
 def _cycles_of(loop: MachineLoop) -> Callable[[], int]:

@@ -493,6 +493,12 @@ def run(config_path: Path, log_level: str) -> None:
 @click.option(
     "--log-level", default="warning", type=click.Choice(["debug", "info", "warning", "error"])
 )
+@click.option(
+    "--effect",
+    type=click.Choice(["thermal_lag", "speed_direct", "ambient", "drift", "cooler"]),
+    help="Hide this effect in the machine (the models lack it): the residual monitor finds it, "
+    "the demo promotes its proposal, the compensation runs with it.",
+)
 @input_errors_exit
 def demo(
     json_out: Path | None,
@@ -502,6 +508,7 @@ def demo(
     cycle_s: float,
     workdir: Path,
     log_level: str,
+    effect: str | None,
 ) -> None:
     """Simulate a machine, fit its models, compensate an unseen programme, show the gain."""
     import asyncio
@@ -518,6 +525,7 @@ def demo(
             cycle_s=cycle_s,
             version=__version__,
             say=click.echo,
+            effect=effect,
         )
     )
     write_json(json_out, result)
@@ -646,6 +654,13 @@ def export(
     show_default=True,
     help="The held-out RMSE the compensation must reach (the machine's tolerance), µm.",
 )
+@click.option(
+    "--probe-rows",
+    is_flag=True,
+    help="The target is known only at some rows (a logged history: the probe's measured "
+    "error): rows with an empty target feed the effect terms; fit and figures use the others, "
+    "the target as measured (no reference subtracted).",
+)
 @click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
 @input_errors_exit
 def analyze(
@@ -658,10 +673,13 @@ def analyze(
     report_dir: Path | None,
     store_dir: Path | None,
     tolerance_um: float,
+    probe_rows: bool,
     progress: bool | None,
 ) -> None:
     """Fit the model, trace its held-out residual to the effect it lacks, add it, compare."""
     from dataclasses import replace
+
+    import numpy as np
 
     from models import augmented
     from models.analysis import analyze as run_analysis
@@ -670,17 +688,29 @@ def analyze(
     from models.store import data_fingerprint
 
     sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list)
+    data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=probe_rows)
     report_skipped(data)
     prepared = prepare(data, sensor_list, reference).without_sensor_readings()
+    fit_rows = None
+    if probe_rows:  # a probe measures the error itself: the target is used as measured
+        prepared = replace(prepared, error_um=np.asarray(data.error_um, dtype=float))
+        fit_rows = np.isfinite(prepared.error_um)
+        if int(fit_rows.sum()) < 10:
+            raise click.UsageError(
+                f"{data_csv}: --probe-rows: {int(fit_rows.sum())} rows with a {target} value; "
+                "expected at least 10"
+            )
     data = prepared.data  # the readings of the sensors are let go: their rises are kept
     show_progress = sys.stderr.isatty() if progress is None else progress
+    known = "" if fit_rows is None else f" ({int(fit_rows.sum())} with {target})"
     click.echo(
-        f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, "
+        f"{data_csv.name}: {data.n_samples} rows{known}, {len(data.run_ids)} runs, "
         f"{len(prepared.plan.recording_runs)} recording(s), target {target} (µm), "
         f"model {method} on {','.join(prepared.inputs.sensors)} (°C)"
     )
-    result, accepted, analysis = run_analysis(prepared, method, sensor_list, show_progress)
+    result, accepted, analysis = run_analysis(
+        prepared, method, sensor_list, show_progress, fit_rows=fit_rows
+    )
     result = replace(
         result,
         data_fingerprint=data_fingerprint(prepared.inputs, prepared.error_um),

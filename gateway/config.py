@@ -60,6 +60,7 @@ from gateway.quality import QualityLimits
 from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
 from models.online_correction import CorrectionParams
 from models.regime_rules import RegimeRules, SpeedBand
+from models.residual_monitor import MonitorParams
 
 MAX_CLAMP_UM = 1000.0
 """Largest clamp: thermal growth of a spindle is tens of µm; a bigger clamp is a typo."""
@@ -380,6 +381,38 @@ class OnlineCorrectionSection(Strict):
         return CorrectionParams.from_dict(self.model_dump(exclude={"enabled"}))
 
 
+class MonitorSection(Strict):
+    """The residual monitor (:mod:`gateway.monitor`, tests in :mod:`models.residual_monitor`).
+
+    Off by default. When on, every probe's innovation goes to the sequential
+    tests; an alarm starts a background residual analysis of the logged history,
+    and an effect it believes is published as a proposal in the model store.
+    """
+
+    enabled: bool = False
+    #: the probe cycle's period the thresholds are set for, s
+    probe_period_s: float = Field(default=300.0, gt=0)
+    #: expected false alarms of the tests together per 30 days of operation
+    false_alarms_per_month: float = Field(default=1.0, gt=0, le=100)
+    cusum_k_sigma: float = Field(default=0.5, gt=0)
+    window_probes: int = Field(default=36, ge=10)
+    min_effect_um: float = Field(default=0.3, gt=0)
+    #: random walk of the monitor's own filter, µm²/h (slower than the correction's)
+    process_um2_per_h: float = Field(default=0.1, ge=0)
+    history_days: float = Field(default=30.0, gt=0, le=365)
+    min_history_probes: int = Field(default=24, ge=10)
+    method: Literal["mlr", "grey-mlr", "pca-quadratic"] = "mlr"
+
+    def params(self) -> MonitorParams:
+        return MonitorParams(
+            probe_period_s=self.probe_period_s,
+            false_alarms_per_month=self.false_alarms_per_month,
+            cusum_k_sigma=self.cusum_k_sigma,
+            window_probes=self.window_probes,
+            min_effect_um=self.min_effect_um,
+        )
+
+
 class BandSection(Strict):
     name: str
     min_rpm: float = Field(ge=0)
@@ -455,6 +488,7 @@ class MachineSection(Strict):
     cnc: CncSection
     compensation: CompensationSection = CompensationSection()
     online_correction: OnlineCorrectionSection = OnlineCorrectionSection()
+    monitor: MonitorSection = MonitorSection()
     models: ModelsSection
     quality: QualitySection = QualitySection()
 
@@ -484,6 +518,8 @@ class MachineSection(Strict):
             raise ValueError(f"macro #{comp.macro} is used twice in compensation")
         if self.online_correction.enabled and comp.probe_macro is None:
             raise ValueError("online_correction.enabled needs compensation.probe_macro")
+        if self.monitor.enabled and comp.probe_macro is None:
+            raise ValueError("monitor.enabled needs compensation.probe_macro")
         return self
 
     @model_validator(mode="after")

@@ -21,18 +21,26 @@ from __future__ import annotations
 
 import csv
 import math
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from drivers.clock import AcceleratedClock, Clock
 from gateway.app import build_buses, build_cnc, load_bank
-from gateway.config import GatewayConfig, LoggingSection, MachineSection
+from gateway.config import (
+    GatewayConfig,
+    LoggingSection,
+    MachineSection,
+    MonitorSection,
+    OnlineCorrectionSection,
+)
 from gateway.outputs import Outputs
 from gateway.runtime import MachineLoop, Sink
 from models.dataset import load_runs
 from models.features import prepare
 from models.fitting import fit_and_store, fit_sensor_fallbacks
+from models.online_correction import CorrectionParams
 from models.store import ModelStore
 from simulator.closed_loop import ClosedLoop, Trace
 from simulator.params import load_params
@@ -134,18 +142,28 @@ async def demo(
     cycle_s: float = 15.0,
     version: str = "unknown",
     say: Any = print,
+    effect: str | None = None,
 ) -> dict[str, Any]:
+    """The demo of the module docstring; with ``effect``, the machine hides that effect
+    (the training runs do not have it, so the models lack it), and before the
+    compensated run the residual monitor finds it and its proposal is promoted."""
     workdir.mkdir(parents=True, exist_ok=True)
     training = workdir / "training.csv"
     store_dir = workdir / "models"
-    say(f"1/4 recording six training runs on the simulated machine → {training}")
+    steps = 5
+    say(f"1/{steps} recording six training runs on the simulated machine → {training}")
     write_training_data(training, seed)
-    say(f"2/4 fitting models (per regime, all runs, one without each sensor) → {store_dir}")
+    say(f"2/{steps} fitting models (per regime, all runs, one without each sensor) → {store_dir}")
     for path in store_dir.glob("*.json"):
         path.unlink()
+    for folder in ("augmented", "proposals", "versions"):  # a fresh store every run
+        shutil.rmtree(store_dir / folder, ignore_errors=True)
     models = fit_models(training, store_dir, version)
     main_models = ", ".join(m for m in models if "without" not in m)
     say(f"    {len(models)} models: {main_models}, and one without each sensor")
+    monitor_result = None
+    if effect is not None:
+        monitor_result = run_monitor_phase(store_dir, effect, seed, version, say, 3, steps)
 
     clock = AcceleratedClock(speedup)
     unseen = program_by_name(program)
@@ -154,6 +172,7 @@ async def demo(
             {
                 "program": program,
                 "seed": seed + 1000,
+                "effects": [effect] if effect else [],
                 "speedup": speedup,
                 "publish_period_s": 0.02,
                 "transmitters": {
@@ -187,10 +206,19 @@ async def demo(
         cnc={"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 2.0}},
         cycle_s=cycle_s,
     )
+    if effect is not None:  # the probe cycle and the online correction on, as in production
+        machine = machine.model_copy(
+            update={
+                "compensation": machine.compensation.model_copy(update={"probe_macro": 600}),
+                "online_correction": OnlineCorrectionSection(enabled=True),
+            }
+        )
     hours = unseen.duration_s / 3600.0
+    with_what = "" if effect is None else ", the promoted model and the online correction"
     say(
-        f"3/4 compensating programme '{program}' (not in the training data, {hours:.1f} h of "
-        f"machine time at ×{speedup:g}: about {unseen.duration_s / speedup:.0f} s)"
+        f"{3 if effect is None else 4}/{steps} compensating programme '{program}' (not in the "
+        f"training data{with_what}, {hours:.1f} h of machine time at ×{speedup:g}: about "
+        f"{unseen.duration_s / speedup:.0f} s)"
     )
     # As on a real machine: the gateway is up and has its cold reference before the
     # operator presses cycle start (starting the servers takes minutes of machine time).
@@ -220,10 +248,11 @@ async def demo(
             "models": models,
             "regime_switches": [list(s) for s in closed.loop.selector.switches],
             "failed_writes": closed.loop.failed_writes,
+            "models_used": sorted({r.model_id for r in closed.trace.records if r.model_id}),
         }
     )
     write_trace(workdir / "trace.csv", closed.trace)
-    say("4/4 thermal error at the tool (µm):")
+    say(f"{4 if effect is None else 5}/{steps} thermal error at the tool (µm), over the protocols:")
     for label, key in (
         ("without compensation", "uncompensated"),
         ("with compensation", "compensated"),
@@ -233,6 +262,50 @@ async def demo(
     say(f"    peak reduced by {result['reduction_pct']:.1f} % over {result['cycles']} cycles")
     say(f"    per-cycle trace: {workdir / 'trace.csv'}")
     say(f"    every cycle logged to the local store {workdir / 'points.sqlite'}")
+    if effect is None:
+        monitor_result = run_monitor_phase(store_dir, None, seed, version, say, 5, steps)
+    assert monitor_result is not None
+    result["monitor"] = monitor_result
+    for key in ("without_probes", "online_correction", "after_promotion"):
+        if key in monitor_result:
+            result[f"{key}_peak_um"] = monitor_result[key]["peak_um"]
+            result[f"{key}_rmse_um"] = monitor_result[key]["rmse_um"]
+    return result
+
+
+def run_monitor_phase(
+    store_dir: Path, effect: str | None, seed: int, version: str, say: Any, step: int, steps: int
+) -> dict[str, Any]:
+    """The residual monitor over days of machine time (physics in-process), its proposal
+    promoted as an operator would, and the next day without probes, with the online
+    correction, and with the promoted model (peak and RMSE of each)."""
+    from gateway.demo_effect import monitor_phase
+
+    hidden = effect or "no hidden effect"
+    say(
+        f"{step}/{steps} residual monitor: production days with {hidden}, a probe every 300 s "
+        "(the machine's physics in-process, at CPU speed)"
+    )
+    result = monitor_phase(
+        store_dir,
+        effect,
+        seed=seed,
+        learn_days=3.0 if effect else 2.0,
+        correction=OnlineCorrectionSection().params(),
+        monitor_params=MonitorSection().params(),
+        monitor_filter=CorrectionParams(process_um2_per_h=MonitorSection().process_um2_per_h),
+        version=version,
+        say=say,
+    )
+    say("    the next day (thermal error at the tool, µm):")
+    for label, key in (
+        ("without probes", "without_probes"),
+        ("with online correction", "online_correction"),
+        ("after promotion", "after_promotion"),
+    ):
+        if key in result:
+            figures = result[key]
+            say(f"    {label:22s} peak {figures['peak_um']:6.2f}   RMSE {figures['rmse_um']:6.2f}")
     return result
 
 

@@ -98,12 +98,17 @@ class Folds:
         names = tuple(dict.fromkeys(labels if fit_rows is None else labels[fit_rows]))
         number = {name: i for i, name in enumerate(names)}
         index = np.fromiter((number.get(label, -1) for label in labels), np.int32, len(labels))
+        if fit_rows is not None:
+            index[~fit_rows] = -1  # e.g. the rows between probes of a logged history
         rows = tuple(np.flatnonzero(index == i).astype(np.int32) for i in range(len(names)))
         parts = tuple(_as_slice(r) for r in rows)
+        # Row t pairs with the fold's previous usable row: the row before it, or with a
+        # target known only at probe rows, the previous probe row.
+        position = np.arange(len(labels)) if fit_rows is None else np.cumsum(fit_rows) - 1
         pairs = []
         for r in rows:
-            current = r[1:][np.diff(r) == 1]
-            pairs.append((_as_slice(current), _as_slice(current - 1)))
+            follows = np.diff(position[r]) == 1
+            pairs.append((_as_slice(r[1:][follows]), _as_slice(r[:-1][follows])))
         return cls(scheme, index, names, rows, parts, tuple(pairs))
 
     @property
@@ -625,7 +630,9 @@ def _p_phrase(p_value: float) -> str:
 
 def _lag1_autocorrelation(residual: np.ndarray, fold_index: np.ndarray) -> float:
     """Lag-1 autocorrelation of the residual, pairs taken within folds only, in [0, 1)."""
-    same = (fold_index[1:] == fold_index[:-1]) & (fold_index[1:] >= 0)
+    usable = fold_index >= 0  # rows outside every fold (no target there) are passed over
+    residual, fold_index = residual[usable], fold_index[usable]
+    same = fold_index[1:] == fold_index[:-1]
     a, b = residual[1:][same], residual[:-1][same]
     if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
         return 0.0
@@ -638,9 +645,13 @@ def analyze(
     method: str = "mlr",
     sensors: Sequence[str] | None = None,
     progress: bool = False,
+    fit_rows: np.ndarray | None = None,
 ) -> tuple[AnalysisResult, list[Accepted], ResidualAnalysis]:
-    """Run the residual analysis; return the result, the effects added and the analysis."""
-    analysis = ResidualAnalysis(prepared, method, sensors, progress)
+    """Run the residual analysis; return the result, the effects added and the analysis.
+
+    ``fit_rows``: the rows whose target is known (e.g. probe rows of a logged history);
+    the effect terms still run over every row."""
+    analysis = ResidualAnalysis(prepared, method, sensors, progress, fit_rows)
     steps, accepted = analysis.run()
     first = steps[0]
     last = steps[-1]

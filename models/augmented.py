@@ -44,8 +44,9 @@ def fit_augmented(
     terms, effect terms) and the effects as stored.
     """
     prepared = analysis.prepared
+    rows = analysis.fit_rows  # rows with a known target (every row unless probe rows only)
     base = make_model(analysis.method, analysis.base.sensors).fit(
-        prepared.inputs, prepared.error_um
+        prepared.inputs.take(rows), prepared.error_um[rows]
     )
     columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]
     effects = []
@@ -53,7 +54,7 @@ def fit_augmented(
         block = a.family.variants[a.overall].build()
         columns.append(block)
         effects.append({"effect": a.family.effect, "params": a.params, "terms": block.shape[1]})
-    coef, *_ = np.linalg.lstsq(np.column_stack(columns), prepared.error_um, rcond=None)
+    coef, *_ = np.linalg.lstsq(np.column_stack(columns)[rows], prepared.error_um[rows], rcond=None)
     return base, coef, effects
 
 

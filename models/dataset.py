@@ -289,6 +289,7 @@ def load_runs(
     path: str | Path,
     target: str = DEFAULT_TARGET,
     sensors: Sequence[str] | None = None,
+    sparse_target: bool = False,
 ) -> MeasuredRuns:
     """Read and check a measured-run CSV.
 
@@ -297,6 +298,9 @@ def load_runs(
         target: the measured thermal-error column, µm (``--target``).
         sensors: the temperature columns the command needs (default: every
             ``T<n>`` column); an unknown name is refused.
+        sparse_target: the target is known only at some rows (probe rows of a
+            logged history): a row with an empty target is kept (NaN there);
+            the values present are checked as always.
     """
     path = Path(path)
     names = read_header(path)
@@ -315,6 +319,8 @@ def load_runs(
     if AMBIENT_COLUMN in names:
         needed.append(AMBIENT_COLUMN)
     reader = _ColumnReader(path, names, needed, capacity=scanned)
+    if sparse_target:
+        reader.sparse = {target}
     table = reader.read()
     _check_runs(path, table.run, table.run_code, table.numeric[TIME_COLUMN], table.lines)
     return MeasuredRuns(
@@ -366,6 +372,7 @@ class _ColumnReader:
         self.typed = [n for n in names if n != RUN_COLUMN and (n in needed or has_unit(n))]
         self.text: list[str] = [n for n in names if n != RUN_COLUMN and n not in self.typed]
         self.notes: dict[str, str] = {}
+        self.sparse: set[str] = set()  # needed columns that may be empty (NaN kept)
 
     def read(self) -> _Table:
         try:
@@ -426,7 +433,8 @@ class _ColumnReader:
                 raise DataError(self.path, None, None, "not a readable CSV file (rows miscounted)")
             chunk_lines = np.arange(next_line, next_line + m, dtype=np.int32)
             next_line += m
-            empty = chunk[[RUN_COLUMN, *self.needed]].isna().to_numpy().any(axis=1)
+            dense = [name for name in self.needed if name not in self.sparse]
+            empty = chunk[[RUN_COLUMN, *dense]].isna().to_numpy().any(axis=1)
             keep: slice | np.ndarray = slice(None)
             if empty.any():
                 skipped_count += int(empty.sum())
@@ -439,6 +447,10 @@ class _ColumnReader:
             for name in self.needed:
                 values = chunk[name].to_numpy(dtype=np.float64)[keep]
                 bad = first_implausible(values, bounds_of(name))
+                if bad is not None and name in self.sparse:
+                    present = np.flatnonzero(~np.isnan(values))
+                    found = first_implausible(values[present], bounds_of(name))
+                    bad = None if found is None else int(present[found])
                 if bad is not None and (worst is None or bad < worst[0]):
                     worst = (bad, name, float(values[bad]))
                 numbers[name][rows] = values

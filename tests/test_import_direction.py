@@ -38,6 +38,7 @@ ALLOWED: dict[str, frozenset[str]] = {
 GATEWAY_MODULES_USING_SIMULATOR: dict[str, str] = {
     "gateway/cli.py": "the `simulate`, `record` and `demo` commands start the simulated plant",
     "gateway/demo.py": "the demo runs the gateway loop against the simulated plant",
+    "gateway/demo_effect.py": "the demo's monitor phase runs the simulated plant's physics",
     "gateway/config.py": "check-config validates the config's `simulator:` section with its schema",
 }
 

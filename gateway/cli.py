@@ -787,7 +787,7 @@ def replay(
     json_out: Path | None,
 ) -> None:
     """Replay measured runs causally through the online probe correction, leave-one-run-out."""
-    from gateway.replay import run_replay
+    from gateway.offline.replay import run_replay
 
     result = run_replay(
         data_csv,

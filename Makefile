@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: main demo fit test lint bench clean
+.PHONY: main demo fit test test-quick lint bench clean
 
 # The locked set (requirements-dev.lock, hashes checked: the image installs the same
 # versions from requirements.lock), then the project itself without resolving again.
@@ -25,6 +25,10 @@ fit: $(STAMP)
 
 test: $(STAMP)
 	bash scripts/test.sh
+
+# Everything but the end-to-end plant runs (tests/conftest.py marks them slow).
+test-quick: $(STAMP)
+	bash scripts/test.sh -m "not slow"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import loop_latency  # noqa: E402
 
 from drivers.clock import WallClock  # noqa: E402
-from gateway.demo import fit_models, machine_config, write_training_data  # noqa: E402
+from gateway.demo import fit_models, write_training_data  # noqa: E402
 from gateway.demo_effect import SENSORS, InProcessPlant, programme_days  # noqa: E402
 from gateway.monitor import MonitorSink, run_analysis_job  # noqa: E402
 from gateway.runtime import CycleRecord  # noqa: E402
@@ -114,32 +114,6 @@ def history_at_1hz(store: Path, days: float) -> History:
     return History(time_s, speed, SENSORS, temps, error)
 
 
-def latency_machine(store: Path, ports: dict[str, int]):
-    """loop_latency's machine: a write every cycle (no deadband, a slew limit that does not bind
-    at these cycles, rate checks relaxed for 0.1 s cycles of noisy sensors)."""
-    section = machine_config(
-        store,
-        transmitters=[
-            {
-                "name": "bus1",
-                "tcp": {"host": "127.0.0.1", "port": ports["bus"]},
-                "timeout_s": 0.5,
-                "devices": [
-                    {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
-                    {"device_id": 2, "channels": ["T9", None]},
-                ],
-            }
-        ],
-        cnc={"modbus": {"host": "127.0.0.1", "port": ports["modbus"], "timeout_s": 1.0}},
-        cycle_s=1.0,
-    )
-    comp = section.compensation.model_copy(update={"deadband_um": 0.0, "slew_um_per_min": 6000})
-    sensors = {name: {"max_rate_C_per_s": 1e6} for name in section.sensor_names}
-    return type(section).model_validate(
-        {**section.model_dump(), "compensation": comp.model_dump(), "sensors": sensors}
-    )
-
-
 async def cycles_while(section, future, baseline_cycles: int) -> dict[str, object]:
     """run_cycle times before ``future`` is started (baseline) and while it runs."""
     clock = WallClock()
@@ -190,7 +164,7 @@ def main() -> None:
         simulator = loop_latency.start_simulator(folder, ports)
         executor = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
         try:
-            section = latency_machine(folder / "models", ports)
+            section = loop_latency.machine(folder / "models", ports, "modbus")
             measured = asyncio.run(
                 cycles_while(
                     section,

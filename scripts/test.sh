@@ -7,4 +7,4 @@ VENV=.venv
 bash scripts/setup-system.sh
 "$VENV/bin/ruff" check .
 # Both cores: one worker per core, each test file on one worker (its servers start once).
-"$VENV/bin/pytest" -q -n 2 --dist loadfile "$@"
+"$VENV/bin/pytest" -q -n 2 --dist loadfile --durations=15 "$@"

@@ -171,6 +171,24 @@ def assert_read_every_cycle(machine: str, records: list[CycleRecord]) -> None:
 # -- no I/O ---------------------------------------------------------------------------------
 
 
+async def serve_and_run(server, plants, config_path: Path, clock, cycles: int):
+    """The shared line's modules and both CNCs served while the gateway runs ``cycles``
+    cycles on every machine; (gateway, records, wall seconds)."""
+    async with server:
+        for plant in plants:
+            await plant.start()
+        try:
+            return await run_gateway(
+                config_path,
+                clock,
+                lambda r: min(len(v) for v in r.values()) >= cycles,
+                timeout_s=60,
+            )
+        finally:
+            for plant in plants:
+                await plant.stop()
+
+
 def test_rtu_silence_is_three_and_a_half_characters_or_fixed_above_19200_baud() -> None:
     assert rtu_silence_s(9600) == pytest.approx(3.5 * 11 / 9600)  # 4.01 ms
     assert rtu_silence_s(19200) == pytest.approx(3.5 * 11 / 19200)  # 2.01 ms
@@ -218,23 +236,12 @@ def test_two_machines_on_one_line_read_every_cycle_without_collision(
             machine_entry(name, plant, store, line.client_port, 0.2, [])
             for name, plant in zip(MODULES, plants, strict=True)
         ]
-        config_path = write_config(tmp_path, machines)
         server = TransmitterServer(
             FixedLink(SNAPSHOT), SERVED, serial_port=line.server_port, baudrate=BAUDRATE
         )
-        async with server:
-            for plant in plants:
-                await plant.start()
-            try:
-                gateway, records, wall_s = await run_gateway(
-                    config_path,
-                    clock,
-                    lambda r: min(len(v) for v in r.values()) >= cycles,
-                    timeout_s=60,
-                )
-            finally:
-                for plant in plants:
-                    await plant.stop()
+        gateway, records, wall_s = await serve_and_run(
+            server, plants, write_config(tmp_path, machines), clock, cycles
+        )
         return gateway, records, wall_s, server
 
     gateway, records, wall_s, server = asyncio.run(scenario())
@@ -282,23 +289,12 @@ def test_a_dead_module_of_one_machine_does_not_stop_the_other_machine(
             machine_entry("left", plants[0], store, line.client_port, timeout_s, [DEAD_ID]),
             machine_entry("right", plants[1], store, line.client_port, timeout_s, []),
         ]
-        config_path = write_config(tmp_path, machines)
         server = TransmitterServer(
             FixedLink(SNAPSHOT), SERVED, serial_port=line.server_port, baudrate=BAUDRATE
         )
-        async with server:
-            for plant in plants:
-                await plant.start()
-            try:
-                gateway, records, _ = await run_gateway(
-                    config_path,
-                    clock,
-                    lambda r: min(len(v) for v in r.values()) >= cycles,
-                    timeout_s=60,
-                )
-            finally:
-                for plant in plants:
-                    await plant.stop()
+        gateway, records, _ = await serve_and_run(
+            server, plants, write_config(tmp_path, machines), clock, cycles
+        )
         return gateway, records, server
 
     gateway, records, server = asyncio.run(scenario())

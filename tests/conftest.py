@@ -1,0 +1,30 @@
+"""Suite-wide test marks.
+
+The end-to-end files below run whole plants (simulator servers, the gateway, a
+container, machine days on an accelerated clock) and take most of the suite's
+time. They carry the ``slow`` mark so that a newcomer can run the rest first
+(``make test-quick``); ``make test`` and CI always run everything.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+#: Test files whose every test is an end-to-end run (measured as the slowest files).
+SLOW_FILES = frozenset(
+    {
+        "test_bus_hub.py",
+        "test_closed_loop.py",
+        "test_container.py",
+        "test_monitor_days.py",
+        "test_monitor_loop.py",
+        "test_promotion.py",
+        "test_run_command.py",
+    }
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.name in SLOW_FILES:
+            item.add_marker(pytest.mark.slow)

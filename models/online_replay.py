@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from models.effect_terms import candidate_families, first_order_lag
 from models.features import Prepared
@@ -333,24 +334,9 @@ def choose_filter(
     return base.with_limits(outlier_sigma=k)
 
 
+# Hundreds of small solves: one BLAS thread is faster than several fighting for cores.
+@threadpool_limits.wrap(limits=1)
 def replay_interval(
-    prepared: Prepared,
-    interval_min: float,
-    base: str = "lagged",
-    method: str = "mlr",
-    sensors: Sequence[str] | None = None,
-    document: dict[str, Any] | None = None,
-    defaults: CorrectionParams | None = None,
-) -> IntervalResult:
-    """Leave-one-run-out replay at one probe interval; see the module docstring."""
-    from threadpoolctl import threadpool_limits
-
-    # Hundreds of small solves: one BLAS thread is faster than several fighting for cores.
-    with threadpool_limits(1):
-        return _replay_interval(prepared, interval_min, base, method, sensors, document, defaults)
-
-
-def _replay_interval(
     prepared: Prepared,
     interval_min: float,
     base: str = "lagged",

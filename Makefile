@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: main demo fit test test-quick lint bench clean
+.PHONY: main demo fit test test-quick lint bench reports clean
 
 # The locked set (requirements-dev.lock, hashes checked: the image installs the same
 # versions from requirements.lock), then the project itself without resolving again.
@@ -33,6 +33,13 @@ test-quick: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+
+# The residual analysis reports of the bundled real data (HTML and plots, git-ignored).
+reports: $(STAMP)
+	for ch in ch1 ch3 ch5; do \
+		$(PY) -m gateway analyze data/fl_thermal.csv --target $${ch}_um --no-progress \
+			--report docs/analysis/fl_thermal_$$ch || exit 1; \
+	done
 
 bench: $(STAMP)
 	$(PY) benchmarks/fit_speed.py

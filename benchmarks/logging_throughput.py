@@ -31,9 +31,9 @@ sys.path.insert(0, str(ROOT))
 from gateway.influx_writer import Forwarder, InfluxWriter  # noqa: E402
 from gateway.local_store import LocalStore  # noqa: E402
 from gateway.point_buffer import PointBuffer  # noqa: E402
-from gateway.runtime import CycleRecord  # noqa: E402
 from gateway.timeseries import Point, points_from_record  # noqa: E402
 from tests.influx_server import InfluxServer  # noqa: E402
+from tests.records import written_record  # noqa: E402
 
 SENSORS = [f"T{i}" for i in range(1, 10)]
 
@@ -41,19 +41,14 @@ SENSORS = [f"T{i}" for i in range(1, 10)]
 def cycle_points(cycles: int, epoch_s: float) -> list[list[Point]]:
     batches = []
     for k in range(cycles):
-        record = CycleRecord(
-            machine=f"vmc-{k % 4}",
-            time_s=float(k),
-            temperatures_C={s: 20.0 + 0.001 * k + i for i, s in enumerate(SENSORS)},
-            quality=dict.fromkeys(SENSORS, "good"),
-            quality_reasons={},
-            speed_rpm=4000.0,
+        record = written_record(
+            f"vmc-{k % 4}",
+            float(k),
+            {s: 20.0 + 0.001 * k + i for i, s in enumerate(SENSORS)},
+            10.0,
             regime="constant",
             model_id="mlr-error_um-constant",
             predicted_um=10.0 + 0.001 * k,
-            target_um=10.0,
-            applied_um=10.0,
-            written_cnc=0.01,
             write_status="ok: tracking",
         )
         batches.append(points_from_record(record, epoch_s))

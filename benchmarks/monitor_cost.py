@@ -45,9 +45,9 @@ from drivers.clock import WallClock  # noqa: E402
 from gateway.demo import fit_models, write_training_data  # noqa: E402
 from gateway.demo_effect import SENSORS, InProcessPlant, programme_days  # noqa: E402
 from gateway.monitor import MonitorSink, run_analysis_job  # noqa: E402
-from gateway.runtime import CycleRecord  # noqa: E402
 from models.history_analysis import History  # noqa: E402
 from models.residual_monitor import MonitorParams, ProbeInnovation, ResidualMonitor  # noqa: E402
+from tests.records import written_record  # noqa: E402
 
 PROBE_PERIOD_S = 300.0
 
@@ -68,20 +68,12 @@ def per_probe(probes: int) -> dict[str, float]:
     times = {True: [], False: []}
     for i in range(probes * 20):
         probe = i % 20 == 19
-        record = CycleRecord(
-            machine="bench",
-            time_s=float(i),
-            temperatures_C={s: 25.0 + 0.001 * i for s in SENSORS},
-            quality=dict.fromkeys(SENSORS, "good"),
-            quality_reasons={},
+        record = written_record(
+            "bench",
+            float(i),
+            {s: 25.0 + 0.001 * i for s in SENSORS},
+            5.0,
             speed_rpm=3000.0,
-            regime="variable",
-            model_id="m",
-            predicted_um=5.0,
-            target_um=5.0,
-            applied_um=5.0,
-            written_cnc=0.005,
-            write_status="ok",
             probe_error_um=float(0.3 * rng.standard_normal()) if probe else None,
         )
         start = time.perf_counter()

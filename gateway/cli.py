@@ -52,6 +52,20 @@ def input_errors_exit(command: Callable[..., Any]) -> Callable[..., Any]:
     return wrapper
 
 
+def quantity_option(
+    flag: str, default: float, help: str, *, name: str | None = None
+) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """A ``--flag`` taking a positive quantity in the unit its name ends with."""
+    declarations = (flag,) if name is None else (flag, name)
+    return click.option(
+        *declarations,
+        type=click.FloatRange(min=0, min_open=True),
+        default=default,
+        show_default=True,
+        help=help,
+    )
+
+
 def parse_sensors(value: str | None) -> list[str] | None:
     if value is None:
         return None
@@ -97,20 +111,16 @@ def main() -> None:
 @click.option("--store", "store_dir", type=click.Path(path_type=Path), required=True)
 @click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
 @click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
-@click.option(
+@quantity_option(
     "--sensor-accuracy-C",
-    "sensor_accuracy_C",
-    type=click.FloatRange(min=0, min_open=True),
-    default=DEFAULT_SENSOR_ACCURACY_C,
-    show_default=True,
-    help="Stated accuracy of the temperature sensors, ± °C, for the bias sensitivity.",
+    DEFAULT_SENSOR_ACCURACY_C,
+    "Stated accuracy of the temperature sensors, ± °C, for the bias sensitivity.",
+    name="sensor_accuracy_C",
 )
-@click.option(
+@quantity_option(
     "--max-bias-error-um",
-    type=click.FloatRange(min=0, min_open=True),
-    default=DEFAULT_MAX_BIAS_ERROR_UM,
-    show_default=True,
-    help="Warn when one sensor off by its accuracy moves the compensation by more (µm).",
+    DEFAULT_MAX_BIAS_ERROR_UM,
+    "Warn when one sensor off by its accuracy moves the compensation by more (µm).",
 )
 @input_errors_exit
 def fit(
@@ -226,13 +236,7 @@ def regimes(sigma_csv: Path, json_out: Path | None, tolerance_pct: float) -> Non
 @click.argument("data_csv", type=click.Path(path_type=Path))
 @click.option("--sensors", help="Temperature columns to test (default: every T<n>).")
 @click.option("--alpha", type=click.FloatRange(0.0, 1.0, min_open=True), default=0.05)
-@click.option(
-    "--band-rpm",
-    type=click.FloatRange(min=0.0, min_open=True),
-    default=100.0,
-    show_default=True,
-    help="Speeds are grouped to the nearest multiple of this, r/min.",
-)
+@quantity_option("--band-rpm", 100.0, "Speeds are grouped to the nearest multiple of this, r/min.")
 @click.option("--target", default="error_um", show_default=True)
 @click.option("--json", "json_out", type=click.Path(path_type=Path))
 @input_errors_exit
@@ -279,9 +283,7 @@ def significance(
     help="Hidden effect (repeatable): thermal_lag, speed_direct, ambient, drift, cooler or none.",
 )
 @click.option("--seed", type=int, default=0, show_default=True)
-@click.option(
-    "--sample-s", type=click.FloatRange(min=0, min_open=True), default=60.0, show_default=True
-)
+@quantity_option("--sample-s", 60.0, "Seconds between the rows written.")
 @click.option(
     "--params",
     "params_file",
@@ -647,12 +649,10 @@ def export(
     type=click.Path(path_type=Path),
     help="Save the augmented model here (sub-folder augmented/).",
 )
-@click.option(
+@quantity_option(
     "--tolerance-um",
-    type=click.FloatRange(min=0, min_open=True),
-    default=2.5,
-    show_default=True,
-    help="The held-out RMSE the compensation must reach (the machine's tolerance), µm.",
+    2.5,
+    "The held-out RMSE the compensation must reach (the machine's tolerance), µm.",
 )
 @click.option(
     "--probe-rows",

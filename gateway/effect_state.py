@@ -24,9 +24,9 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 from gateway.model_bank import BankedAugmented
-from gateway.reference import write_json_atomic
 from gateway.warm_lags import WarmLags
 from models.effect_stream import StreamingAugmented
+from models.json_files import write_json_atomic
 
 log = logging.getLogger(__name__)
 

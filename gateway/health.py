@@ -26,17 +26,16 @@ a small edge box.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
-import os
 import re
 import sys
-import tempfile
 import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NoReturn
+
+from models.json_files import write_json_atomic
 
 SUFFIX = "-heartbeat.json"
 MACHINE_ID = re.compile(r"^[A-Za-z0-9_.-]+$")  # as gateway.config checks machine ids
@@ -84,16 +83,7 @@ def write_heartbeat(
     }
     if health is not None:
         payload["health"] = dict(health)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            json.dump(payload, handle)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-    return path
+    return write_json_atomic(path, payload, indent=None)
 
 
 def check(state_dir: str | Path, max_age_s: float, now: float | None = None) -> tuple[bool, str]:

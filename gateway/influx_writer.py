@@ -143,7 +143,7 @@ class InfluxWriter:
 
 
 class InfluxReader:
-    """Reads points back with Flux (``query`` of :class:`gateway.offline.export.PointSource`)."""
+    """Reads points back with Flux (the same ``query`` as ``LocalStore``)."""
 
     def __init__(
         self, url: str, token: str, org: str, bucket: str, timeout_s: float = 30.0

@@ -17,11 +17,10 @@ is, from the start of the recording to its end, whatever the spindle did first.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+
+from models.json_files import write_json_atomic
 
 
 class TemperatureReference:
@@ -56,17 +55,4 @@ class TemperatureReference:
 
     def _save(self) -> None:
         if self.state_file is not None:
-            write_json_atomic(self.state_file, {"reference_C": self.values_C})
-
-
-def write_json_atomic(path: Path, payload: Mapping[str, Any]) -> None:
-    """Write to a temporary file, then rename: a crash never leaves half a state file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as out:
-            json.dump(payload, out, indent=2, sort_keys=True)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+            write_json_atomic(self.state_file, {"reference_C": self.values_C}, sort_keys=True)

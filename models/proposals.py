@@ -48,6 +48,7 @@ from pathlib import Path
 from typing import Any
 
 from models import augmented
+from models.json_files import write_json_atomic
 from models.store import StoreError
 
 PROPOSALS_FOLDER = "proposals"
@@ -591,20 +592,6 @@ def read_json(path: Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ProposalError(f"{path}: expected a JSON object")
     return data
-
-
-def write_json_atomic(path: Path, payload: Mapping[str, Any]) -> None:
-    """Write to a temporary file, then rename: a reader never sees half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as out:
-            json.dump(payload, out, indent=2, ensure_ascii=False)
-            out.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _write_new(path: Path, payload: Mapping[str, Any]) -> bool:

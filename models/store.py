@@ -31,9 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
-import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
@@ -42,6 +40,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from models.base import ModelInputs, ThermalModel
+from models.json_files import write_json_atomic
 from models.registry import METHODS
 from models.sensor_relations import SensorRelations
 
@@ -270,18 +269,7 @@ class ModelStore:
         """
         refuse_non_finite(document)
         StoredModel.model_validate(document)
-        self.root.mkdir(parents=True, exist_ok=True)
-        path = self.path_of(document["model_id"])
-        handle, tmp = tempfile.mkstemp(dir=self.root, prefix=".tmp-", suffix=".json")
-        try:
-            with os.fdopen(handle, "w", encoding="utf-8") as out:
-                json.dump(document, out, ensure_ascii=False, indent=2, allow_nan=False)
-                out.write("\n")
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return write_json_atomic(self.path_of(document["model_id"]), document, allow_nan=False)
 
     def load(self, model_id: str) -> tuple[ThermalModel, StoredModel]:
         return load_file(self.path_of(model_id))

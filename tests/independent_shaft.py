@@ -69,6 +69,8 @@ import numpy as np
 import pandas as pd
 from scipy.linalg import lu_factor, lu_solve
 
+from tests.run_csv import write_runs_csv
+
 EFFECTS: tuple[str, ...] = (
     "none",
     "thermal_lag",
@@ -275,7 +277,4 @@ def write_csv(
     programs: Sequence[str] | None = None,
 ) -> Path:
     """Write the measured-run CSV and return its path."""
-    out = Path(path)
-    frame = generate_runs(effect=effect, seed=seed, programs=programs)
-    frame.to_csv(out, index=False, float_format="%.2f", lineterminator="\n", encoding="utf-8")
-    return out
+    return write_runs_csv(generate_runs(effect=effect, seed=seed, programs=programs), path)

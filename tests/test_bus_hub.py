@@ -233,7 +233,7 @@ def test_two_machines_on_one_line_read_every_cycle_without_collision(
         clock = AcceleratedClock(40.0)  # a 1 s cycle every 25 ms of wall time
         plants = [cnc_plant(clock, 0), cnc_plant(clock, 1)]
         machines = [
-            machine_entry(name, plant, store, line.client_port, 0.2, [])
+            machine_entry(name, plant, store, line.client_port, 1.0, [])
             for name, plant in zip(MODULES, plants, strict=True)
         ]
         server = TransmitterServer(

@@ -117,7 +117,7 @@ async def closed_loop(
                 {
                     "name": "rtu1",
                     "rtu": {"port": pty.client_port},
-                    "timeout_s": 0.2,
+                    "timeout_s": 0.5,  # wall time: a loaded machine delays live replies
                     "devices": gateway_devices,
                 }
             ],

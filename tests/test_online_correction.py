@@ -270,24 +270,11 @@ def test_config_refuses_a_correction_without_probe_or_with_a_bad_bound(tmp_path)
 
 
 def test_the_correction_is_logged_with_the_cycle():
-    from gateway.runtime import CycleRecord
     from gateway.timeseries import points_from_record
+    from tests.records import written_record
 
-    record = CycleRecord(
-        machine="vmc-1",
-        time_s=60.0,
-        temperatures_C={},
-        quality={},
-        quality_reasons={},
-        speed_rpm=1000.0,
-        regime=None,
-        model_id="m",
-        predicted_um=10.0,
-        target_um=12.5,
-        applied_um=12.5,
-        written_cnc=0.0125,
-        write_status="ok",
-        correction_um=2.5,
+    record = written_record(
+        "vmc-1", 60.0, {}, 12.5, speed_rpm=1000.0, regime=None, predicted_um=10.0, correction_um=2.5
     )
     assert points_from_record(record)[0].fields["correction_um"] == 2.5
     record.correction_um = None  # no correction (off, or no prediction): no field

@@ -29,6 +29,7 @@ from drivers.yaml_loader import YamlError
 from gateway.config import ConfigError, load_config
 from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
 from simulator.servers.modbus_cnc import CncModbusServer
+from simulator.servers.modbus_common import ReceivedRequest
 from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from tests.cli import ROOT, gateway
 from tests.ports import free_tcp_port
@@ -252,12 +253,28 @@ def test_reads_are_grouped_into_contiguous_blocks() -> None:
 def test_workarounds_shape_the_requests_the_device_receives(
     workarounds: dict[str, object], expected: list[tuple[int, int, int]]
 ) -> None:
+    received = read_with_workarounds(workarounds, cycles=1)
+    assert [(r.function_code, r.address, r.count) for r in received] == expected
+
+
+def test_a_pause_between_requests_is_kept_on_the_wire() -> None:
+    pause_s = 0.08
+    workarounds = {"pause_between_requests_s": pause_s, "max_registers_per_request": 8}
+    times = [r.at_s for r in read_with_workarounds(workarounds, cycles=2)]
+    assert len(times) == 4  # two requests a cycle
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert min(gaps) >= pause_s - 0.002, gaps
+
+
+def read_with_workarounds(workarounds: dict[str, object], cycles: int) -> list[ReceivedRequest]:
+    """Read the Pt100 module ``cycles`` times through its map with ``workarounds``
+    over Modbus TCP; the requests the server received (each cycle's reading checked)."""
     pt100 = load_register_map("pt100_8ch")
     quirky = pt100.model_copy(
         update={"workarounds": pt100.workarounds.model_copy(update=workarounds)}
     )
 
-    async def body() -> None:
+    async def body() -> list[ReceivedRequest]:
         link = FixedLink(SNAPSHOT)
         async with TransmitterServer(
             link, [TransmitterDevice(1, CHANNELS)], tcp=(HOST, 0)
@@ -268,47 +285,13 @@ def test_workarounds_shape_the_requests_the_device_receives(
                 timeout_s=0.5,
             )
             try:
-                assert await bus.read_all(0.0) == EXPECTED
-            finally:
-                await bus.close()
-            received = [(r.function_code, r.address, r.count) for r in server.received]
-            assert received == expected
-
-    run(body)
-
-
-def test_a_pause_between_requests_is_kept_on_the_wire() -> None:
-    pause_s = 0.08
-    pt100 = load_register_map("pt100_8ch")
-    slow = pt100.model_copy(
-        update={
-            "workarounds": pt100.workarounds.model_copy(
-                update={"pause_between_requests_s": pause_s, "max_registers_per_request": 8}
-            )
-        }
-    )
-
-    async def body() -> None:
-        link = FixedLink(SNAPSHOT)
-        async with TransmitterServer(
-            link, [TransmitterDevice(1, CHANNELS)], tcp=(HOST, 0)
-        ) as server:
-            bus = TransmitterBus(
-                [DeviceMap(1, tuple(CHANNELS), DeviceRegisters(slow))],
-                tcp=server.address,
-                timeout_s=0.5,
-            )
-            try:
-                for cycle in range(2):
+                for cycle in range(cycles):
                     assert await bus.read_all(float(cycle)) == EXPECTED
             finally:
                 await bus.close()
-            times = [r.at_s for r in server.received]
-            assert len(times) == 4  # two requests a cycle
-            gaps = [b - a for a, b in itertools.pairwise(times)]
-            assert min(gaps) >= pause_s - 0.002, gaps
+            return list(server.received)
 
-    run(body)
+    return run(body)
 
 
 # -- bad maps: one located error --------------------------------------------------------

@@ -30,6 +30,7 @@ from gateway.point_buffer import PointBuffer
 from gateway.runtime import CycleRecord
 from gateway.timeseries import Point
 from tests.ports import free_tcp_port, wait_for_port
+from tests.records import written_record
 
 ROOT = Path(__file__).resolve().parent.parent
 NS = 1_000_000_000
@@ -304,21 +305,7 @@ def outputs_config(tmp_path: Path, **logging_keys: object) -> GatewayConfig:
 
 
 def record_at(time_s: float) -> CycleRecord:
-    return CycleRecord(
-        machine="vmc-1",
-        time_s=time_s,
-        temperatures_C={"T1": 21.5},
-        quality={"T1": "good"},
-        quality_reasons={},
-        speed_rpm=4000.0,
-        regime="variable",
-        model_id="mlr-error_um-variable",
-        predicted_um=2.0,
-        target_um=2.0,
-        applied_um=2.0,
-        written_cnc=0.002,
-        write_status="ok",
-    )
+    return written_record("vmc-1", time_s, {"T1": 21.5}, 2.0, model_id="mlr-error_um-variable")
 
 
 def test_points_carry_the_wall_clock_of_the_cycle_start_through_an_ntp_step(

@@ -41,8 +41,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Protocol
 
+from gateway.influx_writer import InfluxReader
+from gateway.local_store import LocalStore
 from gateway.timeseries import (
     CYCLE_MEASUREMENT,
     NS_PER_S,
@@ -57,16 +58,8 @@ from models.plausibility import DISPLACEMENT_UM, SPEED_RPM, TEMPERATURE_C
 SENSOR_PATTERN = re.compile(r"^T(\d+)$")
 
 
-class PointSource(Protocol):
-    """Where points are read from: ``LocalStore`` or ``InfluxReader``."""
-
-    def query(
-        self,
-        measurement: str,
-        machine: str | None = None,
-        start_ns: int | None = None,
-        stop_ns: int | None = None,
-    ) -> list[Point]: ...
+#: Where points are read from: the embedded store or InfluxDB (one ``query`` signature).
+PointSource = LocalStore | InfluxReader
 
 
 class ExportError(ValueError):

@@ -68,15 +68,9 @@ def main() -> None:
         idle_us = (time.perf_counter() - start) / args.polls * 1e6
 
         proposals = ProposalStore(store)
-        proposal = proposals.publish(
-            machine_id=machine.id,
-            effect="thermal_lag",
-            params={},
-            before_rmse_um=1.0,
-            after_rmse_um=0.5,
-            probe_rows=10,
-            document=document,
-        )
+        figures = {"before_rmse_um": 1.0, "after_rmse_um": 0.5, "probe_rows": 10}
+        kind = {"machine_id": machine.id, "effect": "thermal_lag", "params": {}}
+        proposal = proposals.publish(document=document, **kind, **figures)
         proposals.versions.promote(proposal.id)
         start = time.perf_counter()
         outcome = promotions.poll(bank)

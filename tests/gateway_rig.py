@@ -57,10 +57,21 @@ def machine_entry(
     cnc: str = "modbus",
     cycle_s: float = 1.0,
     stale_s: float = 10.0,
+    transmitters: list[dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """The config entry of one machine compensated through ``served``'s protocols."""
-    transmitters = served.config.transmitters.tcp
-    assert transmitters is not None
+    """The config entry of one machine compensated through ``served``'s protocols
+    (its transmitters: ``transmitters`` when given, else ``served``'s Modbus TCP ones)."""
+    if transmitters is None:
+        served_tcp = served.config.transmitters.tcp
+        assert served_tcp is not None
+        transmitters = [
+            {
+                "name": "bus1",
+                "tcp": {"host": "127.0.0.1", "port": served_tcp.port},
+                "timeout_s": 0.3,
+                "devices": [DEVICES[0], {"device_id": 2, "channels": ["T9", None]}],
+            }
+        ]
     if cnc == "opcua":
         assert served.cnc_opcua is not None
         link: dict[str, Any] = {"opcua": {"endpoint": served.cnc_opcua.endpoint, "timeout_s": 1.0}}
@@ -71,14 +82,7 @@ def machine_entry(
     return {
         "id": machine_id,
         "cycle_s": cycle_s,
-        "transmitters": [
-            {
-                "name": "bus1",
-                "tcp": {"host": "127.0.0.1", "port": transmitters.port},
-                "timeout_s": 0.3,
-                "devices": [DEVICES[0], {"device_id": 2, "channels": ["T9", None]}],
-            }
-        ],
+        "transmitters": transmitters,
         "sensors": {name: {"max_rate_C_per_s": 50.0, "stale_s": stale_s} for name in SENSORS},
         "cnc": link,
         "compensation": {"slew_um_per_min": 2000.0},

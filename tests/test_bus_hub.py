@@ -97,35 +97,18 @@ def machine_entry(
 ) -> dict[str, Any]:
     """The config entry of one machine on the shared line, its CNC on ``plant``."""
     module, small = MODULES[machine]
-    modbus = plant.config.cnc.modbus
-    assert modbus is not None
     devices = [
         {"device_id": module, "channels": [f"T{i}" for i in range(1, 9)]},
         {"device_id": small, "channels": ["T9"]},
         *({"device_id": d, "channels": [f"D{d}"]} for d in extra),
     ]
-    return {
-        "id": machine,
-        "cycle_s": 1.0,
-        "transmitters": [
-            {
-                "name": f"{machine}-bus",
-                "rtu": {"port": port, "baudrate": BAUDRATE},
-                "timeout_s": timeout_s,
-                "devices": devices,
-            }
-        ],
-        "sensors": {name: {"max_rate_C_per_s": 50.0} for name in SENSORS},
-        "cnc": {"modbus": {"host": "127.0.0.1", "port": modbus.port, "timeout_s": 0.5}},
-        "compensation": {"slew_um_per_min": 2000.0},
-        "models": {
-            "store": str(store),
-            "regimes": {
-                "models": {"variable": "mlr-error_um-variable"},
-                "fallback_model": "mlr-error_um-all",
-            },
-        },
+    line = {
+        "name": f"{machine}-bus",
+        "rtu": {"port": port, "baudrate": BAUDRATE},
+        "timeout_s": timeout_s,
+        "devices": devices,
     }
+    return rig.machine_entry(machine, plant, store, transmitters=[line])
 
 
 def write_config(tmp_path: Path, machines: list[dict[str, Any]]) -> Path:

@@ -36,16 +36,17 @@ def document(model_id: str, tau_s: float = 1800.0) -> dict[str, Any]:
 
 
 def publish(store: ProposalStore, model_id: str, machine: str = "vmc-1", **extra: Any):
-    return store.publish(
-        machine_id=machine,
-        effect="thermal_lag",
-        params={"tau_s": 1800.0},
-        before_rmse_um=2.4,
-        after_rmse_um=0.9,
-        probe_rows=40,
-        document=document(model_id),
-        **extra,
-    )
+    """Publish a thermal_lag proposal of ``document(model_id)``; ``extra`` overrides any field."""
+    fields: dict[str, Any] = {
+        "machine_id": machine,
+        "effect": "thermal_lag",
+        "params": {"tau_s": 1800.0},
+        "before_rmse_um": 2.4,
+        "after_rmse_um": 0.9,
+        "probe_rows": 40,
+        "document": document(model_id),
+    }
+    return store.publish(**(fields | extra))
 
 
 def test_publish_list_get_round_trip(tmp_path: Path) -> None:
@@ -73,35 +74,11 @@ def test_publish_refuses_a_changed_document_and_bad_figures(tmp_path: Path) -> N
     changed = document("m")
     changed["effects"][0]["params"]["tau_s"] = 60.0
     with pytest.raises(ProposalError, match="checksum mismatch"):
-        store.publish(
-            machine_id="vmc-1",
-            effect="thermal_lag",
-            params={},
-            before_rmse_um=1.0,
-            after_rmse_um=0.5,
-            probe_rows=3,
-            document=changed,
-        )
+        publish(store, "m", document=changed)
     with pytest.raises(ProposalError, match="after_rmse_um must be a finite"):
-        store.publish(
-            machine_id="vmc-1",
-            effect="thermal_lag",
-            params={},
-            before_rmse_um=1.0,
-            after_rmse_um=float("nan"),
-            probe_rows=3,
-            document=document("m"),
-        )
+        publish(store, "m", after_rmse_um=float("nan"))
     with pytest.raises(ProposalError, match="not an augmented model"):
-        store.publish(
-            machine_id="vmc-1",
-            effect="drift",
-            params={},
-            before_rmse_um=1.0,
-            after_rmse_um=0.5,
-            probe_rows=3,
-            document={"format": "spindle-thermal-model", "model_id": "x"},
-        )
+        publish(store, "x", document={"format": "spindle-thermal-model", "model_id": "x"})
     assert store.list() == []
 
 

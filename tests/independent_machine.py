@@ -79,15 +79,13 @@ Hidden effects (``effect``)
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from scipy.linalg import expm
 
-from tests.run_csv import write_runs_csv
+from tests.run_csv import runs_csv_writer
 
 EFFECTS: tuple[str, ...] = ("none", "thermal_lag", "speed_direct", "ambient", "drift")
 
@@ -342,11 +340,5 @@ def generate_runs(
     return pd.concat(frames, ignore_index=True)
 
 
-def write_csv(
-    path: str | os.PathLike[str],
-    effect: str = "none",
-    seed: int = 0,
-    programs: Sequence[str] | None = None,
-) -> Path:
-    """Write the measured-run CSV and return its path."""
-    return write_runs_csv(generate_runs(effect=effect, seed=seed, programs=programs), path)
+#: ``write_csv(path, effect, seed, programs)``: the runs as a measured-run CSV; its path.
+write_csv = runs_csv_writer(generate_runs)

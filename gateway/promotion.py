@@ -224,6 +224,7 @@ class Promotions:
                 if old is not None:  # keep the one that served there
                     entries[entry.replaces] = old
                     models[entry.replaces] = _banked(bank, old)
+                self._record_refusal(entry, str(exc), old)
         before = {place: e.sha256 for place, e in self._entries.items()}
         after = {place: e.sha256 for place, e in entries.items()}
         self.version = version.number
@@ -247,6 +248,24 @@ class Promotions:
                 self.swaps,
             )
         return outcome
+
+    def _record_refusal(self, entry: ActiveEntry, reason: str, kept: ActiveEntry | None) -> None:
+        """Say in the store what this machine runs: the refused proposal ``refused``, the
+        one kept in its place ``promoted``. A store it cannot write only costs the note."""
+        try:
+            self.store.versions.refused_by_machine(
+                entry.proposal_id,
+                self.machine.id,
+                reason,
+                kept.proposal_id if kept is not None else None,
+            )
+        except (KeyError, OSError, ValueError) as exc:
+            log.error(
+                "%s: the refusal of proposal %s cannot be recorded in the store: %s",
+                self.machine.id,
+                entry.proposal_id,
+                exc,
+            )
 
     def _proposals_changed(self) -> bool:
         try:

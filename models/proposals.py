@@ -64,7 +64,9 @@ PROPOSED = "proposed"
 PROMOTED = "promoted"
 REJECTED = "rejected"
 SUPERSEDED = "superseded"
-STATUSES = (PROPOSED, PROMOTED, REJECTED, SUPERSEDED)
+#: Promoted, but the machine would not run it (its checks, gateway/promotion.py).
+REFUSED = "refused"
+STATUSES = (PROPOSED, PROMOTED, REJECTED, SUPERSEDED, REFUSED)
 #: Statuses of a proposal an operator may still promote.
 OPEN = (PROPOSED,)
 
@@ -507,6 +509,29 @@ class ModelVersions:
                 current, version, REJECTED, f"rolled back in version {version.number}"
             )
             return version
+
+    def refused_by_machine(
+        self,
+        proposal_id: str,
+        machine_id: str,
+        reason: str,
+        kept_proposal_id: str | None = None,
+        time_s: float | None = None,
+    ) -> None:
+        """Record that ``machine_id`` refused the promoted ``proposal_id`` (``refused``), and
+        that the proposal it kept serving in its place, if any, is in force there again.
+
+        The version stays as written (a rollback or a new promotion replaces it): the
+        store then says what the machine runs, not only what was asked of it.
+        """
+        with self.locked():
+            refused = self.proposals.get(proposal_id)
+            note = f"machine {machine_id} refused it: {reason}"
+            self.proposals.set_status(refused, REFUSED, note, time_s)
+            if kept_proposal_id is not None:
+                kept = self.proposals.get(kept_proposal_id)
+                note = f"machine {machine_id} still runs it: it refused {proposal_id}"
+                self.proposals.set_status(kept, PROMOTED, note, time_s)
 
     @contextlib.contextmanager
     def locked(self) -> Iterator[None]:

@@ -248,8 +248,17 @@ def test_a_model_the_machine_cannot_run_is_refused_and_the_old_one_stays(
     asyncio.run(scenario())
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
     assert any("needs-t12" in e and "needs sensor(s) ['T12']" in e for e in errors), errors
-    assert ProposalStore(store).get(good.id).status == "superseded"  # the store's view…
-    # …while the machine kept serving it: the refusal is the machine's, counted and logged.
+    # The store says what the machine runs: the refused model, and the one it kept serving.
+    proposals = ProposalStore(store)
+    assert proposals.get(bad.id).status == "refused"
+    assert (
+        "machine vmc-demo refused it: it needs sensor(s) ['T12']"
+        in (proposals.get(bad.id).history[-1]["note"])
+    )
+    assert proposals.get(good.id).status == "promoted"
+    assert proposals.get(good.id).history[-1]["note"] == (
+        f"machine vmc-demo still runs it: it refused {bad.id}"
+    )
 
 
 # -- over SCADA ----------------------------------------------------------------------------

@@ -48,6 +48,7 @@ from models.proposals import PROMOTED, ProposalStore
 from simulator.closed_loop import ClosedLoop
 from simulator.programs import production_program
 from simulator.serve import SimulatedPlant
+from tests import gateway_rig as rig
 from tests.test_closed_loop import CYCLE_S, assert_every_write_was_safe, closed_loop
 from tests.test_promotion import OPERATOR, VIEWER, scada_client, scada_gateway
 
@@ -60,18 +61,14 @@ SCADA_WAIT_S = 60.0  # wall time a SCADA node may take to show a cycle (generous
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from gateway.demo import fit_models, write_training_data
-
-    folder = tmp_path_factory.mktemp("monitor-loop")
-    write_training_data(folder / "training.csv", seed=1)
-    fit_models(folder / "training.csv", folder / "models", "test")
-    return folder / "models"
+    return rig.fit_store(tmp_path_factory.mktemp("monitor-loop"))
 
 
 @dataclass
 class GatewayOpener:
     """Opens the loop as ``run`` does: a whole :class:`Gateway` (monitor, SCADA) of the
-    machine ``closed_loop`` configures, its SCADA server started."""
+    machine ``closed_loop`` configures, its SCADA server started. The state goes to
+    the ``state_dir`` of ``sections`` (``closed_loop``'s is for a bare loop)."""
 
     sections: dict[str, Any]  # the gateway-wide config sections
     app: Gateway | None = None
@@ -182,6 +179,7 @@ def test_hidden_effect_proposed_promoted_over_scada_and_removed_over_the_protoco
                 for m in app.monitors.values():
                     m.close()
             assert_every_write_was_safe(closed)
+            assert not closed.loop.sink_failures  # points, monitor, SCADA, heartbeat: every cycle
             return closed, proposal, proposed_s, promoted_at
 
     closed, proposal, proposed_s, promoted_at = asyncio.run(scenario())

@@ -16,15 +16,15 @@ import json
 import logging
 import math
 import shutil
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import pytest
 
 from drivers.clock import ManualClock
-from gateway.config import RegimeSection
+from gateway.config import MachineSection, RegimeSection
 from gateway.demo import fit_models, machine_config, open_loop, write_training_data
 from models import augmented
 from models.effect_stream import StreamingAugmented
@@ -63,6 +63,19 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return folder / "models"
 
 
+class Opener(Protocol):
+    """Starts the plant and makes the loop that compensates it (:func:`open_loop`'s shape)."""
+
+    def __call__(
+        self,
+        plant: SimulatedPlant,
+        machine: MachineSection,
+        clock: ManualClock,
+        *,
+        state_dir: Path | None = None,
+    ) -> Awaitable[ClosedLoop]: ...
+
+
 @contextlib.asynccontextmanager
 async def closed_loop(
     tmp_path: Path,
@@ -73,9 +86,12 @@ async def closed_loop(
     state_dir: Path | None = None,
     effects: tuple[str, ...] = (),
     update: dict[str, Any] | None = None,
+    opener: Opener = open_loop,
 ) -> AsyncIterator[tuple[ClosedLoop, ManualClock]]:
     """The plant and the gateway on a manual clock; ``regimes`` replaces the demo's rules,
-    ``effects`` are hidden in the plant, ``update`` replaces machine config sections."""
+    ``effects`` are hidden in the plant, ``update`` replaces machine config sections,
+    ``opener`` starts the plant and makes the loop (default: the loop alone; a whole
+    :class:`gateway.app.Gateway` for SCADA and the monitor as ``run`` has them)."""
     clock = ManualClock()
     with socat_pty_pair(tmp_path) as pty:
         devices = [
@@ -131,7 +147,7 @@ async def closed_loop(
             machine = machine.model_copy(update={"models": models})
         if update is not None:
             machine = machine.model_copy(update=update)
-        closed = await open_loop(plant, machine, clock, state_dir=state_dir)
+        closed = await opener(plant, machine, clock, state_dir=state_dir)
         try:
             await closed.loop.run_cycle()
             plant.machine.schedule_program(plant.machine.time_s + CYCLE_S)

@@ -267,32 +267,35 @@ OPERATOR = ("alice", "op-secret-1")
 VIEWER = ("victor", "view-secret-2")
 
 
-def scada_config(tmp_path: Path, store: Path, plant: Any) -> GatewayConfig:
+def scada_gateway(tmp_path: Path) -> dict[str, Any]:
+    """The gateway-wide sections of a config with SCADA on: an operator and a viewer
+    (their password files in ``tmp_path``), state and points in ``tmp_path``."""
     secrets = {}
     for name, password in (OPERATOR, VIEWER):
         secrets[name] = tmp_path / f"{name}.secret"
         secrets[name].write_text(password + "\n")
+    return {
+        "state_dir": str(tmp_path / "state"),
+        "logging": {"local_store": str(tmp_path / "points.sqlite")},
+        "scada": {
+            "port": free_tcp_port(),
+            "pki_dir": str(tmp_path / "pki"),
+            "users": [
+                {
+                    "username": OPERATOR[0],
+                    "password_file": str(secrets[OPERATOR[0]]),
+                    "role": "operator",
+                },
+                {"username": VIEWER[0], "password_file": str(secrets[VIEWER[0]])},
+            ],
+        },
+    }
+
+
+def scada_config(tmp_path: Path, store: Path, plant: Any) -> GatewayConfig:
     entry = rig.machine_entry(MACHINE, plant, store, cycle_s=30.0)
     entry["sensors"] = {name: {"max_rate_C_per_s": 50.0, "stale_s": 120.0} for name in rig.SENSORS}
-    return GatewayConfig.model_validate(
-        {
-            "machines": [entry],
-            "state_dir": str(tmp_path / "state"),
-            "logging": {"local_store": str(tmp_path / "points.sqlite")},
-            "scada": {
-                "port": free_tcp_port(),
-                "pki_dir": str(tmp_path / "pki"),
-                "users": [
-                    {
-                        "username": OPERATOR[0],
-                        "password_file": str(secrets[OPERATOR[0]]),
-                        "role": "operator",
-                    },
-                    {"username": VIEWER[0], "password_file": str(secrets[VIEWER[0]])},
-                ],
-            },
-        }
-    )
+    return GatewayConfig.model_validate({"machines": [entry], **scada_gateway(tmp_path)})
 
 
 async def scada_client(endpoint: str, pki_dir: Path, folder: Path, user: tuple[str, str]) -> Client:

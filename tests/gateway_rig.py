@@ -8,6 +8,9 @@ reaches it through those protocols.
 
 from __future__ import annotations
 
+import atexit
+import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +26,26 @@ DEVICES = [
 SENSORS = [f"T{i}" for i in range(1, 10)]
 
 
+#: The one fit of this test process, copied into every folder that asks for it.
+_fitted: list[Path] = []
+
+
 def fit_store(folder: Path) -> Path:
-    """The demo's models (per regime, all runs, and without each sensor), fitted once."""
-    write_training_data(folder / "training.csv", seed=1)
-    fit_models(folder / "training.csv", folder / "models", "test")
+    """The demo's models (per regime, all runs, and without each sensor) in
+    ``folder/models``, their training data in ``folder/training.csv``.
+
+    Fitted once per test process (the fit is deterministic) and copied, so each
+    caller owns its store and may change it.
+    """
+    if not _fitted:
+        cache = Path(tempfile.mkdtemp(prefix="fitted-store-"))
+        atexit.register(shutil.rmtree, cache, ignore_errors=True)
+        write_training_data(cache / "training.csv", seed=1)
+        fit_models(cache / "training.csv", cache / "models", "test")
+        _fitted.append(cache)
+    folder.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(_fitted[0] / "training.csv", folder / "training.csv")
+    shutil.copytree(_fitted[0] / "models", folder / "models")
     return folder / "models"
 
 

@@ -25,7 +25,7 @@ import pytest
 
 from drivers.clock import ManualClock
 from gateway.config import MachineSection, RegimeSection
-from gateway.demo import fit_models, machine_config, open_loop, write_training_data
+from gateway.demo import machine_config, open_loop
 from models import augmented
 from models.effect_stream import StreamingAugmented
 from simulator.closed_loop import ClosedLoop
@@ -34,6 +34,7 @@ from simulator.params import load_params
 from simulator.programs import SpeedProgram, production_program, program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from simulator.serve import SimulatedPlant, SimulatorConfig
+from tests import gateway_rig as rig
 from tests.cli import gateway
 from tests.ports import free_tcp_port
 from tests.serial_pty import socat_pty_pair
@@ -57,10 +58,7 @@ FAULT_PROGRAM = SpeedProgram(
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("closed-loop")
-    write_training_data(folder / "training.csv", seed=1)
-    fit_models(folder / "training.csv", folder / "models", "test")
-    return folder / "models"
+    return rig.fit_store(tmp_path_factory.mktemp("closed-loop"))
 
 
 class Opener(Protocol):

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from gateway.config import CompensationSection, OnlineCorrectionSection
-from gateway.demo import fit_models, write_training_data
 from simulator.closed_loop import ClosedLoop
 from simulator.programs import production_program
+from tests import gateway_rig as rig
 from tests.test_closed_loop import CYCLE_S, assert_every_write_was_safe, closed_loop
 
 PROBE_MACRO = 600  # where the simulator's probe cycle writes (simulator/machine.yaml)
@@ -29,10 +29,7 @@ CHIP_AT_PROBE = 30  # the 30th probe measurement (2.5 h in) has a chip under it
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("online-loop")
-    write_training_data(folder / "training.csv", seed=1)
-    fit_models(folder / "training.csv", folder / "models", "test")
-    return folder / "models"
+    return rig.fit_store(tmp_path_factory.mktemp("online-loop"))
 
 
 async def replayed(

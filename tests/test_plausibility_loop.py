@@ -20,12 +20,13 @@ import numpy as np
 import pytest
 
 from drivers.clock import ManualClock
-from gateway.demo import fit_models, machine_config, open_loop, write_training_data
+from gateway.demo import machine_config, open_loop
 from gateway.runtime import CycleRecord
 from simulator.closed_loop import ClosedLoop
 from simulator.faults import SensorFault
 from simulator.programs import SpeedProgram, production_program
 from simulator.serve import SimulatedPlant, SimulatorConfig
+from tests import gateway_rig as rig
 from tests.ports import free_tcp_port
 
 CYCLE_S = 30.0
@@ -47,10 +48,7 @@ FAULT_AT_S = 3610.0
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    folder = tmp_path_factory.mktemp("plausibility")
-    write_training_data(folder / "training.csv", seed=1)
-    fit_models(folder / "training.csv", folder / "models", "test")
-    return folder / "models"
+    return rig.fit_store(tmp_path_factory.mktemp("plausibility"))
 
 
 async def run_machine(

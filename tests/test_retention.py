@@ -23,12 +23,12 @@ from pymodbus.client import ModbusTcpClient
 
 from drivers.clock import ManualClock
 from gateway.config import GatewayConfig
-from gateway.demo import fit_models, write_training_data
 from gateway.local_store import LocalStore
 from gateway.outputs import Outputs
 from gateway.point_buffer import PointBuffer
 from gateway.runtime import CycleRecord
 from gateway.timeseries import Point
+from tests import gateway_rig as rig
 from tests.ports import free_tcp_port, wait_for_port
 from tests.records import written_record
 
@@ -195,8 +195,7 @@ def rises(values: list[float]) -> int:
 
 
 def test_gateway_compensates_on_with_a_full_disk_and_logs_again_after(tmp_path: Path) -> None:
-    write_training_data(tmp_path / "training.csv", seed=1)
-    fit_models(tmp_path / "training.csv", tmp_path / "models", "test")
+    rig.fit_store(tmp_path)
     bus, cnc = free_tcp_port(), free_tcp_port()
     devices = [
         {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},

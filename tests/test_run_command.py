@@ -11,8 +11,8 @@ from pathlib import Path
 import yaml
 from pymodbus.client import ModbusTcpClient
 
-from gateway.demo import fit_models, write_training_data
 from models.dataset import load_runs
+from tests import gateway_rig as rig
 from tests.cli import gateway as gateway_cli
 from tests.ports import free_tcp_port, wait_for_port
 
@@ -33,8 +33,7 @@ def read_macro_mm(port: int, number: int = 500) -> float:
 
 
 def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path) -> None:
-    write_training_data(tmp_path / "training.csv", seed=1)
-    fit_models(tmp_path / "training.csv", tmp_path / "models", "test")
+    rig.fit_store(tmp_path)
     bus, cnc = free_tcp_port(), free_tcp_port()
     devices = [
         {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},

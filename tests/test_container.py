@@ -174,6 +174,7 @@ def bench(tmp_path: Path) -> Iterator[dict[str, Any]]:
         simulator.communicate(timeout=30)
 
 
+@pytest.mark.timeout(1800)  # the image build (its module fixture) counts: minutes on a busy machine
 def test_image_runs_hardened_against_the_simulator_and_influxdb(
     image: str, bench: dict[str, Any], tmp_path: Path
 ) -> None:

@@ -1,4 +1,4 @@
-"""Ridge regression on the rises, the speed and their first-order lags (``--method lag-ridge``).
+"""Ridge and lasso on the rises, the speed and their first-order lags (``--method lag-ridge``).
 
 The growth at the tool follows the measured temperatures with delays (a part no
 sensor touches, a thick casting) and follows the heat input, the speed, through
@@ -10,16 +10,18 @@ model regresses the error on
 - the speed powers n^p (n in 1000 r/min, ``speed_powers``: n, n^1.5, n², n^2.5
   by default) and their lags at the same time constants. The speed's reference
   is 0 r/min: the cold reference is taken with the spindle stopped (as the
-  runtime's, :mod:`models.effect_stream`);
+  runtime's, :mod:`models.effect_stream`).
 
-with one ridge penalty per group of terms: the *sensor* group (the rises and
-their lags) and the *speed* group (the powers and their lags). Terms are
-standardised on the training rows before the penalty applies. Both penalties
-are chosen inside ``fit`` by leave-one-run-out over the training runs only
-(contiguous blocks when it is given one run): lowest pooled held-out squared
-error over the grid ``PENALTIES`` × ``SPEED_PENALTY_RATIOS``, fixed here before
-any data was looked at. The validation around ``fit`` therefore never lets the
-held-out run steer a choice.
+Which of those terms, and how they are penalised, is chosen inside ``fit`` on
+the training runs alone among a small family fixed beforehand
+(:mod:`models.lag_structures`: a ridge with one penalty on the sensor terms and
+one on the speed terms, a ridge with one penalty on every term, a lasso on the
+sensors and their 30 min lags), by a doubly nested leave-one-run-out. The
+chosen structures are stacked with weights on the simplex (a weight of 1 is one
+structure alone); since every candidate's terms are among the largest one's,
+the stack is one linear model on those terms. Terms are standardised on the
+training rows before a penalty applies. The validation around ``fit``
+therefore never lets the held-out run steer a choice.
 
 A lag is ``x_k = a_k x_{k−1} + (1 − a_k) u_k`` with ``a_k = exp(−Δt_k / τ)``
 (:func:`models.effect_terms.first_order_lag`), started at the recording's first
@@ -29,15 +31,17 @@ taken at a steady state, every lag equal to its input; a constant sensor bias
 therefore moves the prediction by the sum of that sensor's coefficients, which
 is what :func:`models.conditioning.bias_sensitivity` reports.
 
-Stored as explicit JSON (no pickle): the term names, the coefficient of every
-term in its own unit, the standardisation (mean and scale of every term), the
-two penalties and the grids they came from. :class:`LagRidgeStream` runs the
+Stored as explicit JSON (no pickle): the chosen structure, the term names, the
+coefficient of every term in its own unit, the standardisation (mean and scale
+of every term), the penalties and the grids they came from, every candidate's
+nested score and the stacking weights. :class:`LagRidgeStream` runs the
 fitted model one sample at a time for the gateway's loop, carrying the lag
 states (exported as plain floats, so a restarted gateway carries on warm).
 
-The nested choice is closed-form: per run the Gram products of the terms are
-summed once; for each penalty ratio one eigendecomposition of the standardised
-training Gram matrix gives the solutions for every penalty at once.
+The ridge paths are closed-form (:mod:`models.lag_structures`): per run the
+Gram products of the terms are summed once; for each penalty ratio one
+eigendecomposition of the standardised training Gram matrix gives the solutions
+for every penalty at once.
 """
 
 from __future__ import annotations
@@ -53,10 +57,10 @@ from models.effect_terms import SPEED_SCALE_RPM, first_order_lag
 from models.lag_structures import (
     DEFAULT_SPEED_POWERS,
     DEFAULT_TAUS_S,
-    LASSO,
     LASSO_PENALTIES,
     PENALTIES,
     SPEED_PENALTY_RATIOS,
+    STACK_STEPS,
     STRUCTURE_NAMES,
     TWO_GROUP_RIDGE,
     CandidatePaths,
@@ -226,7 +230,12 @@ class LagRidgeModel(ThermalModel):
         with threadpool_limits(1):
             candidates = [
                 CandidatePaths(
-                    s, lag_terms(inputs, used, s.lag_taus_s, s.speed_powers), y, labels, len(used)
+                    s,
+                    lag_terms(inputs, used, s.lag_taus_s, s.speed_powers),
+                    y,
+                    labels,
+                    len(used),
+                    term_names(used, s.lag_taus_s, s.speed_powers),
                 )
                 for s in self.candidates
             ]
@@ -240,6 +249,7 @@ class LagRidgeModel(ThermalModel):
         self.term_scale_ = choice.scale
         self.penalties_ = choice.penalties
         self.inner_rmse_um_ = choice.inner_rmse_um
+        self.stack_weights_ = choice.weights
 
     # --- prediction ------------------------------------------------------------------
     def _terms(self, inputs: ModelInputs) -> np.ndarray:
@@ -281,13 +291,12 @@ class LagRidgeModel(ThermalModel):
     # --- storage ---------------------------------------------------------------------
     def fitted_params(self) -> dict[str, Any]:
         names = term_names(self.sensors_used_, self.lag_taus_s, self.speed_powers)
-        lasso = self.structure_.estimator == LASSO
-        grid: dict[str, Any] = (
-            {"l1_over_target_sigma": list(LASSO_PENALTIES)}
-            if lasso
-            else {"sensors": list(PENALTIES), "speed_over_sensors": list(SPEED_PENALTY_RATIOS)}
-        )
-        grid["chosen_by"] = "leave-one-run-out on the training runs"
+        grid = {
+            "sensors": list(PENALTIES),
+            "speed_over_sensors": list(SPEED_PENALTY_RATIOS),
+            "l1_over_target_sigma": list(LASSO_PENALTIES),
+            "chosen_by": "leave-one-run-out on the training runs",
+        }
         return {
             "structure": self.structure_.as_dict(),
             "sensors": list(self.sensors_used_),
@@ -306,10 +315,12 @@ class LagRidgeModel(ThermalModel):
             "structure_choice": {
                 "candidates": [s.as_dict() for s in self.candidates],
                 "inner_rmse_um": dict(self.inner_rmse_um_),
+                "weights": dict(self.stack_weights_),
+                "weight_step": 1.0 / STACK_STEPS,
                 "chosen_by": (
-                    "lowest pooled RMSE over the training runs, each predicted by the "
-                    "structure fitted on the other training runs with its penalty chosen "
-                    "on those alone"
+                    "weights on the simplex with the lowest pooled squared error over the "
+                    "training runs, each run predicted by every structure fitted on the "
+                    "other training runs with its penalty chosen on those alone"
                     if self.inner_rmse_um_
                     else "the only candidate"
                 ),
@@ -334,6 +345,7 @@ class LagRidgeModel(ThermalModel):
         self.penalties_ = {k: float(v) for k, v in params["penalties"].items()}
         choice = params.get("structure_choice", {})
         self.inner_rmse_um_ = {k: float(v) for k, v in choice.get("inner_rmse_um", {}).items()}
+        self.stack_weights_ = {k: float(v) for k, v in choice.get("weights", {}).items()}
 
     def summary(self) -> str:
         taus = ", ".join(f"{t / 60:g}" for t in self.lag_taus_s)

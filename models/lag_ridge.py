@@ -13,7 +13,7 @@ model regresses the error on
   runtime's, :mod:`models.effect_stream`).
 
 Which of those terms, and how they are penalised, is chosen inside ``fit`` on
-the training runs alone among a small family fixed beforehand
+the training runs alone among a small family fixed in the code
 (:mod:`models.lag_structures`: a ridge with one penalty on the sensor terms and
 one on the speed terms, a ridge with one penalty on every term, a lasso on the
 sensors and their 30 min lags), by a doubly nested leave-one-run-out. The

@@ -137,6 +137,18 @@ def test_the_stack_is_the_weighted_sum_of_its_structures_fitted_alone(synthetic:
     assert stack.structure_.estimator == "stack" and stack.coef_.size == len(every_term)
 
 
+def test_a_model_stored_before_the_structure_choice_still_loads(synthetic: Prepared) -> None:
+    model = small_model().fit(synthetic.inputs, synthetic.error_um)
+    assert model.inner_rmse_um_ == {} and model.structure_.estimator == "two-group ridge"
+    old = {
+        k: v for k, v in model.fitted_params().items() if k not in ("structure", "structure_choice")
+    }
+    hyperparams = {"sensors": None, "lag_taus_s": list(TAUS_S), "speed_powers": list(POWERS)}
+    loaded = LagRidgeModel.from_params(hyperparams, json.loads(json.dumps(old)))
+    assert loaded.lag_taus_s == list(TAUS_S) and loaded.uses_speed
+    assert np.array_equal(loaded.predict(synthetic.inputs), model.predict(synthetic.inputs))
+
+
 def test_a_lasso_structure_needs_no_speed_and_streams_its_lags(synthetic: Prepared) -> None:
     model = LagRidgeModel(structures=["lasso-30min"]).fit(synthetic.inputs, synthetic.error_um)
     assert not model.uses_speed and model.lag_taus_s == [1800.0]

@@ -169,15 +169,21 @@ def ridge_path(
     groups: np.ndarray,
     ratio: float,
     penalties: Sequence[float] = PENALTIES,
+    standardise: bool = True,
 ) -> list[np.ndarray]:
     """[intercept, coefficients] for every sensor-group penalty at one speed/sensor ratio.
 
     Minimises Σ(y − b0 − Zb)² + n Σ_j λ_g(j) (s_j b_j)², s_j the term's scale on
     these rows: ridge on standardised terms with λ on the sensors and ratio·λ on
-    the speed terms. One eigendecomposition serves every λ.
+    the speed terms. One eigendecomposition serves every λ. ``standardise`` False
+    takes every s_j as 1 (a penalty in the terms' own units, °C and n in 1000 r/min):
+    a reading of an outside procedure (``benchmarks/reviewer_readings.py``), not one
+    ``lag-ridge`` fits.
     """
     n = gram[0, 0]
     mean, scale = standardisation(gram)
+    if not standardise:
+        scale = np.ones_like(scale)
     y_mean = cross[0] / n
     centred = gram[1:, 1:] - n * np.outer(mean, mean)
     centred_y = cross[1:] - n * mean * y_mean

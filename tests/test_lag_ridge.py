@@ -95,6 +95,25 @@ def test_the_closed_form_path_is_ridge_on_standardised_terms(synthetic: Prepared
     )
 
 
+def test_without_standardising_the_penalty_is_on_the_terms_in_their_own_units(
+    synthetic: Prepared,
+) -> None:
+    from sklearn.linear_model import Ridge
+
+    sensors = synthetic.inputs.sensors
+    terms = lag_terms(synthetic.inputs, sensors, TAUS_S, POWERS)
+    groups = term_groups(len(sensors), len(TAUS_S), len(POWERS))
+    grams = GroupGrams(terms, synthetic.error_um, np.zeros(terms.shape[0], dtype=int))
+    gram, cross = grams.total([0])
+    penalty = 1e-2
+    (raw,) = ridge_path(gram, cross, groups, 1.0, (penalty,), standardise=False)
+    (scaled,) = ridge_path(gram, cross, groups, 1.0, (penalty,))
+    reference = Ridge(alpha=penalty * terms.shape[0]).fit(terms, synthetic.error_um)
+    assert raw[1:] == pytest.approx(reference.coef_, rel=1e-6, abs=1e-9)
+    assert raw[0] == pytest.approx(reference.intercept_)
+    assert np.max(np.abs(raw[1:] - scaled[1:])) > 1e-3  # the two penalties differ
+
+
 def test_held_out_error_follows_the_lag_and_the_penalties_ignore_the_held_out_run(
     synthetic: Prepared,
 ) -> None:
@@ -284,8 +303,10 @@ def test_fl_thermal_ch1_held_out_with_nested_penalties(tmp_path: Path) -> None:
     result = json.loads(out.read_text(encoding="utf-8"))
     pooled = result["validations"]["all"]["pooled"]
     # Measured 1.79 µm, the structures stacked on nested inner folds (two-group ridge alone:
-    # 1.75 µm; plain mlr on the same rises: 6.86 µm); the target is 2.5 µm.
-    assert pooled["rmse_um"] < 1.95
+    # 1.75 µm; plain mlr on the same rises: 6.86 µm); the target is 2.5 µm. An outside
+    # review's 1.68 µm (one penalty, the speed as n only) is reached by none of its readings
+    # in benchmarks/reviewer_readings.py (2.36 … 3.08 µm nested).
+    assert pooled["rmse_um"] < 1.9
     per_cycle = result["validations"]["all"]["per_fold"]
     assert len(per_cycle) == 6 and max(c["rmse_um"] for c in per_cycle.values()) < 3.3
     assert (store / "lag-ridge-ch1_um-all.json").exists()
@@ -301,8 +322,9 @@ def test_fl_thermal_ch5_held_out_with_the_structure_chosen_on_the_training_cycle
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     pooled = json.loads(out.read_text(encoding="utf-8"))["validations"]["all"]["pooled"]
-    # Measured 3.26 µm (two-group ridge alone: 4.90 µm); the 2.99 µm is not reached.
-    assert pooled["rmse_um"] < 3.5
+    # Measured 3.26 µm (two-group ridge alone: 4.90 µm); the 2.99 µm is not reached,
+    # nor by any reading of its lasso in benchmarks/reviewer_readings.py (3.02 … 4.77 µm).
+    assert pooled["rmse_um"] < 3.4
     params = json.loads((store / "lag-ridge-ch5_um-all.json").read_text(encoding="utf-8"))["params"]
     # On all six cycles the nested choice puts the lasso on the sensors and their 30 min lags
     # first (its inner RMSE 3.05 µm against 4.67 and 4.90 µm for the ridges).

@@ -1,4 +1,4 @@
-"""Ridge regression on the rises, the speed and their first-order lags (``--method lag-ridge``).
+"""Ridge and lasso on the rises, the speed and their first-order lags (``--method lag-ridge``).
 
 The growth at the tool follows the measured temperatures with delays (a part no
 sensor touches, a thick casting) and follows the heat input, the speed, through
@@ -10,16 +10,18 @@ model regresses the error on
 - the speed powers n^p (n in 1000 r/min, ``speed_powers``: n, n^1.5, n², n^2.5
   by default) and their lags at the same time constants. The speed's reference
   is 0 r/min: the cold reference is taken with the spindle stopped (as the
-  runtime's, :mod:`models.effect_stream`);
+  runtime's, :mod:`models.effect_stream`).
 
-with one ridge penalty per group of terms: the *sensor* group (the rises and
-their lags) and the *speed* group (the powers and their lags). Terms are
-standardised on the training rows before the penalty applies. Both penalties
-are chosen inside ``fit`` by leave-one-run-out over the training runs only
-(contiguous blocks when it is given one run): lowest pooled held-out squared
-error over the grid ``PENALTIES`` × ``SPEED_PENALTY_RATIOS``, fixed here before
-any data was looked at. The validation around ``fit`` therefore never lets the
-held-out run steer a choice.
+Which of those terms, and how they are penalised, is chosen inside ``fit`` on
+the training runs alone among a small family fixed in the code
+(:mod:`models.lag_structures`: a ridge with one penalty on the sensor terms and
+one on the speed terms, a ridge with one penalty on every term, a lasso on the
+sensors and their 30 min lags), by a doubly nested leave-one-run-out. The
+chosen structures are stacked with weights on the simplex (a weight of 1 is one
+structure alone); since every candidate's terms are among the largest one's,
+the stack is one linear model on those terms. Terms are standardised on the
+training rows before a penalty applies. The validation around ``fit``
+therefore never lets the held-out run steer a choice.
 
 A lag is ``x_k = a_k x_{k−1} + (1 − a_k) u_k`` with ``a_k = exp(−Δt_k / τ)``
 (:func:`models.effect_terms.first_order_lag`), started at the recording's first
@@ -29,15 +31,17 @@ taken at a steady state, every lag equal to its input; a constant sensor bias
 therefore moves the prediction by the sum of that sensor's coefficients, which
 is what :func:`models.conditioning.bias_sensitivity` reports.
 
-Stored as explicit JSON (no pickle): the term names, the coefficient of every
-term in its own unit, the standardisation (mean and scale of every term), the
-two penalties and the grids they came from. :class:`LagRidgeStream` runs the
+Stored as explicit JSON (no pickle): the chosen structure, the term names, the
+coefficient of every term in its own unit, the standardisation (mean and scale
+of every term), the penalties and the grids they came from, every candidate's
+nested score and the stacking weights. :class:`LagRidgeStream` runs the
 fitted model one sample at a time for the gateway's loop, carrying the lag
 states (exported as plain floats, so a restarted gateway carries on warm).
 
-The nested choice is closed-form: per run the Gram products of the terms are
-summed once; for each penalty ratio one eigendecomposition of the standardised
-training Gram matrix gives the solutions for every penalty at once.
+The ridge paths are closed-form (:mod:`models.lag_structures`): per run the
+Gram products of the terms are summed once; for each penalty ratio one
+eigendecomposition of the standardised training Gram matrix gives the solutions
+for every penalty at once.
 """
 
 from __future__ import annotations
@@ -50,17 +54,38 @@ import numpy as np
 
 from models.base import ModelInputs, ThermalModel
 from models.effect_terms import SPEED_SCALE_RPM, first_order_lag
+from models.lag_structures import (
+    DEFAULT_SPEED_POWERS,
+    DEFAULT_TAUS_S,
+    LASSO_PENALTIES,
+    PENALTIES,
+    SPEED_PENALTY_RATIOS,
+    STACK_STEPS,
+    STRUCTURE_NAMES,
+    TWO_GROUP_RIDGE,
+    CandidatePaths,
+    GroupGrams,
+    Structure,
+    choose,
+    ridge_path,
+    standardisation,
+    structure_named,
+    term_groups,
+)
 from models.penalised import inner_groups
 
-#: Time constants of the lags, s: 5 min, 10 min, 20 min, 30 min, 1 h, 2 h, 4 h, 8 h, 16 h, 24 h.
-DEFAULT_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0, 57600.0, 86400.0)
-#: Powers of the speed n (1000 r/min) among the terms.
-DEFAULT_SPEED_POWERS = (1.0, 1.5, 2.0, 2.5)
-#: Penalty of the sensor group on standardised terms, relative to the row count.
-PENALTIES = tuple(float(a) for a in np.logspace(-6, 1, 15))
-#: Speed-group penalty / sensor-group penalty.
-SPEED_PENALTY_RATIOS = tuple(float(r) for r in np.logspace(-3, 3, 7))
-SENSOR_GROUP, SPEED_GROUP = 0, 1
+__all__ = [
+    "DEFAULT_SPEED_POWERS",
+    "DEFAULT_TAUS_S",
+    "GroupGrams",
+    "LagRidgeModel",
+    "LagRidgeStream",
+    "lag_terms",
+    "ridge_path",
+    "standardisation",
+    "term_groups",
+    "term_names",
+]
 
 
 def term_names(
@@ -81,9 +106,12 @@ def speed_powers(speed_rpm: np.ndarray, powers: Sequence[float]) -> np.ndarray:
     return np.column_stack([n**p for p in powers]) if powers else np.empty((n.size, 0))
 
 
-#: The terms last built, with the inputs and structure they were built for: validation
-#: and residual analysis ask for the same inputs' terms once per fold and per candidate.
-_last_terms: list[tuple[ModelInputs, tuple, np.ndarray]] = []
+#: The terms last built for one inputs object, by structure: validation and residual
+#: analysis ask for the same inputs' terms once per fold, and the nested choice once per
+#: candidate structure.
+_last_terms: dict[tuple, np.ndarray] = {}
+_last_inputs: list[ModelInputs] = []
+_TERM_CACHE_SIZE = 4
 
 
 def lag_terms(
@@ -91,13 +119,18 @@ def lag_terms(
 ) -> np.ndarray:
     """(n, k) terms of :func:`term_names` for ``inputs`` (steady state when it has no time).
 
-    The last result is kept (one set of terms, for the same inputs object).
+    The last results for the same inputs object are kept (one per structure).
     """
     key = (tuple(sensors), tuple(taus_s), tuple(powers))
-    if _last_terms and _last_terms[0][0] is inputs and _last_terms[0][1] == key:
-        return _last_terms[0][2]
-    terms = _build_terms(inputs, sensors, taus_s, powers)
-    _last_terms[:] = [(inputs, key, terms)]
+    if not (_last_inputs and _last_inputs[0] is inputs):
+        _last_terms.clear()
+        _last_inputs[:] = [inputs]
+    terms = _last_terms.get(key)
+    if terms is None:
+        terms = _build_terms(inputs, sensors, taus_s, powers)
+        if len(_last_terms) >= _TERM_CACHE_SIZE:
+            _last_terms.pop(next(iter(_last_terms)))
+        _last_terms[key] = terms
     return terms
 
 
@@ -117,112 +150,51 @@ def _build_terms(
     return np.column_stack([direct, *lags])
 
 
-def term_groups(n_sensors: int, n_taus: int, n_powers: int) -> np.ndarray:
-    direct = np.r_[np.full(n_sensors, SENSOR_GROUP), np.full(n_powers, SPEED_GROUP)]
-    return np.tile(direct, n_taus + 1)
-
-
-class GroupGrams:
-    """Per group of rows (a run): [1, Z]ᵀ[1, Z], [1, Z]ᵀy and yᵀy, so every fit is a sum."""
-
-    def __init__(self, terms: np.ndarray, y: np.ndarray, labels: np.ndarray, rows=None):
-        self.labels: list[Any] = []
-        self.gram: list[np.ndarray] = []
-        self.cross: list[np.ndarray] = []
-        self.yy: list[float] = []
-        usable = np.ones(y.size, dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
-        for label in dict.fromkeys(labels[usable].tolist()):
-            mask = usable & (labels == label)
-            z = np.column_stack([np.ones(int(mask.sum())), terms[mask]])
-            self.labels.append(label)
-            self.gram.append(z.T @ z)
-            self.cross.append(z.T @ y[mask])
-            self.yy.append(float(y[mask] @ y[mask]))
-
-    def total(self, members: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-        return sum(self.gram[i] for i in members), sum(self.cross[i] for i in members)
-
-    def sse(self, member: int, beta: np.ndarray) -> float:
-        g, c = self.gram[member], self.cross[member]
-        return max(self.yy[member] - 2.0 * beta @ c + beta @ g @ beta, 0.0)
-
-
-def standardisation(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(mean, scale) of every term from a Gram matrix of [1, Z] (scale 1 for a constant term)."""
-    n = gram[0, 0]
-    mean = gram[0, 1:] / n
-    variance = np.diag(gram)[1:] / n - mean**2
-    scale = np.sqrt(np.maximum(variance, 0.0))
-    scale[scale <= 1e-12 * max(float(scale.max(initial=0.0)), 1.0)] = 1.0
-    return mean, scale
-
-
-def ridge_path(
-    gram: np.ndarray,
-    cross: np.ndarray,
-    groups: np.ndarray,
-    ratio: float,
-    penalties: Sequence[float] = PENALTIES,
-) -> list[np.ndarray]:
-    """[intercept, coefficients] for every sensor-group penalty at one speed/sensor ratio.
-
-    Minimises Σ(y − b0 − Zb)² + n Σ_j λ_g(j) (s_j b_j)², s_j the term's scale on
-    these rows: ridge on standardised terms with λ on the sensors and ratio·λ on
-    the speed terms. One eigendecomposition serves every λ.
-    """
-    n = gram[0, 0]
-    mean, scale = standardisation(gram)
-    y_mean = cross[0] / n
-    centred = gram[1:, 1:] - n * np.outer(mean, mean)
-    centred_y = cross[1:] - n * mean * y_mean
-    weight = np.where(groups == SPEED_GROUP, 1.0 / math.sqrt(ratio), 1.0) / scale
-    eigenvalues, vectors = np.linalg.eigh(centred * np.outer(weight, weight))
-    projected = vectors.T @ (centred_y * weight)
-    path = []
-    for penalty in penalties:
-        b = weight * (vectors @ (projected / np.maximum(eigenvalues + n * penalty, 1e-300)))
-        path.append(np.r_[y_mean - mean @ b, b])
-    return path
-
-
-def choose_penalties(
-    grams: GroupGrams, groups: np.ndarray, with_speed: bool
-) -> tuple[float, float]:
-    """(sensor penalty, speed penalty) with the lowest leave-one-group-out squared error."""
-    ratios = SPEED_PENALTY_RATIOS if with_speed else (1.0,)
-    scores = np.zeros((len(ratios), len(PENALTIES)))
-    members = range(len(grams.labels))
-    for held in members:
-        gram, cross = grams.total([m for m in members if m != held])
-        for i, ratio in enumerate(ratios):
-            for j, beta in enumerate(ridge_path(gram, cross, groups, ratio)):
-                scores[i, j] += grams.sse(held, beta)
-    i, j = np.unravel_index(int(np.argmin(scores)), scores.shape)
-    return PENALTIES[j], PENALTIES[j] * ratios[i]
-
-
 class LagRidgeModel(ThermalModel):
-    """Rises, speed powers and their lags; one nested ridge penalty per group."""
+    """Rises, speed powers and their lags; the structure and its penalties chosen nested."""
 
     method = "lag-ridge"
 
     def __init__(
         self,
         sensors: Sequence[str] | None = None,
-        lag_taus_s: Sequence[float] = DEFAULT_TAUS_S,
-        speed_powers: Sequence[float] = DEFAULT_SPEED_POWERS,
+        lag_taus_s: Sequence[float] | None = None,
+        speed_powers: Sequence[float] | None = None,
+        structures: Sequence[str] | None = None,
     ) -> None:
+        """``lag_taus_s`` / ``speed_powers``: one given structure (two-group ridge on those
+        terms, nothing else tried); otherwise ``fit`` chooses among ``structures`` (names in
+        :data:`models.lag_structures.STRUCTURES`, default every one)."""
         self.sensors = None if sensors is None else list(sensors)
-        self.lag_taus_s = [float(t) for t in lag_taus_s]
-        self.speed_powers = [float(p) for p in speed_powers]
-        if any(not (math.isfinite(t) and t > 0) for t in self.lag_taus_s):
-            raise ValueError(f"lag-ridge: every time constant must be > 0 s, got {self.lag_taus_s}")
+        self._given_taus = None if lag_taus_s is None else [float(t) for t in lag_taus_s]
+        self._given_powers = None if speed_powers is None else [float(p) for p in speed_powers]
+        self._structure_names = None if structures is None else [str(n) for n in structures]
+        if self._given_taus is not None or self._given_powers is not None:
+            if structures is not None:
+                raise ValueError("lag-ridge: give either lag_taus_s/speed_powers or structures")
+            taus = DEFAULT_TAUS_S if self._given_taus is None else self._given_taus
+            powers = DEFAULT_SPEED_POWERS if self._given_powers is None else self._given_powers
+            given = Structure("given", tuple(taus), tuple(powers), TWO_GROUP_RIDGE)
+            self.candidates: tuple[Structure, ...] = (given,)
+        else:
+            names = STRUCTURE_NAMES if structures is None else tuple(structures)
+            if not names:
+                raise ValueError("lag-ridge: structures must name at least one structure")
+            self.candidates = tuple(structure_named(n) for n in names)
+        self._use(self.candidates[0])
+
+    def _use(self, structure: Structure) -> None:
+        """The terms this model computes and streams are ``structure``'s."""
+        self.structure_ = structure
+        self.lag_taus_s = list(structure.lag_taus_s)
+        self.speed_powers = list(structure.speed_powers)
 
     def hyperparams(self) -> dict[str, Any]:
         return {
             "sensors": self.sensors,
-            "lag_taus_s": self.lag_taus_s,
-            "speed_powers": self.speed_powers,
+            "lag_taus_s": self._given_taus,
+            "speed_powers": self._given_powers,
+            "structures": self._structure_names,
         }
 
     @property
@@ -251,26 +223,33 @@ class LagRidgeModel(ThermalModel):
         from threadpoolctl import threadpool_limits
 
         used = tuple(self.sensors) if self.sensors is not None else inputs.sensors
-        terms = lag_terms(inputs, used, self.lag_taus_s, self.speed_powers)
-        groups = term_groups(len(used), len(self.lag_taus_s), len(self.speed_powers))
         part = inputs if rows is None else inputs.take(rows)
         labels = np.full(inputs.n_samples, -1)
         labels[rows if rows is not None else slice(None)] = inner_groups(part)
         # Small dense problems: one BLAS thread is faster than several fighting for cores.
         with threadpool_limits(1):
-            grams = GroupGrams(terms, y, labels, labels >= 0)
-            sensor_penalty, speed_penalty = choose_penalties(grams, groups, bool(self.speed_powers))
-            gram, cross = grams.total(range(len(grams.labels)))
-            ratio = speed_penalty / sensor_penalty
-            beta = ridge_path(gram, cross, groups, ratio, (sensor_penalty,))[0]
-        mean, scale = standardisation(gram)
+            candidates = [
+                CandidatePaths(
+                    s,
+                    lag_terms(inputs, used, s.lag_taus_s, s.speed_powers),
+                    y,
+                    labels,
+                    len(used),
+                    term_names(used, s.lag_taus_s, s.speed_powers),
+                )
+                for s in self.candidates
+            ]
+            choice = choose(candidates)
+        self._use(choice.structure)
         self._design_cache = None
         self.sensors_used_ = used
-        self.intercept_um_ = float(beta[0])
-        self.coef_ = beta[1:]
-        self.term_mean_ = mean
-        self.term_scale_ = scale
-        self.penalties_ = {"sensors": sensor_penalty, "speed": speed_penalty}
+        self.intercept_um_ = float(choice.beta[0])
+        self.coef_ = choice.beta[1:]
+        self.term_mean_ = choice.mean
+        self.term_scale_ = choice.scale
+        self.penalties_ = choice.penalties
+        self.inner_rmse_um_ = choice.inner_rmse_um
+        self.stack_weights_ = choice.weights
 
     # --- prediction ------------------------------------------------------------------
     def _terms(self, inputs: ModelInputs) -> np.ndarray:
@@ -312,7 +291,14 @@ class LagRidgeModel(ThermalModel):
     # --- storage ---------------------------------------------------------------------
     def fitted_params(self) -> dict[str, Any]:
         names = term_names(self.sensors_used_, self.lag_taus_s, self.speed_powers)
+        grid = {
+            "sensors": list(PENALTIES),
+            "speed_over_sensors": list(SPEED_PENALTY_RATIOS),
+            "l1_over_target_sigma": list(LASSO_PENALTIES),
+            "chosen_by": "leave-one-run-out on the training runs",
+        }
         return {
+            "structure": self.structure_.as_dict(),
             "sensors": list(self.sensors_used_),
             "lag_taus_s": list(self.lag_taus_s),
             "speed_powers": list(self.speed_powers),
@@ -325,17 +311,30 @@ class LagRidgeModel(ThermalModel):
                 "scale": [float(s) for s in self.term_scale_],
             },
             "penalties": dict(self.penalties_),
-            "penalty_grid": {
-                "sensors": list(PENALTIES),
-                "speed_over_sensors": list(SPEED_PENALTY_RATIOS),
-                "chosen_by": "leave-one-run-out on the training runs",
+            "penalty_grid": grid,
+            "structure_choice": {
+                "candidates": [s.as_dict() for s in self.candidates],
+                "inner_rmse_um": dict(self.inner_rmse_um_),
+                "weights": dict(self.stack_weights_),
+                "weight_step": 1.0 / STACK_STEPS,
+                "chosen_by": (
+                    "weights on the simplex with the lowest pooled squared error over the "
+                    "training runs, each run predicted by every structure fitted on the "
+                    "other training runs with its penalty chosen on those alone"
+                    if self.inner_rmse_um_
+                    else "the only candidate"
+                ),
             },
         }
 
     def _load_params(self, params: dict[str, Any]) -> None:
         self.sensors_used_ = tuple(params["sensors"])
-        self.lag_taus_s = [float(t) for t in params["lag_taus_s"]]
-        self.speed_powers = [float(p) for p in params["speed_powers"]]
+        if "structure" in params:
+            self._use(Structure.from_dict(params["structure"]))
+        else:  # stored before the structure was chosen: two-group ridge on its terms
+            taus = tuple(float(t) for t in params["lag_taus_s"])
+            powers = tuple(float(p) for p in params["speed_powers"])
+            self._use(Structure("given", taus, powers, TWO_GROUP_RIDGE))
         self.intercept_um_ = float(params["intercept_um"])
         self.coef_ = np.asarray(params["coefficients_um_per_unit"], dtype=float)
         names = term_names(self.sensors_used_, self.lag_taus_s, self.speed_powers)
@@ -344,14 +343,20 @@ class LagRidgeModel(ThermalModel):
         self.term_mean_ = np.asarray(params["standardisation"]["mean"], dtype=float)
         self.term_scale_ = np.asarray(params["standardisation"]["scale"], dtype=float)
         self.penalties_ = {k: float(v) for k, v in params["penalties"].items()}
+        choice = params.get("structure_choice", {})
+        self.inner_rmse_um_ = {k: float(v) for k, v in choice.get("inner_rmse_um", {}).items()}
+        self.stack_weights_ = {k: float(v) for k, v in choice.get("weights", {}).items()}
 
     def summary(self) -> str:
         taus = ", ".join(f"{t / 60:g}" for t in self.lag_taus_s)
+        penalties = ", ".join(f"{k} {v:.3g}" for k, v in self.penalties_.items())
+        scores = ", ".join(f"{k} {v:.2f}" for k, v in self.inner_rmse_um_.items())
+        chosen = f"; inner RMSE µm {scores}" if scores else ""
         return (
-            f"lag-ridge: {len(self.sensors_used_)} sensors and {len(self.speed_powers)} speed "
+            f"lag-ridge [{self.structure_.name}: {self.structure_.estimator}]: "
+            f"{len(self.sensors_used_)} sensors and {len(self.speed_powers)} speed "
             f"powers with lags at τ = {taus} min ({self.coef_.size} terms); penalties "
-            f"sensors {self.penalties_['sensors']:.3g}, speed {self.penalties_['speed']:.3g} "
-            "(nested leave-one-run-out)"
+            f"{penalties} (nested leave-one-run-out{chosen})"
         )
 
     def stream(self) -> LagRidgeStream:

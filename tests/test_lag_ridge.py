@@ -29,6 +29,7 @@ from models.lag_ridge import (
     term_groups,
     term_names,
 )
+from models.lag_structures import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, STRUCTURE_NAMES
 from models.store import ModelStore, load_file
 from tests.cli import ROOT, gateway
 from tests.test_conditioning import machine
@@ -94,6 +95,25 @@ def test_the_closed_form_path_is_ridge_on_standardised_terms(synthetic: Prepared
     )
 
 
+def test_without_standardising_the_penalty_is_on_the_terms_in_their_own_units(
+    synthetic: Prepared,
+) -> None:
+    from sklearn.linear_model import Ridge
+
+    sensors = synthetic.inputs.sensors
+    terms = lag_terms(synthetic.inputs, sensors, TAUS_S, POWERS)
+    groups = term_groups(len(sensors), len(TAUS_S), len(POWERS))
+    grams = GroupGrams(terms, synthetic.error_um, np.zeros(terms.shape[0], dtype=int))
+    gram, cross = grams.total([0])
+    penalty = 1e-2
+    (raw,) = ridge_path(gram, cross, groups, 1.0, (penalty,), standardise=False)
+    (scaled,) = ridge_path(gram, cross, groups, 1.0, (penalty,))
+    reference = Ridge(alpha=penalty * terms.shape[0]).fit(terms, synthetic.error_um)
+    assert raw[1:] == pytest.approx(reference.coef_, rel=1e-6, abs=1e-9)
+    assert raw[0] == pytest.approx(reference.intercept_)
+    assert np.max(np.abs(raw[1:] - scaled[1:])) > 1e-3  # the two penalties differ
+
+
 def test_held_out_error_follows_the_lag_and_the_penalties_ignore_the_held_out_run(
     synthetic: Prepared,
 ) -> None:
@@ -104,11 +124,70 @@ def test_held_out_error_follows_the_lag_and_the_penalties_ignore_the_held_out_ru
     changed[held] += 50.0 * np.sin(np.arange(held.sum()))  # the held-out target only
     other = small_model().fit_rows(synthetic.inputs, changed, ~held)
     assert other.penalties_ == model.penalties_
+    assert (
+        other.stack_weights_ == model.stack_weights_
+        and other.inner_rmse_um_ == model.inner_rmse_um_
+    )
     assert np.array_equal(other.coef_, model.coef_)
     residual = synthetic.error_um[held] - model.predict_rows(synthetic.inputs, held)
     # The error spans about 30 µm; the lags and n² carry it to the probe's noise and a little.
     assert np.sqrt(np.mean(residual**2)) < 0.5
     assert np.ptp(synthetic.error_um[held]) > 20
+
+
+def test_the_stack_is_the_weighted_sum_of_its_structures_fitted_alone(synthetic: Prepared) -> None:
+    train = synthetic.data.run != "R3"
+    stack = LagRidgeModel().fit_rows(synthetic.inputs, synthetic.error_um, train)
+    weights = stack.stack_weights_
+    assert set(weights) == set(STRUCTURE_NAMES) and sum(weights.values()) == pytest.approx(1.0)
+    by_hand = sum(
+        w
+        * LagRidgeModel(structures=[name])
+        .fit_rows(synthetic.inputs, synthetic.error_um, train)
+        .predict(synthetic.inputs)
+        for name, w in weights.items()
+        if w > 0
+    )
+    assert np.max(np.abs(stack.predict(synthetic.inputs) - by_hand)) < 1e-9
+    # On these runs the weights split (measured 0.15 / 0.25 / 0.6), so the sum above maps the
+    # lasso's 30 min lags into the ridge's terms.
+    assert sum(w > 0 for w in weights.values()) >= 2
+    every_term = term_names(synthetic.inputs.sensors, DEFAULT_TAUS_S, DEFAULT_SPEED_POWERS)
+    assert stack.structure_.estimator == "stack" and stack.coef_.size == len(every_term)
+
+
+def test_a_model_stored_before_the_structure_choice_still_loads(synthetic: Prepared) -> None:
+    model = small_model().fit(synthetic.inputs, synthetic.error_um)
+    assert model.inner_rmse_um_ == {} and model.structure_.estimator == "two-group ridge"
+    old = {
+        k: v for k, v in model.fitted_params().items() if k not in ("structure", "structure_choice")
+    }
+    hyperparams = {"sensors": None, "lag_taus_s": list(TAUS_S), "speed_powers": list(POWERS)}
+    loaded = LagRidgeModel.from_params(hyperparams, json.loads(json.dumps(old)))
+    assert loaded.lag_taus_s == list(TAUS_S) and loaded.uses_speed
+    assert np.array_equal(loaded.predict(synthetic.inputs), model.predict(synthetic.inputs))
+
+
+def test_a_lasso_structure_needs_no_speed_and_streams_its_lags(synthetic: Prepared) -> None:
+    model = LagRidgeModel(structures=["lasso-30min"]).fit(synthetic.inputs, synthetic.error_um)
+    assert not model.uses_speed and model.lag_taus_s == [1800.0]
+    assert model.penalties_.keys() == {"l1_over_target_sigma"}
+    assert 0 < np.count_nonzero(model.coef_) < model.coef_.size  # the L1 penalty zeroes terms
+    stored = json.loads(json.dumps(model.fitted_params()))
+    loaded = LagRidgeModel.from_params(model.hyperparams(), stored)
+    part = synthetic.take(synthetic.data.run == "R2")
+    batch = loaded.predict(part.inputs)
+    stream = loaded.stream()
+    streamed = [
+        stream.step(
+            float(part.data.time_s[k]),
+            dict(zip(part.inputs.sensors, part.inputs.rise_C[k], strict=True)),
+            None,
+        )
+        for k in range(part.data.n_samples)
+    ]
+    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    assert set(stream.export_state()) == {"time_s", "T1@lag1800s", "T2@lag1800s", "T3@lag1800s"}
 
 
 def test_stored_as_explicit_json_and_reloaded_exactly(synthetic: Prepared, tmp_path: Path) -> None:
@@ -120,8 +199,19 @@ def test_stored_as_explicit_json_and_reloaded_exactly(synthetic: Prepared, tmp_p
     names = term_names(synthetic.inputs.sensors, params["lag_taus_s"], params["speed_powers"])
     assert params["terms"] == names and len(params["coefficients_um_per_unit"]) == len(names)
     assert len(params["standardisation"]["mean"]) == len(names)
-    assert set(params["penalties"]) == {"sensors", "speed"}
-    assert params["penalties"]["sensors"] in params["penalty_grid"]["sensors"]
+    grid = params["penalty_grid"]
+    for key, value in params["penalties"].items():
+        name = key.rsplit(".", 1)[-1]  # a stack names each member's penalties
+        assert value in grid["sensors" if name == "speed" else name] or any(
+            value == pytest.approx(p * r)
+            for p in grid["sensors"]
+            for r in grid["speed_over_sensors"]
+        )
+    choice = params["structure_choice"]
+    assert [c["name"] for c in choice["candidates"]] == list(STRUCTURE_NAMES)
+    assert set(choice["inner_rmse_um"]) == set(STRUCTURE_NAMES)
+    assert sum(choice["weights"].values()) == pytest.approx(1.0)
+    assert params["structure"]["lag_taus_s"] == params["lag_taus_s"]
     model, _ = load_file(path)
     assert np.array_equal(model.predict(synthetic.inputs), outcome_model(synthetic, params))
     # Conditioning is of every term; the bias sensitivity is the steady state: the sum of
@@ -212,11 +302,37 @@ def test_fl_thermal_ch1_held_out_with_nested_penalties(tmp_path: Path) -> None:
     assert "condition number" in done.stdout
     result = json.loads(out.read_text(encoding="utf-8"))
     pooled = result["validations"]["all"]["pooled"]
-    # Measured 1.75 µm (plain mlr on the same rises: 6.86 µm); the target is 2.5 µm.
-    assert pooled["rmse_um"] < 2.0
+    # Measured 1.79 µm, the structures stacked on nested inner folds (two-group ridge alone:
+    # 1.75 µm; plain mlr on the same rises: 6.86 µm); the target is 2.5 µm. An outside
+    # review's 1.68 µm (one penalty, the speed as n only) is reached by none of its readings
+    # in benchmarks/reviewer_readings.py (2.36 … 3.08 µm nested).
+    assert pooled["rmse_um"] < 1.9
     per_cycle = result["validations"]["all"]["per_fold"]
     assert len(per_cycle) == 6 and max(c["rmse_um"] for c in per_cycle.values()) < 3.3
     assert (store / "lag-ridge-ch1_um-all.json").exists()
+
+
+def test_fl_thermal_ch5_held_out_with_the_structure_chosen_on_the_training_cycles(
+    tmp_path: Path,
+) -> None:
+    out, store = tmp_path / "fit.json", tmp_path / "store"
+    done = gateway(
+        "fit", FL_THERMAL, "--method", "lag-ridge", "--target", "ch5_um", "--json", out,
+        "--store", store,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    pooled = json.loads(out.read_text(encoding="utf-8"))["validations"]["all"]["pooled"]
+    # Measured 3.26 µm (two-group ridge alone: 4.90 µm); the 2.99 µm is not reached,
+    # nor by any reading of its lasso in benchmarks/reviewer_readings.py (3.02 … 4.77 µm).
+    assert pooled["rmse_um"] < 3.4
+    params = json.loads((store / "lag-ridge-ch5_um-all.json").read_text(encoding="utf-8"))["params"]
+    # On all six cycles the nested choice puts the lasso on the sensors and their 30 min lags
+    # first (its inner RMSE 3.05 µm against 4.67 and 4.90 µm for the ridges).
+    choice = params["structure_choice"]
+    assert choice["weights"]["lasso-30min"] > 0.5
+    assert choice["inner_rmse_um"]["lasso-30min"] < min(
+        choice["inner_rmse_um"]["two-group"], choice["inner_rmse_um"]["one-penalty"]
+    )
 
 
 def test_replay_fl_thermal_ch5_on_lag_ridge_a_probe_every_hour(tmp_path: Path) -> None:
@@ -228,12 +344,13 @@ def test_replay_fl_thermal_ch5_on_lag_ridge_a_probe_every_hour(tmp_path: Path) -
     assert done.returncode == 0, done.stderr
     result = json.loads(out.read_text(encoding="utf-8"))
     assert result["model"] == "lag-ridge" and "lag-ridge terms" in result["base"]["description"]
-    assert 4.5 < result["offline"]["rmse_um"] < 5.3  # lag-ridge without probes: 4.90 µm
+    assert 3.0 < result["offline"]["rmse_um"] < 3.5  # lag-ridge without probes: 3.26 µm
     (online,) = result["online"]
     # Measured 2.31 µm, every choice (penalty, level weight, q, R, k) made without the held-out
-    # cycle on a grid fixed beforehand; the 2.0 µm target is not met on ch5.
-    assert online["rmse_um"] < 2.5
-    assert online["rmse_um"] < 0.55 * result["offline"]["rmse_um"]
+    # cycle on a grid fixed beforehand; the 2.0 µm target is not met on ch5. The probes
+    # take 29 % off the lag-ridge fit's 3.26 µm (off the two-group ridge's 4.90 µm: 53 %).
+    assert online["rmse_um"] < 2.45
+    assert online["rmse_um"] < 0.8 * result["offline"]["rmse_um"]
     for figures in online["per_run"].values():
         chosen = figures["chosen"]
         assert chosen["ridge"] in (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
@@ -264,7 +381,7 @@ def test_analyze_takes_lag_ridge_as_its_base_and_its_result_streams(tmp_path: Pa
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     result = json.loads(out.read_text(encoding="utf-8"))
-    # Measured 1.74 µm before any effect (mlr: 6.86 µm); the target is 2.5 µm.
+    # Measured 1.76 µm before any effect (mlr: 6.86 µm); the target is 2.5 µm.
     assert result["before"]["rmse_um"] < 2.0
     (path,) = (store / augmented.FOLDER).glob("*.json")
     document = augmented.load(path)

@@ -381,7 +381,7 @@ class OnlineCorrectionSection(Strict):
         return CorrectionParams.from_dict(self.model_dump(exclude={"enabled"}))
 
 
-class MonitorSection(Strict):
+class MonitorSection(MonitorParams, Strict):
     """The residual monitor (:mod:`gateway.monitor`, tests in :mod:`models.residual_monitor`).
 
     Off by default. When on, every probe's innovation goes to the sequential
@@ -390,13 +390,7 @@ class MonitorSection(Strict):
     """
 
     enabled: bool = False
-    #: the probe cycle's period the thresholds are set for, s
-    probe_period_s: float = Field(default=300.0, gt=0)
-    #: expected false alarms of the tests together per 30 days of operation
-    false_alarms_per_month: float = Field(default=1.0, gt=0, le=100)
-    cusum_k_sigma: float = Field(default=0.5, gt=0)
-    window_probes: int = Field(default=36, ge=10)
-    min_effect_um: float = Field(default=0.3, gt=0)
+    false_alarms_per_month: float = Field(default=1.0, gt=0, le=100)  # at most ~3 a day
     #: random walk of the monitor's own filter, µm²/h (slower than the correction's)
     process_um2_per_h: float = Field(default=0.1, ge=0)
     history_days: float = Field(default=30.0, gt=0, le=365)
@@ -404,12 +398,8 @@ class MonitorSection(Strict):
     method: Literal["mlr", "grey-mlr", "pca-quadratic"] = "mlr"
 
     def params(self) -> MonitorParams:
-        return MonitorParams(
-            probe_period_s=self.probe_period_s,
-            false_alarms_per_month=self.false_alarms_per_month,
-            cusum_k_sigma=self.cusum_k_sigma,
-            window_probes=self.window_probes,
-            min_effect_um=self.min_effect_um,
+        return MonitorParams.model_validate(
+            self.model_dump(include=set(MonitorParams.model_fields))
         )
 
 

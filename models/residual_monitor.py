@@ -51,6 +51,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 SECONDS_PER_MONTH = 30 * 86400.0
 SIEGMUND_OFFSET = 1.166  # the CUSUM's overshoot correction (Siegmund 1985)
@@ -64,26 +65,20 @@ REGRESSORS = (
 ALL_REGIMES = "all"
 
 
-@dataclass(frozen=True)
-class MonitorParams:
-    """Design of the sequential tests (units in the names)."""
+class MonitorParams(BaseModel):
+    """Design of the sequential tests (units in the names); the config's ``monitor:``
+    section (:class:`gateway.config.MonitorSection`) is this schema plus the gateway's keys."""
 
-    probe_period_s: float = 300.0
-    false_alarms_per_month: float = 1.0
-    cusum_k_sigma: float = 0.5
-    window_probes: int = 36
-    min_effect_um: float = 0.3
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    def __post_init__(self) -> None:
-        for name in ("probe_period_s", "false_alarms_per_month", "cusum_k_sigma", "min_effect_um"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"residual monitor {name} = {value}: expected a number > 0")
-        if self.window_probes < 2 * len(REGRESSORS):
-            raise ValueError(
-                f"residual monitor window_probes = {self.window_probes}: expected at least "
-                f"{2 * len(REGRESSORS)} (twice the regressors)"
-            )
+    #: the probe cycle's period the thresholds are set for, s
+    probe_period_s: float = Field(default=300.0, gt=0)
+    #: expected false alarms of the tests together per 30 days of operation
+    false_alarms_per_month: float = Field(default=1.0, gt=0)
+    cusum_k_sigma: float = Field(default=0.5, gt=0)
+    #: probes in the window regression: at least twice its regressors
+    window_probes: int = Field(default=36, ge=2 * len(REGRESSORS))
+    min_effect_um: float = Field(default=0.3, gt=0)
 
     @property
     def probes_per_month(self) -> float:
@@ -104,7 +99,7 @@ class MonitorParams:
         return min(0.5 * self.false_alarms_per_month / self.probes_per_month, 0.5)
 
     def describe(self) -> dict[str, Any]:
-        return asdict(self) | {
+        return self.model_dump() | {
             "cusum_h_sigma": self.cusum_h_sigma,
             "cusum_arl_probes": self.cusum_arl_probes,
             "regression_alpha": self.regression_alpha,

@@ -164,6 +164,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
     async def _paced(self, send: Callable[[], Awaitable[T]]) -> T:
         """One request after the map's pause; an exception reply is :class:`CncRefusedError`."""
         try:
-            return await self._silence.around(send, self._pause_s)
+            if self._pause_s > 0:
+                return await self._silence.around(send, self._pause_s)
+            return await send()
         except ModbusRefusedError as exc:
             raise CncRefusedError(str(exc)) from exc

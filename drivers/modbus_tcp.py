@@ -12,7 +12,7 @@ connection, a map of pending transaction ids, one timer per request.
 
 Replies are matched by transaction id, so a late reply to a request that timed
 out is never taken for the next one's: :meth:`TcpTransactions.send` puts a
-request on the wire and :meth:`TcpTransactions.reply` awaits its reply.
+request on the wire and returns its pending reply.
 Errors are the builtin ones (``ConnectionError``, ``TimeoutError``,
 ``ValueError`` for a malformed reply); :class:`drivers.transmitters.ModbusConnection`
 turns them into the gateway's.
@@ -135,7 +135,9 @@ class TcpTransactions(asyncio.Protocol):
         return transport is not None and not transport.is_closing()
 
     def send(self, pdu: bytes, device_id: int, timeout_s: float) -> Pending:
-        """Put one request on the wire; its reply (or timeout) comes with :meth:`reply`."""
+        """Put one request on the wire. Its ``future`` gets the reply PDU, or
+        ``TimeoutError`` after ``timeout_s``, or ``ConnectionError`` when the connection
+        goes; the caller then hands it to :meth:`forget`."""
         transport = self._transport
         if transport is None or transport.is_closing():
             raise ConnectionError(self._lost or "connection lost")
@@ -147,15 +149,11 @@ class TcpTransactions(asyncio.Protocol):
         transport.write(self._framer.encode(pdu, device_id, tid))
         return request
 
-    async def reply(self, request: Pending) -> bytes:
-        """The reply PDU of ``request``: ``TimeoutError`` after its timeout,
-        ``ConnectionError`` when the connection goes."""
-        try:
-            return await request.future
-        finally:
-            if self._pending.get(request.tid) is request:  # cancelled while waiting
-                del self._pending[request.tid]
-                request.timer.cancel()
+    def forget(self, request: Pending) -> None:
+        """``request`` is done with (answered, timed out or cancelled): stop its timer."""
+        if self._pending.get(request.tid) is request:
+            del self._pending[request.tid]
+        request.timer.cancel()
 
     def close(self) -> None:
         transport, self._transport = self._transport, None

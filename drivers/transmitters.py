@@ -224,6 +224,9 @@ class ModbusConnection:
 
     def read(self, request: ReadRequest, device_id: int) -> Awaitable[list[int]]:
         """One block of a register map."""
+        if self._tcp is not None:
+            function_code = 4 if request.register_type == "input" else 3
+            return self._tcp_read(function_code, request.address, request.count, device_id)
         if request.register_type == "input":
             return self.read_input_registers(request.address, request.count, device_id)
         return self.read_holding_registers(request.address, request.count, device_id)
@@ -231,8 +234,7 @@ class ModbusConnection:
     async def write_registers(self, address: int, values: list[int], device_id: int) -> None:
         """FC16 write of ``values`` from ``address``."""
         if self._tcp is not None:
-            pdu = modbus_tcp.write_pdu(address, values)
-            reply = await self._tcp_exchange(pdu, device_id)
+            reply = await self._tcp_exchange(modbus_tcp.write_pdu(address, values), device_id)
             self._check_reply(reply, device_id)
             return
         client = self._usable_client()
@@ -248,9 +250,6 @@ class ModbusConnection:
         reply = await self._tcp_exchange(
             modbus_tcp.read_pdu(function_code, address, count), device_id
         )
-        return self._tcp_registers(reply, count, device_id)
-
-    def _tcp_registers(self, reply: bytes, count: int, device_id: int) -> list[int]:
         if reply[0] & 0x80:
             self._check_reply(reply, device_id)
         try:
@@ -259,29 +258,16 @@ class ModbusConnection:
             raise ModbusNoResponseError(f"device {device_id} on {self.where}: {exc}") from exc
 
     async def _tcp_exchange(self, pdu: bytes, device_id: int) -> bytes:
+        """The reply PDU to ``pdu``; a timeout sends it again, ``retries`` times."""
         wire = self._usable_wire()
-        return await self._tcp_reply(wire, self._send(wire, pdu, device_id), pdu, device_id)
-
-    def _send(
-        self, wire: modbus_tcp.TcpTransactions, pdu: bytes, device_id: int
-    ) -> modbus_tcp.Pending:
-        try:
-            return wire.send(pdu, device_id, self.timeout_s)
-        except ConnectionError as exc:
-            raise ModbusLinkLostError(f"{self.where}: {exc}") from exc
-
-    async def _tcp_reply(
-        self,
-        wire: modbus_tcp.TcpTransactions,
-        pending: modbus_tcp.Pending,
-        pdu: bytes,
-        device_id: int,
-    ) -> bytes:
-        """The reply to ``pending``; a timeout sends ``pdu`` again, ``retries`` times."""
         attempt = 0
         while True:
             try:
-                return await wire.reply(pending)
+                pending = wire.send(pdu, device_id, self.timeout_s)
+            except ConnectionError as exc:
+                raise ModbusLinkLostError(f"{self.where}: {exc}") from exc
+            try:
+                return await pending.future
             except ConnectionError as exc:
                 raise ModbusLinkLostError(f"{self.where}: {exc}") from exc
             except TimeoutError as exc:
@@ -290,8 +276,9 @@ class ModbusConnection:
                         f"no response from device {device_id} on {self.where} "
                         f"within {self.timeout_s * (self.retries + 1):g} s"
                     ) from exc
+            finally:
+                wire.forget(pending)
             attempt += 1
-            pending = self._send(wire, pdu, device_id)
 
     def _usable_wire(self) -> modbus_tcp.TcpTransactions:
         wire = self._wire

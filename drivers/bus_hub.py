@@ -12,8 +12,10 @@ port path in a :class:`BusHubs` registry, that every user of the line shares:
   bounded timeout, never starves it;
 * the inter-frame silence: Modbus RTU wants 3.5 character times between frames
   (1.75 ms above 19200 baud, where the specification fixes it), or a configured
-  minimum for a slow device, whichever is longer; pymodbus's async serial client
-  does not wait it, so the hub does before every request;
+  minimum for a slow device, or the pause a device's register map asks for
+  between requests, whichever is longest; pymodbus's async serial client does
+  not wait it, so the hub does before every request (:class:`Silence`, which the
+  CNC's Modbus driver uses for its map's pause too);
 * one reconnect back-off (:class:`drivers.backoff.Backoff`): a lost port is
   reopened once for everybody. Silence alone closes it only when every user of
   the line found no device answering since the last answer, so one machine's
@@ -50,6 +52,33 @@ def rtu_silence_s(baudrate: int) -> float:
     if baudrate > FIXED_SILENCE_ABOVE_BAUD:
         return FIXED_SILENCE_S
     return 3.5 * BITS_PER_CHARACTER / baudrate
+
+
+class Silence:
+    """The quiet time a line or device needs before the next request.
+
+    Counted from the end of the previous request (its reply or its timeout), on the
+    event loop's monotonic clock: the silence is physical, not machine time.
+    """
+
+    def __init__(self) -> None:
+        self._quiet_since: float | None = None
+
+    def reset(self) -> None:
+        """A fresh connection: nothing to wait for."""
+        self._quiet_since = None
+
+    async def around(self, send: Callable[[], Awaitable[T]], silence_s: float) -> T:
+        """Wait until the line was quiet for ``silence_s``, then run ``send()``."""
+        loop = asyncio.get_running_loop()
+        if silence_s > 0 and self._quiet_since is not None:
+            wait_s = self._quiet_since + silence_s - loop.time()
+            if wait_s > 0:
+                await asyncio.sleep(wait_s)
+        try:
+            return await send()
+        finally:
+            self._quiet_since = loop.time()
 
 
 class Link(Protocol):
@@ -110,7 +139,7 @@ class BusHub:
         self._silent_users: set[object] = set()
         self._seen_opens: dict[object, int] = {}
         self._down_reason: str | None = None
-        self._quiet_since: float | None = None
+        self._silence = Silence()
 
     @property
     def where(self) -> str:
@@ -130,7 +159,7 @@ class BusHub:
         self._silent_users.discard(user)
         if not self._users:
             self.link.close()
-            self._quiet_since = None
+            self._silence.reset()
 
     @asynccontextmanager
     async def transaction(self, user: object, now_s: float) -> AsyncIterator[Session]:
@@ -153,18 +182,11 @@ class BusHub:
             if failure is None:
                 self._settle(user, session, now_s)
 
-    async def request(self, send: Callable[[], Awaitable[T]]) -> T:
-        """Send one request (inside a transaction) after the bus has been silent long enough."""
-        loop = asyncio.get_running_loop()
-        if self._quiet_since is not None and self.silence_s > 0:
-            wait_s = self._quiet_since + self.silence_s - loop.time()
-            if wait_s > 0:
-                await asyncio.sleep(wait_s)
+    async def request(self, send: Callable[[], Awaitable[T]], *, pause_s: float = 0.0) -> T:
+        """Send one request (inside a transaction) once the bus has been silent long enough:
+        the hub's silence, or ``pause_s`` (the device's own need) if that is longer."""
         self.requests += 1
-        try:
-            return await send()
-        finally:
-            self._quiet_since = loop.time()
+        return await self._silence.around(send, max(self.silence_s, pause_s))
 
     async def _ensure_open(self, now_s: float) -> str | None:
         """None when the port is open (opening it if the back-off allows), else why not."""
@@ -181,7 +203,7 @@ class BusHub:
             return str(exc)
         self.opens += 1
         self._silent_users.clear()
-        self._quiet_since = None
+        self._silence.reset()
         return None
 
     def _settle(self, user: object, session: Session, now_s: float) -> None:

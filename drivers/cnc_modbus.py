@@ -7,7 +7,9 @@ byte and word order; without one, the ``*_register`` addresses describe the
 simulator's layout (``drivers/maps/sim_cnc.yaml``, MODBUS.md): float32 with the
 high word at the lower address, the run mode as uint16, macro #n at
 ``macro_base + 2·(n − macro_first)``, written with FC16. The spindle state is
-read in one request per contiguous block.
+read in one request per contiguous block; a map's ``pause_between_requests_s``
+is kept before every request to the CNC, counted from the end of the previous
+one (:class:`drivers.bus_hub.Silence`, the transmitter hub's inter-frame silence).
 
 The connection is :class:`drivers.transmitters.ModbusConnection` (the gateway's one
 pymodbus client, with a life cycle the gateway owns); the reconnect policy is
@@ -16,15 +18,15 @@ pymodbus client, with a life cycle the gateway owns); the reconnect policy is
 
 from __future__ import annotations
 
-import asyncio
 import math
 import time
 from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
 from drivers.backoff import Backoff
+from drivers.bus_hub import Silence
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
-from drivers.register_map import DeviceRegisters, MacroLayout, ReadRequest
+from drivers.register_map import DeviceRegisters, MacroLayout
 from drivers.schema import RegisterMap, Workarounds, check_cnc_map, cnc_map
 from drivers.transmitters import (
     ModbusConnection,
@@ -89,6 +91,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         assert self.registers.macros is not None  # check_cnc_map made sure
         self._macros: MacroLayout = self.registers.macros
         self._has_run_mode = "run_mode" in self.registers.fields
+        self._pause_s = self.registers.workarounds.pause_between_requests_s
+        self._silence = Silence()
 
     def macro_register(self, number: int) -> int:
         """First register of macro #number."""
@@ -121,7 +125,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         words = self._macros.encode(value)
 
         async def write(link: ModbusConnection) -> None:
-            await _refusals_as_cnc(link.write_registers(register, words, self.device_id))
+            await self._paced(lambda: link.write_registers(register, words, self.device_id))
 
         await self._call(f"writing macro #{number} (register {register})", write)
 
@@ -130,8 +134,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         register = self.macro_register(number)
 
         async def read(link: ModbusConnection) -> float:
-            words = await _refusals_as_cnc(
-                link.read_holding_registers(register, self._macros.width, self.device_id)
+            words = await self._paced(
+                lambda: link.read_holding_registers(register, self._macros.width, self.device_id)
             )
             return self._macros.decode(words)
 
@@ -142,6 +146,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
     async def _open(self) -> ModbusConnection:
         link = ModbusConnection(tcp=(self.host, self.port), timeout_s=self._timeout_s, retries=0)
         await link.open()
+        self._silence.reset()
         return link
 
     async def _discard(self, session: ModbusConnection) -> None:
@@ -149,23 +154,18 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
 
     async def _read_requests(self, link: ModbusConnection) -> list[int]:
         """The map's read requests in turn (one per contiguous block), replies concatenated."""
-        pause_s = self.registers.workarounds.pause_between_requests_s
         registers: list[int] = []
-        for index, request in enumerate(self.registers.requests):
-            if index and pause_s > 0:
-                await asyncio.sleep(pause_s)
-            registers += await _refusals_as_cnc(self._read(link, request))
+        for request in self.registers.requests:
+            registers += await self._paced(
+                lambda request=request: link.read(request, self.device_id)
+            )
         return registers
 
-    async def _read(self, link: ModbusConnection, request: ReadRequest) -> list[int]:
-        if request.register_type == "input":
-            return await link.read_input_registers(request.address, request.count, self.device_id)
-        return await link.read_holding_registers(request.address, request.count, self.device_id)
-
-
-async def _refusals_as_cnc(request: Awaitable[T]) -> T:
-    """Await a Modbus request; an exception reply becomes :class:`CncRefusedError`."""
-    try:
-        return await request
-    except ModbusRefusedError as exc:
-        raise CncRefusedError(str(exc)) from exc
+    async def _paced(self, send: Callable[[], Awaitable[T]]) -> T:
+        """One request after the map's pause; an exception reply is :class:`CncRefusedError`."""
+        try:
+            if self._pause_s > 0:
+                return await self._silence.around(send, self._pause_s)
+            return await send()
+        except ModbusRefusedError as exc:
+            raise CncRefusedError(str(exc)) from exc

@@ -7,10 +7,13 @@ device's registers are a :class:`drivers.schema.RegisterMap` (by default
 :class:`TransmitterBus` reads every module once per cycle and never raises for a
 field fault: each channel comes back with a value or with the reason it has none.
 
-:class:`ModbusConnection` is the only place in the gateway that uses pymodbus (the
+:class:`ModbusConnection` is the only place in the gateway that talks Modbus (the
 CNC Modbus driver builds on it too), so the next pymodbus API change is fixed once.
-It owns the client's life cycle instead of relying on pymodbus's: the library does
-not reconnect after a cable re-plug (#1635), busy-loops with ``reconnect_delay=0``
+Over TCP it drives pymodbus's framer and PDUs on a lean protocol of its own
+(:mod:`drivers.modbus_tcp`: the library's transaction layer costs more CPU per
+request than the socket does); over RTU it uses pymodbus's serial client. It owns
+the client's life cycle instead of relying on pymodbus's: the library does not
+reconnect after a cable re-plug (#1635), busy-loops with ``reconnect_delay=0``
 (#1794) and closes the whole port after a few silent requests, taking every other
 slave on the bus down with one dead one (#1654).
 """
@@ -19,18 +22,17 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import struct
-import time
 from collections.abc import Awaitable, Sequence
 from dataclasses import dataclass, field
 from functools import cache
 
-from pymodbus.client import AsyncModbusSerialClient, AsyncModbusTcpClient
+from pymodbus.client import AsyncModbusSerialClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
 from pymodbus.logging import Log
 from pymodbus.pdu import DecodePDU, ModbusPDU
 
+from drivers import modbus_tcp
 from drivers.backoff import Backoff
 from drivers.bus_hub import BusHub, rtu_silence_s
 from drivers.link_health import LinkHealth
@@ -97,16 +99,17 @@ class ModbusRefusedError(ModbusRequestError):
 
 
 class ModbusConnection:
-    """One pymodbus async client (TCP or RTU) whose life cycle the gateway owns.
+    """One Modbus client (TCP or RTU) whose life cycle the gateway owns.
 
     ``open()`` builds a new client every time, so nothing stale survives a lost
     connection; ``close()`` also cancels any reconnect task pymodbus started. A
     request ends after ``timeout_s × (retries + 1)`` at most and raises one of
     :class:`ModbusLinkLostError`, :class:`ModbusNoResponseError`, :class:`ModbusRefusedError`.
-    That bound is pymodbus's own per-request timeout, the only one on a request:
-    a request runs in the caller's task, with no task or timer of ours around it
-    (the client is used by one request at a time, so nothing else can hold it up).
-    The constructor does no I/O.
+    Each attempt has one timeout, the only timer on a request (pymodbus's own on
+    RTU, one per transaction id on TCP); a request runs in the caller's task.
+    Requests are not pipelined, although Modbus TCP would allow it: pymodbus's own
+    server (3.16) answers only the first of two requests sent together, and many
+    serial gateways do no better. The constructor does no I/O.
     """
 
     def __init__(
@@ -135,27 +138,18 @@ class ModbusConnection:
         self.timeout_s = timeout_s
         self.retries = retries
         self._name = name
-        self._client: AsyncModbusTcpClient | AsyncModbusSerialClient | None = None
+        self._client: AsyncModbusSerialClient | None = None
+        self._wire: modbus_tcp.TcpTransactions | None = None
         where = f"TCP {tcp[0]}:{tcp[1]}" if tcp is not None else f"serial {serial_port}"
         self.where = f"{name} ({where})" if name else where
 
     @property
     def connected(self) -> bool:
+        if self._wire is not None:
+            return self._wire.connected
         return self._client is not None and self._client.connected
 
-    def _make_client(self) -> AsyncModbusTcpClient | AsyncModbusSerialClient:
-        name = self._name or "gateway"
-        if self._tcp is not None:
-            host, port = self._tcp
-            return AsyncModbusTcpClient(
-                host,
-                port=port,
-                name=name,
-                timeout=self.timeout_s,
-                retries=self.retries,
-                reconnect_delay=_LIBRARY_RECONNECT_DELAY_S,
-                reconnect_delay_max=_LIBRARY_RECONNECT_DELAY_S,
-            )
+    def _make_client(self) -> AsyncModbusSerialClient:
         assert self._serial_port is not None
         return AsyncModbusSerialClient(
             self._serial_port,
@@ -163,7 +157,7 @@ class ModbusConnection:
             parity=self._parity,
             bytesize=8,
             stopbits=1,
-            name=name,
+            name=self._name or "gateway",
             timeout=self.timeout_s,
             retries=self.retries,
             reconnect_delay=_LIBRARY_RECONNECT_DELAY_S,
@@ -173,6 +167,12 @@ class ModbusConnection:
     async def open(self) -> None:
         """Connect a new client (closing any old one); :class:`ModbusLinkLostError` on failure."""
         self.close()
+        if self._tcp is not None:
+            try:
+                self._wire = await modbus_tcp.connect(*self._tcp, self.timeout_s + 0.5)
+            except (OSError, TimeoutError) as exc:
+                raise ModbusLinkLostError(f"{self.where}: cannot connect ({_text(exc)})") from exc
+            return
         client = self._make_client()
         client.set_max_no_responses(_LIBRARY_MAX_NO_RESPONSES)
         client.ctx.framer.decoder = _ReplyDecoder(False)
@@ -196,8 +196,13 @@ class ModbusConnection:
         client, self._client = self._client, None
         if client is not None:
             client.close()
+        wire, self._wire = self._wire, None
+        if wire is not None:
+            wire.close()
 
     async def read_input_registers(self, address: int, count: int, device_id: int) -> list[int]:
+        if self._tcp is not None:
+            return await self._tcp_read(4, address, count, device_id)
         client = self._usable_client()
         response = await self._execute(
             client,
@@ -207,6 +212,8 @@ class ModbusConnection:
         return self._registers(response, count, device_id)
 
     async def read_holding_registers(self, address: int, count: int, device_id: int) -> list[int]:
+        if self._tcp is not None:
+            return await self._tcp_read(3, address, count, device_id)
         client = self._usable_client()
         response = await self._execute(
             client,
@@ -215,12 +222,78 @@ class ModbusConnection:
         )
         return self._registers(response, count, device_id)
 
+    def read(self, request: ReadRequest, device_id: int) -> Awaitable[list[int]]:
+        """One block of a register map."""
+        if self._tcp is not None:
+            function_code = 4 if request.register_type == "input" else 3
+            return self._tcp_read(function_code, request.address, request.count, device_id)
+        if request.register_type == "input":
+            return self.read_input_registers(request.address, request.count, device_id)
+        return self.read_holding_registers(request.address, request.count, device_id)
+
     async def write_registers(self, address: int, values: list[int], device_id: int) -> None:
         """FC16 write of ``values`` from ``address``."""
+        if self._tcp is not None:
+            reply = await self._tcp_exchange(modbus_tcp.write_pdu(address, values), device_id)
+            self._check_reply(reply, device_id)
+            return
         client = self._usable_client()
         await self._execute(
             client, device_id, client.write_registers(address, values, device_id=device_id)
         )
+
+    # -- TCP: pymodbus's framer and PDUs on drivers.modbus_tcp ---------------------------
+
+    async def _tcp_read(
+        self, function_code: int, address: int, count: int, device_id: int
+    ) -> list[int]:
+        reply = await self._tcp_exchange(
+            modbus_tcp.read_pdu(function_code, address, count), device_id
+        )
+        if reply[0] & 0x80:
+            self._check_reply(reply, device_id)
+        try:
+            return modbus_tcp.decode_registers(reply, count)
+        except ValueError as exc:
+            raise ModbusNoResponseError(f"device {device_id} on {self.where}: {exc}") from exc
+
+    async def _tcp_exchange(self, pdu: bytes, device_id: int) -> bytes:
+        """The reply PDU to ``pdu``; a timeout sends it again, ``retries`` times."""
+        wire = self._usable_wire()
+        attempt = 0
+        while True:
+            try:
+                pending = wire.send(pdu, device_id, self.timeout_s)
+            except ConnectionError as exc:
+                raise ModbusLinkLostError(f"{self.where}: {exc}") from exc
+            try:
+                return await pending.future
+            except ConnectionError as exc:
+                raise ModbusLinkLostError(f"{self.where}: {exc}") from exc
+            except TimeoutError as exc:
+                if attempt >= self.retries:
+                    raise ModbusNoResponseError(
+                        f"no response from device {device_id} on {self.where} "
+                        f"within {self.timeout_s * (self.retries + 1):g} s"
+                    ) from exc
+            finally:
+                wire.forget(pending)
+            attempt += 1
+
+    def _usable_wire(self) -> modbus_tcp.TcpTransactions:
+        wire = self._wire
+        if wire is None or not wire.connected:
+            raise ModbusLinkLostError(f"{self.where}: connection lost")
+        return wire
+
+    def _check_reply(self, reply: bytes, device_id: int) -> None:
+        """A reply other than registers: decoded by pymodbus; an exception reply raises."""
+        response = _REPLY_DECODER.decode(reply)
+        if response is None:
+            raise ModbusNoResponseError(f"bad reply from device {device_id}: {reply.hex()}")
+        self._refusal(response, device_id)
+
+    # -- RTU: pymodbus's serial client -------------------------------------------------
 
     def _registers(self, response: ModbusPDU, count: int, device_id: int) -> list[int]:
         registers = response.registers
@@ -231,7 +304,7 @@ class ModbusConnection:
             )
         return registers
 
-    def _usable_client(self) -> AsyncModbusTcpClient | AsyncModbusSerialClient:
+    def _usable_client(self) -> AsyncModbusSerialClient:
         client = self._client
         if client is None or not client.connected:
             raise ModbusLinkLostError(f"{self.where}: connection lost")
@@ -239,7 +312,7 @@ class ModbusConnection:
 
     async def _execute(
         self,
-        client: AsyncModbusTcpClient | AsyncModbusSerialClient,
+        client: AsyncModbusSerialClient,
         device_id: int,
         request: Awaitable[ModbusPDU],
     ) -> ModbusPDU:
@@ -258,18 +331,27 @@ class ModbusConnection:
             raise ModbusNoResponseError(f"bad reply from device {device_id}: {exc}") from exc
         except (OSError, TimeoutError) as exc:
             raise ModbusLinkLostError(f"{self.where}: request failed ({_text(exc)})") from exc
-        if response.isError():
-            code = getattr(response, "exception_code", None)
-            if code in GATEWAY_NO_DEVICE:
-                raise ModbusNoResponseError(
-                    f"no response from device {device_id} on {self.where} "
-                    f"(gateway exception {code:#04x})"
-                )
-            raise ModbusRefusedError(
-                f"device {device_id} on {self.where} refused the request (exception {code})",
-                code,
-            )
+        self._refusal(response, device_id)
         return response
+
+    def _refusal(self, response: ModbusPDU, device_id: int) -> None:
+        """Raise for an exception reply: a gateway's "no device" or the device's refusal."""
+        if not response.isError():
+            return
+        code = getattr(response, "exception_code", None)
+        if code in GATEWAY_NO_DEVICE:
+            raise ModbusNoResponseError(
+                f"no response from device {device_id} on {self.where} "
+                f"(gateway exception {code:#04x})"
+            )
+        raise ModbusRefusedError(
+            f"device {device_id} on {self.where} refused the request (exception {code})",
+            code,
+        )
+
+
+#: Decodes the TCP replies that are not register reads (FC16 echoes, exception replies).
+_REPLY_DECODER = _ReplyDecoder(False)
 
 
 @cache
@@ -457,7 +539,6 @@ class TransmitterBus:
         self._hub = hub
         self._devices = tuple(devices)
         self._lock = asyncio.Lock()
-        self._last_request_end_s = -math.inf
         self.health = LinkHealth()
         self.device_health: dict[int, LinkHealth] = {d.device_id: LinkHealth() for d in devices}
 
@@ -529,34 +610,21 @@ class TransmitterBus:
         return link
 
     async def _read_requests(self, device: DeviceMap) -> list[int]:
-        """The device's read requests in turn (one per contiguous block), replies concatenated.
+        """The device's read requests (one per contiguous block), replies concatenated.
 
-        A device whose workarounds ask for a pause gets it before each of its requests,
-        counted from the end of the previous request on this link.
+        A device whose workarounds ask for a pause between requests gets it from the
+        hub, as a longer inter-frame silence before each of its requests.
         """
         layout = device.registers
+        link = self._link
+        device_id = device.device_id
         pause_s = layout.workarounds.pause_between_requests_s
         registers: list[int] = []
         for request in layout.requests:
-            if pause_s > 0:
-                wait_s = self._last_request_end_s + pause_s - time.monotonic()
-                if wait_s > 0:
-                    await asyncio.sleep(wait_s)
-            try:
-                registers += await self._read(request, device.device_id)
-            finally:
-                self._last_request_end_s = time.monotonic()
-        return registers
-
-    async def _read(self, request: ReadRequest, device_id: int) -> list[int]:
-        link = self._link
-        if request.register_type == "input":
-            return await self._hub.request(
-                lambda: link.read_input_registers(request.address, request.count, device_id)
+            registers += await self._hub.request(
+                lambda request=request: link.read(request, device_id), pause_s=pause_s
             )
-        return await self._hub.request(
-            lambda: link.read_holding_registers(request.address, request.count, device_id)
-        )
+        return registers
 
     def _all_failed(self, reason: str) -> dict[str, ChannelResult]:
         results: dict[str, ChannelResult] = {}

@@ -78,6 +78,7 @@ import math
 from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -104,6 +105,8 @@ AGREE_SHARE = 0.8
 #: How far back (s) the prediction rate bound compares: long enough that a drift
 #: spread over several fast cycles cannot slip through the per-cycle allowance.
 RATE_HORIZON_S = 120.0
+
+_Span = TypeVar("_Span", float, np.ndarray)
 
 #: Error of one sensor's cold reference (one reading, °C): transmitter noise
 #: (0.03 °C here) and half a 0.1 °C register step (0.03 °C σ), rounded up.
@@ -359,19 +362,24 @@ class Plausibility:
         if any(s not in rises_C for s in sensors) or (model.uses_speed and speed_rpm is None):
             return None
         now_x = np.array([rises_C[s] for s in sensors])
-        worst: tuple[float, float, float, np.ndarray] | None = None  # excess, Δ, Δt, then
-        for then_s, then_rises in self._history:
-            if now_s - then_s > RATE_HORIZON_S or any(s not in then_rises for s in sensors):
-                continue
-            then_x = np.array([then_rises[s] for s in sensors])
-            now_um, then_um = _predict(banked, sensors, np.vstack([now_x, then_x]), speed_rpm)
-            allowed = self._allowed_um(now_s - then_s)
-            excess = abs(now_um - then_um) - allowed
-            if excess > 0 and (worst is None or excess > worst[0]):
-                worst = (excess, now_um - then_um, now_s - then_s, then_x)
-        if worst is None:
+        earlier = [
+            (then_s, [then_rises[s] for s in sensors])
+            for then_s, then_rises in self._history
+            if now_s - then_s <= RATE_HORIZON_S and all(s in then_rises for s in sensors)
+        ]
+        if not earlier:
             return None
-        _, moved_um, span_s, then_x = worst
+        # One model call for this cycle and every earlier one in the horizon.
+        rows = np.array([now_x, *(then for _, then in earlier)])
+        predicted = _predict(banked, sensors, rows, speed_rpm)
+        spans_s = now_s - np.array([then_s for then_s, _ in earlier])
+        moved = predicted[0] - predicted[1:]
+        excess = np.abs(moved) - self._allowed_um(spans_s)
+        excess[np.isnan(excess)] = -np.inf  # a NaN prediction blames nobody
+        worst = int(np.argmax(excess))  # the first of equal ones, as a scan would take
+        if not excess[worst] > 0:
+            return None
+        moved_um, span_s, then_x = float(moved[worst]), float(spans_s[worst]), rows[worst + 1]
         # Put each sensor back to its earlier rise in turn: the one that undoes most is to blame.
         rows = np.tile(now_x, (len(sensors), 1))
         rows[np.arange(len(sensors)), np.arange(len(sensors))] = then_x
@@ -410,7 +418,7 @@ class Plausibility:
         while self._history and now_s - self._history[0][0] > RATE_HORIZON_S:
             self._history.popleft()
 
-    def _allowed_um(self, span_s: float) -> float:
+    def _allowed_um(self, span_s: _Span) -> _Span:
         lim = self.limits
         return lim.max_prediction_rate_um_per_s * span_s + lim.prediction_noise_um
 

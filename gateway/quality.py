@@ -283,15 +283,14 @@ class QualityMonitor:
         if state.run_start_s is None:
             return None
         held_s = now_s - state.run_start_s
-        reason = f"stuck at {value:.1f} °C for {held_s:.0f} s"
         if state.stuck_run_s == state.run_start_s:
-            return reason
+            return f"stuck at {value:.1f} °C for {held_s:.0f} s"
         if held_s < state.limits.stuck_s:
             return None
         for other, other_state in self._states.items():
             if other != name and _moved_since(other_state, state.run_start_s) > OTHERS_MOVED_C:
                 state.stuck_run_s = state.run_start_s
-                return reason
+                return f"stuck at {value:.1f} °C for {held_s:.0f} s"
         return None
 
     def _missed_read(self, state: _SensorState, now_s: float) -> SensorCheck:

@@ -83,13 +83,18 @@ class WarmLags:
         if self.start_s is None:
             self.start_s = float(time_s)
         self.time_s = float(time_s)
+        decays: dict[float, tuple[np.ndarray, np.ndarray]] = {}  # Δt → (a, 1 − a), once
         for name, value in good.items():
             previous = self._values.get(name)
             if previous is None:
                 self._values[name] = np.full(self.taus_s.size, value)
             else:
-                a = np.exp(-(time_s - self._times[name]) / self.taus_s)
-                self._values[name] = a * previous + (1.0 - a) * value
+                dt_s = time_s - self._times[name]
+                decay = decays.get(dt_s)
+                if decay is None:
+                    a = np.exp(-dt_s / self.taus_s)
+                    decay = decays[dt_s] = (a, 1.0 - a)
+                self._values[name] = decay[0] * previous + decay[1] * value
             self._times[name] = float(time_s)
 
     def state_for(self, stream: StreamingAugmented) -> tuple[dict[str, float] | None, str]:

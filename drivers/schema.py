@@ -177,6 +177,20 @@ class RegisterField(Strict):
         return self
 
 
+def first_places(values: list[Any], items: str, key: str, rule: str) -> dict[Any, int]:
+    """Where each value first stands in ``values``; a repeat is refused at its place
+    (``items[i].key``), naming the first one and the ``rule``."""
+    places: dict[Any, int] = {}
+    for index, value in enumerate(values):
+        if value in places:
+            shown = f"'{value}'" if isinstance(value, str) else str(value)
+            raise KeyPathError(
+                (items, index, key), f"{shown} is already {items}[{places[value]}]; {rule}"
+            )
+        places[value] = index
+    return places
+
+
 class MacroBlock(Strict):
     """A CNC's macro variables #first…#last, one ``data_type`` value each from ``address``."""
 
@@ -228,14 +242,7 @@ class RegisterMap(Strict):
 
     @model_validator(mode="after")
     def _consistent(self) -> RegisterMap:
-        names: dict[str, int] = {}
-        for index, item in enumerate(self.fields):
-            if item.name in names:
-                raise KeyPathError(
-                    ("fields", index, "name"),
-                    f"'{item.name}' is already fields[{names[item.name]}]; one name each",
-                )
-            names[item.name] = index
+        names = first_places([item.name for item in self.fields], "fields", "name", "one name each")
         self._check_overlaps()
         for index, item in enumerate(self.fields):
             if item.status is not None:
@@ -385,15 +392,8 @@ class Devices(Strict):
 
     @model_validator(mode="after")
     def _unique_ids(self) -> Devices:
-        seen: dict[int, int] = {}
-        for index, device in enumerate(self.devices):
-            if device.device_id in seen:
-                raise KeyPathError(
-                    ("devices", index, "device_id"),
-                    f"{device.device_id} is already devices[{seen[device.device_id]}]; "
-                    "one id per device on a bus",
-                )
-            seen[device.device_id] = index
+        ids = [device.device_id for device in self.devices]
+        first_places(ids, "devices", "device_id", "one id per device on a bus")
         return self
 
 

@@ -324,20 +324,21 @@ class ProposalStore:
         created = time.time() if created_s is None else float(created_s)
         params_json = json.loads(json.dumps(dict(params)))
         self.folder.mkdir(parents=True, exist_ok=True)
+        figures = {name: float(value) for name, value in figures.items()}
+        published = {"status": PROPOSED, "time_s": created, "note": "published"}
         while True:
             proposal = Proposal(
-                id=self._next_id(),
-                machine_id=str(machine_id),
-                created_s=created,
-                effect=str(effect),
-                params=params_json,
-                before_rmse_um=float(before_rmse_um),
-                after_rmse_um=float(after_rmse_um),
+                self._next_id(),
+                str(machine_id),
+                created,
+                str(effect),
+                params_json,
                 probe_rows=int(probe_rows),
                 document=sealed,
                 replaces=replaces,
                 note=note,
-                history=({"status": PROPOSED, "time_s": created, "note": "published"},),
+                history=(published,),
+                **figures,
             )
             if _write_new(self._path(proposal.id), proposal.to_json()):
                 return proposal

@@ -286,18 +286,8 @@ def test_steady_state_rows_have_every_lag_at_its_input() -> None:
 def test_fl_thermal_ch1_held_out_with_nested_penalties(tmp_path: Path) -> None:
     out = tmp_path / "fit.json"
     store = tmp_path / "store"
-    done = gateway(
-        "fit",
-        FL_THERMAL,
-        "--method",
-        "lag-ridge",
-        "--target",
-        "ch1_um",
-        "--json",
-        out,
-        "--store",
-        store,
-    )
+    method = ("--method", "lag-ridge", "--target", "ch1_um")
+    done = gateway("fit", FL_THERMAL, *method, "--json", out, "--store", store)
     assert done.returncode == 0, done.stderr
     assert "condition number" in done.stdout
     result = json.loads(out.read_text(encoding="utf-8"))

@@ -30,6 +30,7 @@ from simulator.params import load_params
 from simulator.programs import load_programs
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from tests.cli import ROOT, gateway
+from tests.test_analysis_report import one_step_result
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
 CANDIDATE_COLUMNS = (
@@ -304,21 +305,15 @@ def _result(
         before_pred,
         after_pred,
     )
-    return AnalysisResult(
+    return one_step_result(
+        step,
+        time_s,
+        run,
+        measured,
+        (before_pred, after_pred),
         model="mlr",
-        target="error_um",
         sensors=("T1",),
-        validation="leave-one-run-out",
-        reference={},
         rules={"min_gain_pct": 10.0},
-        before=before,
-        after=after,
-        steps=(step,),
-        time_s=time_s,
-        run=run,
-        measured_um=measured,
-        predicted_before_um=before_pred,
-        predicted_after_um=after_pred,
         tolerance_um=tolerance_um,
     )
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.image import imread
@@ -152,21 +153,37 @@ def _nothing_missing_result() -> AnalysisResult:
         predicted_before_um=predicted,
         predicted_after_um=predicted,
     )
+    return one_step_result(
+        step, time_s, run, measured, (predicted, predicted), model="linear_T2", sensors=("T2",)
+    )
+
+
+def one_step_result(
+    step: StepResult,
+    time_s: np.ndarray,
+    run: np.ndarray,
+    measured_um: np.ndarray,
+    predicted_um: tuple[np.ndarray, np.ndarray],
+    **fields: Any,
+) -> AnalysisResult:
+    """A leave-one-run-out result of the one ``step`` (predictions before and after it);
+    ``fields`` give or override the rest (model, sensors, rules, tolerance …)."""
+    values: dict[str, Any] = {
+        "target": "error_um",
+        "validation": "leave-one-run-out",
+        "reference": {},
+        "rules": {"max_p": 0.01},
+    }
     return AnalysisResult(
-        model="linear_T2",
-        target="error_um",
-        sensors=("T2",),
-        validation="leave-one-run-out",
-        reference={},
-        rules={"max_p": 0.01},
-        before=acc,
-        after=acc,
+        before=step.before,
+        after=step.after,
         steps=(step,),
         time_s=time_s,
         run=run,
-        measured_um=measured,
-        predicted_before_um=predicted,
-        predicted_after_um=predicted,
+        measured_um=measured_um,
+        predicted_before_um=predicted_um[0],
+        predicted_after_um=predicted_um[1],
+        **(values | fields),
     )
 
 

@@ -409,11 +409,14 @@ def check_config(config_path: Path, connect: bool) -> None:
     """Validate the configuration (and the model stores it names) without running."""
     import asyncio
 
-    from gateway.app import check_connections, load_bank
     from gateway.config import load_config
 
     quiet_protocol_libraries()
     config = load_config(config_path, check_host=True)
+    # The runtime (protocol clients, the model stack) only once the file is known good:
+    # a bad file is refused in well under a second.
+    from gateway.app import check_connections, load_bank
+
     for machine in config.machines:
         bank = load_bank(machine)
         click.echo(
@@ -456,11 +459,12 @@ def run(config_path: Path, log_level: str) -> None:
     import gc
     import signal
 
-    from gateway.app import Gateway
     from gateway.config import load_config
 
     setup_logging(log_level)
     config = load_config(config_path, check_host=True)
+    from gateway.app import Gateway  # the runtime only once the file is known good
+
     gateway_app = Gateway(config)
 
     async def serve() -> None:

@@ -28,7 +28,7 @@ import os
 import re
 import tempfile
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 from urllib.parse import urlsplit
 
 from pydantic import Field, ValidationError, field_validator, model_validator
@@ -55,12 +55,14 @@ from drivers.yaml_loader import (
 )
 from drivers.yaml_loader import validate as validate_section
 from gateway.compensation import CompensationLimits
-from gateway.plausibility import PlausibilityLimits
 from gateway.quality import QualityLimits
 from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
 from models.online_correction import CorrectionParams
 from models.regime_rules import RegimeRules, SpeedBand
 from models.residual_monitor import MonitorParams
+
+if TYPE_CHECKING:  # the plausibility module brings the whole model stack (scipy): not at load
+    from gateway.plausibility import PlausibilityLimits
 
 MAX_CLAMP_UM = 1000.0
 """Largest clamp: thermal growth of a spindle is tens of µm; a bigger clamp is a typo."""
@@ -157,6 +159,8 @@ class QualitySection(Strict):
     prediction_noise_um: float = Field(default=1.0, ge=0, allow_inf_nan=False)
 
     def limits(self) -> PlausibilityLimits:
+        from gateway.plausibility import PlausibilityLimits
+
         return PlausibilityLimits(
             sigma=self.plausibility_sigma,
             min_sigma_C=self.plausibility_min_sigma_C,

@@ -140,15 +140,17 @@ def fit(
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
-    from gateway.offline.tables import accuracy_table, sigma_matrix_table
     from models.dataset import load_runs
+
+    sensor_list = parse_sensors(sensors)
+    data = load_runs(data_csv, target=target, sensors=sensor_list)
+    # The fitting stack (scipy, scikit-learn) only once the file is known good.
+    from gateway.offline.tables import accuracy_table, sigma_matrix_table
     from models.features import prepare
     from models.fitting import fit_and_store
     from models.regimes import format_report
     from models.store import ModelStore
 
-    sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list)
     report_skipped(data)
     prepared = prepare(data, sensor_list, reference).without_sensor_readings()
     data = prepared.data  # the readings of the sensors are let go: their rises are kept
@@ -685,14 +687,16 @@ def analyze(
 
     import numpy as np
 
-    from models import augmented
-    from models.analysis import analyze as run_analysis
     from models.dataset import load_runs
-    from models.features import prepare
-    from models.store import data_fingerprint
 
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=probe_rows)
+    # The analysis stack (scipy, scikit-learn) only once the file is known good.
+    from models import augmented
+    from models.analysis import analyze as run_analysis
+    from models.features import prepare
+    from models.store import data_fingerprint
+
     report_skipped(data)
     prepared = prepare(data, sensor_list, reference).without_sensor_readings()
     fit_rows = None

@@ -20,6 +20,9 @@ speed block, the macro), at a 1 s interval:
 - ``project_cycle``: the whole ``MachineLoop`` (quality, regime, model,
   write-back with read-back) per machine, as ``run`` starts them.
 
+Both gateway sides run with the objects built at start frozen out of the
+garbage collector's passes, as ``Gateway.run`` runs (:mod:`gateway.heap`).
+
 The poller under test is pinned to core 0; the devices are served by lean
 server processes (an asyncio protocol answering from a register image, a few
 hundred ports per process) pinned to core 1, and they count every request they

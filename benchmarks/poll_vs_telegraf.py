@@ -20,6 +20,9 @@ speed block, the macro), at a 1 s interval:
 - ``project_cycle``: the whole ``MachineLoop`` (quality, regime, model,
   write-back with read-back) per machine, as ``run`` starts them.
 
+Both gateway sides run with the objects built at start frozen out of the
+garbage collector's passes, as ``Gateway.run`` runs (:mod:`gateway.heap`).
+
 The poller under test is pinned to core 0; the devices are served by lean
 server processes (an asyncio protocol answering from a register image, a few
 hundred ports per process) pinned to core 1, and they count every request they
@@ -354,6 +357,7 @@ async def _poller_main(args: argparse.Namespace) -> None:
     from drivers.clock import WallClock
     from gateway.app import build_buses, build_cnc, load_bank
     from gateway.cycle_scheduler import CycleScheduler
+    from gateway.heap import frozen_startup_heap
     from gateway.runtime import MachineLoop
 
     logging.disable(logging.CRITICAL)  # a benchmark: no log formatting in the measurement
@@ -394,14 +398,15 @@ async def _poller_main(args: argparse.Namespace) -> None:
         lambda: asyncio.StreamReaderProtocol(reader), sys.stdin
     )
     print(json.dumps({"ready": len(sections)}), flush=True)
-    while line := (await reader.readline()).decode().strip():
-        if line == "mark":
-            stats.marks.append(clock.now())
-            print(json.dumps({"marked": len(stats.marks)}), flush=True)
-        elif line == "stop":
-            stop.set()
-            break
-    await asyncio.gather(*tasks, return_exceptions=True)
+    with frozen_startup_heap():  # as Gateway.run does, for both gateway sides
+        while line := (await reader.readline()).decode().strip():
+            if line == "mark":
+                stats.marks.append(clock.now())
+                print(json.dumps({"marked": len(stats.marks)}), flush=True)
+            elif line == "stop":
+                stop.set()
+                break
+        await asyncio.gather(*tasks, return_exceptions=True)
     for loop in loops:
         await loop.close()
     print(json.dumps(stats.window()), flush=True)

@@ -29,9 +29,9 @@ silence is physical, so it is measured on the event loop's monotonic clock.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator, Awaitable, Callable
-from contextlib import asynccontextmanager
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
+from types import TracebackType
 from typing import Protocol, TypeVar
 
 from drivers.backoff import Backoff
@@ -161,26 +161,40 @@ class BusHub:
             self.link.close()
             self._silence.reset()
 
-    @asynccontextmanager
-    async def transaction(self, user: object, now_s: float) -> AsyncIterator[Session]:
+    def transaction(self, user: object, now_s: float) -> _Transaction:
         """Hold the bus for ``user``'s requests: lock, open the port if the back-off
-        allows, then hand out a :class:`Session`; the report decides on reconnects."""
+        allows, then hand out a :class:`Session`; the report decides on reconnects.
+
+        ``async with hub.transaction(user, now_s) as session:`` (a plain context
+        manager object rather than an async generator: one per bus and cycle).
+        """
+        return _Transaction(self, user, now_s)
+
+    async def _begin(self, user: object, now_s: float) -> Session:
+        """Lock the bus and hand out ``user``'s session (the lock is released on a raise)."""
         self.attach(user)
-        async with self._lock:
+        await self._lock.acquire()
+        try:
             failure = await self._ensure_open(now_s)
-            reopened = self._seen_opens.get(user) != self.opens  # a first turn counts too
-            self._seen_opens[user] = self.opens
-            session = Session(failure=failure, reopened=reopened and failure is None)
-            self.transactions += 1
-            try:
-                yield session
-            except BaseException:
+        except BaseException:
+            self._lock.release()
+            raise
+        reopened = self._seen_opens.get(user) != self.opens  # a first turn counts too
+        self._seen_opens[user] = self.opens
+        self.transactions += 1
+        return Session(failure=failure, reopened=reopened and failure is None)
+
+    def _end(self, user: object, session: Session, now_s: float, cut_short: bool) -> None:
+        """After the turn: settle the port (or close it if cut short), then unlock."""
+        try:
+            if cut_short:
                 # Cut short (a stop, a cancelled cycle): a reply may still be on its way,
                 # so the next user starts on a freshly opened port instead.
                 self.link.close()
-                raise
-            if failure is None:
+            elif session.failure is None:
                 self._settle(user, session, now_s)
+        finally:
+            self._lock.release()
 
     async def request(self, send: Callable[[], Awaitable[T]], *, pause_s: float = 0.0) -> T:
         """Send one request (inside a transaction) once the bus has been silent long enough:
@@ -224,6 +238,31 @@ class BusHub:
         self._down_reason = reason
         self._silent_users.clear()
         self.backoff.failed(now_s)
+
+
+class _Transaction:
+    """``BusHub.transaction``'s context manager: the turn starts on entry, settles on exit."""
+
+    __slots__ = ("_hub", "_now_s", "_session", "_user")
+
+    def __init__(self, hub: BusHub, user: object, now_s: float) -> None:
+        self._hub = hub
+        self._user = user
+        self._now_s = now_s
+        self._session: Session | None = None
+
+    async def __aenter__(self) -> Session:
+        self._session = await self._hub._begin(self._user, self._now_s)
+        return self._session
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        assert self._session is not None
+        self._hub._end(self._user, self._session, self._now_s, cut_short=exc_type is not None)
 
 
 class HubSettingsError(ValueError):

@@ -27,6 +27,7 @@ from drivers.transmitters import DeviceMap, TransmitterBus
 from gateway.bus_hubs import shared_hubs
 from gateway.config import GatewayConfig, MachineSection
 from gateway.cycle_scheduler import CycleScheduler
+from gateway.heap import frozen_startup_heap
 from gateway.login_throttle import ThrottlePolicy
 from gateway.model_bank import ModelBank
 from gateway.monitor import MonitorSink, build_monitor
@@ -290,7 +291,8 @@ class Gateway:
             for supervisor in self.supervisors.values()
         ]
         try:
-            await asyncio.gather(*tasks)
+            with frozen_startup_heap():  # what is built by now lives until the stop
+                await asyncio.gather(*tasks)
         finally:
             log.debug("stopping: machine loops")
             for task in tasks:

@@ -189,6 +189,31 @@ def relations_from_bank(bank: ModelBank, sensors: Iterable[str]) -> SensorRelati
     return min(found, key=lambda f: f[:3])[3] if found else None
 
 
+class _Past:
+    """One earlier cycle's trusted rises, and its row for the model's sensors, kept.
+
+    The rate rule looks back over every cycle of :data:`RATE_HORIZON_S` each cycle
+    (120 rows at a 1 s cycle); the row of an earlier cycle only changes when the
+    model's sensors do, so it is built once, not once per later cycle.
+    """
+
+    __slots__ = ("_row", "_sensors", "rises_C", "time_s")
+
+    def __init__(self, time_s: float, rises_C: dict[str, float]) -> None:
+        self.time_s = time_s
+        self.rises_C = rises_C
+        self._sensors: tuple[str, ...] | None = None
+        self._row: list[float] | None = None
+
+    def row(self, sensors: tuple[str, ...]) -> list[float] | None:
+        """The rises of ``sensors`` in that order; None when one of them was not trusted."""
+        if sensors != self._sensors:
+            rises = self.rises_C
+            self._sensors = sensors
+            self._row = [rises[s] for s in sensors] if all(s in rises for s in sensors) else None
+        return self._row
+
+
 class Plausibility:
     """Both rules for one machine, with the holds they place (see the module docstring)."""
 
@@ -204,7 +229,7 @@ class Plausibility:
         self.flags = 0  # how many times a sensor was newly held
         # The largest |z| of a sensor found sound: how close this machine runs to the threshold.
         self.largest_sound_z = 0.0
-        self._history: deque[tuple[float, dict[str, float]]] = deque()
+        self._history: deque[_Past] = deque()
 
     @classmethod
     def for_machine(
@@ -363,9 +388,9 @@ class Plausibility:
             return None
         now_x = np.array([rises_C[s] for s in sensors])
         earlier = [
-            (then_s, [then_rises[s] for s in sensors])
-            for then_s, then_rises in self._history
-            if now_s - then_s <= RATE_HORIZON_S and all(s in then_rises for s in sensors)
+            (past.time_s, row)
+            for past in self._history
+            if now_s - past.time_s <= RATE_HORIZON_S and (row := past.row(sensors)) is not None
         ]
         if not earlier:
             return None
@@ -414,8 +439,10 @@ class Plausibility:
                     "machine cold and at rest to arm it",
                     self.machine,
                 )
-        self._history.append((now_s, {s: v for s, v in rises_C.items() if s not in self.holds}))
-        while self._history and now_s - self._history[0][0] > RATE_HORIZON_S:
+        self._history.append(
+            _Past(now_s, {s: v for s, v in rises_C.items() if s not in self.holds})
+        )
+        while self._history and now_s - self._history[0].time_s > RATE_HORIZON_S:
             self._history.popleft()
 
     def _allowed_um(self, span_s: _Span) -> _Span:

@@ -152,6 +152,7 @@ class Promotions:
         self._version_key: tuple[int, int, int] | None = None
         self._proposals_key: tuple[int, int] | None = None
         self._entries: dict[str | None, ActiveEntry] = {}  # what the bank holds, by place
+        self._proposals_path = os.fspath(self.store.folder)  # stat-ed every cycle
 
     # -- at start ---------------------------------------------------------------------------
     def load(self, bank: ModelBank) -> SwapOutcome:
@@ -269,7 +270,7 @@ class Promotions:
 
     def _proposals_changed(self) -> bool:
         try:
-            status = os.stat(self.store.folder)
+            status = os.stat(self._proposals_path)
         except FileNotFoundError:
             key = None
         else:

@@ -175,6 +175,8 @@ class QualityMonitor:
             s: _SensorState(limits=lim, last_check=SensorCheck(s, Quality.BAD, "no value yet"))
             for s, lim in per_sensor.items()
         }
+        # A verdict is immutable: each sensor's GOOD one is made once, not every cycle.
+        self._good = {s: SensorCheck(s, Quality.GOOD, None) for s in per_sensor}
         self._start_s: float | None = None
         self._last_now_s: float | None = None
         self.plausibility = plausibility
@@ -315,11 +317,11 @@ class QualityMonitor:
         needed = state.limits.recover_cycles
         was_bad = state.last_check.quality is Quality.BAD
         if not was_bad:
-            return SensorCheck(name, Quality.GOOD, None)
+            return self._good[name]
         state.good_streak += 1
         if state.good_streak >= needed:
             state.good_streak = 0
-            return SensorCheck(name, Quality.GOOD, None)
+            return self._good[name]
         return SensorCheck(name, Quality.BAD, f"recovering ({state.good_streak}/{needed} good)")
 
     def _remember(self, state: _SensorState, now_s: float, value: float) -> None:

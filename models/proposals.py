@@ -411,6 +411,7 @@ class ModelVersions:
     def __init__(self, store_dir: str | Path, proposals: ProposalStore | None = None) -> None:
         self.folder = Path(store_dir) / VERSIONS_FOLDER
         self.proposals = proposals or ProposalStore(store_dir)
+        self._pointer_path = os.fspath(self.pointer)  # stat-ed every cycle: joined once
 
     @property
     def pointer(self) -> Path:
@@ -419,7 +420,7 @@ class ModelVersions:
     def pointer_key(self) -> tuple[int, int, int] | None:
         """What changes whenever a new version is put in force (one ``stat``; None: none yet)."""
         try:
-            status = os.stat(self.pointer)
+            status = os.stat(self._pointer_path)
         except FileNotFoundError:
             return None
         return (status.st_ino, status.st_mtime_ns, status.st_size)

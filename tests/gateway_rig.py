@@ -87,7 +87,7 @@ def machine_entry(
             {
                 "name": "bus1",
                 "tcp": {"host": "127.0.0.1", "port": served_tcp.port},
-                "timeout_s": 0.3,
+                "timeout_s": 0.5,  # wall time, generous for a loaded machine
                 "devices": [DEVICES[0], {"device_id": 2, "channels": ["T9", None]}],
             }
         ]

@@ -263,7 +263,7 @@ def test_a_dead_module_of_one_machine_does_not_stop_the_other_machine(
     tmp_path: Path, store: Path, line: PtyPair
 ) -> None:
     cycles = 30
-    timeout_s = 0.3  # the default; shorter ones miss live replies on a loaded machine
+    timeout_s = 0.6  # wall time: shorter ones miss live replies on a loaded machine
 
     async def scenario() -> tuple[Gateway, dict[str, list[CycleRecord]], TransmitterServer]:
         clock = AcceleratedClock(2.5)  # a 1 s cycle every 400 ms of wall time
@@ -308,7 +308,7 @@ def test_the_port_closes_with_its_last_user_and_reopens_only_when_the_whole_line
     line: PtyPair,
 ) -> None:
     async def body() -> None:
-        link = ModbusConnection(serial_port=line.client_port, baudrate=BAUDRATE, timeout_s=0.1)
+        link = ModbusConnection(serial_port=line.client_port, baudrate=BAUDRATE, timeout_s=0.5)
         hub = BusHub(link, silence_s=rtu_silence_s(BAUDRATE))
         left = TransmitterBus([DeviceMap(1, ("T1",)), DeviceMap(2, ("T9",))], hub=hub)
         right = TransmitterBus([DeviceMap(3, ("T1",))], hub=hub)

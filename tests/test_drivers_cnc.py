@@ -232,7 +232,7 @@ def test_modbus_reads_speed_and_round_trips_a_macro() -> None:
         link = FixedLink(snapshot())
         async with CncModbusServer(link, host=HOST, port=0) as server:
             host, port = server.address
-            cnc = ModbusCnc(host, port, timeout_s=0.3)
+            cnc = ModbusCnc(host, port, timeout_s=1.0)
             try:
                 assert await cnc.read_speed() == SpeedReading(4000.0, 4500.0, int(RunMode.AUTO))
                 assert await cnc.read_macro(500) == 0.0125

@@ -112,7 +112,7 @@ def test_retries_send_the_request_again() -> None:
     async def body() -> None:
         server = ScriptedServer(script)
         async with server as address:
-            link = ModbusConnection(tcp=address, timeout_s=0.3, retries=1)
+            link = ModbusConnection(tcp=address, timeout_s=1.0, retries=1)
             await link.open()
             try:
                 assert await link.read_holding_registers(5, 1, device_id=1) == [1]
@@ -141,7 +141,7 @@ def test_exception_replies_a_foreign_device_and_a_hang_up() -> None:
 
     async def body() -> None:
         async with ScriptedServer(script) as address:
-            link = ModbusConnection(tcp=address, timeout_s=0.3)
+            link = ModbusConnection(tcp=address, timeout_s=1.0)
             await link.open()
             try:
                 with pytest.raises(ModbusRefusedError, match="exception 2") as refused:

@@ -173,7 +173,7 @@ def test_opcua_recovers_after_server_restarts_with_a_new_session() -> None:
             started = time.monotonic()
             with pytest.raises(CncError, match="next attempt"):
                 await cnc.write_macro(500, 0.5)  # inside the backoff: fails without I/O
-            assert time.monotonic() - started < 0.05
+            assert time.monotonic() - started < 0.25  # no connect attempt (its timeout is 0.5 s)
             assert first_link.writes == []
 
             # A new server process on the same port: new session, namespace resolved again.

@@ -187,8 +187,8 @@ def test_silent_slave_costs_one_timeout_and_spares_the_others(
     async def check(bus: TransmitterBus) -> None:
         try:
             elapsed = [await cycle(bus, float(now)) for now in (1, 2, 3)]
-            # One timeout for the silent device, a few ms for the live ones.
-            assert all(TIMEOUT_S * 0.9 <= e <= TIMEOUT_S + 0.25 for e in elapsed), elapsed
+            # One timeout for the silent device (not two: no retry), a few ms for the live ones.
+            assert all(TIMEOUT_S * 0.9 <= e < 2 * TIMEOUT_S for e in elapsed), elapsed
             assert bus.health.connected and bus.health.reconnects == 0
             assert bus.health.total_failures == 0
             assert bus.device_health[SILENT_ID].consecutive_failures == 3

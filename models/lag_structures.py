@@ -258,7 +258,7 @@ class CandidatePaths:
         gram, cross = self.grams.total(sorted(members))
         mean, scale = standardisation(gram)
         y_mean = cross[0] / gram[0, 0]
-        rows = np.isin(self.labels, [self.grams.labels[m] for m in members])
+        rows = self.rows_of(members)
         z = (self.terms[rows] - mean) / scale
         y = self.y[rows] - y_mean
         sigma = max(float(np.sqrt(np.mean(y**2))), 1e-12)
@@ -295,7 +295,7 @@ class CandidatePaths:
 
     def nested_predictions(self, members: frozenset[int]) -> np.ndarray:
         """Every training row of ``members`` (in row order) predicted as in :meth:`nested_sse`."""
-        rows = np.isin(self.labels, [self.grams.labels[m] for m in members])
+        rows = self.rows_of(members)
         predicted = np.empty(self.labels.size)
         for held in members:
             rest = members - {held}
@@ -305,7 +305,11 @@ class CandidatePaths:
         return predicted[rows]
 
     def training_target(self, members: frozenset[int]) -> np.ndarray:
-        return self.y[np.isin(self.labels, [self.grams.labels[m] for m in members])]
+        return self.y[self.rows_of(members)]
+
+    def rows_of(self, members: frozenset[int]) -> np.ndarray:
+        """Mask of the rows of the groups ``members``."""
+        return np.isin(self.labels, [self.grams.labels[m] for m in members])
 
 
 def simplex_weights(k: int, steps: int = STACK_STEPS) -> np.ndarray:

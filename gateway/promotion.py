@@ -140,8 +140,12 @@ class SwapOutcome:
 class Promotions:
     """One machine's view of its store's proposals and promoted set (see the module doc)."""
 
-    def __init__(self, machine: MachineSection) -> None:
+    def __init__(self, machine: MachineSection, *, running: bool = False) -> None:
+        """``running``: these are the running loop's promotions, whose refusals are written
+        into the store (``_record_refusal``); a check (``check-config``, ``models promote
+        --config``) only looks and writes nothing."""
         self.machine = machine
+        self.running = running
         self.store = ProposalStore(machine.models.store)
         self.auto_promote = machine.models.auto_promote
         self.version = 0  # the version whose set the bank holds (as far as it passed)
@@ -225,7 +229,8 @@ class Promotions:
                 if old is not None:  # keep the one that served there
                     entries[entry.replaces] = old
                     models[entry.replaces] = _banked(bank, old)
-                self._record_refusal(entry, str(exc), old)
+                if self.running:
+                    self._record_refusal(entry, str(exc), old)
         before = {place: e.sha256 for place, e in self._entries.items()}
         after = {place: e.sha256 for place, e in entries.items()}
         self.version = version.number

@@ -123,7 +123,7 @@ class MachineLoop:
         self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
         effect_file = None if state_dir is None else state_dir / f"{config.id}-effect-state.json"
         #: The promoted set of the store, swapped into the bank between cycles.
-        self.promotions = Promotions(config)
+        self.promotions = Promotions(config, running=True)
         self.promotions.load(bank)
         warm = WarmLags(self.sensors, ambient_sensor_of(self.sensors))
         self.effects = EffectStates(bank.augmented(), effect_file, warm=warm)

@@ -261,6 +261,24 @@ def test_a_model_the_machine_cannot_run_is_refused_and_the_old_one_stays(
     )
 
 
+def test_a_check_of_the_configuration_reads_the_promoted_set_and_writes_nothing(
+    tmp_path: Path, models_dir: Path, lag_document: dict[str, Any]
+) -> None:
+    """Only the running loop records a refusal in the store; check-config only looks."""
+    store = fresh_store(tmp_path, models_dir)
+    bad = publish(store, needing(lag_document, "T12", "needs-t12"))
+    assert gateway("models", "promote", bad.id, "--store", store).returncode == 0
+    config = tmp_path / "config.yaml"
+    entry = rig.machine_entry(MACHINE, rig.plant(ManualClock()), store)
+    config.write_text(yaml.safe_dump({"machines": [entry], "state_dir": str(tmp_path / "s")}))
+    before = (store / "proposals" / f"{bad.id}.json").read_bytes()
+    checked = gateway("check-config", "--config", config)
+    assert checked.returncode == 0, checked.stderr
+    assert "models version 1" in checked.stdout
+    assert (store / "proposals" / f"{bad.id}.json").read_bytes() == before
+    assert ProposalStore(store).get(bad.id).status == PROMOTED
+
+
 # -- over SCADA ----------------------------------------------------------------------------
 
 OPERATOR = ("alice", "op-secret-1")

@@ -14,7 +14,7 @@ from models import augmented
 from models.dataset import load_runs
 from models.features import prepare
 from models.online_correction import CorrectionParams
-from models.online_replay import probe_rows, replay_run
+from models.online_replay import choose_filter, probe_rows, replay_run
 from tests.cli import ROOT, gateway
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
@@ -90,6 +90,42 @@ def test_replay_uses_only_probes_from_the_past():
     applied_changed, _, _ = replay_run(params, time_s, changed, 3600.0)
     assert np.array_equal(applied[:cut], applied_changed[:cut])
     assert not np.array_equal(applied[cut:], applied_changed[cut:])
+
+
+def nested_choice_case(tmp_path, gain: float, seed: int):
+    """Four 8-h runs whose model prediction ŷ warms up and steps at a speed change, and a
+    residual g·ŷ plus a random-walk bias: (prepared data, inner residual)."""
+    rng = np.random.default_rng(seed)
+    time_s = np.arange(0.0, 8 * 3600.0, 60.0)
+    hours = time_s / 3600.0
+    rows = ["run,time_s,speed_rpm,T1,error_um"]
+    residuals = []
+    for k in range(4):
+        predicted = (15.0 + 5 * k) * (1 - np.exp(-hours / 1.5)) - 6.0 * (hours > 4) * (
+            1 - np.exp(4 - hours)
+        )
+        residual = gain * predicted + np.cumsum(rng.normal(0.0, 0.05, time_s.size))
+        residuals.append(residual)
+        measured = predicted + residual + rng.normal(0.0, 0.05, time_s.size)
+        for t, e in zip(time_s + k * 8 * 3600.0, measured, strict=True):
+            rows.append(f"r{k},{t:.0f},1000,{20 + e / 10:.4f},{e:.4f}")
+    path = tmp_path / f"case{seed}.csv"
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    prepared = prepare(load_runs(path))
+    return prepared, np.concatenate(residuals)
+
+
+def test_the_nested_choice_picks_the_filter_kind_the_training_runs_need(tmp_path):
+    kinds = ("bias", "bias-rate", "bias-gain")
+    prepared, residual = nested_choice_case(tmp_path, gain=0.25, seed=1)
+    runs = list(prepared.data.run_ids)
+    chosen = choose_filter(prepared, residual, runs, 3600.0, CorrectionParams(), kinds)
+    assert chosen.kind == "bias-gain" and chosen.gain_process_per_h in (1e-3, 1e-2, 1e-1)
+    only_bias = choose_filter(prepared, residual, runs, 3600.0, CorrectionParams(), ("bias",))
+    assert only_bias.kind == "bias"
+    prepared, residual = nested_choice_case(tmp_path, gain=0.0, seed=2)
+    plain = choose_filter(prepared, residual, runs, 3600.0, CorrectionParams(), kinds)
+    assert plain.kind == "bias"  # nothing to gain: the simplest kind within 2 % of the best
 
 
 def test_probe_rows_take_the_first_sample_at_or_after_each_probe_time():

@@ -65,6 +65,30 @@ def test_replay_fl_thermal_ch5_a_probe_every_hour(tmp_path):
     assert_stored_model_runs_in_the_bank(store, result)
 
 
+def test_a_stored_bias_gain_filter_reaches_the_runtime(tmp_path):
+    """Only bias-gain offered: the saved model carries that kind and its noise through JSON,
+    and the running gateway takes them with its own limits."""
+    store = tmp_path / "store"
+    done = gateway(
+        "replay", FL_THERMAL, "--target", "ch5_um", "--probe-interval-min", "60",
+        "--filter-kind", "bias-gain", "--store", store, "--json", tmp_path / "r.json",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "filter bias-gain" in done.stdout
+    result = json.loads((tmp_path / "r.json").read_text(encoding="utf-8"))
+    assert result["filter_kinds_offered"] == ["bias-gain"]
+    for figures in result["online"][0]["per_run"].values():
+        assert figures["chosen"]["filter"]["kind"] == "bias-gain"
+        assert figures["chosen"]["filter"]["gain_process_per_h"] in (1e-3, 1e-2, 1e-1)
+    (banked,) = ModelBank.from_store(store).augmented()
+    stored = CorrectionParams.from_dict(banked.document["online_correction"]["params"])
+    assert stored.kind == "bias-gain" and stored.gain_process_per_h in (1e-3, 1e-2, 1e-1)
+    limits = CorrectionParams(bound_um=7.0, gain_process_per_h=5.0)
+    taken = limits.with_noise_of(banked.document["online_correction"]["params"])
+    assert (taken.kind, taken.gain_process_per_h) == ("bias-gain", stored.gain_process_per_h)
+    assert taken.bound_um == 7.0
+
+
 def test_replay_refuses_bad_input_with_one_line(tmp_path):
     done = gateway("replay", FL_THERMAL, "--target", "ch9_um")
     assert done.returncode == 2

@@ -775,6 +775,13 @@ def analyze(
     help="Minutes between probes (repeatable; default 60).",
 )
 @click.option(
+    "--filter-kind",
+    "filter_kinds",
+    type=click.Choice(["bias", "bias-rate", "bias-gain"]),
+    multiple=True,
+    help="Filter kinds the nested choice may pick from (repeatable; default bias).",
+)
+@click.option(
     "--store",
     "store_dir",
     type=click.Path(path_type=Path),
@@ -791,6 +798,7 @@ def replay(
     base: str,
     augmented_file: Path | None,
     intervals: tuple[float, ...],
+    filter_kinds: tuple[str, ...],
     store_dir: Path | None,
     json_out: Path | None,
 ) -> None:
@@ -808,6 +816,7 @@ def replay(
         click.echo,
         store_dir=store_dir,
         version=__version__,
+        filter_kinds=filter_kinds or ("bias",),
     )
     write_json(json_out, result)
 

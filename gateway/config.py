@@ -370,9 +370,11 @@ class OnlineCorrectionSection(Strict):
     """
 
     enabled: bool = False
-    kind: Literal["bias", "bias-rate"] = "bias"
+    kind: Literal["bias", "bias-rate", "bias-gain"] = "bias"
     process_um2_per_h: float = Field(default=1.0, ge=0)
     rate_process_um2_per_h3: float = Field(default=0.0, ge=0)
+    gain_process_per_h: float = Field(default=0.0, ge=0)
+    gain_prior: float = Field(default=0.5, gt=0)
     reversion_tau_s: float | None = Field(default=None, gt=0)
     probe_noise_um: float = Field(default=0.3, gt=0)
     bound_um: float = Field(default=20.0, gt=0)

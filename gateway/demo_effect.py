@@ -101,7 +101,9 @@ class InProcessPlant:
         predicted = self.predict(rises, speed)
         corrected = predicted
         if self.online is not None and np.isfinite(predicted):
-            corrected = predicted + float(self.online.correction_at(self.time_s)[0])
+            corrected = predicted + float(
+                self.online.correction_at(self.time_s, predicted_um=predicted)[0]
+            )
         applied = corrected if np.isfinite(corrected) else 0.0
         comp = machine.params.compensation
         machine.write_macro(comp.macro, applied / comp.um_per_unit / comp.sign)
@@ -112,7 +114,8 @@ class InProcessPlant:
             self._last_probe = probe
             new_probe = probe
             if self.online is not None and self._basis is not None:
-                self.online.update(self.time_s, probe + self._basis[1] - self._basis[0])
+                residual_um = probe + self._basis[1] - self._basis[0]
+                self.online.update(self.time_s, residual_um, predicted_um=self._basis[0])
         self._basis = (predicted, applied) if np.isfinite(predicted) else None
         record = CycleRecord(
             machine="in-process",

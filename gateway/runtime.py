@@ -443,7 +443,7 @@ class MachineLoop:
             log.info("%s: online correction restarts as %s", self.config.id, params.kind)
             self.online = OnlineCorrection(params)
         self.online.params = params
-        record.correction_um = float(self.online.correction_at(now)[0])
+        record.correction_um = float(self.online.correction_at(now, predicted_um=predicted)[0])
         return predicted + record.correction_um
 
     def _online_params(self, banked: Banked | None) -> CorrectionParams:
@@ -464,7 +464,7 @@ class MachineLoop:
         if record.probe_error_um is None or basis is None:
             return
         residual_um = record.probe_error_um + basis[1] - basis[0]
-        outcome = self.online.update(now, residual_um)
+        outcome = self.online.update(now, residual_um, predicted_um=basis[0])
         record.probe_refused = not outcome.accepted
         if not outcome.accepted:
             log.warning(

@@ -22,9 +22,22 @@ State models (``kind``):
 
   (Δ in hours). It follows a residual that keeps drifting between probes.
 
+- ``bias-gain``: bias and a gain error g (µm per µm of the model's prediction ŷ),
+  both random walks::
+
+      x = [b, g],  F = I,  Q = diag(q Δ, q_gain Δ),  residual = b + g ŷ(t)
+
+  A model whose growth is too large or too small by a fraction for this machine
+  state leaves a residual proportional to its own prediction; a bias would have
+  to follow every change of ŷ from probe to probe. The gain carries it between
+  probes, so this kind needs the model's prediction: at a probe (H = [1, ŷ]) and
+  wherever the correction is evaluated.
+
 ``q`` is ``process_um2_per_h`` (variance the bias gains per hour), ``q_rate`` is
-``rate_process_um2_per_h3``, and the probe's own noise is ``probe_noise_um``
-(σ, µm). Every probe is one scalar measurement z of the bias, H = [1, 0].
+``rate_process_um2_per_h3``, ``q_gain`` is ``gain_process_per_h`` (variance the
+dimensionless gain gains per hour), and the probe's own noise is ``probe_noise_um``
+(σ, µm). Every probe is one scalar measurement z of the residual, H = [1, 0] (or
+[1, ŷ] for ``bias-gain``).
 
 Safety, by construction:
 
@@ -56,17 +69,19 @@ from typing import Any, Literal
 import numpy as np
 
 SECONDS_PER_HOUR = 3600.0
-KINDS = ("bias", "bias-rate")
+KINDS = ("bias", "bias-rate", "bias-gain")
 # What a fit chooses and a model stores; the rest (bound, decay) are the machine's safety limits.
 NOISE_FIELDS = (
     "kind",
     "process_um2_per_h",
     "rate_process_um2_per_h3",
+    "gain_process_per_h",
+    "gain_prior",
     "reversion_tau_s",
     "probe_noise_um",
     "outlier_sigma",
 )
-Kind = Literal["bias", "bias-rate"]
+Kind = Literal["bias", "bias-rate", "bias-gain"]
 
 
 @dataclass(frozen=True)
@@ -76,6 +91,8 @@ class CorrectionParams:
     kind: Kind = "bias"
     process_um2_per_h: float = 1.0
     rate_process_um2_per_h3: float = 0.0
+    gain_process_per_h: float = 0.0
+    gain_prior: float = 0.5  # σ of the gain error before any probe (µm per µm)
     reversion_tau_s: float | None = None
     probe_noise_um: float = 0.3
     prior_um: float = 5.0
@@ -88,12 +105,25 @@ class CorrectionParams:
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
             raise ValueError(f"online correction kind {self.kind!r}: expected one of {KINDS}")
-        positive = ("probe_noise_um", "prior_um", "outlier_sigma", "bound_um", "decay_tau_s")
+        positive = (
+            "probe_noise_um",
+            "prior_um",
+            "gain_prior",
+            "outlier_sigma",
+            "bound_um",
+            "decay_tau_s",
+        )
         for name in positive:
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"online correction {name} = {value}: expected a number > 0")
-        for name in ("process_um2_per_h", "rate_process_um2_per_h3", "decay_after_s"):
+        nonnegative = (
+            "process_um2_per_h",
+            "rate_process_um2_per_h3",
+            "gain_process_per_h",
+            "decay_after_s",
+        )
+        for name in nonnegative:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"online correction {name} = {value}: expected a number >= 0")
@@ -129,7 +159,7 @@ class ProbeOutcome:
 
     time_s: float
     residual_um: float
-    predicted_um: float  # the filter's prediction of the residual before the probe
+    predicted_um: float  # the filter's prediction of the residual before the probe (µm)
     innovation_sigma_um: float  # √S
     accepted: bool
     reason: str
@@ -158,12 +188,26 @@ class OnlineCorrection:
         self.refused = 0
         self.refused_in_row = 0
 
+    @property
+    def needs_prediction(self) -> bool:
+        """True when the correction depends on the model's prediction (``bias-gain``)."""
+        return self.params.kind == "bias-gain"
+
     def _prior(self) -> np.ndarray:
         prior = np.zeros((self.size, self.size))
         prior[0, 0] = self.params.prior_um**2
-        if self.size == 2:
+        if self.params.kind == "bias-rate":
             prior[1, 1] = self.params.prior_um**2  # (µm/h)²: a rate as large as the prior bias
+        elif self.params.kind == "bias-gain":
+            prior[1, 1] = self.params.gain_prior**2
         return prior
+
+    def _h(self, predicted_um: float | None) -> np.ndarray:
+        """The measurement row: the residual the state predicts is H x."""
+        if self.params.kind == "bias-gain":
+            assert predicted_um is not None
+            return np.array([1.0, predicted_um])
+        return np.array([1.0] + [0.0] * (self.size - 1))
 
     def export_state(self) -> dict[str, Any]:
         return {
@@ -200,14 +244,22 @@ class OnlineCorrection:
             tau_h = p.reversion_tau_s / SECONDS_PER_HOUR
             a = math.exp(-dt_h / tau_h)
             return np.array([[a]]), np.array([[p.process_um2_per_h * tau_h / 2 * (1 - a * a)]])
+        if p.kind == "bias-gain":
+            return np.eye(2), np.diag([p.process_um2_per_h * dt_h, p.gain_process_per_h * dt_h])
         F = np.array([[1.0, dt_h], [0.0, 1.0]])
         qr = p.rate_process_um2_per_h3
         Q = qr * np.array([[dt_h**3 / 3, dt_h**2 / 2], [dt_h**2 / 2, dt_h]])
         Q[0, 0] += p.process_um2_per_h * dt_h
         return F, Q
 
-    def predicted_residual_um(self, time_s: np.ndarray | float) -> np.ndarray:
-        """The filter's estimate of the residual at ``time_s`` (≥ the last probe), unbounded."""
+    def predicted_residual_um(
+        self, time_s: np.ndarray | float, predicted_um: np.ndarray | float | None = None
+    ) -> np.ndarray:
+        """The filter's estimate of the residual at ``time_s`` (≥ the last probe), unbounded.
+
+        ``predicted_um``: the model's prediction at those times (µm); needed by
+        ``bias-gain`` (see :attr:`needs_prediction`), ignored by the other kinds.
+        """
         t = np.atleast_1d(np.asarray(time_s, dtype=float))
         if self.time_s is None:
             return np.zeros(t.shape)
@@ -217,22 +269,39 @@ class OnlineCorrection:
             if p.reversion_tau_s is None:
                 return np.full(t.shape, self.x[0])
             return self.x[0] * np.exp(-dt_h * SECONDS_PER_HOUR / p.reversion_tau_s)
+        if p.kind == "bias-gain":
+            if predicted_um is None:
+                raise ValueError("online correction bias-gain needs the model's prediction")
+            y = np.broadcast_to(np.asarray(predicted_um, dtype=float), t.shape)
+            return self.x[0] + self.x[1] * y
         return self.x[0] + self.x[1] * dt_h
 
-    def correction_at(self, time_s: np.ndarray | float) -> np.ndarray:
-        """The correction to add to the model's prediction (µm): bounded, decayed in silence."""
+    def correction_at(
+        self, time_s: np.ndarray | float, predicted_um: np.ndarray | float | None = None
+    ) -> np.ndarray:
+        """The correction to add to the model's prediction (µm): bounded, decayed in silence.
+
+        ``predicted_um`` as for :meth:`predicted_residual_um`; for ``bias-gain`` a
+        prediction that is not finite gives no correction there (0 µm).
+        """
         t = np.atleast_1d(np.asarray(time_s, dtype=float))
-        value = self.predicted_residual_um(t)
         if self.last_accepted_s is None:
             return np.zeros(t.shape)
+        value = self.predicted_residual_um(t, predicted_um)
+        value = np.where(np.isfinite(value), value, 0.0)
         p = self.params
         silent_s = t - self.last_accepted_s - p.decay_after_s
         value = value * np.exp(-np.maximum(silent_s, 0.0) / p.decay_tau_s)
         return np.clip(value, -p.bound_um, p.bound_um)
 
     # --- a probe -------------------------------------------------------------------------
-    def update(self, time_s: float, residual_um: float) -> ProbeOutcome:
+    def update(
+        self, time_s: float, residual_um: float, predicted_um: float | None = None
+    ) -> ProbeOutcome:
         """Take one probe: the model's residual (µm) measured at ``time_s``.
+
+        ``predicted_um``: the model's prediction the residual was taken from (µm),
+        needed by ``bias-gain`` and ignored by the other kinds.
 
         Refused (state unchanged, counted) when not finite, earlier than the
         state, or outside the innovation test; see the module docstring.
@@ -241,6 +310,11 @@ class OnlineCorrection:
         if not math.isfinite(residual_um) or not math.isfinite(time_s):
             self.refused += 1
             return ProbeOutcome(time_s, residual_um, math.nan, math.nan, False, "not a number")
+        if self.needs_prediction and (predicted_um is None or not math.isfinite(predicted_um)):
+            self.refused += 1
+            return ProbeOutcome(
+                time_s, residual_um, math.nan, math.nan, False, "no model prediction"
+            )
         if self.time_s is not None and time_s < self.time_s:
             self.refused += 1
             return ProbeOutcome(
@@ -250,8 +324,10 @@ class OnlineCorrection:
         x_pred = F @ self.x
         P_pred = F @ self.P @ F.T + Q
         R = p.probe_noise_um**2
-        S = float(P_pred[0, 0] + R)
-        innovation = float(residual_um - x_pred[0])
+        H = self._h(predicted_um)
+        S = float(H @ P_pred @ H + R)
+        expected = float(H @ x_pred)
+        innovation = float(residual_um - expected)
         sigma = math.sqrt(S)
         if abs(innovation) > p.outlier_sigma * sigma:
             self.refused_in_row += 1
@@ -260,7 +336,7 @@ class OnlineCorrection:
                 return ProbeOutcome(
                     time_s,
                     residual_um,
-                    float(x_pred[0]),
+                    expected,
                     sigma,
                     False,
                     f"outlier: {innovation:+.2f} µm from the prediction, more than "
@@ -268,17 +344,17 @@ class OnlineCorrection:
                 )
             # Several refusals in a row: the machine has changed; start again from this probe.
             P_pred = P_pred + self._prior()
-            S = float(P_pred[0, 0] + R)
+            S = float(H @ P_pred @ H + R)
             reason = f"accepted after {self.refused_in_row} outliers in a row: filter restarted"
         else:
             reason = "accepted"
-        gain = P_pred[:, 0] / S
+        gain = P_pred @ H / S
         self.x = x_pred + gain * innovation
-        identity_minus = np.eye(self.size) - np.outer(gain, [1.0] + [0.0] * (self.size - 1))
+        identity_minus = np.eye(self.size) - np.outer(gain, H)
         # Joseph form: stays symmetric positive semi-definite in floating point.
         self.P = identity_minus @ P_pred @ identity_minus.T + np.outer(gain, gain) * R
         self.time_s = float(time_s)
         self.last_accepted_s = float(time_s)
         self.accepted += 1
         self.refused_in_row = 0
-        return ProbeOutcome(time_s, residual_um, float(x_pred[0]), sigma, True, reason)
+        return ProbeOutcome(time_s, residual_um, expected, sigma, True, reason)

@@ -161,6 +161,173 @@ def test_parameters_and_state_round_trip_as_plain_json():
     assert g.correction_at(2 * HOUR_S)[0] == pytest.approx(f.correction_at(2 * HOUR_S)[0])
 
 
+# --- bias-gain: a gain error on the model's prediction ----------------------------------------
+
+
+def gain_filter(**overrides) -> OnlineCorrection:
+    values = {
+        "kind": "bias-gain",
+        "process_um2_per_h": 0.01,
+        "gain_process_per_h": 1e-4,
+        "probe_noise_um": 0.1,
+        "prior_um": 5.0,
+        "gain_prior": 0.5,
+        "outlier_sigma": 4.0,
+        "bound_um": 20.0,
+    }
+    return OnlineCorrection(CorrectionParams(**(values | overrides)))
+
+
+def warm_up_um(time_s: np.ndarray) -> np.ndarray:
+    """A model's prediction through a warm-up and a speed change (µm)."""
+    hours = np.asarray(time_s) / HOUR_S
+    return 25.0 * (1.0 - np.exp(-hours / 1.5)) - 8.0 * (hours > 4.0) * (1 - np.exp(4.0 - hours))
+
+
+def test_bias_gain_first_probe_step_by_hand():
+    # P⁻ = diag(5², 0.5²), H = [1, ŷ = 10], R = 0.1²: S = 25 + 25 + 0.01 = 50.01,
+    # K = P⁻Hᵀ/S = [25, 2.5]/S, x = K·6 for a residual of 6 µm.
+    f = gain_filter()
+    outcome = f.update(0.0, 6.0, predicted_um=10.0)
+    assert outcome.accepted
+    assert outcome.innovation_sigma_um == pytest.approx(math.sqrt(50.01))
+    assert f.x == pytest.approx([25.0 * 6 / 50.01, 2.5 * 6 / 50.01])
+    # Between probes the correction is b + g·ŷ at the prediction then.
+    expected = f.x[0] + f.x[1] * np.array([10.0, 20.0])
+    assert f.correction_at([0.0, 60.0], predicted_um=[10.0, 20.0]) == pytest.approx(expected)
+
+
+def test_bias_gain_tracks_a_pure_gain_error_between_probes():
+    """The model grows 20 % too little: a bias filter lags every change of the prediction
+    by one probe; the gain state carries it between probes."""
+    time_s = np.arange(0.0, 8 * HOUR_S, 60.0)
+    predicted = warm_up_um(time_s)
+    residual = 0.2 * predicted
+    probes = range(60, time_s.size, 60)  # one an hour
+    gain, bias = gain_filter(), bias_filter(probe_noise_um=0.1, process_um2_per_h=4.0)
+    for k in probes:
+        assert gain.update(time_s[k], residual[k], predicted_um=predicted[k]).accepted
+        assert bias.update(time_s[k], residual[k]).accepted
+    assert gain.x[1] == pytest.approx(0.2, abs=0.01)
+    assert abs(gain.x[0]) < 0.2
+    # Replayed causally, probe by probe: after the third probe the gain kind is within 0.15 µm
+    # everywhere; the bias kind misses by the change of 0.2·ŷ since the last probe.
+    replay = {"gain": gain_filter(), "bias": bias_filter(probe_noise_um=0.1, process_um2_per_h=4.0)}
+    errors = {name: [] for name in replay}
+    starts = list(probes)
+    for start, end in zip(starts, [*starts[1:], time_s.size], strict=True):
+        for name, f in replay.items():
+            f.update(time_s[start], residual[start], predicted_um=predicted[start])
+            at = f.correction_at(time_s[start:end], predicted_um=predicted[start:end])
+            if start >= starts[2]:
+                errors[name].append(np.max(np.abs(residual[start:end] - at)))
+    assert max(errors["gain"]) < 0.15
+    assert max(errors["bias"]) > 0.8
+
+
+def test_bias_gain_refuses_an_outlier_once_and_moves_the_correction_by_less_than_1um():
+    time_s = np.arange(0.0, 10 * HOUR_S, 60.0)
+    predicted = warm_up_um(time_s)
+    real_residual = 1.0 + 0.15 * predicted
+    probes = list(range(60, time_s.size, 60))
+    chip = probes[4]
+
+    def corrections(chipped: bool) -> tuple[np.ndarray, OnlineCorrection]:
+        f = gain_filter(process_um2_per_h=1.0, gain_process_per_h=1e-3, probe_noise_um=0.3)
+        applied = np.zeros(time_s.size)
+        for start, end in zip(probes, [*probes[1:], time_s.size], strict=True):
+            z = real_residual[start] + (30.0 if chipped and start == chip else 0.0)
+            f.update(time_s[start], z, predicted_um=predicted[start])
+            applied[start:end] = f.correction_at(time_s[start:end], predicted[start:end])
+        return applied, f
+
+    clean, _ = corrections(False)
+    with_chip, f = corrections(True)
+    assert f.refused == 1
+    assert np.max(np.abs(with_chip - clean)) < 1.0
+    assert np.max(np.abs(clean[probes[3] :] - real_residual[probes[3] :])) < 0.6
+
+
+def test_bias_gain_is_bounded_and_decays_in_silence():
+    f = gain_filter(bound_um=5.0, prior_um=100.0, gain_prior=5.0, decay_after_s=HOUR_S)
+    f.update(0.0, 2.0, predicted_um=10.0)
+    f.update(HOUR_S, 60.0, predicted_um=30.0)  # a residual of 60 µm: b + g·ŷ far past 5 µm
+    assert f.predicted_residual_um(HOUR_S, 30.0)[0] > 50.0
+    assert f.correction_at(HOUR_S, 30.0)[0] == 5.0
+    assert f.correction_at(HOUR_S, -30.0)[0] == -5.0  # g·ŷ < 0 for a negative prediction
+    inside = (3.0 - f.x[0]) / f.x[1]  # the prediction at which b + g·ŷ = 3 µm
+    assert f.correction_at(HOUR_S, inside)[0] == pytest.approx(3.0)
+    at = np.array([1.5, 2.0, 3.0]) * HOUR_S  # silent since the last probe at 1 h
+    expected = 3.0 * np.exp(-np.maximum(at - 2 * HOUR_S, 0.0) / HOUR_S)
+    assert f.correction_at(at, inside) == pytest.approx(expected)
+    assert abs(f.correction_at(20 * HOUR_S, 30.0)[0]) < 1e-6
+
+
+def test_bias_gain_needs_the_prediction():
+    f = gain_filter()
+    outcome = f.update(0.0, 2.0)
+    assert not outcome.accepted and "prediction" in outcome.reason
+    assert not f.update(0.0, 2.0, predicted_um=math.nan).accepted
+    assert f.refused == 2
+    assert f.correction_at(0.0)[0] == 0.0  # nothing accepted yet: no correction at all
+    f.update(0.0, 2.0, predicted_um=4.0)
+    with pytest.raises(ValueError, match="prediction"):
+        f.correction_at(60.0)
+    assert f.correction_at([60.0, 120.0], [math.nan, 4.0])[0] == 0.0  # no prediction there
+
+
+def test_bias_gain_parameters_and_state_round_trip_as_plain_json():
+    import json
+
+    params = CorrectionParams(kind="bias-gain", gain_process_per_h=0.01, gain_prior=0.3)
+    stored = json.loads(json.dumps(params.as_dict()))
+    assert CorrectionParams.from_dict(stored) == params
+    # The noise a model stores reaches the runtime's parameters; the limits stay the machine's.
+    taken = CorrectionParams(bound_um=7.0).with_noise_of(stored)
+    assert (taken.kind, taken.gain_process_per_h, taken.gain_prior) == ("bias-gain", 0.01, 0.3)
+    assert taken.bound_um == 7.0
+    f = OnlineCorrection(params)
+    f.update(0.0, 1.0, predicted_um=5.0)
+    f.update(HOUR_S, 3.0, predicted_um=15.0)
+    g = OnlineCorrection(params)
+    g.import_state(json.loads(json.dumps(f.export_state())))
+    assert g.correction_at(2 * HOUR_S, 12.0)[0] == pytest.approx(
+        f.correction_at(2 * HOUR_S, 12.0)[0]
+    )
+    with pytest.raises(ValueError, match="does not fit kind 'bias'"):
+        OnlineCorrection(CorrectionParams()).import_state(f.export_state() | {"x": [1.0, 2.0]})
+
+
+def test_the_runtime_gives_a_bias_gain_filter_the_prediction():
+    """The machine loop's two steps: the residual of a probe with the prediction it was taken
+    from, and the correction at this cycle's prediction."""
+    from types import SimpleNamespace
+
+    from gateway.runtime import MachineLoop
+
+    params = CorrectionParams(
+        kind="bias-gain", process_um2_per_h=0.0, gain_process_per_h=0.0, prior_um=0.01,
+        gain_prior=1.0, probe_noise_um=0.01,
+    )  # fmt: skip
+    loop = SimpleNamespace(
+        online=OnlineCorrection(params),
+        _probe_basis=None,
+        config=SimpleNamespace(id="m1"),
+        _online_params=lambda banked: params,
+    )
+    cycle = SimpleNamespace(applied_um=10.0, probe_error_um=None, probe_refused=None)
+    MachineLoop._online_update(loop, 0.0, 10.0, cycle)  # predicted 10 µm, applied 10 µm
+    # The probe then measures 2 µm left over with 10 µm applied: residual 2 µm at ŷ = 10 µm.
+    probe = SimpleNamespace(applied_um=20.0, probe_error_um=2.0, probe_refused=None)
+    MachineLoop._online_update(loop, 60.0, 20.0, probe)
+    assert probe.probe_refused is False
+    assert loop.online.x[1] == pytest.approx(0.2, abs=1e-3)  # the gain, not a 2 µm bias
+    record = SimpleNamespace(correction_um=None)
+    corrected = MachineLoop._corrected(loop, 120.0, None, 30.0, record)
+    assert record.correction_um == pytest.approx(6.0, abs=0.01)  # 0.2 × 30 µm
+    assert corrected == pytest.approx(36.0, abs=0.01)
+
+
 def test_bad_parameters_are_refused_with_their_name():
     with pytest.raises(ValueError, match="bound_um"):
         CorrectionParams(bound_um=0.0)
@@ -168,6 +335,10 @@ def test_bad_parameters_are_refused_with_their_name():
         CorrectionParams(kind="gain")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="unknown parameter"):
         CorrectionParams.from_dict({"bias_um": 1.0})
+    with pytest.raises(ValueError, match="gain_prior"):
+        CorrectionParams(kind="bias-gain", gain_prior=0.0)
+    with pytest.raises(ValueError, match="gain_process_per_h"):
+        CorrectionParams(kind="bias-gain", gain_process_per_h=-1.0)
 
 
 # --- through the compensation policy, as the runtime writes ---------------------------------

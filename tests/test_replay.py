@@ -14,7 +14,7 @@ from models import augmented
 from models.dataset import load_runs
 from models.features import prepare
 from models.online_correction import CorrectionParams
-from models.online_replay import probe_rows, replay_run
+from models.online_replay import choose_filter, probe_rows, replay_run
 from tests.cli import ROOT, gateway
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
@@ -65,6 +65,30 @@ def test_replay_fl_thermal_ch5_a_probe_every_hour(tmp_path):
     assert_stored_model_runs_in_the_bank(store, result)
 
 
+def test_a_stored_bias_gain_filter_reaches_the_runtime(tmp_path):
+    """Only bias-gain offered: the saved model carries that kind and its noise through JSON,
+    and the running gateway takes them with its own limits."""
+    store = tmp_path / "store"
+    done = gateway(
+        "replay", FL_THERMAL, "--target", "ch5_um", "--probe-interval-min", "60",
+        "--filter-kind", "bias-gain", "--store", store, "--json", tmp_path / "r.json",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "filter bias-gain" in done.stdout
+    result = json.loads((tmp_path / "r.json").read_text(encoding="utf-8"))
+    assert result["filter_kinds_offered"] == ["bias-gain"]
+    for figures in result["online"][0]["per_run"].values():
+        assert figures["chosen"]["filter"]["kind"] == "bias-gain"
+        assert figures["chosen"]["filter"]["gain_process_per_h"] in (1e-3, 1e-2, 1e-1)
+    (banked,) = ModelBank.from_store(store).augmented()
+    stored = CorrectionParams.from_dict(banked.document["online_correction"]["params"])
+    assert stored.kind == "bias-gain" and stored.gain_process_per_h in (1e-3, 1e-2, 1e-1)
+    limits = CorrectionParams(bound_um=7.0, gain_process_per_h=5.0)
+    taken = limits.with_noise_of(banked.document["online_correction"]["params"])
+    assert (taken.kind, taken.gain_process_per_h) == ("bias-gain", stored.gain_process_per_h)
+    assert taken.bound_um == 7.0
+
+
 def test_replay_refuses_bad_input_with_one_line(tmp_path):
     done = gateway("replay", FL_THERMAL, "--target", "ch9_um")
     assert done.returncode == 2
@@ -90,6 +114,42 @@ def test_replay_uses_only_probes_from_the_past():
     applied_changed, _, _ = replay_run(params, time_s, changed, 3600.0)
     assert np.array_equal(applied[:cut], applied_changed[:cut])
     assert not np.array_equal(applied[cut:], applied_changed[cut:])
+
+
+def nested_choice_case(tmp_path, gain: float, seed: int):
+    """Four 8-h runs whose model prediction ŷ warms up and steps at a speed change, and a
+    residual g·ŷ plus a random-walk bias: (prepared data, inner residual)."""
+    rng = np.random.default_rng(seed)
+    time_s = np.arange(0.0, 8 * 3600.0, 60.0)
+    hours = time_s / 3600.0
+    rows = ["run,time_s,speed_rpm,T1,error_um"]
+    residuals = []
+    for k in range(4):
+        predicted = (15.0 + 5 * k) * (1 - np.exp(-hours / 1.5)) - 6.0 * (hours > 4) * (
+            1 - np.exp(4 - hours)
+        )
+        residual = gain * predicted + np.cumsum(rng.normal(0.0, 0.05, time_s.size))
+        residuals.append(residual)
+        measured = predicted + residual + rng.normal(0.0, 0.05, time_s.size)
+        for t, e in zip(time_s + k * 8 * 3600.0, measured, strict=True):
+            rows.append(f"r{k},{t:.0f},1000,{20 + e / 10:.4f},{e:.4f}")
+    path = tmp_path / f"case{seed}.csv"
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    prepared = prepare(load_runs(path))
+    return prepared, np.concatenate(residuals)
+
+
+def test_the_nested_choice_picks_the_filter_kind_the_training_runs_need(tmp_path):
+    kinds = ("bias", "bias-rate", "bias-gain")
+    prepared, residual = nested_choice_case(tmp_path, gain=0.25, seed=1)
+    runs = list(prepared.data.run_ids)
+    chosen = choose_filter(prepared, residual, runs, 3600.0, CorrectionParams(), kinds)
+    assert chosen.kind == "bias-gain" and chosen.gain_process_per_h in (1e-3, 1e-2, 1e-1)
+    only_bias = choose_filter(prepared, residual, runs, 3600.0, CorrectionParams(), ("bias",))
+    assert only_bias.kind == "bias"
+    prepared, residual = nested_choice_case(tmp_path, gain=0.0, seed=2)
+    plain = choose_filter(prepared, residual, runs, 3600.0, CorrectionParams(), kinds)
+    assert plain.kind == "bias"  # nothing to gain: the simplest kind within 2 % of the best
 
 
 def test_probe_rows_take_the_first_sample_at_or_after_each_probe_time():

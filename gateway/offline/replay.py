@@ -45,6 +45,7 @@ def run_replay(
     say: Callable[[str], None],
     store_dir: Path | None = None,
     version: str = "unknown",
+    filter_kinds: Sequence[str] = ("bias",),
 ) -> dict[str, Any]:
     """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6."""
     if store_dir is not None and method == "lag-ridge":  # refused before the long replay
@@ -74,7 +75,15 @@ def run_replay(
         )
     offline = offline_accuracy(prepared, method, sensors)
     online = [
-        replay_interval(prepared, m, base=base, method=method, sensors=sensors, document=document)
+        replay_interval(
+            prepared,
+            m,
+            base=base,
+            method=method,
+            sensors=sensors,
+            document=document,
+            kinds=filter_kinds,
+        )
         for m in intervals_min
     ]
     rows = [r.as_dict() for r in online]
@@ -104,7 +113,15 @@ def run_replay(
                 "declared or --augmented"
             )
         stored = store_lagged(
-            prepared, intervals_min[0], method, sensors, offline, store_dir, version, say
+            prepared,
+            intervals_min[0],
+            method,
+            sensors,
+            offline,
+            store_dir,
+            version,
+            say,
+            filter_kinds,
         )
     elapsed = time.perf_counter() - started
     say(f"leave-one-run-out, causal; {elapsed:.1f} s")
@@ -116,6 +133,7 @@ def run_replay(
         "augmented_model": None if document is None else document["model_id"],
         "offline": offline,
         "online": rows,
+        "filter_kinds_offered": list(filter_kinds),
         "reference": prepared.plan.describe(),
         "stored_model": stored,
         "elapsed_s": round(elapsed, 2),
@@ -131,9 +149,12 @@ def store_lagged(
     store_dir: Path,
     version: str,
     say: Callable[[str], None],
+    filter_kinds: Sequence[str] = ("bias",),
 ) -> dict[str, str]:
     """Fit the lagged base and the filter on every run; save them as one augmented model."""
-    parts, params, chosen, heldout = fit_for_store(prepared, interval_min, method, sensors)
+    parts, params, chosen, heldout = fit_for_store(
+        prepared, interval_min, method, sensors, kinds=filter_kinds
+    )
     data = prepared.data
     after = accuracy(prepared.error_um, heldout)
     taus = "-".join(f"{t:g}" for t in chosen["lag_taus_s"])
@@ -148,7 +169,8 @@ def store_lagged(
             "params": params.as_dict(),
             "probe_interval_min": interval_min,
             "chosen_by": "leave-one-run-out on every run of the source file (see models/"
-            "online_replay.py): q and R estimated, k the smallest within 2 % of the best",
+            "online_replay.py): q and R estimated, kind (of those offered) and k the "
+            "simplest within 2 % of the best",
         },
         "provenance": {
             "base_model": "mlr",
@@ -186,8 +208,13 @@ def describe_choice(chosen: dict[str, Any]) -> str:
         )
     f = chosen.get("filter", {})
     if f:
+        extra = ""
+        if "rate_process_um2_per_h3" in f:
+            extra = f", q_rate {f['rate_process_um2_per_h3']:.3g} µm²/h³"
+        if "gain_process_per_h" in f:
+            extra = f", q_gain {f['gain_process_per_h']:.3g} /h"
         parts.append(
-            f"filter {f['kind']}: q {f['process_um2_per_h']:.3g} µm²/h, "
+            f"filter {f['kind']}: q {f['process_um2_per_h']:.3g} µm²/h{extra}, "
             f"R {f['probe_noise_um']:.3g} µm, k {f['outlier_sigma']:g}"
         )
     return "; ".join(parts)

@@ -2,6 +2,7 @@
 # Builds the gateway image from the repository's Dockerfile with podman, with no registry:
 #
 #   scripts/build-image.sh [TAG]        # default spindle-thermal-gateway:<version>
+#   scripts/build-image.sh --prepare    # steps 1–2 and the dependencies stage only
 #
 # 1. the base: Debian bookworm with Python 3.11 from Debian's own packages
 #    (mmdebstrap --variant=minbase), imported as localhost/spindle-base:bookworm;
@@ -9,9 +10,18 @@
 # 2. the wheelhouse (scripts/build-wheelhouse.sh, once per requirements.lock);
 # 3. podman build --build-arg BASE=localhost/spindle-base:bookworm; the layers are
 #    cached, so a rebuild after a code change takes seconds.
+# --prepare stops after the Dockerfile's `dependencies` stage (the locked wheels
+# installed into /opt/venv): what changes only with requirements.lock, made once when
+# the machine is set up (scripts/setup-system.sh), so the full build in the tests
+# starts from the cached stage and builds only the layers the code changes.
 # With a registry at hand, `docker build .` uses the Dockerfile's default base instead.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+PREPARE=0
+if [ "${1:-}" = "--prepare" ]; then
+    PREPARE=1
+    shift
+fi
 VERSION=$(python3 -c "import tomllib; print(tomllib.load(open('pyproject.toml','rb'))['project']['version'])")
 TAG=${1:-spindle-thermal-gateway:$VERSION}
 BASE=localhost/spindle-base:bookworm
@@ -30,6 +40,12 @@ if ! "$PODMAN" image exists "$BASE"; then
     "$PODMAN" import --quiet "$ROOTFS" "$BASE" >/dev/null
 fi
 bash scripts/build-wheelhouse.sh
+if ((PREPARE)); then
+    "$PODMAN" build --quiet --format docker --layers --network none --target dependencies \
+        --build-arg "BASE=$BASE" -t spindle-gateway-dependencies:latest . >/dev/null
+    echo "prepared $BASE and the dependencies stage"
+    exit 0
+fi
 # --format docker: OCI images have no HEALTHCHECK; the Docker format keeps it.
 # --network none: the build needs no network at all (the wheelhouse is in the context).
 "$PODMAN" build --quiet --format docker --layers --network none \

@@ -4,7 +4,8 @@
 #   mbpoll (an independent libmodbus-based Modbus master)
 #   node-opcua (an independent OPC UA client, pinned in tests/node/package-lock.json)
 #   influxd 1.8.10 (a real time-series server; built once with Go into .cache/bin)
-#   podman, runc, mmdebstrap (the gateway image is built and run: tests/test_container.py)
+#   podman, runc, mmdebstrap (the gateway image is built and run: tests/test_container.py),
+#   and the image's base and locked dependencies (scripts/build-image.sh --prepare)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -47,3 +48,8 @@ if [ ! -x "$INFLUXD" ]; then
         -ldflags "-s -w -X main.version=1.8.10" \
         github.com/influxdata/influxdb/cmd/influxd@v1.8.10
 fi
+
+# The image's base (a Debian root filesystem, once per machine) and its locked
+# dependencies stage (once per requirements.lock), so the image build in
+# tests/test_container.py builds only what the code changes. Seconds when cached.
+bash scripts/build-image.sh --prepare

@@ -1,9 +1,17 @@
-"""Running ``python -m gateway …`` the way users and scripts do: a real subprocess."""
+"""Running ``python -m gateway …`` the way users and scripts do: a real subprocess.
+
+:func:`gateway_in_process` runs the same command through click in the test's own
+process, for the tables of refused inputs (one case per file in ``tests/cases/``):
+there, a fresh interpreter per case would be most of the suite's CPU and tests
+nothing more. Everything else, and a case of each table too, runs as a process.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import sys
+import traceback
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -17,3 +25,22 @@ def gateway(*args: str | Path | int, timeout_s: float = 300) -> subprocess.Compl
         text=True,
         timeout=timeout_s,
     )
+
+
+def gateway_in_process(*args: str | Path | int) -> subprocess.CompletedProcess[str]:
+    """``gateway(*args)`` without a new interpreter: the same exit status and streams.
+
+    An exception the command lets escape is written to stderr as a traceback, as the
+    interpreter would, so a test that asserts none is printed still sees it.
+    """
+    from click.testing import CliRunner
+
+    from gateway.cli import main
+
+    argv = [str(a) for a in args]
+    with contextlib.chdir(ROOT):
+        result = CliRunner().invoke(main, argv, prog_name="gateway")
+    stderr = result.stderr
+    if result.exc_info is not None and not isinstance(result.exception, SystemExit):
+        stderr += "".join(traceback.format_exception(*result.exc_info))
+    return subprocess.CompletedProcess(argv, result.exit_code, result.stdout, stderr)

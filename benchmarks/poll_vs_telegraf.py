@@ -418,7 +418,9 @@ async def _poller_main(args: argparse.Namespace) -> None:
 class Poller:
     """The process under test, pinned to the poller core."""
 
-    def __init__(self, side: str, ports: list[int], folder: Path, store: Path) -> None:
+    def __init__(
+        self, side: str, ports: list[int], folder: Path, store: Path, event_loop: str
+    ) -> None:
         self.side = side
         pin = ["taskset", "-c", str(POLLER_CORE)]
         if side == "telegraf":
@@ -442,6 +444,8 @@ class Poller:
                 str(ports_file),
                 "--store",
                 str(store),
+                "--event-loop",
+                event_loop,
             ]
             self.log = (folder / f"{side}.log").open("w")
             self.proc = subprocess.Popen(
@@ -486,7 +490,7 @@ class Poller:
 
 def measure(side: str, devices: Devices, folder: Path, store: Path, args) -> dict[str, Any]:
     machines = len(devices.ports)
-    poller = Poller(side, devices.ports, folder, store)
+    poller = Poller(side, devices.ports, folder, store, args.event_loop)
     try:
         time.sleep(args.warmup_s)
         if poller.proc.poll() is not None:
@@ -651,6 +655,12 @@ def main() -> None:
     parser.add_argument("--window-s", type=float, default=20.0)
     parser.add_argument("--warmup-s", type=float, default=6.0)
     parser.add_argument("--sides", nargs="+", choices=SIDES, default=list(SIDES))
+    parser.add_argument(
+        "--event-loop",
+        choices=("uvloop", "asyncio"),
+        default="uvloop",
+        help="the gateway sides' event loop (the config's event_loop; default as run)",
+    )
     parser.add_argument("--poller", choices=SIDES[1:], help=argparse.SUPPRESS)
     parser.add_argument("--ports", help=argparse.SUPPRESS)
     parser.add_argument("--store", help=argparse.SUPPRESS)
@@ -658,7 +668,9 @@ def main() -> None:
     if args.poller:
         raise_priority()
         args.role = args.poller
-        asyncio.run(_poller_main(args))
+        from gateway import event_loop
+
+        event_loop.run(_poller_main(args), args.event_loop)
         return
     if "telegraf" in args.sides and not TELEGRAF.exists():
         print(f"{TELEGRAF} is missing: run scripts/build-telegraf.sh first", file=sys.stderr)
@@ -691,6 +703,7 @@ def main() -> None:
                 "telegraf": telegraf_version() if "telegraf" in args.sides else None,
                 "python": platform.python_version(),
                 "pymodbus": pymodbus.__version__,
+                "event_loop": args.event_loop,
                 "cycle_s": CYCLE_S,
                 "requests_per_machine_cycle": REQUESTS_PER_MACHINE_CYCLE,
                 "cores": {"poller": POLLER_CORE, "servers": SERVER_CORE},

@@ -29,6 +29,7 @@ silence is physical, so it is measured on the event loop's monotonic clock.
 from __future__ import annotations
 
 import asyncio
+import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from types import TracebackType
@@ -58,7 +59,10 @@ class Silence:
     """The quiet time a line or device needs before the next request.
 
     Counted from the end of the previous request (its reply or its timeout), on the
-    event loop's monotonic clock: the silence is physical, not machine time.
+    system's monotonic clock: the silence is physical, not machine time. Not the event
+    loop's clock: uvloop's is read once per loop iteration and its timers round to whole
+    milliseconds, so a 1.75 ms t3.5 could end after 1 ms. The wait sleeps again until
+    the clock says the whole silence has passed.
     """
 
     def __init__(self) -> None:
@@ -70,15 +74,14 @@ class Silence:
 
     async def around(self, send: Callable[[], Awaitable[T]], silence_s: float) -> T:
         """Wait until the line was quiet for ``silence_s``, then run ``send()``."""
-        loop = asyncio.get_running_loop()
         if silence_s > 0 and self._quiet_since is not None:
-            wait_s = self._quiet_since + silence_s - loop.time()
-            if wait_s > 0:
+            quiet_until = self._quiet_since + silence_s
+            while (wait_s := quiet_until - time.monotonic()) > 0:
                 await asyncio.sleep(wait_s)
         try:
             return await send()
         finally:
-            self._quiet_since = loop.time()
+            self._quiet_since = time.monotonic()
 
 
 class Link(Protocol):

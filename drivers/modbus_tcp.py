@@ -24,6 +24,7 @@ import asyncio
 import struct
 from dataclasses import dataclass
 from functools import cache
+from typing import cast
 
 from pymodbus.framer import FramerSocket
 from pymodbus.pdu import DecodePDU
@@ -95,8 +96,9 @@ class TcpTransactions(asyncio.Protocol):
     # -- asyncio.Protocol -------------------------------------------------------------
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self._transport = transport
+        # No isinstance check: uvloop's transports have asyncio.Transport's methods
+        # without deriving from it.
+        self._transport = cast(asyncio.Transport, transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._lost = f"connection lost ({exc})" if exc else "connection lost"

@@ -355,8 +355,7 @@ def with_probe(params, period_s: float | None, noise_um: float | None):
 def serve_simulator(
     config_path: Path, probe_period_s: float | None = None, probe_noise_um: float | None = None
 ) -> None:
-    import asyncio
-
+    from gateway import event_loop
     from simulator.serve import SimulatedPlant, load_simulator_config
 
     config = load_simulator_config(config_path).with_probe(probe_period_s, probe_noise_um)
@@ -370,7 +369,7 @@ def serve_simulator(
     for endpoint in plant.endpoints:
         click.echo(f"  {type(endpoint).__name__}: {describe_endpoint(endpoint)}")
     try:
-        asyncio.run(plant.serve_forever())
+        event_loop.run(plant.serve_forever())
     except KeyboardInterrupt:
         click.echo("stopped")
 
@@ -409,8 +408,7 @@ def quiet_protocol_libraries() -> None:
 @input_errors_exit
 def check_config(config_path: Path, connect: bool) -> None:
     """Validate the configuration (and the model stores it names) without running."""
-    import asyncio
-
+    from gateway import event_loop
     from gateway.config import load_config
 
     quiet_protocol_libraries()
@@ -428,7 +426,7 @@ def check_config(config_path: Path, connect: bool) -> None:
             f"{promotion_summary(machine)}"
         )
     if connect:
-        problems = asyncio.run(check_connections(config))
+        problems = event_loop.run(check_connections(config), config.event_loop)
         if problems:
             raise ValueError("; ".join(problems))
         click.echo("every CNC and transmitter answered")
@@ -461,6 +459,7 @@ def run(config_path: Path, log_level: str) -> None:
     import gc
     import signal
 
+    from gateway import event_loop
     from gateway.config import load_config
 
     setup_logging(log_level)
@@ -479,7 +478,7 @@ def run(config_path: Path, log_level: str) -> None:
     click.echo(
         f"running {len(config.machines)} machine(s): {', '.join(m.id for m in config.machines)}"
     )
-    asyncio.run(serve())
+    event_loop.run(serve(), config.event_loop)
     # The interpreter's last garbage collection walks every object of the OPC UA
     # address spaces and the models: seconds on an edge box, after the state is
     # saved. Frozen objects are left to the process exit, so a stop takes < 1 s.
@@ -519,12 +518,11 @@ def demo(
     effect: str | None,
 ) -> None:
     """Simulate a machine, fit its models, compensate an unseen programme, show the gain."""
-    import asyncio
-
+    from gateway import event_loop
     from gateway.demo import demo as run_demo
 
     setup_logging(log_level)
-    result = asyncio.run(
+    result = event_loop.run(
         run_demo(
             workdir,
             program=program,

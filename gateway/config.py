@@ -55,6 +55,8 @@ from drivers.yaml_loader import (
 )
 from drivers.yaml_loader import validate as validate_section
 from gateway.compensation import CompensationLimits
+from gateway.event_loop import DEFAULT as DEFAULT_EVENT_LOOP
+from gateway.event_loop import EventLoopName
 from gateway.quality import QualityLimits
 from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
 from models.online_correction import CorrectionParams
@@ -740,6 +742,8 @@ class GatewayConfig(Strict):
     logging: LoggingSection = LoggingSection()
     scada: ScadaSection | None = None
     simulator: dict[str, Any] | None = None  # checked by simulator.serve
+    # The runtime's event loop (gateway/event_loop.py): uvloop, or asyncio's own.
+    event_loop: EventLoopName = DEFAULT_EVENT_LOOP
 
     @model_validator(mode="after")
     def _unique_ids(self) -> GatewayConfig:

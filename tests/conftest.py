@@ -1,4 +1,8 @@
-"""Suite-wide test marks.
+"""Suite-wide test marks, and the event loop every test runs on.
+
+Every ``asyncio.run`` in the tests runs on uvloop, the loop the gateway's commands
+run on by default (gateway/event_loop.py); tests/test_event_loop.py runs the live
+loop on asyncio's own loop, the other choice of the config's ``event_loop``.
 
 The end-to-end files below run whole plants (simulator servers, the gateway, a
 container, machine days on an accelerated clock) and take most of the suite's
@@ -8,7 +12,15 @@ time. They carry the ``slow`` mark so that a newcomer can run the rest first
 
 from __future__ import annotations
 
+import asyncio
+
 import pytest
+import uvloop
+
+from gateway.event_loop import DEFAULT
+
+if DEFAULT == "uvloop":
+    asyncio.set_event_loop_policy(uvloop.EventLoopPolicy())
 
 #: Test files whose every test is an end-to-end run (measured as the slowest files).
 SLOW_FILES = frozenset(

@@ -6,5 +6,7 @@ cd "$(dirname "$0")/.."
 VENV=.venv
 bash scripts/setup-system.sh
 "$VENV/bin/ruff" check .
-# Both cores: one worker per core, each test file on one worker (its servers start once).
-"$VENV/bin/pytest" -q -n 2 --dist loadfile --durations=15 "$@"
+# Four workers on two cores: most end-to-end tests spend their time waiting on protocol
+# time (outages, back-offs, cycles in real time), so two per core keep both cores busy;
+# each test file stays on one worker (its servers start once).
+"$VENV/bin/pytest" -q -n 4 --dist loadfile --durations=15 "$@"

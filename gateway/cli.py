@@ -814,7 +814,7 @@ def replay(
         click.echo,
         store_dir=store_dir,
         version=__version__,
-        filter_kinds=filter_kinds or ("bias",),
+        filter_kinds=filter_kinds,
     )
     write_json(json_out, result)
 

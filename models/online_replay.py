@@ -392,7 +392,7 @@ def replay_interval(
     sensors: Sequence[str] | None = None,
     document: dict[str, Any] | None = None,
     defaults: CorrectionParams | None = None,
-    kinds: Sequence[str] | None = None,
+    kinds: Sequence[str] = DEFAULT_KINDS,
 ) -> IntervalResult:
     """Leave-one-run-out replay at one probe interval; see the module docstring."""
     if base not in BASES:
@@ -453,9 +453,7 @@ def replay_interval(
                 else fitted([r for r in train_runs if r != inner])
             )
             inner_residual[slices[inner]] = y[slices[inner]] - inner_pred[slices[inner]]
-        params = choose_filter(
-            prepared, inner_residual, train_runs, interval_s, defaults, kinds or DEFAULT_KINDS
-        )
+        params = choose_filter(prepared, inner_residual, train_runs, interval_s, defaults, kinds)
         rows = slices[held]
         residual = y[rows] - predicted[rows]
         base_residual[rows] = residual

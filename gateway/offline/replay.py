@@ -12,7 +12,13 @@ from models import augmented
 from models.dataset import load_runs
 from models.features import Prepared, prepare
 from models.metrics import accuracy
-from models.online_replay import filter_choice, fit_for_store, offline_accuracy, replay_interval
+from models.online_replay import (
+    DEFAULT_KINDS,
+    filter_choice,
+    fit_for_store,
+    offline_accuracy,
+    replay_interval,
+)
 from models.store import data_fingerprint, safe_model_id
 
 BASE_DESCRIPTIONS = {
@@ -45,9 +51,13 @@ def run_replay(
     say: Callable[[str], None],
     store_dir: Path | None = None,
     version: str = "unknown",
-    filter_kinds: Sequence[str] = ("bias",),
+    filter_kinds: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6."""
+    """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6.
+
+    ``filter_kinds``: the kinds the nested choice may pick; none given means
+    ``DEFAULT_KINDS`` (models/online_replay.py)."""
+    filter_kinds = tuple(filter_kinds) or DEFAULT_KINDS
     if store_dir is not None and method == "lag-ridge":  # refused before the long replay
         raise ValueError(
             "--store with --model lag-ridge is not built: save the offline model with "
@@ -149,7 +159,7 @@ def store_lagged(
     store_dir: Path,
     version: str,
     say: Callable[[str], None],
-    filter_kinds: Sequence[str] = ("bias",),
+    filter_kinds: Sequence[str] = DEFAULT_KINDS,
 ) -> dict[str, str]:
     """Fit the lagged base and the filter on every run; save them as one augmented model."""
     parts, params, chosen, heldout = fit_for_store(

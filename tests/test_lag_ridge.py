@@ -29,7 +29,12 @@ from models.lag_ridge import (
     term_groups,
     term_names,
 )
-from models.lag_structures import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, STRUCTURE_NAMES
+from models.lag_structures import (
+    DEFAULT_SPEED_POWERS,
+    DEFAULT_TAUS_S,
+    STRUCTURE_NAMES,
+    Structure,
+)
 from models.store import ModelStore, load_file
 from tests.cli import ROOT, gateway
 from tests.test_conditioning import machine
@@ -149,8 +154,8 @@ def test_the_stack_is_the_weighted_sum_of_its_structures_fitted_alone(synthetic:
         if w > 0
     )
     assert np.max(np.abs(stack.predict(synthetic.inputs) - by_hand)) < 1e-9
-    # On these runs the weights split (measured 0.15 / 0.25 / 0.6), so the sum above maps the
-    # lasso's 30 min lags into the ridge's terms.
+    # On these runs the weights split (measured 0.25 / 0.1 / 0.3 / 0.35), so the sum above maps
+    # the lassos' 30 min lags into the ridge's terms.
     assert sum(w > 0 for w in weights.values()) >= 2
     every_term = term_names(synthetic.inputs.sensors, DEFAULT_TAUS_S, DEFAULT_SPEED_POWERS)
     assert stack.structure_.estimator == "stack" and stack.coef_.size == len(every_term)
@@ -188,6 +193,45 @@ def test_a_lasso_structure_needs_no_speed_and_streams_its_lags(synthetic: Prepar
     ]
     assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
     assert set(stream.export_state()) == {"time_s", "T1@lag1800s", "T2@lag1800s", "T3@lag1800s"}
+
+
+def test_the_zero_intercept_lasso_passes_through_0_um_and_streams_its_speed_lags(
+    synthetic: Prepared,
+) -> None:
+    model = LagRidgeModel(structures=["lasso-30min-zero"]).fit(synthetic.inputs, synthetic.error_um)
+    assert model.intercept_um_ == 0.0 and model.uses_speed and model.lag_taus_s == [1800.0]
+    at_rest = ModelInputs(np.zeros((1, 3)), synthetic.inputs.sensors, np.zeros(1))
+    assert model.predict(at_rest)[0] == 0.0  # the cold machine at rest: every term is 0
+    stored = json.loads(json.dumps(model.fitted_params()))
+    assert stored["structure"]["intercept"] == "zero"
+    loaded = LagRidgeModel.from_params(model.hyperparams(), stored)
+    part = synthetic.take(synthetic.data.run == "R1")
+    batch = loaded.predict(part.inputs)
+    stream = loaded.stream()
+    streamed = [
+        stream.step(
+            float(part.data.time_s[k]),
+            dict(zip(part.inputs.sensors, part.inputs.rise_C[k], strict=True)),
+            float(part.data.speed_rpm[k]),
+        )
+        for k in range(part.data.n_samples)
+    ]
+    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    # A structure stored before the intercept was part of it loads as a fitted intercept.
+    older = {k: v for k, v in stored["structure"].items() if k != "intercept"}
+    assert Structure.from_dict(older).intercept == "fitted"
+
+
+def test_the_running_indicator_is_1_while_the_spindle_turns() -> None:
+    inputs = ModelInputs(np.zeros((3, 1)), ("T1",), np.array([0.0, 500.0, 4000.0]))
+    terms = lag_terms(inputs, ("T1",), (), (0.0, 1.0))
+    assert terms[:, 1].tolist() == [0.0, 1.0, 1.0] and terms[:, 2].tolist() == [0.0, 0.5, 4.0]
+    assert term_names(("T1",), (600.0,), (0.0,)) == [
+        "T1",
+        "running",
+        "T1@lag600s",
+        "running@lag600s",
+    ]
 
 
 def test_stored_as_explicit_json_and_reloaded_exactly(synthetic: Prepared, tmp_path: Path) -> None:

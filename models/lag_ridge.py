@@ -16,7 +16,9 @@ Which of those terms, and how they are penalised, is chosen inside ``fit`` on
 the training runs alone among a small family fixed in the code
 (:mod:`models.lag_structures`: a ridge with one penalty on the sensor terms and
 one on the speed terms, a ridge with one penalty on every term, a lasso on the
-sensors and their 30 min lags), by a doubly nested leave-one-run-out. The
+sensors and their 30 min lags, a lasso on the sensors and the speed powers with their
+30 min lags whose intercept is held at 0 µm),
+by a doubly nested leave-one-run-out. The
 chosen structures are stacked with weights on the simplex (a weight of 1 is one
 structure alone); since every candidate's terms are among the largest one's,
 the stack is one linear model on those terms. Terms are standardised on the
@@ -97,13 +99,18 @@ def term_names(
 
 
 def speed_name(power: float) -> str:
+    if power == 0:
+        return "running"
     return "n_krpm" if power == 1 else f"n_krpm^{power:g}"
 
 
 def speed_powers(speed_rpm: np.ndarray, powers: Sequence[float]) -> np.ndarray:
-    """(n, len(powers)) n^p with n in 1000 r/min (never negative)."""
+    """(n, len(powers)) n^p with n in 1000 r/min (never negative); the power 0 is the
+    running indicator, 1 while the spindle turns (n > 0) and 0 at rest, not n⁰ = 1."""
     n = np.maximum(np.asarray(speed_rpm, dtype=float), 0.0) / SPEED_SCALE_RPM
-    return np.column_stack([n**p for p in powers]) if powers else np.empty((n.size, 0))
+    if not powers:
+        return np.empty((n.size, 0))
+    return np.column_stack([(n > 0).astype(float) if p == 0 else n**p for p in powers])
 
 
 #: The terms last built for one inputs object, by structure: validation and residual

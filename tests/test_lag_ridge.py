@@ -29,7 +29,12 @@ from models.lag_ridge import (
     term_groups,
     term_names,
 )
-from models.lag_structures import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, STRUCTURE_NAMES
+from models.lag_structures import (
+    DEFAULT_SPEED_POWERS,
+    DEFAULT_TAUS_S,
+    STRUCTURE_NAMES,
+    Structure,
+)
 from models.store import ModelStore, load_file
 from tests.cli import ROOT, gateway
 from tests.test_conditioning import machine
@@ -149,8 +154,8 @@ def test_the_stack_is_the_weighted_sum_of_its_structures_fitted_alone(synthetic:
         if w > 0
     )
     assert np.max(np.abs(stack.predict(synthetic.inputs) - by_hand)) < 1e-9
-    # On these runs the weights split (measured 0.15 / 0.25 / 0.6), so the sum above maps the
-    # lasso's 30 min lags into the ridge's terms.
+    # On these runs the weights split (measured 0.25 / 0.1 / 0.3 / 0.35), so the sum above maps
+    # the lassos' 30 min lags into the ridge's terms.
     assert sum(w > 0 for w in weights.values()) >= 2
     every_term = term_names(synthetic.inputs.sensors, DEFAULT_TAUS_S, DEFAULT_SPEED_POWERS)
     assert stack.structure_.estimator == "stack" and stack.coef_.size == len(every_term)
@@ -188,6 +193,45 @@ def test_a_lasso_structure_needs_no_speed_and_streams_its_lags(synthetic: Prepar
     ]
     assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
     assert set(stream.export_state()) == {"time_s", "T1@lag1800s", "T2@lag1800s", "T3@lag1800s"}
+
+
+def test_the_zero_intercept_lasso_passes_through_0_um_and_streams_its_speed_lags(
+    synthetic: Prepared,
+) -> None:
+    model = LagRidgeModel(structures=["lasso-30min-zero"]).fit(synthetic.inputs, synthetic.error_um)
+    assert model.intercept_um_ == 0.0 and model.uses_speed and model.lag_taus_s == [1800.0]
+    at_rest = ModelInputs(np.zeros((1, 3)), synthetic.inputs.sensors, np.zeros(1))
+    assert model.predict(at_rest)[0] == 0.0  # the cold machine at rest: every term is 0
+    stored = json.loads(json.dumps(model.fitted_params()))
+    assert stored["structure"]["intercept"] == "zero"
+    loaded = LagRidgeModel.from_params(model.hyperparams(), stored)
+    part = synthetic.take(synthetic.data.run == "R1")
+    batch = loaded.predict(part.inputs)
+    stream = loaded.stream()
+    streamed = [
+        stream.step(
+            float(part.data.time_s[k]),
+            dict(zip(part.inputs.sensors, part.inputs.rise_C[k], strict=True)),
+            float(part.data.speed_rpm[k]),
+        )
+        for k in range(part.data.n_samples)
+    ]
+    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    # A structure stored before the intercept was part of it loads as a fitted intercept.
+    older = {k: v for k, v in stored["structure"].items() if k != "intercept"}
+    assert Structure.from_dict(older).intercept == "fitted"
+
+
+def test_the_running_indicator_is_1_while_the_spindle_turns() -> None:
+    inputs = ModelInputs(np.zeros((3, 1)), ("T1",), np.array([0.0, 500.0, 4000.0]))
+    terms = lag_terms(inputs, ("T1",), (), (0.0, 1.0))
+    assert terms[:, 1].tolist() == [0.0, 1.0, 1.0] and terms[:, 2].tolist() == [0.0, 0.5, 4.0]
+    assert term_names(("T1",), (600.0,), (0.0,)) == [
+        "T1",
+        "running",
+        "T1@lag600s",
+        "running@lag600s",
+    ]
 
 
 def test_stored_as_explicit_json_and_reloaded_exactly(synthetic: Prepared, tmp_path: Path) -> None:
@@ -292,7 +336,7 @@ def test_fl_thermal_ch1_held_out_with_nested_penalties(tmp_path: Path) -> None:
     assert "condition number" in done.stdout
     result = json.loads(out.read_text(encoding="utf-8"))
     pooled = result["validations"]["all"]["pooled"]
-    # Measured 1.79 µm, the structures stacked on nested inner folds (two-group ridge alone:
+    # Measured 1.76 µm, the structures stacked on nested inner folds (two-group ridge alone:
     # 1.75 µm; plain mlr on the same rises: 6.86 µm); the target is 2.5 µm. An outside
     # review's 1.68 µm (one penalty, the speed as n only) is reached by none of its readings
     # in benchmarks/reviewer_readings.py (2.36 … 3.08 µm nested).
@@ -312,17 +356,18 @@ def test_fl_thermal_ch5_held_out_with_the_structure_chosen_on_the_training_cycle
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     pooled = json.loads(out.read_text(encoding="utf-8"))["validations"]["all"]["pooled"]
-    # Measured 3.26 µm (two-group ridge alone: 4.90 µm); the issue's 2.99 µm is not reached,
-    # nor by any reading of its lasso in benchmarks/reviewer_readings.py (3.02 … 4.77 µm).
-    assert pooled["rmse_um"] < 3.4
+    # Measured 2.33 µm, the family fixed before its first held-out run (two-group ridge
+    # alone: 4.90 µm); below the 2.5 µm target and the outside review's 2.99 µm.
+    assert pooled["rmse_um"] < 2.5
     params = json.loads((store / "lag-ridge-ch5_um-all.json").read_text(encoding="utf-8"))["params"]
-    # On all six cycles the nested choice puts the lasso on the sensors and their 30 min lags
-    # first (its inner RMSE 3.05 µm against 4.67 and 4.90 µm for the ridges).
+    # On all six cycles the nested choice takes the lasso on the sensors and the speed with
+    # their 30 min lags, through 0 µm (inner RMSE 2.31 µm; lasso-30min 3.05, the ridges 4.67
+    # and 4.90 µm).
     choice = params["structure_choice"]
-    assert choice["weights"]["lasso-30min"] > 0.5
-    assert choice["inner_rmse_um"]["lasso-30min"] < min(
-        choice["inner_rmse_um"]["two-group"], choice["inner_rmse_um"]["one-penalty"]
-    )
+    assert choice["weights"]["lasso-30min-zero"] > 0.5
+    assert params["intercept_um"] == 0.0
+    inner = choice["inner_rmse_um"]
+    assert inner["lasso-30min-zero"] < min(v for k, v in inner.items() if k != "lasso-30min-zero")
 
 
 def test_replay_fl_thermal_ch5_on_lag_ridge_a_probe_every_hour(tmp_path: Path) -> None:
@@ -334,17 +379,36 @@ def test_replay_fl_thermal_ch5_on_lag_ridge_a_probe_every_hour(tmp_path: Path) -
     assert done.returncode == 0, done.stderr
     result = json.loads(out.read_text(encoding="utf-8"))
     assert result["model"] == "lag-ridge" and "lag-ridge terms" in result["base"]["description"]
-    assert 3.0 < result["offline"]["rmse_um"] < 3.5  # lag-ridge without probes: 3.26 µm
+    assert 2.0 < result["offline"]["rmse_um"] < 2.6  # lag-ridge without probes: 2.33 µm
     (online,) = result["online"]
     # Measured 2.31 µm, every choice (penalty, level weight, q, R, k) made without the held-out
-    # cycle on a grid fixed beforehand; the issue's 2.0 µm target is not met on ch5. The probes
-    # take 29 % off the lag-ridge fit's 3.26 µm (off the two-group ridge's 4.90 µm: 53 %).
+    # cycle on a grid fixed beforehand; the issue's 2.0 µm target is not met on ch5 by this
+    # base (its own fit without probes: 4.16 µm), nor does it beat lag-ridge's 2.33 µm offline.
     assert online["rmse_um"] < 2.45
-    assert online["rmse_um"] < 0.8 * result["offline"]["rmse_um"]
+    assert online["rmse_um"] < 0.6 * online["base_rmse_um"]
     for figures in online["per_run"].values():
         chosen = figures["chosen"]
         assert chosen["ridge"] in (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
         assert chosen["filter"]["outlier_sigma"] in (4.0, 6.0, 8.0)
+
+
+def test_replay_fl_thermal_ch5_on_the_declared_lag_ridge_model_meets_the_targets(
+    tmp_path: Path,
+) -> None:
+    out = tmp_path / "replay.json"
+    done = gateway(
+        "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge", "--base", "declared",
+        "--probe-interval-min", "30", "--probe-interval-min", "60", "--json", out,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    result = json.loads(out.read_text(encoding="utf-8"))
+    at_30, at_60 = result["online"]
+    # Measured 1.46 and 1.88 µm (targets 1.5 and 2.0 µm): the lag-ridge fit of each training
+    # set (its family fixed before its first held-out run) with the bias filter chosen on the
+    # training cycles. Without probes: 2.33 µm.
+    assert at_30["probe_interval_min"] == 30.0 and at_30["rmse_um"] < 1.5
+    assert at_60["probe_interval_min"] == 60.0 and at_60["rmse_um"] < 2.0
+    assert at_60["rmse_um"] < 0.85 * result["offline"]["rmse_um"]
 
 
 def test_replay_refuses_to_store_a_lag_ridge_base(tmp_path: Path) -> None:
@@ -371,7 +435,7 @@ def test_analyze_takes_lag_ridge_as_its_base_and_its_result_streams(tmp_path: Pa
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     result = json.loads(out.read_text(encoding="utf-8"))
-    # Measured 1.76 µm before any effect (mlr: 6.86 µm); the target is 2.5 µm.
+    # Measured 1.73 µm before any effect (mlr: 6.86 µm); the target is 2.5 µm.
     assert result["before"]["rmse_um"] < 2.0
     (path,) = (store / augmented.FOLDER).glob("*.json")
     document = augmented.load(path)

@@ -65,8 +65,16 @@ def fit_store(folder: Path) -> Path:
     return folder / "models"
 
 
-def plant(clock: Clock, program: str = "const8000", seed: int = 0) -> SimulatedPlant:
-    """A simulated machine on ``clock``, its three servers on free ports (not started)."""
+def plant(
+    clock: Clock,
+    program: str = "const8000",
+    seed: int = 0,
+    cnc: tuple[str, ...] = ("opcua", "modbus"),
+) -> SimulatedPlant:
+    """A simulated machine on ``clock``, its servers on free ports (not started): the
+    transmitters over Modbus TCP and the CNC over each protocol of ``cnc``. A test
+    that reaches the CNC over Modbus only leaves OPC UA out: its server's standard
+    address space alone costs about a second of CPU at every start."""
     return SimulatedPlant(
         SimulatorConfig.model_validate(
             {
@@ -74,10 +82,7 @@ def plant(clock: Clock, program: str = "const8000", seed: int = 0) -> SimulatedP
                 "seed": seed,
                 "publish_period_s": 0.05,
                 "transmitters": {"tcp": {"port": free_tcp_port(), "devices": DEVICES}},
-                "cnc": {
-                    "opcua": {"port": free_tcp_port()},
-                    "modbus": {"port": free_tcp_port()},
-                },
+                "cnc": {protocol: {"port": free_tcp_port()} for protocol in cnc},
             }
         ),
         clock=clock,

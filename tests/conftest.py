@@ -19,9 +19,13 @@ import uvloop
 
 from gateway.event_loop import DEFAULT
 from tests import gateway_rig as rig
+from tests import opcua_template
 
 if DEFAULT == "uvloop":
     asyncio.set_event_loop_policy(uvloop.EventLoopPolicy())
+
+# Each in-process OPC UA server starts from a copy of one standard address space.
+opcua_template.install()
 
 #: Test files whose every test is an end-to-end run (measured as the slowest files).
 SLOW_FILES = frozenset(

@@ -21,13 +21,16 @@ COPY wheelhouse /tmp/wheelhouse
 RUN python3 -m venv /opt/venv \
     && /opt/venv/bin/pip install --no-index --find-links /tmp/wheelhouse \
         --require-hashes --only-binary=:all: -r /tmp/requirements.lock
-# The package itself, for its metadata and entry point (build backend from the wheelhouse).
+# The package itself, for its metadata and entry point (build backend from the wheelhouse),
+# beside the venv in /opt/package (same layout): the venv's large layer then changes only
+# with requirements.lock, and a code change rebuilds only the package's few files.
 COPY pyproject.toml README.md /tmp/src/
 COPY gateway /tmp/src/gateway
 COPY drivers /tmp/src/drivers
 COPY models /tmp/src/models
 COPY simulator /tmp/src/simulator
-RUN /opt/venv/bin/pip install --no-index --find-links /tmp/wheelhouse --no-deps /tmp/src
+RUN /opt/venv/bin/pip install --no-index --find-links /tmp/wheelhouse --no-deps --no-compile \
+        --prefix /opt/package /tmp/src
 
 # --- the image --------------------------------------------------------------------------------
 FROM ${BASE}
@@ -41,6 +44,7 @@ RUN groupadd --system --gid 10001 gateway \
     && useradd --system --uid 10001 --gid gateway --home-dir /srv/gateway --shell /usr/sbin/nologin gateway
 
 COPY --from=dependencies /opt/venv /opt/venv
+COPY --from=dependencies /opt/package /opt/venv
 WORKDIR /srv/gateway
 
 # The source tree stays in the working directory: `python -m` puts it first on sys.path,

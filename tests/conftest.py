@@ -18,9 +18,14 @@ import pytest
 import uvloop
 
 from gateway.event_loop import DEFAULT
+from tests import gateway_rig as rig
+from tests import opcua_template
 
 if DEFAULT == "uvloop":
     asyncio.set_event_loop_policy(uvloop.EventLoopPolicy())
+
+# Each in-process OPC UA server starts from a copy of one standard address space.
+opcua_template.install()
 
 #: Test files whose every test is an end-to-end run (measured as the slowest files).
 SLOW_FILES = frozenset(
@@ -34,6 +39,14 @@ SLOW_FILES = frozenset(
         "test_run_command.py",
     }
 )
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_fit_per_run(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """The demo models tests/gateway_rig.py fits: once per run, not once per worker.
+    A worker's temporary folder is ``popen-gwN`` inside the run's, which all share."""
+    base = tmp_path_factory.getbasetemp()
+    rig.share_fits_in(base.parent if base.name.startswith("popen-gw") else base)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

@@ -9,6 +9,7 @@ reaches it through those protocols.
 from __future__ import annotations
 
 import atexit
+import fcntl
 import shutil
 import tempfile
 from pathlib import Path
@@ -26,31 +27,54 @@ DEVICES = [
 SENSORS = [f"T{i}" for i in range(1, 10)]
 
 
-#: The one fit of this test process, copied into every folder that asks for it.
+#: The folder holding the one fit of this test run (see :func:`share_fits_in`).
 _fitted: list[Path] = []
+
+
+def share_fits_in(folder: Path) -> None:
+    """Keep the fit in ``folder``, which every test process of the run sees (the
+    temporary folder pytest-xdist's workers share): the first process to need it
+    fits, the others wait for it and copy. Without this, one fit per process."""
+    _fitted[:] = [folder / "fitted-store"]
 
 
 def fit_store(folder: Path) -> Path:
     """The demo's models (per regime, all runs, and without each sensor) in
     ``folder/models``, their training data in ``folder/training.csv``.
 
-    Fitted once per test process (the fit is deterministic) and copied, so each
+    Fitted once per test run (the fit is deterministic) and copied, so each
     caller owns its store and may change it.
     """
     if not _fitted:
         cache = Path(tempfile.mkdtemp(prefix="fitted-store-"))
         atexit.register(shutil.rmtree, cache, ignore_errors=True)
-        write_training_data(cache / "training.csv", seed=1)
-        fit_models(cache / "training.csv", cache / "models", "test")
-        _fitted.append(cache)
+        _fitted.append(cache / "fitted-store")
+    cache = _fitted[0]
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    with open(cache.parent / "fitted-store.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not (cache / "done").exists():
+            shutil.rmtree(cache, ignore_errors=True)  # a fit cut short, if any
+            cache.mkdir()
+            write_training_data(cache / "training.csv", seed=1)
+            fit_models(cache / "training.csv", cache / "models", "test")
+            (cache / "done").touch()
     folder.mkdir(parents=True, exist_ok=True)
-    shutil.copy2(_fitted[0] / "training.csv", folder / "training.csv")
-    shutil.copytree(_fitted[0] / "models", folder / "models")
+    shutil.copy2(cache / "training.csv", folder / "training.csv")
+    shutil.copytree(cache / "models", folder / "models")
     return folder / "models"
 
 
-def plant(clock: Clock, program: str = "const8000", seed: int = 0) -> SimulatedPlant:
-    """A simulated machine on ``clock``, its three servers on free ports (not started)."""
+def plant(
+    clock: Clock,
+    program: str = "const8000",
+    seed: int = 0,
+    cnc: tuple[str, ...] = ("opcua", "modbus"),
+) -> SimulatedPlant:
+    """A simulated machine on ``clock``, its servers on free ports (not started): the
+    transmitters over Modbus TCP and the CNC over each protocol of ``cnc``. A test
+    that reaches the CNC over Modbus only leaves OPC UA out: its server's standard
+    address space alone costs about a second of CPU at every start."""
     return SimulatedPlant(
         SimulatorConfig.model_validate(
             {
@@ -58,10 +82,7 @@ def plant(clock: Clock, program: str = "const8000", seed: int = 0) -> SimulatedP
                 "seed": seed,
                 "publish_period_s": 0.05,
                 "transmitters": {"tcp": {"port": free_tcp_port(), "devices": DEVICES}},
-                "cnc": {
-                    "opcua": {"port": free_tcp_port()},
-                    "modbus": {"port": free_tcp_port()},
-                },
+                "cnc": {protocol: {"port": free_tcp_port()} for protocol in cnc},
             }
         ),
         clock=clock,

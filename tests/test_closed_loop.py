@@ -101,29 +101,29 @@ async def closed_loop(
                 {
                     "seed": 5,
                     "effects": list(effects),
+                    "publish_period_s": 1e6,  # publish only when a cycle steps the machine
                     "transmitters": {"rtu": {"port": pty.server_port, "devices": devices}},
-                    "cnc": {
-                        "opcua": {"port": free_tcp_port()},
-                        "modbus": {"port": free_tcp_port()},
-                    },
+                    "cnc": {cnc: {"port": free_tcp_port()}},  # the protocol the gateway uses
                 }
             ),
             clock=clock,
         )
         plant.machine.program = program
         plant.machine.schedule_program(math.inf)  # cycle start comes once the gateway runs
-        assert plant.cnc_opcua is not None and plant.cnc_modbus is not None
-        link = (
-            {"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 1.0}}
-            if cnc == "opcua"
-            else {
+        if cnc == "opcua":
+            assert plant.cnc_opcua is not None
+            link: dict[str, Any] = {
+                "opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 1.0}
+            }
+        else:
+            assert plant.cnc_modbus is not None
+            link = {
                 "modbus": {
                     "host": "127.0.0.1",
                     "port": plant.cnc_modbus.address[1],
                     "timeout_s": 0.5,
                 }
             }
-        )
         gateway_devices = [devices[0], {"device_id": 2, "channels": ["T9", None]}]
         machine = machine_config(
             store,

@@ -58,7 +58,7 @@ def test_forwarder_is_supervised_and_loses_nothing_through_an_influxd_kill(
 
         async def scenario() -> dict[str, int]:
             clock = AcceleratedClock(SPEEDUP, origin_s=time.time())
-            plants = [rig.plant(clock, seed=i) for i in range(2)]
+            plants = [rig.plant(clock, seed=i, cnc=("modbus",)) for i in range(2)]
             for served in plants:
                 await served.start()
             config = GatewayConfig.model_validate(

@@ -216,7 +216,7 @@ def test_a_model_the_machine_cannot_run_is_refused_and_the_old_one_stays(
 
     # Checked against the machine's configuration, the command line refuses it at once.
     config = tmp_path / "config.yaml"
-    plant = rig.plant(ManualClock())
+    plant = rig.plant(ManualClock(), cnc=("modbus",))
     entry = rig.machine_entry(MACHINE, plant, store)
     config.write_text(yaml.safe_dump({"machines": [entry], "state_dir": str(tmp_path / "s")}))
     refused = gateway("models", "promote", bad.id, "--config", config)
@@ -269,7 +269,7 @@ def test_a_check_of_the_configuration_reads_the_promoted_set_and_writes_nothing(
     bad = publish(store, needing(lag_document, "T12", "needs-t12"))
     assert gateway("models", "promote", bad.id, "--store", store).returncode == 0
     config = tmp_path / "config.yaml"
-    entry = rig.machine_entry(MACHINE, rig.plant(ManualClock()), store)
+    entry = rig.machine_entry(MACHINE, rig.plant(ManualClock(), cnc=("modbus",)), store)
     config.write_text(yaml.safe_dump({"machines": [entry], "state_dir": str(tmp_path / "s")}))
     before = (store / "proposals" / f"{bad.id}.json").read_bytes()
     checked = gateway("check-config", "--config", config)
@@ -343,7 +343,7 @@ def test_scada_operator_promotes_and_rolls_back_viewer_is_refused(
     store = fresh_store(tmp_path, models_dir)
     model_id = lag_document["model_id"]
     clock = ManualClock()
-    plant = rig.plant(clock, program="const8000")
+    plant = rig.plant(clock, program="const8000", cnc=("modbus",))
 
     async def scenario() -> None:
         await plant.start()
@@ -503,7 +503,7 @@ def test_a_restarted_loop_starts_with_the_promoted_set(
 ) -> None:
     store = fresh_store(tmp_path, models_dir)
     ProposalStore(store).versions.promote(publish(store, lag_document).id, by="test")
-    plant = rig.plant(ManualClock())
+    plant = rig.plant(ManualClock(), cnc=("modbus",))
     machine = GatewayConfig.model_validate(
         {"machines": [rig.machine_entry(MACHINE, plant, store)]}
     ).machines[0]

@@ -49,7 +49,7 @@ def test_reads_resume_within_5_s_of_the_server_coming_back(
 
     async def scenario() -> tuple[float, float, int]:
         clock = WallClock()
-        served = rig.plant(clock)
+        served = rig.plant(clock, cnc=(cnc,))
         await served.start()
         config = GatewayConfig.model_validate(
             {

@@ -91,7 +91,7 @@ def test_a_failing_sink_and_a_failing_loop_leave_the_other_machines_cycling(
 
     async def scenario() -> dict[str, Any]:
         clock = AcceleratedClock(SPEEDUP)
-        plants = [rig.plant(clock, seed=i) for i in range(3)]
+        plants = [rig.plant(clock, seed=i, cnc=("modbus",)) for i in range(3)]
         for served in plants:
             await served.start()
         gateway = Gateway(
@@ -212,7 +212,7 @@ def test_health_is_published_over_scada_and_in_the_heartbeat(tmp_path: Path, sto
 
     async def scenario() -> tuple[dict[str, Any], dict[str, Any]]:
         clock = AcceleratedClock(SPEEDUP)
-        plants = [rig.plant(clock, seed=i) for i in range(2)]
+        plants = [rig.plant(clock, seed=i, cnc=("modbus",)) for i in range(2)]
         for served in plants:
             await served.start()
         scada = {

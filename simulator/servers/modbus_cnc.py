@@ -100,6 +100,10 @@ class CncModbusServer(ModbusEndpoint):
             raise ValueError(f"register map {self._layout.map.label} has no macro block")
         self._macros = self._layout.macros
         self._blocks = [b for b in self._layout.blocks() if b[0] == "holding"]
+        # Per macro, the snapshot's value object last encoded and its registers: the
+        # machine keeps a macro's float object until it changes, so most of the 500
+        # macros of a publish are found here by identity and not encoded again.
+        self._encoded: dict[int, tuple[float, list[int]]] = {}
 
     @property
     def device_id(self) -> int:
@@ -162,10 +166,14 @@ class CncModbusServer(ModbusEndpoint):
         count = macros.end - macros.address
         current = await server.async_getValues(self._device_id, 3, macros.address, count)
         image = [int(register) for register in current]
+        encoded = self._encoded
         for number, value in snapshot.macros.items():
             if macros.first <= number <= macros.last:
+                known = encoded.get(number)
+                if known is None or known[0] is not value:
+                    known = encoded[number] = (value, macros.encode(value))
                 offset = macros.register(number) - macros.address
-                image[offset : offset + macros.width] = macros.encode(value)
+                image[offset : offset + macros.width] = known[1]
         if image != current:
             await server.async_setValues(self._device_id, 3, macros.address, image)
 

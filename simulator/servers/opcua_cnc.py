@@ -89,6 +89,11 @@ class CncOpcUaServer(ServerLifecycle):
         # publish() compares them with the count at its snapshot to skip stale values.
         self._client_writes = 0
         self._written_at: dict[int, int] = {}
+        # Per macro, the snapshot value object its node was last found or set to by
+        # publish(); a client's write drops the entry. The machine keeps a macro's
+        # float object until it changes, so an unchanged macro is skipped by identity
+        # without reading its node (500 macros a publish).
+        self._published: dict[int, float] = {}
 
     # -- public API ---------------------------------------------------------------
 
@@ -152,8 +157,11 @@ class CncOpcUaServer(ServerLifecycle):
             # write_attribute_value is synchronous), so no client write can slip in.
             if self._written_at.get(number, 0) > writes_at_snapshot:
                 continue
+            if self._published.get(number) is value:
+                continue  # the node holds this value already (no client write since)
             current = server.read_attribute_value(nodeid).Value
             if current is not None and _same(current.Value, float(value)):
+                self._published[number] = value
                 continue  # unchanged: no needless data-change notification
             datavalue = self._datavalue(_double(value))
             self._publishing = datavalue
@@ -161,6 +169,8 @@ class CncOpcUaServer(ServerLifecycle):
                 await server.write_attribute_value(nodeid, datavalue)
             finally:
                 self._publishing = None
+            if self._written_at.get(number, 0) <= writes_at_snapshot:
+                self._published[number] = value
 
     # -- internals ----------------------------------------------------------------
 
@@ -260,6 +270,7 @@ class CncOpcUaServer(ServerLifecycle):
         if value is self._publishing:
             attval.value = value
             return
+        self._published.pop(self._macro_of[node.nodeid], None)  # a client's write
         variant = value.Value
         if variant is None or variant.VariantType != ua.VariantType.Double:
             # A DataValue without a value, or with a bad StatusCode (asyncua then

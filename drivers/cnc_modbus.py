@@ -7,9 +7,11 @@ byte and word order; without one, the ``*_register`` addresses describe the
 simulator's layout (``drivers/maps/sim_cnc.yaml``, MODBUS.md): float32 with the
 high word at the lower address, the run mode as uint16, macro #n at
 ``macro_base + 2·(n − macro_first)``, written with FC16. The spindle state is
-read in one request per contiguous block; a map's ``pause_between_requests_s``
-is kept before every request to the CNC, counted from the end of the previous
-one (:class:`drivers.bus_hub.Silence`, the transmitter hub's inter-frame silence).
+read in one request per contiguous block, sent as one chain (each request
+written from the previous one's reply, :mod:`drivers.modbus_tcp`); a map's
+``pause_between_requests_s`` is kept instead, before every request to the CNC,
+counted from the end of the previous one (:class:`drivers.bus_hub.Silence`, the
+transmitter hub's inter-frame silence).
 
 The connection is :class:`drivers.transmitters.ModbusConnection` (the gateway's one
 pymodbus client, with a life cycle the gateway owns); the reconnect policy is

@@ -105,11 +105,13 @@ class ModbusConnection:
     connection; ``close()`` also cancels any reconnect task pymodbus started. A
     request ends after ``timeout_s × (retries + 1)`` at most and raises one of
     :class:`ModbusLinkLostError`, :class:`ModbusNoResponseError`, :class:`ModbusRefusedError`.
-    Each attempt has one timeout, the only timer on a request (pymodbus's own on
-    RTU, one per transaction id on TCP); a request runs in the caller's task.
-    Requests are not pipelined, although Modbus TCP would allow it: pymodbus's own
-    server (3.16) answers only the first of two requests sent together, and many
-    serial gateways do no better. The constructor does no I/O.
+    Each attempt has one timeout (pymodbus's own timer on RTU; on TCP a deadline the
+    connection's one timer checks, :mod:`drivers.modbus_tcp`); a request runs in the
+    caller's task. On TCP, :meth:`read_chain` sends several devices' reads as one
+    chain, each request written from the previous one's reply. Requests are never
+    pipelined, although Modbus TCP would allow it: pymodbus's own server (3.16)
+    answers only the first of two requests sent together, and many serial gateways
+    do no better. The constructor does no I/O.
     """
 
     def __init__(
@@ -510,7 +512,9 @@ class TransmitterBus:
 
     Each ``read_all`` sends each device's read requests in turn (a bus carries one
     request at a time): one per contiguous block of its register map, so one FC4
-    request of 16 registers for the Pt100 module. A silent device costs one timeout
+    request of 16 registers for the Pt100 module. Over TCP (no inter-frame silence,
+    no device asking for a pause) the whole cycle's requests are one chain on the
+    connection (:meth:`ModbusConnection.read_chain`). A silent device costs one timeout
     (``timeout_s × (retries + 1)``) and does not close the port for the others. The
     connection is dropped and reopened after a :class:`Backoff` when it breaks, and
     also when no device at all answered in a cycle: that is how a half-open TCP

@@ -272,8 +272,8 @@ class TcpTransactions(asyncio.Protocol):
             self._timer_at = deadline
             self._timer = self._loop.call_at(deadline, self._on_timer)
         transport = self._transport
-        assert transport is not None
-        transport.write(tid.to_bytes(2, "big") + chain.step.tail)
+        if transport is not None:  # else the connection is going: connection_lost ends it
+            transport.write(tid.to_bytes(2, "big") + chain.step.tail)
 
     def _reply(self, chain: _Chain, pdu: bytes) -> None:
         """The reply to the chain's request on the wire."""

@@ -36,8 +36,12 @@ async def wait_or_stop(wall_s: float, stop: asyncio.Event | None) -> None:
         return
     if stop.is_set():
         return
+    # asyncio.timeout cancels this task's own wait when it expires: one timer, where
+    # wait_for (3.11) adds a task for the wait and a second loop pass to cancel it
+    # (the cycle scheduler sleeps here several times per cycle).
     with contextlib.suppress(TimeoutError):
-        await asyncio.wait_for(stop.wait(), timeout=wall_s)
+        async with asyncio.timeout(wall_s):
+            await stop.wait()
 
 
 class WallClock:

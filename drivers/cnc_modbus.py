@@ -7,9 +7,11 @@ byte and word order; without one, the ``*_register`` addresses describe the
 simulator's layout (``drivers/maps/sim_cnc.yaml``, MODBUS.md): float32 with the
 high word at the lower address, the run mode as uint16, macro #n at
 ``macro_base + 2·(n − macro_first)``, written with FC16. The spindle state is
-read in one request per contiguous block; a map's ``pause_between_requests_s``
-is kept before every request to the CNC, counted from the end of the previous
-one (:class:`drivers.bus_hub.Silence`, the transmitter hub's inter-frame silence).
+read in one request per contiguous block, sent as one chain (each request
+written from the previous one's reply, :mod:`drivers.modbus_tcp`); a map's
+``pause_between_requests_s`` is kept instead, before every request to the CNC,
+counted from the end of the previous one (:class:`drivers.bus_hub.Silence`, the
+transmitter hub's inter-frame silence).
 
 The connection is :class:`drivers.transmitters.ModbusConnection` (the gateway's one
 pymodbus client, with a life cycle the gateway owns); the reconnect policy is
@@ -26,6 +28,7 @@ from typing import TypeVar
 from drivers.backoff import Backoff
 from drivers.bus_hub import Silence
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
+from drivers.modbus_tcp import Step, read_step
 from drivers.register_map import DeviceRegisters, MacroLayout
 from drivers.schema import RegisterMap, Workarounds, check_cnc_map, cnc_map
 from drivers.transmitters import (
@@ -33,6 +36,7 @@ from drivers.transmitters import (
     ModbusLinkLostError,
     ModbusNoResponseError,
     ModbusRefusedError,
+    ModbusRequestError,
 )
 
 T = TypeVar("T")
@@ -93,6 +97,15 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         self._has_run_mode = "run_mode" in self.registers.fields
         self._pause_s = self.registers.workarounds.pause_between_requests_s
         self._silence = Silence()
+        #: The spindle state's read requests as one chain group (built once), and the
+        #: macro reads' chains by first register.
+        self._speed_chain = (
+            tuple(
+                read_step(r.function_code, r.address, r.count, device_id)
+                for r in self.registers.requests
+            ),
+        )
+        self._macro_chains: dict[int, tuple[tuple[Step, ...]]] = {}
 
     def macro_register(self, number: int) -> int:
         """First register of macro #number."""
@@ -133,13 +146,23 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         """Read macro #number back (NaN for a vacant variable, as the CNC reports it)."""
         register = self.macro_register(number)
 
-        async def read(link: ModbusConnection) -> float:
-            words = await self._paced(
-                lambda: link.read_holding_registers(register, self._macros.width, self.device_id)
-            )
-            return self._macros.decode(words)
+        return await self._call(
+            f"reading macro #{number} (register {register})", self._read_macro, register
+        )
 
-        return await self._call(f"reading macro #{number} (register {register})", read)
+    async def _read_macro(self, link: ModbusConnection, register: int) -> float:
+        width = self._macros.width
+        if self._pause_s == 0 and link.chains:
+            chain = self._macro_chains.get(register)
+            if chain is None:
+                chain = self._macro_chains[register] = (
+                    (read_step(3, register, width, self.device_id),),
+                )
+            return self._macros.decode(await self._chained(link, chain))
+        words = await self._paced(
+            lambda: link.read_holding_registers(register, width, self.device_id)
+        )
+        return self._macros.decode(words)
 
     # -- session life cycle ---------------------------------------------------------
 
@@ -153,13 +176,26 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         session.close()
 
     async def _read_requests(self, link: ModbusConnection) -> list[int]:
-        """The map's read requests in turn (one per contiguous block), replies concatenated."""
+        """The map's read requests in turn (one per contiguous block), replies concatenated:
+        one chain on the wire when no pause is kept between them (TCP always chains)."""
+        if self._pause_s == 0 and link.chains:
+            return await self._chained(link, self._speed_chain)
         registers: list[int] = []
         for request in self.registers.requests:
             registers += await self._paced(
                 lambda request=request: link.read(request, self.device_id)
             )
         return registers
+
+    async def _chained(self, link: ModbusConnection, chain: tuple[tuple[Step, ...]]) -> list[int]:
+        """One device read (a group of register reads) as a chain on the wire; an exception
+        reply is :class:`CncRefusedError`."""
+        (result,) = await link.read_chain(chain)
+        if isinstance(result, ModbusRefusedError):
+            raise CncRefusedError(str(result)) from result
+        if isinstance(result, ModbusRequestError):
+            raise result
+        return result
 
     async def _paced(self, send: Callable[[], Awaitable[T]]) -> T:
         """One request after the map's pause; an exception reply is :class:`CncRefusedError`."""

@@ -1,33 +1,59 @@
-"""A lean Modbus TCP client: pymodbus's framer and PDUs on one asyncio protocol.
+"""A lean Modbus TCP client: one asyncio protocol per connection, requests run as chains.
 
 pymodbus's client runs every request through its transaction manager: a request
 object, a lock, an ``asyncio.wait_for`` (a future, a timer and callbacks), the
 transport's debug dump and a reply object with one ``struct.unpack`` per register.
 At a thousand machines that is most of the poll's CPU, more than the socket
-calls themselves. :class:`TcpTransactions` keeps the library's wire format
-(``FramerSocket`` splits and builds the MBAP frames, the request PDUs are
-pymodbus's own classes; the caller decodes any reply other than a register read
-with pymodbus's client decoder) and drops the rest: one asyncio protocol per
-connection, a map of pending transaction ids, one timer per request.
+calls themselves. Here the request PDUs are still built by pymodbus's own request
+classes (once per request shape, :func:`read_step`), and any reply other than
+registers is decoded by the caller with pymodbus's decoder; the MBAP framing
+(seven header bytes) is done here.
 
-Replies are matched by transaction id, so a late reply to a request that timed
-out is never taken for the next one's: :meth:`TcpTransactions.send` puts a
-request on the wire and returns its pending reply.
-Errors are the builtin ones (``ConnectionError``, ``TimeoutError``,
-``ValueError`` for a malformed reply); :class:`drivers.transmitters.ModbusConnection`
-turns them into the gateway's.
+A caller hands :meth:`TcpTransactions.submit` a whole *chain*: the reads of one or
+more devices (each device a group of requests, one per contiguous block of its
+register map). The protocol puts the first request on the wire; each reply is
+parsed in ``data_received``, which writes the next request at once, without a
+task wake-up in between. The chain's one future is resolved when its last reply
+is in, with one outcome per group (the registers, or why there are none). So a
+cycle's reads of one connection cost one future and at most one timer, however
+many requests they are.
+
+The rules a real device needs are kept:
+
+* strictly one request on the wire per connection: a chain submitted while
+  another runs waits in a queue and starts from the reply that ends the other
+  (many devices and serial gateways, and pymodbus's own server, answer only the
+  first of two requests sent together);
+* each request has its own timeout, ``timeout_s`` from its send: one deadline per
+  connection, moved on by each send, and one timer that looks at it when it
+  fires (re-armed only if the deadline moved past it), cancelled when the
+  connection falls idle: one timer per chain instead of one per request; a
+  timed-out request is sent again ``retries`` times with a fresh transaction
+  id, then its group fails with ``TimeoutError`` and the chain goes on with the
+  next group (one silent device does not fail the others);
+* a reply whose transaction id or device id is not the waiting request's is
+  dropped (a late reply after a timeout, another device's reply), as pymodbus
+  drops it; a frame with another protocol id than Modbus's 0 means the stream is
+  out of step, and the connection is closed;
+* a lost connection fails the group in progress and every later one with
+  ``ConnectionError``; the groups already read keep their registers.
+
+Errors are the builtin ones (``ConnectionError``, ``TimeoutError``, ``ValueError``
+for a reply of the wrong length, :class:`ReplyError` for a reply that is not
+registers); :class:`drivers.transmitters.ModbusConnection` turns them into the
+gateway's.
 """
 
 from __future__ import annotations
 
 import asyncio
 import struct
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
 from typing import cast
 
-from pymodbus.framer import FramerSocket
-from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.register_message import (
     ReadHoldingRegistersRequest,
     ReadInputRegistersRequest,
@@ -38,11 +64,8 @@ from pymodbus.pdu.register_message import (
 READ_FUNCTIONS = {3: ReadHoldingRegistersRequest, 4: ReadInputRegistersRequest}
 #: Transaction ids are 16 bits; 0 is left out so a stray zero never matches.
 _TID_SPAN = 0xFFFF
-
-
-@cache
-def _registers_struct(count: int) -> struct.Struct:
-    return struct.Struct(f">{count}H")
+#: An MBAP header (transaction, protocol, length, unit) and a function code.
+_MIN_FRAME = 8
 
 
 @cache
@@ -58,40 +81,105 @@ def write_pdu(address: int, values: list[int]) -> bytes:
     return bytes((16,)) + request.encode()
 
 
-def decode_registers(pdu: bytes, count: int) -> list[int]:
-    """The registers of an FC3/FC4 reply PDU; ``ValueError`` when its length is wrong."""
-    if len(pdu) != 2 + 2 * count or pdu[1] != 2 * count:
-        raise ValueError(f"{(len(pdu) - 2) // 2} registers in the reply, {count} asked")
-    return list(_registers_struct(count).unpack_from(pdu, 2))
+@dataclass(frozen=True, slots=True)
+class Step:
+    """One request of a chain, ready for the wire but for its transaction id.
 
+    ``tail`` is the frame after the transaction id (protocol id, length, unit id,
+    PDU). ``count`` > 0: a register read, whose outcome is ``count`` registers;
+    ``count`` 0: any reply PDU is the outcome, as bytes (a write's echo).
+    """
 
-@dataclass(slots=True)
-class Pending:
-    """One request on the wire: its reply future, its device, its timer."""
-
-    tid: int
+    tail: bytes
     device_id: int
-    future: asyncio.Future[bytes]
-    timer: asyncio.TimerHandle
+    count: int
+    registers: struct.Struct | None
+
+
+def step(pdu: bytes, device_id: int, count: int = 0) -> Step:
+    """A chain step sending ``pdu`` to ``device_id`` (``count`` registers expected, or 0)."""
+    if not 0 <= device_id <= 255:
+        raise ValueError(f"device id {device_id} is outside 0–255")
+    tail = b"\x00\x00" + (len(pdu) + 1).to_bytes(2, "big") + bytes((device_id,)) + pdu
+    return Step(tail, device_id, count, struct.Struct(f">{count}H") if count else None)
+
+
+@cache
+def read_step(function_code: int, address: int, count: int, device_id: int) -> Step:
+    """The step of one FC3/FC4 read, built once per shape (a gateway reads the same ones)."""
+    return step(read_pdu(function_code, address, count), device_id, count)
+
+
+class ReplyError(Exception):
+    """The device answered, but not with registers (an exception reply, mostly).
+
+    ``pdu`` is the reply, for pymodbus's decoder to say what it means.
+    """
+
+    def __init__(self, pdu: bytes) -> None:
+        super().__init__(pdu.hex())
+        self.pdu = pdu
+
+
+#: One group's outcome: its registers (or a ``count`` 0 step's reply PDU), or why not.
+Outcome = list[int] | bytes | BaseException
+
+
+class _Chain:
+    """A submitted chain: its groups, where it is, what came back so far."""
+
+    __slots__ = (
+        "attempt",
+        "future",
+        "group",
+        "groups",
+        "index",
+        "outcomes",
+        "registers",
+        "retries",
+        "step",
+        "tid",
+        "timeout_s",
+    )
+
+    def __init__(
+        self,
+        groups: Sequence[Sequence[Step]],
+        timeout_s: float,
+        retries: int,
+        future: asyncio.Future[list[Outcome]],
+    ) -> None:
+        self.groups = groups
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.future = future
+        self.outcomes: list[Outcome] = []
+        self.group = 0
+        self.index = 0
+        self.step = groups[0][0]
+        self.attempt = 0
+        self.tid = 0
+        self.registers: list[int] = []
 
 
 class TcpTransactions(asyncio.Protocol):
-    """One Modbus TCP connection: frames out, replies matched to their transaction ids.
+    """One Modbus TCP connection running chains of requests, one request on the wire at a time.
 
-    A reply whose device id is not the request's is dropped, as pymodbus drops it
-    (the request then times out); a reply for an id nobody waits for (a late
-    reply after its timeout) is dropped too. A frame with another protocol id
-    than Modbus's 0 means the stream is out of step: the connection is closed.
+    See the module's docstring for the rules. The constructor needs a running loop.
     """
 
     def __init__(self) -> None:
-        self._framer = FramerSocket(DecodePDU(False))
         self._transport: asyncio.Transport | None = None
         self._buffer = b""
-        self._pending: dict[int, Pending] = {}
+        self._active: _Chain | None = None
+        self._queue: deque[_Chain] = deque()
         self._tid = 0
         self._lost: str | None = None
         self._loop = asyncio.get_running_loop()
+        #: The request on the wire has no answer by this loop time.
+        self._deadline = 0.0
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at = 0.0
 
     # -- asyncio.Protocol -------------------------------------------------------------
 
@@ -101,61 +189,70 @@ class TcpTransactions(asyncio.Protocol):
         self._transport = cast(asyncio.Transport, transport)
 
     def connection_lost(self, exc: Exception | None) -> None:
-        self._lost = f"connection lost ({exc})" if exc else "connection lost"
+        if self._lost is None:
+            self._lost = f"connection lost ({exc})" if exc else "connection lost"
         self._transport = None
-        pending, self._pending = self._pending, {}
-        for request in pending.values():
-            request.timer.cancel()
-            if not request.future.done():
-                request.future.set_exception(ConnectionError(self._lost))
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        chains = [] if self._active is None else [self._active]
+        chains += self._queue
+        self._active = None
+        self._queue.clear()
+        for chain in chains:
+            if chain.future.done():
+                continue
+            outcomes = chain.outcomes
+            while len(outcomes) < len(chain.groups):
+                outcomes.append(ConnectionError(self._lost))
+            chain.future.set_result(outcomes)
 
     def data_received(self, data: bytes) -> None:
         buffer = self._buffer + data if self._buffer else data
-        decode = self._framer.decode
-        while len(buffer) >= FramerSocket.MIN_SIZE:
-            used, device_id, tid, pdu = decode(buffer)
-            if not used:
-                if buffer[2:4] != b"\x00\x00":  # not Modbus: the stream is out of step
-                    self.close()
-                    return
+        size = len(buffer)
+        start = 0
+        while size - start >= _MIN_FRAME:
+            if buffer[start + 2] or buffer[start + 3]:  # not Modbus: the stream is out of step
+                self._buffer = b""
+                self.close()
+                return
+            end = start + 6 + ((buffer[start + 4] << 8) | buffer[start + 5])
+            if end > size:
                 break
-            buffer = buffer[used:]
-            request = self._pending.get(tid)
-            if request is None or request.device_id != device_id or not pdu:
-                continue
-            del self._pending[tid]
-            request.timer.cancel()
-            if not request.future.done():
-                request.future.set_result(pdu)
-        self._buffer = buffer
+            chain = self._active
+            if (
+                chain is not None
+                and end > start + 7
+                and (buffer[start] << 8) | buffer[start + 1] == chain.tid
+                and buffer[start + 6] == chain.step.device_id
+            ):
+                self._reply(chain, buffer[start + 7 : end])
+            start = end
+        self._buffer = buffer[start:] if start < size else b""
 
-    # -- requests ---------------------------------------------------------------------
+    # -- chains -----------------------------------------------------------------------
 
     @property
     def connected(self) -> bool:
         transport = self._transport
         return transport is not None and not transport.is_closing()
 
-    def send(self, pdu: bytes, device_id: int, timeout_s: float) -> Pending:
-        """Put one request on the wire. Its ``future`` gets the reply PDU, or
-        ``TimeoutError`` after ``timeout_s``, or ``ConnectionError`` when the connection
-        goes; the caller then hands it to :meth:`forget`."""
+    def submit(
+        self, groups: Sequence[Sequence[Step]], timeout_s: float, retries: int = 0
+    ) -> asyncio.Future[list[Outcome]]:
+        """Run ``groups`` (each a non-empty sequence of steps) in turn, after any chain
+        already submitted. The future gets one :data:`Outcome` per group; it never
+        raises. Cancelling it stops the chain at its request on the wire."""
         transport = self._transport
         if transport is None or transport.is_closing():
             raise ConnectionError(self._lost or "connection lost")
-        tid = self._next_tid()
-        future: asyncio.Future[bytes] = self._loop.create_future()
-        timer = self._loop.call_later(timeout_s, self._expire, tid, future)
-        request = Pending(tid, device_id, future, timer)
-        self._pending[tid] = request
-        transport.write(self._framer.encode(pdu, device_id, tid))
-        return request
-
-    def forget(self, request: Pending) -> None:
-        """``request`` is done with (answered, timed out or cancelled): stop its timer."""
-        if self._pending.get(request.tid) is request:
-            del self._pending[request.tid]
-        request.timer.cancel()
+        chain = _Chain(groups, timeout_s, retries, self._loop.create_future())
+        if self._active is None:
+            self._active = chain
+            self._send(chain)
+        else:
+            self._queue.append(chain)
+        return chain.future
 
     def close(self) -> None:
         transport, self._transport = self._transport, None
@@ -163,19 +260,97 @@ class TcpTransactions(asyncio.Protocol):
             transport.close()
         self.connection_lost(None)
 
-    def _expire(self, tid: int, future: asyncio.Future[bytes]) -> None:
-        request = self._pending.get(tid)
-        if request is not None and request.future is future:
-            del self._pending[tid]
-        if not future.done():
-            future.set_exception(TimeoutError())
+    def _send(self, chain: _Chain) -> None:
+        """Put the chain's current step on the wire with a fresh transaction id."""
+        tid = self._tid % _TID_SPAN + 1
+        self._tid = chain.tid = tid
+        deadline = self._deadline = self._loop.time() + chain.timeout_s
+        timer = self._timer
+        if timer is None or deadline < self._timer_at:
+            if timer is not None:
+                timer.cancel()
+            self._timer_at = deadline
+            self._timer = self._loop.call_at(deadline, self._on_timer)
+        transport = self._transport
+        if transport is not None:  # else the connection is going: connection_lost ends it
+            transport.write(tid.to_bytes(2, "big") + chain.step.tail)
 
-    def _next_tid(self) -> int:
-        for _ in range(_TID_SPAN):
-            self._tid = self._tid % _TID_SPAN + 1
-            if self._tid not in self._pending:
-                return self._tid
-        raise ConnectionError("every transaction id is in use")
+    def _reply(self, chain: _Chain, pdu: bytes) -> None:
+        """The reply to the chain's request on the wire."""
+        if chain.future.done():  # cancelled: the chain ends here
+            self._next_chain()
+            return
+        current = chain.step
+        count = current.count
+        if not count:
+            self._group_done(chain, pdu)
+        elif pdu[0] & 0x80:
+            self._group_done(chain, ReplyError(pdu))
+        elif len(pdu) != 2 + 2 * count or pdu[1] != 2 * count:
+            self._group_done(
+                chain, ValueError(f"{(len(pdu) - 2) // 2} registers in the reply, {count} asked")
+            )
+        else:
+            assert current.registers is not None
+            chain.registers += current.registers.unpack_from(pdu, 2)
+            group = chain.groups[chain.group]
+            if chain.index + 1 < len(group):
+                chain.index += 1
+                chain.step = group[chain.index]
+                chain.attempt = 0
+                self._send(chain)
+                return
+            registers, chain.registers = chain.registers, []
+            self._group_done(chain, registers)
+
+    def _group_done(self, chain: _Chain, outcome: Outcome) -> None:
+        """The current group is over: on to the next group, or the chain is done."""
+        chain.outcomes.append(outcome)
+        chain.registers = []
+        chain.group += 1
+        if chain.group < len(chain.groups):
+            chain.index = 0
+            chain.attempt = 0
+            chain.step = chain.groups[chain.group][0]
+            self._send(chain)
+            return
+        chain.future.set_result(chain.outcomes)
+        self._next_chain()
+
+    def _next_chain(self) -> None:
+        """Nothing of the active chain is on the wire any more: start the next one."""
+        self._active = None
+        queue = self._queue
+        while queue:
+            chain = queue.popleft()
+            if not chain.future.done():
+                self._active = chain
+                self._send(chain)
+                return
+        timer = self._timer  # idle: a cancel costs less than letting it fire
+        if timer is not None:
+            self._timer = None
+            timer.cancel()
+
+    def _on_timer(self) -> None:
+        """The deadline timer: re-armed if the deadline moved on, else a timeout."""
+        self._timer = None
+        chain = self._active
+        if chain is None:
+            return
+        deadline = self._deadline
+        if self._loop.time() < deadline:
+            self._timer_at = deadline
+            self._timer = self._loop.call_at(deadline, self._on_timer)
+            return
+        if chain.future.done():  # cancelled, and its request is now given up on
+            self._next_chain()
+            return
+        if chain.attempt < chain.retries:
+            chain.attempt += 1
+            self._send(chain)
+            return
+        self._group_done(chain, TimeoutError())
 
 
 async def connect(host: str, port: int, timeout_s: float) -> TcpTransactions:

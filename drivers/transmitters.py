@@ -105,11 +105,13 @@ class ModbusConnection:
     connection; ``close()`` also cancels any reconnect task pymodbus started. A
     request ends after ``timeout_s × (retries + 1)`` at most and raises one of
     :class:`ModbusLinkLostError`, :class:`ModbusNoResponseError`, :class:`ModbusRefusedError`.
-    Each attempt has one timeout, the only timer on a request (pymodbus's own on
-    RTU, one per transaction id on TCP); a request runs in the caller's task.
-    Requests are not pipelined, although Modbus TCP would allow it: pymodbus's own
-    server (3.16) answers only the first of two requests sent together, and many
-    serial gateways do no better. The constructor does no I/O.
+    Each attempt has one timeout (pymodbus's own timer on RTU; on TCP a deadline the
+    connection's one timer checks, :mod:`drivers.modbus_tcp`); a request runs in the
+    caller's task. On TCP, :meth:`read_chain` sends several devices' reads as one
+    chain, each request written from the previous one's reply. Requests are never
+    pipelined, although Modbus TCP would allow it: pymodbus's own server (3.16)
+    answers only the first of two requests sent together, and many serial gateways
+    do no better. The constructor does no I/O.
     """
 
     def __init__(
@@ -202,7 +204,7 @@ class ModbusConnection:
 
     async def read_input_registers(self, address: int, count: int, device_id: int) -> list[int]:
         if self._tcp is not None:
-            return await self._tcp_read(4, address, count, device_id)
+            return await self._tcp_read(modbus_tcp.read_step(4, address, count, device_id))
         client = self._usable_client()
         response = await self._execute(
             client,
@@ -213,7 +215,7 @@ class ModbusConnection:
 
     async def read_holding_registers(self, address: int, count: int, device_id: int) -> list[int]:
         if self._tcp is not None:
-            return await self._tcp_read(3, address, count, device_id)
+            return await self._tcp_read(modbus_tcp.read_step(3, address, count, device_id))
         client = self._usable_client()
         response = await self._execute(
             client,
@@ -225,8 +227,8 @@ class ModbusConnection:
     def read(self, request: ReadRequest, device_id: int) -> Awaitable[list[int]]:
         """One block of a register map."""
         if self._tcp is not None:
-            function_code = 4 if request.register_type == "input" else 3
-            return self._tcp_read(function_code, request.address, request.count, device_id)
+            code, address, count = request.function_code, request.address, request.count
+            return self._tcp_read(modbus_tcp.read_step(code, address, count, device_id))
         if request.register_type == "input":
             return self.read_input_registers(request.address, request.count, device_id)
         return self.read_holding_registers(request.address, request.count, device_id)
@@ -234,7 +236,9 @@ class ModbusConnection:
     async def write_registers(self, address: int, values: list[int], device_id: int) -> None:
         """FC16 write of ``values`` from ``address``."""
         if self._tcp is not None:
-            reply = await self._tcp_exchange(modbus_tcp.write_pdu(address, values), device_id)
+            step = modbus_tcp.step(modbus_tcp.write_pdu(address, values), device_id)
+            reply = self._raise(await self._tcp_groups(((step,),)), device_id)
+            assert isinstance(reply, bytes)
             self._check_reply(reply, device_id)
             return
         client = self._usable_client()
@@ -242,49 +246,69 @@ class ModbusConnection:
             client, device_id, client.write_registers(address, values, device_id=device_id)
         )
 
-    # -- TCP: pymodbus's framer and PDUs on drivers.modbus_tcp ---------------------------
+    # -- TCP: chains of requests on drivers.modbus_tcp ---------------------------------
 
-    async def _tcp_read(
-        self, function_code: int, address: int, count: int, device_id: int
-    ) -> list[int]:
-        reply = await self._tcp_exchange(
-            modbus_tcp.read_pdu(function_code, address, count), device_id
-        )
-        if reply[0] & 0x80:
-            self._check_reply(reply, device_id)
-        try:
-            return modbus_tcp.decode_registers(reply, count)
-        except ValueError as exc:
-            raise ModbusNoResponseError(f"device {device_id} on {self.where}: {exc}") from exc
+    @property
+    def chains(self) -> bool:
+        """Whether :meth:`read_chain` is available: on TCP, where the protocol sends each
+        request from the previous one's reply (one request on the wire at a time)."""
+        return self._tcp is not None
 
-    async def _tcp_exchange(self, pdu: bytes, device_id: int) -> bytes:
-        """The reply PDU to ``pdu``; a timeout sends it again, ``retries`` times."""
-        wire = self._usable_wire()
-        attempt = 0
-        while True:
-            try:
-                pending = wire.send(pdu, device_id, self.timeout_s)
-            except ConnectionError as exc:
-                raise ModbusLinkLostError(f"{self.where}: {exc}") from exc
-            try:
-                return await pending.future
-            except ConnectionError as exc:
-                raise ModbusLinkLostError(f"{self.where}: {exc}") from exc
-            except TimeoutError as exc:
-                if attempt >= self.retries:
-                    raise ModbusNoResponseError(
-                        f"no response from device {device_id} on {self.where} "
-                        f"within {self.timeout_s * (self.retries + 1):g} s"
-                    ) from exc
-            finally:
-                wire.forget(pending)
-            attempt += 1
+    async def read_chain(
+        self, groups: Sequence[Sequence[modbus_tcp.Step]]
+    ) -> list[list[int] | ModbusRequestError]:
+        """TCP: each group's read requests in turn (:func:`drivers.modbus_tcp.read_step`,
+        one group per device), as one chain on the wire; per group its registers
+        concatenated, or the error that ended it (:class:`ModbusLinkLostError` for it and
+        every later group once the connection is gone). Each request keeps its own
+        timeout and ``retries``; a failed group does not stop the next one."""
+        outcomes = await self._tcp_groups(groups)
+        results: list[list[int] | ModbusRequestError] = []
+        for outcome, group in zip(outcomes, groups, strict=True):
+            if type(outcome) is list:
+                results.append(outcome)
+            else:
+                results.append(self._error(outcome, group[0].device_id))
+        return results
 
-    def _usable_wire(self) -> modbus_tcp.TcpTransactions:
+    async def _tcp_read(self, step: modbus_tcp.Step) -> list[int]:
+        registers = self._raise(await self._tcp_groups(((step,),)), step.device_id)
+        assert isinstance(registers, list)
+        return registers
+
+    def _tcp_groups(
+        self, groups: Sequence[Sequence[modbus_tcp.Step]]
+    ) -> asyncio.Future[list[modbus_tcp.Outcome]]:
         wire = self._wire
         if wire is None or not wire.connected:
             raise ModbusLinkLostError(f"{self.where}: connection lost")
-        return wire
+        return wire.submit(groups, self.timeout_s, self.retries)
+
+    def _raise(self, outcomes: list[modbus_tcp.Outcome], device_id: int) -> list[int] | bytes:
+        """A one-group chain's outcome, or its error raised."""
+        outcome = outcomes[0]
+        if isinstance(outcome, list | bytes):
+            return outcome
+        raise self._error(outcome, device_id) from outcome
+
+    def _error(self, outcome: modbus_tcp.Outcome, device_id: int) -> ModbusRequestError:
+        """The gateway's error for a failed group of requests to ``device_id``."""
+        if isinstance(outcome, TimeoutError):
+            return ModbusNoResponseError(
+                f"no response from device {device_id} on {self.where} "
+                f"within {self.timeout_s * (self.retries + 1):g} s"
+            )
+        if isinstance(outcome, ConnectionError):
+            return ModbusLinkLostError(f"{self.where}: {outcome}")
+        if isinstance(outcome, modbus_tcp.ReplyError):
+            try:
+                self._check_reply(outcome.pdu, device_id)
+            except ModbusRequestError as exc:
+                return exc
+            return ModbusNoResponseError(
+                f"device {device_id} on {self.where}: unexpected reply {outcome.pdu.hex()}"
+            )
+        return ModbusNoResponseError(f"device {device_id} on {self.where}: {outcome}")
 
     def _check_reply(self, reply: bytes, device_id: int) -> None:
         """A reply other than registers: decoded by pymodbus; an exception reply raises."""
@@ -488,7 +512,9 @@ class TransmitterBus:
 
     Each ``read_all`` sends each device's read requests in turn (a bus carries one
     request at a time): one per contiguous block of its register map, so one FC4
-    request of 16 registers for the Pt100 module. A silent device costs one timeout
+    request of 16 registers for the Pt100 module. Over TCP (no inter-frame silence,
+    no device asking for a pause) the whole cycle's requests are one chain on the
+    connection (:meth:`ModbusConnection.read_chain`). A silent device costs one timeout
     (``timeout_s × (retries + 1)``) and does not close the port for the others. The
     connection is dropped and reopened after a :class:`Backoff` when it breaks, and
     also when no device at all answered in a cycle: that is how a half-open TCP
@@ -538,6 +564,7 @@ class TransmitterBus:
             hub = BusHub(link, silence_s=silence_s, backoff=backoff)
         self._hub = hub
         self._devices = tuple(devices)
+        self._chain = self._plan_chain()
         self._lock = asyncio.Lock()
         self.health = LinkHealth()
         self.device_health: dict[int, LinkHealth] = {d.device_id: LinkHealth() for d in devices}
@@ -568,8 +595,11 @@ class TransmitterBus:
             if turn.reopened:
                 self.health.record_connect()
             cycle = _Cycle()
-            for device in self._devices:
-                await self._read_device(device, now_s, cycle)
+            if self._chain is not None:
+                await self._read_chained(self._chain, now_s, cycle)
+            else:
+                for device in self._devices:
+                    await self._read_device(device, now_s, cycle)
             turn.report(answered=cycle.answered, lost=cycle.lost)
         if cycle.lost is None and not cycle.answered:
             cycle.lost = f"{self.where}: no device answered"
@@ -579,27 +609,71 @@ class TransmitterBus:
             self.health.record_ok(now_s)
         return cycle.results
 
+    def _plan_chain(self) -> tuple[tuple[modbus_tcp.Step, ...], ...] | None:
+        """Every device's read requests as one chain of groups (one group per device),
+        when the link runs chains (TCP) and no silence or pause is to be kept between
+        requests; else None, and each request goes through the hub on its own."""
+        link = self._hub.link
+        if not isinstance(link, ModbusConnection) or not link.chains or self._hub.silence_s > 0:
+            return None
+        if any(d.registers.workarounds.pause_between_requests_s > 0 for d in self._devices):
+            return None
+        return tuple(
+            tuple(
+                modbus_tcp.read_step(r.function_code, r.address, r.count, device.device_id)
+                for r in device.registers.requests
+            )
+            for device in self._devices
+        )
+
+    async def _read_chained(
+        self, chain: tuple[tuple[modbus_tcp.Step, ...], ...], now_s: float, cycle: _Cycle
+    ) -> None:
+        """All devices in one chain on the connection: one future for the bus's cycle."""
+        self._hub.requests += sum(len(group) for group in chain)
+        try:
+            results = await self._link.read_chain(chain)
+        except ModbusLinkLostError as exc:
+            results = [exc] * len(chain)
+        for device, result in zip(self._devices, results, strict=True):
+            self._record(device, now_s, cycle, result)
+
     async def _read_device(self, device: DeviceMap, now_s: float, cycle: _Cycle) -> None:
-        health = self.device_health[device.device_id]
         if cycle.lost is not None:  # the link broke earlier in this cycle
-            health.record_failure(cycle.lost)
-            cycle.results.update(_failed(device, cycle.lost))
+            self._record(device, now_s, cycle, None)
             return
         try:
             registers = await self._read_requests(device)
-        except ModbusLinkLostError as exc:
-            cycle.lost = str(exc)
-            error = str(exc)
-        except ModbusRefusedError as exc:
-            cycle.answered = True  # the device is there, it just said no
-            error = str(exc)
-        except ModbusNoResponseError as exc:
-            error = str(exc)
+        except ModbusRequestError as exc:
+            self._record(device, now_s, cycle, exc)
         else:
+            self._record(device, now_s, cycle, registers)
+
+    def _record(
+        self,
+        device: DeviceMap,
+        now_s: float,
+        cycle: _Cycle,
+        result: list[int] | ModbusRequestError | None,
+    ) -> None:
+        """One device's outcome into the cycle's results and its health (None: not read,
+        the link broke earlier in the cycle)."""
+        health = self.device_health[device.device_id]
+        if cycle.lost is not None:
+            health.record_failure(cycle.lost)
+            cycle.results.update(_failed(device, cycle.lost))
+            return
+        if isinstance(result, list):
             cycle.answered = True
             health.record_ok(now_s)
-            cycle.results.update(decode_channels(device, registers))
+            cycle.results.update(decode_channels(device, result))
             return
+        assert result is not None
+        if isinstance(result, ModbusLinkLostError):
+            cycle.lost = str(result)
+        elif isinstance(result, ModbusRefusedError):
+            cycle.answered = True  # the device is there, it just said no
+        error = str(result)
         health.record_failure(error)
         cycle.results.update(_failed(device, error))
 

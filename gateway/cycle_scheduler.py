@@ -84,7 +84,11 @@ class CycleScheduler:
         if due_s <= self.clock.now():
             await asyncio.sleep(0)  # let the others run, as a sleep would
             return
-        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        # The timer task's loop is the running one while it runs: asking asyncio for the
+        # running loop costs a getpid() system call, once per loop and cycle.
+        timer = self._timer
+        loop = timer.get_loop() if timer is not None and not timer.done() else None
+        future: asyncio.Future[None] = (loop or asyncio.get_running_loop()).create_future()
         heapq.heappush(self._heap, (due_s, next(self._order), future))
         waiting = self._waiting.setdefault(stop, set())
         waiting.add(future)

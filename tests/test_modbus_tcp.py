@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import pytest
 
+from drivers.modbus_tcp import read_step
 from drivers.transmitters import (
     ModbusConnection,
     ModbusLinkLostError,
@@ -39,6 +40,9 @@ class ScriptedServer:
     def __init__(self, script: Script) -> None:
         self._script = script
         self.requests: list[bytes] = []
+        #: Requests read but not answered yet, and the most there ever were at once.
+        self.outstanding = 0
+        self.most_outstanding = 0
         self._server: asyncio.Server | None = None
 
     async def __aenter__(self) -> tuple[str, int]:
@@ -56,6 +60,8 @@ class ScriptedServer:
                 body = await reader.readexactly(int.from_bytes(header[4:6], "big") - 1)
                 index = len(self.requests)
                 self.requests.append(header + body)
+                self.outstanding += 1
+                self.most_outstanding = max(self.most_outstanding, self.outstanding)
                 delay_s, pdu, device_id = self._script(index, body)
                 if pdu is None:
                     writer.close()
@@ -66,10 +72,10 @@ class ScriptedServer:
         except (asyncio.IncompleteReadError, ConnectionError):
             writer.close()
 
-    @staticmethod
     def _reply(
-        writer: asyncio.StreamWriter, header: bytes, pdu: bytes, device_id: int | None
+        self, writer: asyncio.StreamWriter, header: bytes, pdu: bytes, device_id: int | None
     ) -> None:
+        self.outstanding -= 1
         if writer.is_closing():
             return
         unit = header[6] if device_id is None else device_id
@@ -157,6 +163,183 @@ def test_exception_replies_a_foreign_device_and_a_hang_up() -> None:
                 with pytest.raises(ModbusLinkLostError, match="connection lost"):
                     await link.read_input_registers(0, 2, device_id=1)
                 assert not link.connected
+            finally:
+                link.close()
+
+    run(body)
+
+
+# -- chains: several devices' reads sent one after the other from the replies ----------
+
+
+def unit_of(request: bytes) -> int:
+    return request[6]
+
+
+def test_a_chain_reads_every_group_and_keeps_one_request_on_the_wire() -> None:
+    """Two devices of two blocks each, and a second chain submitted while the first runs:
+    every reply lands in its group, and the server never has two requests at once."""
+
+    def script(index: int, body: bytes) -> tuple[float, bytes | None, int | None]:
+        address = int.from_bytes(body[1:3], "big")
+        return 0.01, registers_pdu(body[0], [address, index]), None
+
+    chain = (
+        (read_step(4, 0, 2, 1), read_step(4, 8, 2, 1)),
+        (read_step(3, 100, 2, 2), read_step(3, 200, 2, 2)),
+    )
+
+    async def body() -> None:
+        server = ScriptedServer(script)
+        async with server as address:
+            link = ModbusConnection(tcp=address, timeout_s=TIMEOUT_S)
+            await link.open()
+            try:
+                first, second = await asyncio.gather(
+                    link.read_chain(chain), link.read_chain(chain[1:])
+                )
+                assert first == [[0, 0, 8, 1], [100, 2, 200, 3]]
+                assert second == [[100, 4, 200, 5]]
+                assert [unit_of(r) for r in server.requests] == [1, 1, 2, 2, 2, 2]
+                assert server.most_outstanding == 1
+            finally:
+                link.close()
+
+    run(body)
+
+
+def test_a_timeout_mid_chain_fails_that_device_only_and_its_late_reply_is_dropped() -> None:
+    """Device 1's second block is answered after its timeout, while device 2's request is
+    on the wire: device 1 fails with the timeout, device 2 gets its own registers."""
+    timeout_s = 0.4
+
+    def script(index: int, body: bytes) -> tuple[float, bytes | None, int | None]:
+        if index == 1:  # device 1, second block: late, arrives while device 2 waits
+            return timeout_s + 0.15, registers_pdu(body[0], [666, 666]), None
+        if index == 2:  # device 2: answered after the late reply came in
+            return 0.3, registers_pdu(body[0], [20, 21]), None
+        return 0.0, registers_pdu(body[0], [10 + index, 0]), None
+
+    chain = ((read_step(4, 0, 2, 1), read_step(4, 8, 2, 1)), (read_step(4, 0, 2, 2),))
+
+    async def body() -> None:
+        server = ScriptedServer(script)
+        async with server as address:
+            link = ModbusConnection(tcp=address, timeout_s=timeout_s)
+            await link.open()
+            try:
+                started = asyncio.get_running_loop().time()
+                device_1, device_2 = await link.read_chain(chain)
+                elapsed_s = asyncio.get_running_loop().time() - started
+                assert isinstance(device_1, ModbusNoResponseError)
+                assert "no response from device 1" in str(device_1)
+                assert device_2 == [20, 21]
+                assert timeout_s + 0.3 <= elapsed_s < timeout_s + 0.3 + TIMEOUT_S
+                assert link.connected
+                assert await link.read_input_registers(0, 2, device_id=2) == [13, 0]
+            finally:
+                link.close()
+
+    run(body)
+
+
+def test_retries_in_a_chain_send_the_request_again_with_a_fresh_transaction_id() -> None:
+    def script(index: int, body: bytes) -> tuple[float, bytes | None, int | None]:
+        delay_s = 10.0 if index == 1 else 0.0  # device 2's first attempt is never answered
+        return delay_s, registers_pdu(body[0], [index]), None
+
+    chain = ((read_step(3, 0, 1, 1),), (read_step(3, 0, 1, 2),), (read_step(3, 0, 1, 3),))
+
+    async def body() -> None:
+        server = ScriptedServer(script)
+        async with server as address:
+            link = ModbusConnection(tcp=address, timeout_s=0.3, retries=1)
+            await link.open()
+            try:
+                assert await link.read_chain(chain) == [[0], [2], [3]]
+                assert [unit_of(r) for r in server.requests] == [1, 2, 2, 3]
+                assert len({r[0:2] for r in server.requests}) == 4
+            finally:
+                link.close()
+
+    run(body)
+
+
+def test_a_reply_from_another_device_is_dropped_and_the_chain_goes_on() -> None:
+    def script(index: int, body: bytes) -> tuple[float, bytes | None, int | None]:
+        if index == 0:  # device 1's request answered by device 9: not its reply
+            return 0.0, registers_pdu(body[0], [99, 99]), 9
+        if index == 1:
+            return 0.0, bytes((body[0] | 0x80, 2)), None  # device 2: illegal data address
+        return 0.0, registers_pdu(body[0], [30 + index, 1]), None
+
+    chain = ((read_step(4, 0, 2, 1),), (read_step(4, 0, 2, 2),), (read_step(4, 0, 2, 3),))
+
+    async def body() -> None:
+        async with ScriptedServer(script) as address:
+            link = ModbusConnection(tcp=address, timeout_s=0.4)
+            await link.open()
+            try:
+                device_1, device_2, device_3 = await link.read_chain(chain)
+                assert isinstance(device_1, ModbusNoResponseError)
+                assert "no response from device 1" in str(device_1)
+                assert isinstance(device_2, ModbusRefusedError)
+                assert device_2.code == 2
+                assert device_3 == [32, 1]
+            finally:
+                link.close()
+
+    run(body)
+
+
+def test_the_connection_closing_mid_chain_keeps_what_was_read() -> None:
+    def script(index: int, body: bytes) -> tuple[float, bytes | None, int | None]:
+        if index == 1:
+            return 0.0, None, None  # hang up on device 2's request
+        return 0.0, registers_pdu(body[0], [40 + index]), None
+
+    chain = ((read_step(3, 0, 1, 1),), (read_step(3, 0, 1, 2),), (read_step(3, 0, 1, 3),))
+
+    async def body() -> None:
+        async with ScriptedServer(script) as address:
+            link = ModbusConnection(tcp=address, timeout_s=TIMEOUT_S)
+            await link.open()
+            try:
+                device_1, device_2, device_3 = await link.read_chain(chain)
+                assert device_1 == [40]
+                assert isinstance(device_2, ModbusLinkLostError)
+                assert isinstance(device_3, ModbusLinkLostError)
+                assert "connection lost" in str(device_3)
+                assert not link.connected
+                with pytest.raises(ModbusLinkLostError, match="connection lost"):
+                    await link.read_chain(chain)
+            finally:
+                link.close()
+
+    run(body)
+
+
+def test_a_cancelled_chain_stops_and_the_next_waits_for_the_request_on_the_wire() -> None:
+    """Cancelled while its request is unanswered: nothing more of it is sent, and the next
+    chain's request goes out only once that reply is in (never two on the wire)."""
+
+    def script(index: int, body: bytes) -> tuple[float, bytes | None, int | None]:
+        return (0.5 if index == 0 else 0.0), registers_pdu(body[0], [50 + index]), None
+
+    chain = ((read_step(3, 0, 1, 1),), (read_step(3, 0, 1, 2),))
+
+    async def body() -> None:
+        server = ScriptedServer(script)
+        async with server as address:
+            link = ModbusConnection(tcp=address, timeout_s=TIMEOUT_S)
+            await link.open()
+            try:
+                first = asyncio.ensure_future(link.read_chain(chain))
+                await asyncio.sleep(0.1)
+                first.cancel()
+                assert await link.read_chain(chain[1:]) == [[51]]
+                assert [unit_of(r) for r in server.requests] == [1, 2]
+                assert server.most_outstanding == 1
             finally:
                 link.close()
 

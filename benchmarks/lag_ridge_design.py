@@ -36,31 +36,6 @@ the speed terms), ``running``
   rule; the inner choice over four runs took them where they did not hold (ch5
   one-penalty nested 7.93 µm, ch3 two-group 4.07), though the generators liked it.
 
-The next design, ``near-best`` (the four above, ``lasso-3lag-zero`` and
-``ridge-3lag-zero``: the zero-intercept terms with lags at 10 min, 30 min, 2 h; the
-stack the equal-weight average of the structures within 1.25 × the best nested
-RMSE), measured the same way (``--quick --variants near-best,adopted``, 80 CPU-s,
-load average 4–5 on two cores) before it was fixed:
-
-- fl_thermal inner (c6 out), each new structure's nested RMSE µm (ch1 / ch3 / ch5):
-  ``lasso-3lag-zero`` 1.73 / 1.87 / 2.77, ``ridge-3lag-zero`` 1.62 / 2.93 / 2.64
-  (tried and not kept: the lasso through 0 with all ten τ 1.70 / 2.94 / 3.46, with
-  30 min and 2 h 1.72 / 2.07 / 3.41, with 10 min … 8 h 1.51 / 3.13 / 3.40, the
-  3-lag lasso with a fitted intercept 1.57 / 2.02 / 5.00, the one-penalty ridge
-  through 0 with all ten τ 2.32 / 3.08 / 3.78).
-- The stacking rules scored one level deeper (weights chosen on four of c1…c5's
-  nested predictions, scored on the fifth; a scratch computation, not in this file):
-  ``adopted`` with its simplex weights 2.00 / 3.04 / 2.46; the six with simplex
-  weights 2.12 / 1.87 / 2.61; the six with the near-best rule 1.74 / 1.87 / 2.55
-  (cut 1.1: 2.43 / 1.87 / 2.56; 1.2: 1.82 / 1.87 / 2.69; 1.3: 1.74 / 2.16 / 2.55;
-  1.5: 1.74 / 2.46 / 2.59); the four with the near-best rule 2.04 / 3.10 / 2.73;
-  the six averaged equally 1.67 / 2.94 / 2.81.
-- generators and simulator (``near-best`` vs ``adopted``): shaft speed_direct 0.35 vs
-  0.41, thermal_lag 0.48 vs 0.63, unsensed_heat 0.50 vs 0.57, drift 1.17 vs 1.24,
-  none 0.338 vs 0.336; network none 0.211 vs 0.214, speed_direct 0.215 vs 0.211,
-  thermal_lag 0.215 vs 0.207, drift 1.46 vs 1.39; simulator none / speed_direct /
-  cooler / thermal_lag 0.264 / 0.262 / 0.280 / 0.256 vs 0.267 / 0.267 / 0.289 / 0.255.
-
 Prints one JSON document: variant → data set → RMSE µm.
 
     .venv/bin/python benchmarks/lag_ridge_design.py [--quick]
@@ -89,7 +64,6 @@ from models.lag_structures import (  # noqa: E402
     DEFAULT_TAUS_S,
     LASSO,
     ONE_PENALTY_RIDGE,
-    THREE_TAUS_S,
     TWO_GROUP_RIDGE,
     ZERO,
     CandidatePaths,
@@ -129,15 +103,7 @@ WITH_SENSOR_LASSO_ZERO = (
     Structure("lasso-30min-zero", (1800.0,), (), LASSO, ZERO),
 )
 
-#: The family with the two three-lag through-zero structures (stacked by the near-best rule).
-NEAR_BEST = (
-    *WITH_LASSO_ZERO,
-    Structure("lasso-3lag-zero", THREE_TAUS_S, POWERS, LASSO, ZERO),
-    Structure("ridge-3lag-zero", THREE_TAUS_S, POWERS, ONE_PENALTY_RIDGE, ZERO),
-)
-
 VARIANTS = {
-    "near-best": NEAR_BEST,
     "adopted": WITH_LASSO_ZERO,
     "previous": family(POWERS),
     "sensor-lasso-zero": WITH_SENSOR_LASSO_ZERO,
@@ -147,20 +113,15 @@ VARIANTS = {
 }
 
 
-#: The stacking rule of each variant (``near-best`` for those not named).
-RULES = {"adopted": "simplex", "previous": "simplex"}
-
-
-def model_for(structures, rule="near-best"):
+def model_for(structures):
     model = LagRidgeModel()
-    model.stack_rule = rule
     model.candidates = structures
     model._use(structures[0])
     return model
 
 
-def loro_rmse(prepared, structures, rule="near-best") -> float:
-    v = cross_validate(lambda: model_for(structures, rule), prepared)
+def loro_rmse(prepared, structures) -> float:
+    v = cross_validate(lambda: model_for(structures), prepared)
     return round(float(v.pooled.rmse_um), 3)
 
 
@@ -187,7 +148,7 @@ def datasets(quick: bool, workdir: Path):
         yield f"simulator/{effect}", path
 
 
-def fl_inner(structures, target: str, held: str = "c6", rule="near-best") -> dict[str, float]:
+def fl_inner(structures, target: str, held: str = "c6") -> dict[str, float]:
     """Each structure's nested RMSE over the training cycles of the outer fold ``held``
     (that cycle is never predicted), and the stack's weights (inner, optimistic)."""
     prepared = prepare(load_runs(FL_THERMAL, target=target))
@@ -208,7 +169,7 @@ def fl_inner(structures, target: str, held: str = "c6", rule="near-best") -> dic
         )
         for s in structures
     ]
-    choice = choose(candidates, rule)
+    choice = choose(candidates)
     out = {k: round(v, 3) for k, v in choice.inner_rmse_um.items()}
     out["weights"] = {k: v for k, v in choice.weights.items() if v}
     return out
@@ -225,9 +186,7 @@ def main() -> None:
     started = time.process_time()
     for target in ("ch1_um", "ch3_um", "ch5_um"):
         for name in names:
-            result[name][f"fl_thermal inner (c6 out)/{target}"] = fl_inner(
-                VARIANTS[name], target, rule=RULES.get(name, "near-best")
-            )
+            result[name][f"fl_thermal inner (c6 out)/{target}"] = fl_inner(VARIANTS[name], target)
             print(
                 name, target, result[name][f"fl_thermal inner (c6 out)/{target}"], file=sys.stderr
             )
@@ -236,9 +195,7 @@ def main() -> None:
             for label, path in datasets(args.quick, Path(tmp)):
                 prepared = prepare(load_runs(path))
                 for name in names:
-                    result[name][label] = loro_rmse(
-                        prepared, VARIANTS[name], RULES.get(name, "near-best")
-                    )
+                    result[name][label] = loro_rmse(prepared, VARIANTS[name])
                 print(label, {n: result[n][label] for n in names}, file=sys.stderr)
     result["cpu_s"] = round(time.process_time() - started, 1)
     print(json.dumps(result, indent=1))

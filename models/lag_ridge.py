@@ -17,13 +17,12 @@ the training runs alone among a small family fixed in the code
 (:mod:`models.lag_structures`: a ridge with one penalty on the sensor terms and
 one on the speed terms, a ridge with one penalty on every term, a lasso on the
 sensors and their 30 min lags, a lasso on the sensors and the speed powers with their
-30 min lags whose intercept is held at 0 µm, and a lasso and a ridge on those with
-lags at 10 min, 30 min and 2 h, through 0 µm too),
+30 min lags whose intercept is held at 0 µm),
 by a doubly nested leave-one-run-out. The
-structures whose nested score is within 1.25 × the best are averaged with equal
-weights (one structure alone when it is clearly the best); since every candidate's
-terms are among the largest one's, the stack is one linear model on those terms.
-Terms are standardised on the training rows before a penalty applies. The validation around ``fit``
+chosen structures are stacked with weights on the simplex (a weight of 1 is one
+structure alone); since every candidate's terms are among the largest one's,
+the stack is one linear model on those terms. Terms are standardised on the
+training rows before a penalty applies. The validation around ``fit``
 therefore never lets the held-out run steer a choice.
 
 A lag is ``x_k = a_k x_{k−1} + (1 − a_k) u_k`` with ``a_k = exp(−Δt_k / τ)``
@@ -63,7 +62,7 @@ from models.lag_structures import (
     LASSO_PENALTIES,
     PENALTIES,
     SPEED_PENALTY_RATIOS,
-    STACK_TOLERANCE,
+    STACK_STEPS,
     STRUCTURE_NAMES,
     TWO_GROUP_RIDGE,
     CandidatePaths,
@@ -162,8 +161,6 @@ class LagRidgeModel(ThermalModel):
     """Rises, speed powers and their lags; the structure and its penalties chosen nested."""
 
     method = "lag-ridge"
-    #: How the structures are stacked (:func:`models.lag_structures.choose`).
-    stack_rule = "near-best"
 
     def __init__(
         self,
@@ -249,7 +246,7 @@ class LagRidgeModel(ThermalModel):
                 )
                 for s in self.candidates
             ]
-            choice = choose(candidates, self.stack_rule)
+            choice = choose(candidates)
         self._use(choice.structure)
         self._design_cache = None
         self.sensors_used_ = used
@@ -326,12 +323,11 @@ class LagRidgeModel(ThermalModel):
                 "candidates": [s.as_dict() for s in self.candidates],
                 "inner_rmse_um": dict(self.inner_rmse_um_),
                 "weights": dict(self.stack_weights_),
-                "tolerance": STACK_TOLERANCE,
+                "weight_step": 1.0 / STACK_STEPS,
                 "chosen_by": (
-                    "equal weights on every structure whose nested RMSE over the training "
-                    "runs is within the tolerance times the best, each run predicted by every "
-                    "structure fitted on the other training runs with its penalty chosen on "
-                    "those alone"
+                    "weights on the simplex with the lowest pooled squared error over the "
+                    "training runs, each run predicted by every structure fitted on the "
+                    "other training runs with its penalty chosen on those alone"
                     if self.inner_rmse_um_
                     else "the only candidate"
                 ),

@@ -13,9 +13,7 @@ the first held-out figures, so the figures of that family on ``fl_thermal.csv``
 are partly optimistic. The fourth member, ``lasso-30min-zero``, was chosen on the
 independent generators, the simulator and ``fl_thermal.csv``'s inner scores inside
 one outer fold (``benchmarks/lag_ridge_design.py``) and fixed, committed, before its
-first ``fl_thermal.csv`` held-out run. The two three-lag through-zero members and the
-near-best stacking rule were chosen the same way, on that other data and those inner
-scores only, and fixed, committed, before their first ``fl_thermal.csv`` held-out run.)
+first ``fl_thermal.csv`` held-out run.)
 
 - ``two-group``: every sensor's rise, the speed powers n, n^1.5, n², n^2.5,
   and all of them lagged at the ten τ of ``DEFAULT_TAUS_S``; one ridge penalty
@@ -35,23 +33,16 @@ scores only, and fixed, committed, before their first ``fl_thermal.csv`` held-ou
   the intercept is an extrapolation to zero rises. A sparse fit through the origin
   needs no level to extrapolate, and the speed terms carry the heat input that
   reaches the tool before any sensor warms.
-- ``lasso-3lag-zero``: the same with lags at 10 min, 30 min and 2 h
-  (``THREE_TAUS_S``): the spindle's fast parts, the housing and the column each
-  have their own delay, which one 30 min lag cannot give all three.
-- ``ridge-3lag-zero``: the same terms as ``lasso-3lag-zero``, one ridge penalty
-  instead of the L1: it keeps every term small rather than a few large.
 
 The choice is nested twice. Every training run is predicted by every
 structure fitted on the other training runs *with its penalty chosen by
 leave-one-run-out on those alone* (so a structure with a larger grid gains
 nothing from the grid's size); the structure's score is the pooled RMSE of
-those predictions. The stack is the plain average of every structure whose
-score is within ``STACK_TOLERANCE`` (1.25) × the best one's: one structure alone
-when it is clearly the best, equal weights when several are close. Neither a hard
-pick among close scores nor weights fitted to the nested predictions (the rule
-before, :func:`simplex_weights`) is stable over five runs: both follow their
-noise, and a fitted combination of predictors is known to lose to the plain
-average out of sample. Each structure with a weight then has its
+those predictions. The stacking weights (multiples of 1/``STACK_STEPS`` that
+sum to 1) are the ones whose weighted sum of those predictions has the lowest
+pooled squared error: one structure alone when it is clearly the best, a blend
+when the runs disagree (a hard pick among structures whose scores are close
+follows the noise of five runs). Each structure with a weight then has its
 penalty chosen by leave-one-run-out on all the training runs and is fitted on
 all of them; the stack is their weighted sum. With fewer than three groups of
 training rows there is nothing to nest a choice in, and the first structure is
@@ -76,8 +67,6 @@ import numpy as np
 
 #: Time constants of the lags, s: 5 min, 10 min, 20 min, 30 min, 1 h, 2 h, 4 h, 8 h, 16 h, 24 h.
 DEFAULT_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0, 57600.0, 86400.0)
-#: The short lag set of the sparse and the through-zero structures: 10 min, 30 min, 2 h.
-THREE_TAUS_S = (600.0, 1800.0, 7200.0)
 #: Powers of the speed n (1000 r/min) among the terms.
 DEFAULT_SPEED_POWERS = (1.0, 1.5, 2.0, 2.5)
 #: Ridge penalty of the sensor group on standardised terms, relative to the row count.
@@ -95,11 +84,8 @@ ESTIMATORS = (TWO_GROUP_RIDGE, ONE_PENALTY_RIDGE, LASSO, STACK)
 #: rest (every rise, the speed and every lag 0), where the probe was zeroed.
 FITTED, ZERO = "fitted", "zero"
 INTERCEPTS = (FITTED, ZERO)
-#: Stacking weights were multiples of 1 / STACK_STEPS (the simplex rule, :func:`simplex_weights`,
-#: kept for readings of earlier designs).
+#: Stacking weights are multiples of 1 / STACK_STEPS.
 STACK_STEPS = 20
-#: A structure joins the stack when its nested RMSE is at most this multiple of the best one's.
-STACK_TOLERANCE = 1.25
 
 
 @dataclass(frozen=True)
@@ -148,8 +134,6 @@ STRUCTURES = (
     Structure("one-penalty", DEFAULT_TAUS_S, DEFAULT_SPEED_POWERS, ONE_PENALTY_RIDGE),
     Structure("lasso-30min", (1800.0,), (), LASSO),
     Structure("lasso-30min-zero", (1800.0,), DEFAULT_SPEED_POWERS, LASSO, ZERO),
-    Structure("lasso-3lag-zero", THREE_TAUS_S, DEFAULT_SPEED_POWERS, LASSO, ZERO),
-    Structure("ridge-3lag-zero", THREE_TAUS_S, DEFAULT_SPEED_POWERS, ONE_PENALTY_RIDGE, ZERO),
 )
 STRUCTURE_NAMES = tuple(s.name for s in STRUCTURES)
 
@@ -368,20 +352,6 @@ def simplex_weights(k: int, steps: int = STACK_STEPS) -> np.ndarray:
     return np.array(sorted(rows, reverse=True), dtype=float) / steps
 
 
-def equal_weights_near_best(rmse_um: np.ndarray, tolerance: float = STACK_TOLERANCE) -> np.ndarray:
-    """Equal weights on every structure whose nested RMSE is within ``tolerance`` × the best.
-
-    Weights fitted to five runs' nested predictions follow their noise (the fitted
-    combination of forecasts is known to lose to the plain average out of sample);
-    the average of the structures that predict the runs about as well as the best
-    needs nothing fitted but the cut, and a structure far worse than the best gets
-    no weight at all.
-    """
-    rmse_um = np.asarray(rmse_um, dtype=float)
-    near = rmse_um <= tolerance * float(np.min(rmse_um))
-    return near / near.sum()
-
-
 @dataclass(frozen=True)
 class Choice:
     """What :func:`choose` picked: the structure (a stack of several when the weights split),
@@ -397,13 +367,8 @@ class Choice:
     weights: dict[str, float]
 
 
-def choose(candidates: Sequence[CandidatePaths], rule: str = "near-best") -> Choice:
-    """The stack of the structures with the lowest nested scores (see the module docstring).
-
-    ``rule``: ``near-best`` (equal weights, :func:`equal_weights_near_best`) or ``simplex``
-    (the multiples of 1/``STACK_STEPS`` with the lowest pooled squared error of the nested
-    predictions, the rule before it; kept for ``benchmarks/lag_ridge_design.py``).
-    """
+def choose(candidates: Sequence[CandidatePaths]) -> Choice:
+    """The stack of structures with the lowest nested score (see the module docstring)."""
     if not candidates:
         raise ValueError("lag-ridge: no candidate structure to choose from")
     members = candidates[0].members
@@ -414,14 +379,10 @@ def choose(candidates: Sequence[CandidatePaths], rule: str = "near-best") -> Cho
         predicted = np.column_stack([c.nested_predictions(members) for c in candidates])
         for candidate, column in zip(candidates, predicted.T, strict=True):
             scores[candidate.structure.name] = float(np.sqrt(np.mean((y - column) ** 2)))
-        if rule == "simplex":
-            grid = simplex_weights(len(candidates))
-            gram, cross = predicted.T @ predicted, predicted.T @ y
-            sse = np.einsum("mi,ij,mj->m", grid, gram, grid) - 2.0 * grid @ cross
-            weights = grid[int(np.argmin(sse))]
-        else:
-            rmse = np.array([scores[c.structure.name] for c in candidates])
-            weights = equal_weights_near_best(rmse)
+        grid = simplex_weights(len(candidates))
+        gram, cross = predicted.T @ predicted, predicted.T @ y
+        sse = np.einsum("mi,ij,mj->m", grid, gram, grid) - 2.0 * grid @ cross
+        weights = grid[int(np.argmin(sse))]
     used = [(w, c) for w, c in zip(weights, candidates, strict=True) if w > 0]
     union = max((c for _, c in used), key=lambda c: len(c.names))
     index = {name: j for j, name in enumerate(union.names)}

@@ -30,6 +30,7 @@ from models.lag_ridge import (
     term_names,
 )
 from models.lag_structures import (
+    DEFAULT_SPEED_POWERS,
     DEFAULT_TAUS_S,
     STRUCTURE_NAMES,
     Structure,
@@ -153,13 +154,11 @@ def test_the_stack_is_the_weighted_sum_of_its_structures_fitted_alone(synthetic:
         if w > 0
     )
     assert np.max(np.abs(stack.predict(synthetic.inputs) - by_hand)) < 1e-9
-    # On these runs several structures are near the best, so the sum above maps the 30 min
-    # lasso's terms into the largest stacked structure's, and the weights are equal.
-    used = [w for w in weights.values() if w > 0]
-    assert len(used) >= 2 and max(used) - min(used) < 1e-12
-    stacked = term_names(synthetic.inputs.sensors, stack.lag_taus_s, stack.speed_powers)
-    assert stack.structure_.estimator == "stack" and stack.coef_.size == len(stacked)
-    assert set(stack.lag_taus_s) <= set(DEFAULT_TAUS_S)
+    # On these runs the weights split (measured 0.25 / 0.1 / 0.3 / 0.35), so the sum above maps
+    # the lassos' 30 min lags into the ridge's terms.
+    assert sum(w > 0 for w in weights.values()) >= 2
+    every_term = term_names(synthetic.inputs.sensors, DEFAULT_TAUS_S, DEFAULT_SPEED_POWERS)
+    assert stack.structure_.estimator == "stack" and stack.coef_.size == len(every_term)
 
 
 def test_a_model_stored_before_the_structure_choice_still_loads(synthetic: Prepared) -> None:

@@ -75,9 +75,7 @@ class ThermalNetwork:
     def _compute_matrices(self, speed_rpm: float) -> tuple[np.ndarray, np.ndarray]:
         losses = self.conduction + np.diag(self.convection(speed_rpm) + self.coolant)
         a = -losses / self.capacity[:, None]
-        phi = expm(a * self.step_s)
-        gamma = np.linalg.solve(a, phi - np.eye(len(NODES)))
-        return phi, gamma
+        return _transition(a.tobytes(), len(NODES), self.step_s)
 
     def step(
         self, temps_C: np.ndarray, speed_rpm: float, ambient_C: np.ndarray | float, coolant_C: float
@@ -97,3 +95,18 @@ class ThermalNetwork:
         drive = self.heat_W(speed_rpm) + self.convection(speed_rpm) * ambient_C
         drive = drive + self.coolant * ambient_C
         return np.linalg.solve(losses, drive)
+
+
+@lru_cache(maxsize=1024)
+def _transition(a_bytes: bytes, size: int, step_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Φ and Γ of one A (its bytes) and step: shared by every network of the process.
+
+    Recordings with the same parameters meet the same speeds; ``expm`` is most of a
+    short recording's cost. The arrays are read-only, as they are shared.
+    """
+    a = np.frombuffer(a_bytes).reshape(size, size)
+    phi = expm(a * step_s)
+    gamma = np.linalg.solve(a, phi - np.eye(size))
+    phi.setflags(write=False)
+    gamma.setflags(write=False)
+    return phi, gamma

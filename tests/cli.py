@@ -1,9 +1,10 @@
 """Running ``python -m gateway …`` the way users and scripts do: a real subprocess.
 
 :func:`gateway_in_process` runs the same command through click in the test's own
-process, for the tables of refused inputs (one case per file in ``tests/cases/``):
-there, a fresh interpreter per case would be most of the suite's CPU and tests
-nothing more. Everything else, and a case of each table too, runs as a process.
+process: a fresh interpreter per call (numpy, scipy, sklearn imported again) would be
+much of the suite's CPU and tests nothing more. Each command keeps at least one test
+that runs it as a process (and a case of each table of refused inputs); commands that
+serve, are signalled, or run beside a gateway always run as processes.
 """
 
 from __future__ import annotations

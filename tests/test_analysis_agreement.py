@@ -29,7 +29,7 @@ from models.metrics import accuracy
 from simulator.params import load_params
 from simulator.programs import load_programs
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway_in_process
 from tests.test_analysis_report import one_step_result
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
@@ -224,7 +224,9 @@ def assert_agree(stdout: str, page: Page, payload: dict) -> None:
 
 def run_analyze(tmp_path: Path, data: Path, *options: str) -> tuple[str, Page, dict]:
     out, report = tmp_path / "out.json", tmp_path / "report"
-    done = gateway("analyze", data, "--json", out, "--report", report, "--no-progress", *options)
+    done = gateway_in_process(
+        "analyze", data, "--json", out, "--report", report, "--no-progress", *options
+    )
     assert done.returncode == 0, done.stderr
     return done.stdout, parse_page(report / "index.html"), json.loads(out.read_text("utf-8"))
 

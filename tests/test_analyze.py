@@ -7,6 +7,7 @@ an independent generator with other physics, parameters and sensor layout
 
 from __future__ import annotations
 
+import functools
 import json
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from simulator.params import load_params
 from simulator.programs import load_programs
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from tests import independent_machine
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway, gateway_in_process
 
 PARAMS = load_params()
 PROGRAMS = load_programs()
@@ -31,9 +32,15 @@ EFFECTS = ("thermal_lag", "speed_direct", "ambient", "drift")
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
 
 
+@functools.cache
+def recorded(effect: str, seed: int, programs: tuple[str, ...]):
+    """One recording per (effect, seed, programs): several tests analyse the same one."""
+    return record(PARAMS, [PROGRAMS[p] for p in programs], [effect], seed=seed)
+
+
 def simulated(tmp_path: Path, effect: str, seed: int, programs=DEFAULT_PROGRAMS) -> Path:
     path = tmp_path / f"sim-{effect}-{seed}.csv"
-    write_recording(path, record(PARAMS, [PROGRAMS[p] for p in programs], [effect], seed=seed))
+    write_recording(path, recorded(effect, seed, tuple(programs)))
     return path
 
 
@@ -139,7 +146,7 @@ def test_cli_contract_report_and_stored_model(tmp_path: Path) -> None:
 
 def test_cli_none_keeps_after_equal_to_before(tmp_path: Path) -> None:
     out = tmp_path / "none.json"
-    done = gateway("analyze", simulated(tmp_path, "none", 3), "--json", out)
+    done = gateway_in_process("analyze", simulated(tmp_path, "none", 3), "--json", out)
     assert done.returncode == 0, done.stderr
     payload = json.loads(out.read_text(encoding="utf-8"))
     assert payload["effect"] == "none"
@@ -160,7 +167,7 @@ def test_bad_input_is_refused_with_file_line_and_column(
 ) -> None:
     path = tmp_path / "bad.csv"
     path.write_text(content, encoding="utf-8")
-    done = gateway("analyze", path)
+    done = gateway_in_process("analyze", path)
     assert done.returncode == 2
     assert "bad.csv" in done.stderr and expected in done.stderr
 

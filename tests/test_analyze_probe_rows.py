@@ -20,7 +20,7 @@ from gateway.monitor import MonitorSink
 from models.history_analysis import analyse_history
 from models.residual_monitor import MonitorParams
 from simulator.programs import production_program
-from tests.cli import gateway
+from tests.cli import gateway_in_process
 from tests.gateway_rig import fit_store
 
 
@@ -42,7 +42,9 @@ def test_probe_rows_find_the_drift_like_the_monitor(history, tmp_path: Path):
     csv_path = tmp_path / "history.csv"
     logged.write_csv(str(csv_path))
     out = tmp_path / "result.json"
-    done = gateway("analyze", csv_path, "--probe-rows", "--json", out, "--store", tmp_path / "s")
+    done = gateway_in_process(
+        "analyze", csv_path, "--probe-rows", "--json", out, "--store", tmp_path / "s"
+    )
     assert done.returncode == 0, done.stderr
     assert f"({probes} with error_um)" in done.stdout
     result = json.loads(out.read_text())
@@ -60,7 +62,7 @@ def test_without_the_option_the_rows_between_probes_are_skipped(history, tmp_pat
     _, logged = history
     csv_path = tmp_path / "history.csv"
     logged.write_csv(str(csv_path))
-    done = gateway("analyze", csv_path)
+    done = gateway_in_process("analyze", csv_path)
     skipped = logged.n_samples - int(logged.probe_rows.sum())
     assert f"skipped {skipped} row(s)" in done.stdout + done.stderr
 
@@ -73,7 +75,7 @@ def test_probe_rows_refuse_a_file_without_enough_probes(history, tmp_path: Path)
     from dataclasses import replace
 
     replace(rows, error_um=error).write_csv(str(tmp_path / "few.csv"))
-    done = gateway("analyze", tmp_path / "few.csv", "--probe-rows")
+    done = gateway_in_process("analyze", tmp_path / "few.csv", "--probe-rows")
     assert done.returncode == 2
     assert "expected at least 10" in done.stderr and "Traceback" not in done.stderr
 
@@ -88,7 +90,7 @@ def test_probe_rows_still_refuse_an_absurd_target_value(history, tmp_path: Path)
     cells[-1] = "1e308"
     lines[probe_line] = ",".join(cells)
     csv_path.write_text("\n".join(lines) + "\n")
-    done = gateway("analyze", csv_path, "--probe-rows")
+    done = gateway_in_process("analyze", csv_path, "--probe-rows")
     assert done.returncode == 2
     assert f"history.csv:{probe_line + 1}: column 'error_um'" in done.stderr, done.stderr
     assert "Traceback" not in done.stderr

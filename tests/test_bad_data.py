@@ -67,7 +67,7 @@ def test_a_utf8_byte_order_mark_is_accepted(tmp_path: Path) -> None:
     for path in (plain, marked):
         out = tmp_path / f"{path.stem}.json"
         store = tmp_path / f"store-{path.stem}"
-        result = gateway("fit", path, "--store", store, "--json", out, "--no-progress")
+        result = gateway_in_process("fit", path, "--store", store, "--json", out, "--no-progress")
         assert result.returncode == 0, result.stderr
         results[path.stem] = json.loads(out.read_text(encoding="utf-8"))["validations"]
     assert results["marked"] == results["plain"]
@@ -81,7 +81,9 @@ def test_a_bad_cell_in_a_column_the_command_does_not_need_is_noted_not_fatal(
     source = (CASES / "temperature_1e308.csv").read_text(encoding="utf-8")
     path = tmp_path / "runs.csv"
     path.write_text(source, encoding="utf-8")
-    result = gateway("fit", path, "--sensors", "T2", "--store", tmp_path / "s", "--no-progress")
+    result = gateway_in_process(
+        "fit", path, "--sensors", "T2", "--store", tmp_path / "s", "--no-progress"
+    )
     assert result.returncode == 0, result.stderr
     assert (
         f"note: {path}: column 'T1' is not used as a signal: line 4: expected a temperature "
@@ -158,7 +160,7 @@ def test_no_stored_model_has_a_non_finite_number(tmp_path: Path) -> None:
     """Whatever fit saves passes a strict JSON parser (no NaN, Infinity)."""
     path = write_runs_csv(tmp_path / "runs.csv", seed=6)
     store = tmp_path / "store"
-    assert gateway("fit", path, "--store", store, "--no-progress").returncode == 0
+    assert gateway_in_process("fit", path, "--store", store, "--no-progress").returncode == 0
     files = list(store.glob("*.json"))
     assert files
 
@@ -173,7 +175,7 @@ def test_no_stored_model_has_a_non_finite_number(tmp_path: Path) -> None:
 def test_a_directory_named_like_a_file_is_refused(tmp_path: Path) -> None:
     folder = tmp_path / "runs.csv"
     shutil.copytree(CASES / "directory.csv", folder)
-    result = gateway("analyze", folder, "--no-progress")
+    result = gateway_in_process("analyze", folder, "--no-progress")
     assert result.returncode == 2
     assert result.stderr.splitlines() == [
         f"error: {folder}: is a directory; a measured-run CSV file was expected"

@@ -35,7 +35,7 @@ from simulator.programs import SpeedProgram, production_program, program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from simulator.serve import SimulatedPlant, SimulatorConfig
 from tests import gateway_rig as rig
-from tests.cli import gateway
+from tests.cli import gateway_in_process
 from tests.ports import free_tcp_port
 from tests.serial_pty import socat_pty_pair
 
@@ -349,7 +349,7 @@ def augmented_store(
     data = folder / "hidden.csv"
     programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
     write_recording(data, record(load_params(), programs, ["thermal_lag", "speed_direct"], seed=2))
-    done = gateway("analyze", data, "--store", models)
+    done = gateway_in_process("analyze", data, "--store", models)
     assert done.returncode == 0, done.stderr
     (path,) = (models / augmented.FOLDER).glob("*.json")
     return models, augmented.load(path)

@@ -17,7 +17,7 @@ from models.features import prepare
 from models.fitting import fit_and_store
 from models.registry import make_model
 from models.store import ModelStore
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway_in_process
 
 
 def test_vif_and_condition_number_match_a_hand_computed_pair() -> None:
@@ -115,7 +115,7 @@ def test_the_penalty_is_chosen_without_the_held_out_run() -> None:
 
 def test_fit_prints_conditioning_and_warns_on_a_fragile_model(tmp_path: Path) -> None:
     out = tmp_path / "fit.json"
-    result = gateway(
+    result = gateway_in_process(
         "fit", ROOT / "data" / "fl_thermal.csv", "--method", "mlr", "--target", "ch5_um",
         "--store", tmp_path / "store", "--json", out, "--no-progress",
     )  # fmt: skip

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from gateway.config import ConfigError, load_config
-from tests.cli import gateway
+from tests.cli import gateway, gateway_in_process
 from tests.ports import free_tcp_port
 from tests.synthetic import write_runs_csv
 
@@ -20,7 +20,7 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A store with an MLR model on T1–T7 (the synthetic sensors)."""
     folder = tmp_path_factory.mktemp("store")
     data = write_runs_csv(folder / "runs.csv")
-    result = gateway("fit", data, "--store", folder / "models")
+    result = gateway_in_process("fit", data, "--store", folder / "models")
     assert result.returncode == 0, result.stderr
     return folder / "models"
 
@@ -120,7 +120,7 @@ def test_password_in_the_file_is_refused(tmp_path: Path, store: Path) -> None:
 def test_unknown_sensor_in_a_model(tmp_path: Path, store: Path) -> None:
     # The stored model needs T7, but no channel provides it.
     path = write_config(tmp_path, store, GOOD.replace("T6, T7]", "T6]"))
-    result = gateway("check-config", "--config", path)
+    result = gateway_in_process("check-config", "--config", path)
     assert result.returncode == 2
     assert (
         "model 'mlr-error_um-all' needs sensor(s) ['T7'] that no transmitter channel provides"
@@ -134,14 +134,14 @@ def test_regime_naming_a_model_not_in_the_store(tmp_path: Path, store: Path) -> 
         store,
         GOOD.replace("variable: mlr-error_um-all", "variable: mlr-error_um-spectrum"),
     )
-    result = gateway("check-config", "--config", path)
+    result = gateway_in_process("check-config", "--config", path)
     assert result.returncode == 2
     assert "regime 'variable' names model 'mlr-error_um-spectrum', which is not in" in result.stderr
 
 
 def test_unreachable_endpoint(tmp_path: Path, store: Path) -> None:
     path = write_config(tmp_path, store)
-    result = gateway("check-config", "--config", path, "--connect")
+    result = gateway_in_process("check-config", "--config", path, "--connect")
     assert result.returncode == 2
     assert "machine vmc-1: CNC unreachable" in result.stderr
     assert "opc.tcp://127.0.0.1:" in result.stderr

@@ -23,7 +23,7 @@ import yaml
 
 from gateway.config import load_config
 from gateway.health import check, heartbeat_path, write_heartbeat
-from tests.cli import gateway
+from tests.cli import gateway, gateway_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
@@ -580,13 +580,13 @@ def test_influx_settings_come_from_the_environment(tmp_path: Path, monkeypatch) 
     # A literal and its variable together, or neither: refused with file, line and key.
     doc["logging"]["influxdb"]["url"] = "http://127.0.0.1:8086"
     path.write_text(yaml.safe_dump(doc), encoding="utf-8")
-    result = gateway("check-config", "--config", path)
+    result = gateway_in_process("check-config", "--config", path)
     assert result.returncode == 2, result.stderr
     assert "logging.influxdb: give 'url' or 'url_env', not both" in result.stderr
     assert re.search(r"config\.yaml:\d+: logging\.influxdb", result.stderr), result.stderr
     del doc["logging"]["influxdb"]["url"], doc["logging"]["influxdb"]["url_env"]
     path.write_text(yaml.safe_dump(doc), encoding="utf-8")
-    result = gateway("check-config", "--config", path)
+    result = gateway_in_process("check-config", "--config", path)
     assert result.returncode == 2 and "give 'url' or 'url_env'" in result.stderr
 
 

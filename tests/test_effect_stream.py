@@ -29,7 +29,7 @@ from models.store import StoreError
 from simulator.params import load_params
 from simulator.programs import load_programs
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway_in_process
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
 HIDDEN = ["thermal_lag", "speed_direct", "ambient", "drift"]
@@ -39,7 +39,7 @@ TOLERANCE_UM = 1e-6
 
 def analyzed(data: Path, store: Path, *options: str) -> dict[str, Any]:
     """``analyze --store`` as a user runs it; the augmented document it saved."""
-    done = gateway("analyze", data, *options, "--store", store)
+    done = gateway_in_process("analyze", data, *options, "--store", store)
     assert done.returncode == 0, done.stderr
     (path,) = (store / augmented.FOLDER).glob("*.json")
     return augmented.load(path)

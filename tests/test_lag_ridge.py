@@ -36,7 +36,7 @@ from models.lag_structures import (
     Structure,
 )
 from models.store import ModelStore, load_file
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway_in_process
 from tests.test_conditioning import machine
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
@@ -331,7 +331,7 @@ def test_fl_thermal_ch1_held_out_with_nested_penalties(tmp_path: Path) -> None:
     out = tmp_path / "fit.json"
     store = tmp_path / "store"
     method = ("--method", "lag-ridge", "--target", "ch1_um")
-    done = gateway("fit", FL_THERMAL, *method, "--json", out, "--store", store)
+    done = gateway_in_process("fit", FL_THERMAL, *method, "--json", out, "--store", store)
     assert done.returncode == 0, done.stderr
     assert "condition number" in done.stdout
     result = json.loads(out.read_text(encoding="utf-8"))
@@ -350,7 +350,7 @@ def test_fl_thermal_ch5_held_out_with_the_structure_chosen_on_the_training_cycle
     tmp_path: Path,
 ) -> None:
     out, store = tmp_path / "fit.json", tmp_path / "store"
-    done = gateway(
+    done = gateway_in_process(
         "fit", FL_THERMAL, "--method", "lag-ridge", "--target", "ch5_um", "--json", out,
         "--store", store,
     )  # fmt: skip
@@ -372,7 +372,7 @@ def test_fl_thermal_ch5_held_out_with_the_structure_chosen_on_the_training_cycle
 
 def test_replay_fl_thermal_ch5_on_lag_ridge_a_probe_every_hour(tmp_path: Path) -> None:
     out = tmp_path / "replay.json"
-    done = gateway(
+    done = gateway_in_process(
         "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge",
         "--probe-interval-min", "60", "--json", out,
     )  # fmt: skip
@@ -396,7 +396,7 @@ def test_replay_fl_thermal_ch5_on_the_declared_lag_ridge_model_meets_the_targets
     tmp_path: Path,
 ) -> None:
     out = tmp_path / "replay.json"
-    done = gateway(
+    done = gateway_in_process(
         "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge", "--base", "declared",
         "--probe-interval-min", "30", "--probe-interval-min", "60", "--json", out,
     )  # fmt: skip
@@ -412,7 +412,7 @@ def test_replay_fl_thermal_ch5_on_the_declared_lag_ridge_model_meets_the_targets
 
 
 def test_replay_refuses_to_store_a_lag_ridge_base(tmp_path: Path) -> None:
-    done = gateway(
+    done = gateway_in_process(
         "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge",
         "--store", tmp_path / "store",
     )  # fmt: skip
@@ -429,7 +429,7 @@ def test_analyze_takes_lag_ridge_as_its_base_and_its_result_streams(tmp_path: Pa
     from models.effect_stream import StreamingAugmented
 
     out, store = tmp_path / "analysis.json", tmp_path / "store"
-    done = gateway(
+    done = gateway_in_process(
         "analyze", FL_THERMAL, "--target", "ch1_um", "--model", "lag-ridge",
         "--json", out, "--store", store, "--no-progress",
     )  # fmt: skip

@@ -13,7 +13,7 @@ from models.dataset import load_runs
 from models.features import prepare
 from models.fitting import fit_sensor_fallbacks
 from models.store import ModelStore, _checksum
-from tests.cli import gateway
+from tests.cli import gateway_in_process
 from tests.synthetic import write_runs_csv
 from tests.test_config import GOOD, write_config
 
@@ -37,7 +37,7 @@ def two_target_csv(path: Path) -> Path:
 
 def fit(data: Path, store: Path, target: str) -> None:
     """The CLI's model on every sensor, then the library's sensor fallbacks, into one store."""
-    result = gateway("fit", data, "--store", store, "--target", target)
+    result = gateway_in_process("fit", data, "--store", store, "--target", target)
     assert result.returncode == 0, result.stderr
     fit_sensor_fallbacks(prepare(load_runs(data, target=target)), "mlr", ModelStore(store))
 
@@ -67,7 +67,9 @@ def test_a_store_of_one_target_loads_and_falls_back_within_it(
     fallback = bank.usable("mlr-error_um-all", every - {"T1"})
     assert fallback is not None and fallback.model_id == "mlr-error_um-all-without-T1"
     assert fallback.target == preferred.target
-    result = gateway("check-config", "--config", write_config(tmp_path, one_target_store, GOOD))
+    result = gateway_in_process(
+        "check-config", "--config", write_config(tmp_path, one_target_store, GOOD)
+    )
     assert result.returncode == 0, result.stderr
     assert "8 models in" in result.stdout and "(target error_um (µm))" in result.stdout
 
@@ -86,7 +88,7 @@ def test_a_store_mixing_targets_is_refused_naming_models_and_targets(
     assert message.startswith(f"model store {store}: its models predict different targets")
     assert f"other_um (µm): {', '.join(other_ids)}" in message
     assert "error_um (µm): mlr-error_um-all, mlr-error_um-all-without-T1," in message
-    result = gateway("check-config", "--config", write_config(tmp_path, store, GOOD))
+    result = gateway_in_process("check-config", "--config", write_config(tmp_path, store, GOOD))
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1, result.stderr
     assert "predict different targets" in result.stderr and other_ids[0] in result.stderr

@@ -46,7 +46,7 @@ from simulator.params import load_params
 from simulator.programs import SpeedProgram, program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from tests import gateway_rig as rig
-from tests.cli import gateway
+from tests.cli import gateway, gateway_in_process
 from tests.ports import free_tcp_port
 from tests.test_closed_loop import assert_every_write_was_safe, closed_loop, run_for
 
@@ -69,7 +69,7 @@ def lag_document(tmp_path_factory: pytest.TempPathFactory, models_dir: Path) -> 
     data = folder / "hidden.csv"
     programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
     write_recording(data, record(load_params(), programs, ["thermal_lag", "speed_direct"], seed=2))
-    done = gateway("analyze", data, "--store", folder / "store")
+    done = gateway_in_process("analyze", data, "--store", folder / "store")
     assert done.returncode == 0, done.stderr
     (path,) = (folder / "store" / augmented.FOLDER).glob("*.json")
     document = augmented.load(path)
@@ -219,7 +219,7 @@ def test_a_model_the_machine_cannot_run_is_refused_and_the_old_one_stays(
     plant = rig.plant(ManualClock(), cnc=("modbus",))
     entry = rig.machine_entry(MACHINE, plant, store)
     config.write_text(yaml.safe_dump({"machines": [entry], "state_dir": str(tmp_path / "s")}))
-    refused = gateway("models", "promote", bad.id, "--config", config)
+    refused = gateway_in_process("models", "promote", bad.id, "--config", config)
     assert refused.returncode == 2
     assert refused.stderr.strip().splitlines() == [
         "error: it needs sensor(s) ['T12'] that no transmitter channel of machine vmc-demo "
@@ -267,12 +267,12 @@ def test_a_check_of_the_configuration_reads_the_promoted_set_and_writes_nothing(
     """Only the running loop records a refusal in the store; check-config only looks."""
     store = fresh_store(tmp_path, models_dir)
     bad = publish(store, needing(lag_document, "T12", "needs-t12"))
-    assert gateway("models", "promote", bad.id, "--store", store).returncode == 0
+    assert gateway_in_process("models", "promote", bad.id, "--store", store).returncode == 0
     config = tmp_path / "config.yaml"
     entry = rig.machine_entry(MACHINE, rig.plant(ManualClock(), cnc=("modbus",)), store)
     config.write_text(yaml.safe_dump({"machines": [entry], "state_dir": str(tmp_path / "s")}))
     before = (store / "proposals" / f"{bad.id}.json").read_bytes()
-    checked = gateway("check-config", "--config", config)
+    checked = gateway_in_process("check-config", "--config", config)
     assert checked.returncode == 0, checked.stderr
     assert "models version 1" in checked.stdout
     assert (store / "proposals" / f"{bad.id}.json").read_bytes() == before
@@ -512,7 +512,7 @@ def test_a_restarted_loop_starts_with_the_promoted_set(
     loop = MachineLoop(machine, ManualClock(), build_buses(machine), build_cnc(machine), bank)
     assert loop.promotions.version == 1 and loop.promotions.swaps == 0
     assert [m.model_id for m in loop.effects.models] == [lag_document["model_id"]]
-    done = gateway("check-config", "--config", write_machine_config(tmp_path, machine))
+    done = gateway_in_process("check-config", "--config", write_machine_config(tmp_path, machine))
     assert done.returncode == 0, done.stderr
     assert "models version 1, 0 open proposal(s) (promoted by an operator only)" in done.stdout
 

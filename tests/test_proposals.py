@@ -19,7 +19,7 @@ from models.proposals import (
     ProposalError,
     ProposalStore,
 )
-from tests.cli import gateway
+from tests.cli import gateway, gateway_in_process
 
 
 def document(model_id: str, tau_s: float = 1800.0) -> dict[str, Any]:
@@ -181,16 +181,18 @@ def test_command_line_errors_are_one_line_and_exit_2(tmp_path: Path) -> None:
     assert unknown.stderr.splitlines() == [
         f"error: proposal 'P0007' is not in {tmp_path / 'proposals'} (have: P0001)"
     ]
-    nothing = gateway("models", "rollback", "--store", tmp_path)
+    nothing = gateway_in_process("models", "rollback", "--store", tmp_path)
     assert nothing.returncode == 2
     assert nothing.stderr.splitlines() == [
         f"error: nothing to roll back in {tmp_path}: version 0 is the store's own models"
     ]
-    rejected = gateway("models", "reject", "P0001", "--store", tmp_path, "--note", "too few probes")
+    rejected = gateway_in_process(
+        "models", "reject", "P0001", "--store", tmp_path, "--note", "too few probes"
+    )
     assert rejected.returncode == 0, rejected.stderr
     assert store.get("P0001").history[-1]["note"] == "too few probes"
-    again = gateway("models", "promote", "P0001", "--store", tmp_path)
+    again = gateway_in_process("models", "promote", "P0001", "--store", tmp_path)
     assert again.returncode == 2 and "P0001 is rejected" in again.stderr
     assert "Traceback" not in unknown.stderr + nothing.stderr + again.stderr
-    listed = gateway("models", "versions", "--store", tmp_path)
+    listed = gateway_in_process("models", "versions", "--store", tmp_path)
     assert listed.returncode == 0 and "version 0: the store's own models" in listed.stdout

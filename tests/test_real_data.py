@@ -27,16 +27,29 @@ def prepared(request: pytest.FixtureRequest):
     return prepare(load_runs(DATA, target=request.param))
 
 
-def test_plain_linear_model_lands_at_6_to_7_um(prepared) -> None:
-    validation = cross_validate(lambda: make_model("mlr"), prepared)
+@pytest.fixture(scope="module")
+def validations() -> dict:
+    """Each (channel, method) validated once: two tests read the plain linear model's."""
+    return {}
+
+
+def validated(validations: dict, prepared, method: str):
+    key = (id(prepared), method)  # the entry holds ``prepared``: its id stays its own
+    if key not in validations:
+        validations[key] = (prepared, cross_validate(lambda: make_model(method), prepared))
+    return validations[key][1]
+
+
+def test_plain_linear_model_lands_at_6_to_7_um(prepared, validations) -> None:
+    validation = validated(validations, prepared, "mlr")
     assert validation.scheme == "leave-one-run-out"
     assert len(validation.folds) == 6
     assert 6.0 <= validation.pooled.rmse_um <= 7.0, validation.pooled
 
 
 @pytest.mark.parametrize("method", sorted(METHODS))
-def test_every_method_fits_and_beats_no_compensation(prepared, method: str) -> None:
-    validation = cross_validate(lambda: make_model(method), prepared)
+def test_every_method_fits_and_beats_no_compensation(prepared, validations, method: str) -> None:
+    validation = validated(validations, prepared, method)
     uncompensated = float(np.sqrt(np.mean(prepared.error_um**2)))
     assert np.all(np.isfinite(validation.predicted_um))
     assert validation.pooled.rmse_um < uncompensated, (validation.pooled, uncompensated)

@@ -31,7 +31,7 @@ from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnap
 from simulator.servers.modbus_cnc import CncModbusServer
 from simulator.servers.modbus_common import ReceivedRequest
 from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway_in_process
 from tests.ports import free_tcp_port
 
 T = TypeVar("T")
@@ -367,7 +367,9 @@ def test_check_config_names_the_map_file_exits_2_without_traceback(tmp_path: Pat
     path, line = mutated_pt100(
         tmp_path, "address: 2, data_type: int16", "address: 2, data_type: int17"
     )
-    result = gateway("check-config", "--config", config_naming(tmp_path, "maps/pt100_bad.yaml"))
+    result = gateway_in_process(
+        "check-config", "--config", config_naming(tmp_path, "maps/pt100_bad.yaml")
+    )
     assert result.returncode == 2, result.stdout + result.stderr
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and "Traceback" not in result.stdout + result.stderr

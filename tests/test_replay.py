@@ -15,7 +15,7 @@ from models.dataset import load_runs
 from models.features import prepare
 from models.online_correction import CorrectionParams
 from models.online_replay import choose_filter, probe_rows, replay_run
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway, gateway_in_process
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
 ONLINE_KEYS = {
@@ -69,7 +69,7 @@ def test_a_stored_bias_gain_filter_reaches_the_runtime(tmp_path):
     """Only bias-gain offered: the saved model carries that kind and its noise through JSON,
     and the running gateway takes them with its own limits."""
     store = tmp_path / "store"
-    done = gateway(
+    done = gateway_in_process(
         "replay", FL_THERMAL, "--target", "ch5_um", "--probe-interval-min", "60",
         "--filter-kind", "bias-gain", "--store", store, "--json", tmp_path / "r.json",
     )  # fmt: skip
@@ -90,11 +90,11 @@ def test_a_stored_bias_gain_filter_reaches_the_runtime(tmp_path):
 
 
 def test_replay_refuses_bad_input_with_one_line(tmp_path):
-    done = gateway("replay", FL_THERMAL, "--target", "ch9_um")
+    done = gateway_in_process("replay", FL_THERMAL, "--target", "ch9_um")
     assert done.returncode == 2
     assert "ch9_um" in done.stderr and "Traceback" not in done.stderr
     missing = tmp_path / "none.json"
-    done = gateway("replay", FL_THERMAL, "--target", "ch5_um", "--augmented", missing)
+    done = gateway_in_process("replay", FL_THERMAL, "--target", "ch5_um", "--augmented", missing)
     assert done.returncode == 2
     assert str(missing) in done.stderr and "Traceback" not in done.stderr
 
@@ -213,11 +213,13 @@ def assert_stored_model_runs_in_the_bank(store, result) -> None:
 
 def test_replay_an_analyze_result_refits_its_coefficients_per_held_out_run(tmp_path):
     store = tmp_path / "store"
-    done = gateway("analyze", FL_THERMAL, "--target", "ch1_um", "--store", store, "--no-progress")
+    done = gateway_in_process(
+        "analyze", FL_THERMAL, "--target", "ch1_um", "--store", store, "--no-progress"
+    )
     assert done.returncode == 0, done.stderr
     (model_file,) = (store / augmented.FOLDER).glob("*.json")
     out = tmp_path / "replay.json"
-    done = gateway(
+    done = gateway_in_process(
         "replay", FL_THERMAL, "--target", "ch1_um", "--augmented", model_file, "--json", out
     )
     assert done.returncode == 0, done.stderr

@@ -14,6 +14,7 @@ from pymodbus.client import ModbusTcpClient
 from models.dataset import load_runs
 from tests import gateway_rig as rig
 from tests.cli import gateway as gateway_cli
+from tests.cli import gateway_in_process
 from tests.ports import free_tcp_port, wait_for_port
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -117,7 +118,7 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
         data = load_runs(exported)
         assert data.n_samples >= 10  # one row per probe measurement (every 120 s)
         assert data.sensors == tuple(f"T{i}" for i in range(1, 10))
-        fitted = gateway_cli("fit", exported, "--store", tmp_path / "refit")
+        fitted = gateway_in_process("fit", exported, "--store", tmp_path / "refit")
         assert fitted.returncode == 0, fitted.stderr
         assert "pooled" in fitted.stdout
     finally:

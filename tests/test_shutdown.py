@@ -31,7 +31,7 @@ from simulator.params import load_params
 from simulator.programs import program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from tests import gateway_rig as rig
-from tests.cli import gateway as gateway_cli
+from tests.cli import gateway_in_process
 from tests.ports import free_tcp_port, wait_for_port
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -47,7 +47,7 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     data = folder / "hidden.csv"
     programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
     write_recording(data, record(load_params(), programs, ["thermal_lag", "speed_direct"], seed=2))
-    done = gateway_cli("analyze", data, "--store", models)
+    done = gateway_in_process("analyze", data, "--store", models)
     assert done.returncode == 0, done.stderr
     assert list((models / augmented.FOLDER).glob("*.json"))
     return models

@@ -15,7 +15,7 @@ from simulator.machine import SimulatedMachine
 from simulator.params import load_params
 from simulator.programs import SpeedProgram, load_programs, production_program, program_by_name
 from simulator.record import REST_BEFORE_S, record
-from tests.cli import gateway
+from tests.cli import gateway, gateway_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
 PARAMS = load_params()
@@ -43,7 +43,7 @@ def test_same_seed_same_bytes_other_seed_other_bytes(tmp_path: Path) -> None:
 
 def test_recording_passes_the_loader_and_each_run_starts_cold(tmp_path: Path) -> None:
     path = tmp_path / "sim.csv"
-    result = gateway(
+    result = gateway_in_process(
         "simulate", "--record", path, "--program", "const4000", "--program", "iso230-spectrum"
     )
     assert result.returncode == 0, result.stderr
@@ -240,9 +240,9 @@ def test_programmes() -> None:
 
 
 def test_bad_effect_and_params_are_refused(tmp_path: Path) -> None:
-    result = gateway("simulate", "--record", tmp_path / "x.csv", "--effect", "gremlins")
+    result = gateway_in_process("simulate", "--record", tmp_path / "x.csv", "--effect", "gremlins")
     assert result.returncode == 2 and "unknown hidden effect(s) ['gremlins']" in result.stderr
     bad = tmp_path / "params.yaml"
     bad.write_text("heat_capacity_J_per_K: {bearing: -5}\n")
-    result = gateway("simulate", "--record", tmp_path / "x.csv", "--params", bad)
+    result = gateway_in_process("simulate", "--record", tmp_path / "x.csv", "--params", bad)
     assert result.returncode == 2 and "heat capacities must be > 0" in result.stderr

@@ -30,7 +30,7 @@ from simulator.record import record
 from simulator.serve import SimulatedPlant, SimulatorConfig
 from simulator.servers.modbus_cnc import macro_register
 from simulator.thermal import ThermalNetwork
-from tests.cli import ROOT, gateway
+from tests.cli import ROOT, gateway, gateway_in_process
 from tests.ports import free_tcp_port
 
 PARAMS = load_params()
@@ -153,7 +153,7 @@ async def watch_probe_macro(port: int, changes: int, timeout_s: float) -> list[f
 def test_cli_probe_noise_when_recording(tmp_path: Path) -> None:
     quiet, noisy = tmp_path / "quiet.csv", tmp_path / "noisy.csv"
     for path, noise in ((quiet, "0"), (noisy, "2.0")):
-        result = gateway(
+        result = gateway_in_process(
             "simulate", "--record", path, "--program", "const4000", "--seed", 3,
             "--probe-noise-um", noise, "--probe-period-s", 120,
         )  # fmt: skip
@@ -214,8 +214,8 @@ def test_without_ageing_a_recording_keeps_its_bytes(tmp_path: Path) -> None:
         encoding="utf-8",
     )
     common = ("--program", "const2000", "--seed", 5, "--sample-s", 300)
-    assert gateway("simulate", "--record", plain, *common).returncode == 0
-    result = gateway("simulate", "--record", zero, *common, "--params", params)
+    assert gateway_in_process("simulate", "--record", plain, *common).returncode == 0
+    result = gateway_in_process("simulate", "--record", zero, *common, "--params", params)
     assert result.returncode == 0, result.stderr
     assert plain.read_bytes() == GOLDEN.read_bytes()
     assert zero.read_bytes() == GOLDEN.read_bytes()
@@ -228,7 +228,7 @@ def test_ageing_from_a_params_file_on_the_cli(tmp_path: Path) -> None:
     params.write_text(
         "ageing: {coolant_offset_um_per_day: 0.5, start_days: 30}\n", encoding="utf-8"
     )
-    result = gateway(
+    result = gateway_in_process(
         "simulate", "--record", aged, "--program", "const2000", "--seed", 5,
         "--sample-s", 300, "--params", params,
     )  # fmt: skip

@@ -8,5 +8,6 @@ bash scripts/setup-system.sh
 "$VENV/bin/ruff" check .
 # Four workers on two cores: most end-to-end tests spend their time waiting on protocol
 # time (outages, back-offs, cycles in real time), so two per core keep both cores busy;
-# each test file stays on one worker (its servers start once).
-"$VENV/bin/pytest" -q -n 4 --dist loadfile --durations=15 "$@"
+# each test file stays on one worker (its servers start once), the longest files first
+# (tests/conftest.py LONGEST_FIRST).
+"$VENV/bin/pytest" -q -n 4 --dist loadfile --no-loadscope-reorder --durations=15 "$@"

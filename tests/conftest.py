@@ -49,7 +49,37 @@ def _one_fit_per_run(tmp_path_factory: pytest.TempPathFactory) -> None:
     rig.share_fits_in(base.parent if base.name.startswith("popen-gw") else base)
 
 
+#: The files that hold a worker longest (wall time on two cores, most first): they are
+#: handed out first, so that no worker starts one of them when the others are done.
+#: ``scripts/test.sh`` passes ``--no-loadscope-reorder``, which keeps this order
+#: (xdist would otherwise hand out the files with the most tests first, and these,
+#: with few tests each, last).
+LONGEST_FIRST = (
+    "test_lag_ridge.py",
+    "test_closed_loop.py",
+    "test_analyze.py",
+    "test_reconnect.py",
+    "test_real_data.py",
+    "test_container.py",
+    "test_scada.py",
+    "test_independent_generators.py",
+    "test_influx.py",
+    "test_monitor_loop.py",
+    "test_shutdown.py",
+    "test_demo.py",
+    "test_bus_hub.py",
+    "test_scada_guards.py",
+    "test_demo_effect.py",
+    "test_regime_rules.py",
+    "test_promotion.py",
+    "test_retention.py",
+    "test_write_path.py",
+)
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.name in SLOW_FILES:
             item.add_marker(pytest.mark.slow)
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))

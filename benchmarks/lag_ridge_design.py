@@ -59,14 +59,13 @@ sys.path.insert(0, str(ROOT))
 from models.crossval import cross_validate  # noqa: E402
 from models.dataset import load_runs  # noqa: E402
 from models.features import prepare  # noqa: E402
-from models.lag_ridge import LagRidgeModel, lag_terms, term_names  # noqa: E402
+from models.lag_ridge import LagRidgeModel, candidate_paths  # noqa: E402
 from models.lag_structures import (  # noqa: E402
     DEFAULT_TAUS_S,
     LASSO,
     ONE_PENALTY_RIDGE,
     TWO_GROUP_RIDGE,
     ZERO,
-    CandidatePaths,
     Structure,
     choose,
 )
@@ -157,19 +156,7 @@ def fl_inner(structures, target: str, held: str = "c6") -> dict[str, float]:
     train = np.array([not str(r).startswith(held) for r in runs])
     labels = np.full(y.size, -1)
     labels[train] = inner_groups(inputs.take(train))
-    sensors = inputs.sensors
-    candidates = [
-        CandidatePaths(
-            s,
-            lag_terms(inputs, sensors, s.lag_taus_s, s.speed_powers),
-            y,
-            labels,
-            len(sensors),
-            term_names(sensors, s.lag_taus_s, s.speed_powers),
-        )
-        for s in structures
-    ]
-    choice = choose(candidates)
+    choice = choose(candidate_paths(inputs, inputs.sensors, structures, y, labels))
     out = {k: round(v, 3) for k, v in choice.inner_rmse_um.items()}
     out["weights"] = {k: v for k, v in choice.weights.items() if v}
     return out

@@ -157,6 +157,28 @@ def _build_terms(
     return np.column_stack([direct, *lags])
 
 
+def candidate_paths(
+    inputs: ModelInputs,
+    sensors: Sequence[str],
+    structures: Sequence[Structure],
+    y: np.ndarray,
+    labels: np.ndarray,
+) -> list[CandidatePaths]:
+    """Each structure's terms of ``inputs`` and its fits over the groups of rows in
+    ``labels`` (-1: a row left out), ready for :func:`models.lag_structures.choose`."""
+    return [
+        CandidatePaths(
+            s,
+            lag_terms(inputs, sensors, s.lag_taus_s, s.speed_powers),
+            y,
+            labels,
+            len(sensors),
+            term_names(sensors, s.lag_taus_s, s.speed_powers),
+        )
+        for s in structures
+    ]
+
+
 class LagRidgeModel(ThermalModel):
     """Rises, speed powers and their lags; the structure and its penalties chosen nested."""
 
@@ -235,18 +257,7 @@ class LagRidgeModel(ThermalModel):
         labels[rows if rows is not None else slice(None)] = inner_groups(part)
         # Small dense problems: one BLAS thread is faster than several fighting for cores.
         with threadpool_limits(1):
-            candidates = [
-                CandidatePaths(
-                    s,
-                    lag_terms(inputs, used, s.lag_taus_s, s.speed_powers),
-                    y,
-                    labels,
-                    len(used),
-                    term_names(used, s.lag_taus_s, s.speed_powers),
-                )
-                for s in self.candidates
-            ]
-            choice = choose(candidates)
+            choice = choose(candidate_paths(inputs, used, self.candidates, y, labels))
         self._use(choice.structure)
         self._design_cache = None
         self.sensors_used_ = used

@@ -37,6 +37,7 @@ from models.lag_structures import (
 )
 from models.store import ModelStore, load_file
 from tests.cli import ROOT, gateway_in_process
+from tests.streaming import streamed
 from tests.test_conditioning import machine
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
@@ -183,15 +184,7 @@ def test_a_lasso_structure_needs_no_speed_and_streams_its_lags(synthetic: Prepar
     part = synthetic.take(synthetic.data.run == "R2")
     batch = loaded.predict(part.inputs)
     stream = loaded.stream()
-    streamed = [
-        stream.step(
-            float(part.data.time_s[k]),
-            dict(zip(part.inputs.sensors, part.inputs.rise_C[k], strict=True)),
-            None,
-        )
-        for k in range(part.data.n_samples)
-    ]
-    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    assert np.max(np.abs(streamed(stream, part, speed=False) - batch)) < 1e-9
     assert set(stream.export_state()) == {"time_s", "T1@lag1800s", "T2@lag1800s", "T3@lag1800s"}
 
 
@@ -208,15 +201,7 @@ def test_the_zero_intercept_lasso_passes_through_0_um_and_streams_its_speed_lags
     part = synthetic.take(synthetic.data.run == "R1")
     batch = loaded.predict(part.inputs)
     stream = loaded.stream()
-    streamed = [
-        stream.step(
-            float(part.data.time_s[k]),
-            dict(zip(part.inputs.sensors, part.inputs.rise_C[k], strict=True)),
-            float(part.data.speed_rpm[k]),
-        )
-        for k in range(part.data.n_samples)
-    ]
-    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    assert np.max(np.abs(streamed(stream, part) - batch)) < 1e-9
     # A structure stored before the intercept was part of it loads as a fitted intercept.
     older = {k: v for k, v in stored["structure"].items() if k != "intercept"}
     assert Structure.from_dict(older).intercept == "fitted"
@@ -443,13 +428,5 @@ def test_analyze_takes_lag_ridge_as_its_base_and_its_result_streams(tmp_path: Pa
     prepared = prepare(load_runs(FL_THERMAL, target="ch1_um"))
     batch = augmented.predict(document, prepared)
     stream = StreamingAugmented(document)
-    streamed = [
-        stream.step(
-            float(prepared.data.time_s[k]),
-            dict(zip(prepared.inputs.sensors, prepared.inputs.rise_C[k], strict=True)),
-            float(prepared.data.speed_rpm[k]),
-        )
-        for k in range(prepared.data.n_samples)
-    ]
-    assert np.max(np.abs(np.array(streamed) - batch)) < 1e-9
+    assert np.max(np.abs(streamed(stream, prepared) - batch)) < 1e-9
     assert "base.time_s" in stream.export_state()

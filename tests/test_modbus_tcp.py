@@ -9,8 +9,10 @@ timed-out request is never taken for the next request's reply.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import struct
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from typing import Any
 
 import pytest
 
@@ -86,6 +88,18 @@ def run(body: Callable[[], object]) -> None:
     asyncio.run(asyncio.wait_for(body(), 60))  # type: ignore[arg-type]
 
 
+@contextlib.asynccontextmanager
+async def opened(server: ScriptedServer, **options: Any) -> AsyncIterator[ModbusConnection]:
+    """A connection to ``server`` (started here, stopped on the way out), open."""
+    async with server as address:
+        link = ModbusConnection(tcp=address, **options)
+        await link.open()
+        try:
+            yield link
+        finally:
+            link.close()
+
+
 def test_a_late_reply_is_never_taken_for_the_next_request() -> None:
     """Request 0 is answered after its timeout; request 1 must get its own registers."""
 
@@ -94,18 +108,13 @@ def test_a_late_reply_is_never_taken_for_the_next_request() -> None:
         return delay_s, registers_pdu(body[0], [100 + index, 7]), None
 
     async def body() -> None:
-        async with ScriptedServer(script) as address:
-            link = ModbusConnection(tcp=address, timeout_s=TIMEOUT_S)
-            await link.open()
-            try:
-                with pytest.raises(ModbusNoResponseError, match="no response from device 3"):
-                    await link.read_input_registers(0, 2, device_id=3)
-                assert await link.read_holding_registers(0, 2, device_id=3) == [101, 7]
-                await asyncio.sleep(0.7)  # the late reply to request 0 arrives meanwhile
-                assert await link.read_holding_registers(0, 2, device_id=3) == [102, 7]
-                assert link.connected
-            finally:
-                link.close()
+        async with opened(ScriptedServer(script), timeout_s=TIMEOUT_S) as link:
+            with pytest.raises(ModbusNoResponseError, match="no response from device 3"):
+                await link.read_input_registers(0, 2, device_id=3)
+            assert await link.read_holding_registers(0, 2, device_id=3) == [101, 7]
+            await asyncio.sleep(0.7)  # the late reply to request 0 arrives meanwhile
+            assert await link.read_holding_registers(0, 2, device_id=3) == [102, 7]
+            assert link.connected
 
     run(body)
 
@@ -117,16 +126,11 @@ def test_retries_send_the_request_again() -> None:
 
     async def body() -> None:
         server = ScriptedServer(script)
-        async with server as address:
-            link = ModbusConnection(tcp=address, timeout_s=1.0, retries=1)
-            await link.open()
-            try:
-                assert await link.read_holding_registers(5, 1, device_id=1) == [1]
-                assert len(server.requests) == 2
-                tids = {request[0:2] for request in server.requests}
-                assert len(tids) == 2  # a fresh transaction id for the second attempt
-            finally:
-                link.close()
+        async with opened(server, timeout_s=1.0, retries=1) as link:
+            assert await link.read_holding_registers(5, 1, device_id=1) == [1]
+            assert len(server.requests) == 2
+            tids = {request[0:2] for request in server.requests}
+            assert len(tids) == 2  # a fresh transaction id for the second attempt
 
     run(body)
 
@@ -146,25 +150,20 @@ def test_exception_replies_a_foreign_device_and_a_hang_up() -> None:
         return 0.0, None, None  # hang up
 
     async def body() -> None:
-        async with ScriptedServer(script) as address:
-            link = ModbusConnection(tcp=address, timeout_s=1.0)
-            await link.open()
-            try:
-                with pytest.raises(ModbusRefusedError, match="exception 2") as refused:
-                    await link.read_holding_registers(0, 2, device_id=1)
-                assert refused.value.code == 2
-                with pytest.raises(ModbusNoResponseError, match="gateway exception 0x0b"):
-                    await link.read_holding_registers(0, 2, device_id=1)
-                with pytest.raises(ModbusNoResponseError, match="no response from device 1"):
-                    await link.read_holding_registers(0, 2, device_id=1)
-                await link.write_registers(1000, [0x3C4C, 0xCCCD], device_id=1)
-                with pytest.raises(ModbusNoResponseError, match="1 registers in the reply, 2"):
-                    await link.read_input_registers(0, 2, device_id=1)
-                with pytest.raises(ModbusLinkLostError, match="connection lost"):
-                    await link.read_input_registers(0, 2, device_id=1)
-                assert not link.connected
-            finally:
-                link.close()
+        async with opened(ScriptedServer(script), timeout_s=1.0) as link:
+            with pytest.raises(ModbusRefusedError, match="exception 2") as refused:
+                await link.read_holding_registers(0, 2, device_id=1)
+            assert refused.value.code == 2
+            with pytest.raises(ModbusNoResponseError, match="gateway exception 0x0b"):
+                await link.read_holding_registers(0, 2, device_id=1)
+            with pytest.raises(ModbusNoResponseError, match="no response from device 1"):
+                await link.read_holding_registers(0, 2, device_id=1)
+            await link.write_registers(1000, [0x3C4C, 0xCCCD], device_id=1)
+            with pytest.raises(ModbusNoResponseError, match="1 registers in the reply, 2"):
+                await link.read_input_registers(0, 2, device_id=1)
+            with pytest.raises(ModbusLinkLostError, match="connection lost"):
+                await link.read_input_registers(0, 2, device_id=1)
+            assert not link.connected
 
     run(body)
 
@@ -191,19 +190,12 @@ def test_a_chain_reads_every_group_and_keeps_one_request_on_the_wire() -> None:
 
     async def body() -> None:
         server = ScriptedServer(script)
-        async with server as address:
-            link = ModbusConnection(tcp=address, timeout_s=TIMEOUT_S)
-            await link.open()
-            try:
-                first, second = await asyncio.gather(
-                    link.read_chain(chain), link.read_chain(chain[1:])
-                )
-                assert first == [[0, 0, 8, 1], [100, 2, 200, 3]]
-                assert second == [[100, 4, 200, 5]]
-                assert [unit_of(r) for r in server.requests] == [1, 1, 2, 2, 2, 2]
-                assert server.most_outstanding == 1
-            finally:
-                link.close()
+        async with opened(server, timeout_s=TIMEOUT_S) as link:
+            first, second = await asyncio.gather(link.read_chain(chain), link.read_chain(chain[1:]))
+            assert first == [[0, 0, 8, 1], [100, 2, 200, 3]]
+            assert second == [[100, 4, 200, 5]]
+            assert [unit_of(r) for r in server.requests] == [1, 1, 2, 2, 2, 2]
+            assert server.most_outstanding == 1
 
     run(body)
 
@@ -224,23 +216,18 @@ def test_a_timeout_mid_chain_fails_that_device_only_and_its_late_reply_is_droppe
 
     async def body() -> None:
         server = ScriptedServer(script)
-        async with server as address:
-            link = ModbusConnection(tcp=address, timeout_s=timeout_s)
-            await link.open()
-            try:
-                started = asyncio.get_running_loop().time()
-                device_1, device_2 = await link.read_chain(chain)
-                elapsed_s = asyncio.get_running_loop().time() - started
-                assert isinstance(device_1, ModbusNoResponseError)
-                assert "no response from device 1" in str(device_1)
-                assert device_2 == [20, 21]
-                # uvloop's timers are kept in whole milliseconds: each of the two waits
-                # may end up to 1 ms before its nominal time.
-                assert timeout_s + 0.3 - 0.002 <= elapsed_s < timeout_s + 0.3 + TIMEOUT_S
-                assert link.connected
-                assert await link.read_input_registers(0, 2, device_id=2) == [13, 0]
-            finally:
-                link.close()
+        async with opened(server, timeout_s=timeout_s) as link:
+            started = asyncio.get_running_loop().time()
+            device_1, device_2 = await link.read_chain(chain)
+            elapsed_s = asyncio.get_running_loop().time() - started
+            assert isinstance(device_1, ModbusNoResponseError)
+            assert "no response from device 1" in str(device_1)
+            assert device_2 == [20, 21]
+            # uvloop's timers are kept in whole milliseconds: each of the two waits
+            # may end up to 1 ms before its nominal time.
+            assert timeout_s + 0.3 - 0.002 <= elapsed_s < timeout_s + 0.3 + TIMEOUT_S
+            assert link.connected
+            assert await link.read_input_registers(0, 2, device_id=2) == [13, 0]
 
     run(body)
 
@@ -254,15 +241,10 @@ def test_retries_in_a_chain_send_the_request_again_with_a_fresh_transaction_id()
 
     async def body() -> None:
         server = ScriptedServer(script)
-        async with server as address:
-            link = ModbusConnection(tcp=address, timeout_s=0.3, retries=1)
-            await link.open()
-            try:
-                assert await link.read_chain(chain) == [[0], [2], [3]]
-                assert [unit_of(r) for r in server.requests] == [1, 2, 2, 3]
-                assert len({r[0:2] for r in server.requests}) == 4
-            finally:
-                link.close()
+        async with opened(server, timeout_s=0.3, retries=1) as link:
+            assert await link.read_chain(chain) == [[0], [2], [3]]
+            assert [unit_of(r) for r in server.requests] == [1, 2, 2, 3]
+            assert len({r[0:2] for r in server.requests}) == 4
 
     run(body)
 
@@ -278,18 +260,13 @@ def test_a_reply_from_another_device_is_dropped_and_the_chain_goes_on() -> None:
     chain = ((read_step(4, 0, 2, 1),), (read_step(4, 0, 2, 2),), (read_step(4, 0, 2, 3),))
 
     async def body() -> None:
-        async with ScriptedServer(script) as address:
-            link = ModbusConnection(tcp=address, timeout_s=0.4)
-            await link.open()
-            try:
-                device_1, device_2, device_3 = await link.read_chain(chain)
-                assert isinstance(device_1, ModbusNoResponseError)
-                assert "no response from device 1" in str(device_1)
-                assert isinstance(device_2, ModbusRefusedError)
-                assert device_2.code == 2
-                assert device_3 == [32, 1]
-            finally:
-                link.close()
+        async with opened(ScriptedServer(script), timeout_s=0.4) as link:
+            device_1, device_2, device_3 = await link.read_chain(chain)
+            assert isinstance(device_1, ModbusNoResponseError)
+            assert "no response from device 1" in str(device_1)
+            assert isinstance(device_2, ModbusRefusedError)
+            assert device_2.code == 2
+            assert device_3 == [32, 1]
 
     run(body)
 
@@ -303,20 +280,15 @@ def test_the_connection_closing_mid_chain_keeps_what_was_read() -> None:
     chain = ((read_step(3, 0, 1, 1),), (read_step(3, 0, 1, 2),), (read_step(3, 0, 1, 3),))
 
     async def body() -> None:
-        async with ScriptedServer(script) as address:
-            link = ModbusConnection(tcp=address, timeout_s=TIMEOUT_S)
-            await link.open()
-            try:
-                device_1, device_2, device_3 = await link.read_chain(chain)
-                assert device_1 == [40]
-                assert isinstance(device_2, ModbusLinkLostError)
-                assert isinstance(device_3, ModbusLinkLostError)
-                assert "connection lost" in str(device_3)
-                assert not link.connected
-                with pytest.raises(ModbusLinkLostError, match="connection lost"):
-                    await link.read_chain(chain)
-            finally:
-                link.close()
+        async with opened(ScriptedServer(script), timeout_s=TIMEOUT_S) as link:
+            device_1, device_2, device_3 = await link.read_chain(chain)
+            assert device_1 == [40]
+            assert isinstance(device_2, ModbusLinkLostError)
+            assert isinstance(device_3, ModbusLinkLostError)
+            assert "connection lost" in str(device_3)
+            assert not link.connected
+            with pytest.raises(ModbusLinkLostError, match="connection lost"):
+                await link.read_chain(chain)
 
     run(body)
 
@@ -332,17 +304,12 @@ def test_a_cancelled_chain_stops_and_the_next_waits_for_the_request_on_the_wire(
 
     async def body() -> None:
         server = ScriptedServer(script)
-        async with server as address:
-            link = ModbusConnection(tcp=address, timeout_s=TIMEOUT_S)
-            await link.open()
-            try:
-                first = asyncio.ensure_future(link.read_chain(chain))
-                await asyncio.sleep(0.1)
-                first.cancel()
-                assert await link.read_chain(chain[1:]) == [[51]]
-                assert [unit_of(r) for r in server.requests] == [1, 2]
-                assert server.most_outstanding == 1
-            finally:
-                link.close()
+        async with opened(server, timeout_s=TIMEOUT_S) as link:
+            first = asyncio.ensure_future(link.read_chain(chain))
+            await asyncio.sleep(0.1)
+            first.cancel()
+            assert await link.read_chain(chain[1:]) == [[51]]
+            assert [unit_of(r) for r in server.requests] == [1, 2]
+            assert server.most_outstanding == 1
 
     run(body)

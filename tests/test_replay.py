@@ -16,6 +16,7 @@ from models.features import prepare
 from models.online_correction import CorrectionParams
 from models.online_replay import choose_filter, probe_rows, replay_run
 from tests.cli import ROOT, gateway, gateway_in_process
+from tests.streaming import streamed
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"
 ONLINE_KEYS = {
@@ -176,16 +177,7 @@ def assert_stored_model_runs_in_the_bank(store, result) -> None:
     prepared = prepare(load_runs(FL_THERMAL, target="ch5_um"))
     batch = augmented.predict(banked.document, prepared)
     stream = banked.stream()
-    rows = range(0, prepared.data.n_samples)
-    stepped = [
-        stream.step(
-            float(prepared.data.time_s[i]),
-            dict(zip(prepared.inputs.sensors, prepared.inputs.rise_C[i], strict=True)),
-            float(prepared.data.speed_rpm[i]),
-        )
-        for i in rows
-    ]
-    assert np.max(np.abs(np.array(stepped) - batch)) < 1e-9
+    assert np.max(np.abs(streamed(stream, prepared) - batch)) < 1e-9
     # The running gateway takes the stored noise model and keeps its own safety limits.
     machine = MachineSection.model_validate(
         {

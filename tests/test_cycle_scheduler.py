@@ -8,7 +8,7 @@ import asyncio
 import pytest
 
 from drivers.clock import ManualClock, WallClock
-from gateway.cycle_scheduler import SLOTS, CycleScheduler, spread_fraction
+from gateway.cycle_scheduler import LOOPS_PER_SLOT, SLOTS, CycleScheduler, spread_fraction
 
 
 def test_phases_stay_evenly_spread_whatever_the_number_of_loops() -> None:
@@ -27,12 +27,28 @@ def test_phases_stay_evenly_spread_whatever_the_number_of_loops() -> None:
         gaps = [b - a for a, b in zip(points, [*points[1:], 1.0], strict=True)]
         # Never a gap wider than twice the even spacing: no bunch of loops firing together.
         assert max(gaps) <= 2.0 / count
-    scheduler = CycleScheduler(ManualClock())
+    scheduler = CycleScheduler(ManualClock(), loops_per_slot=1)
     assert [scheduler.phase_s(2.0) for _ in range(4)] == [0.0, 1.0, 0.5, 1.5]
     # Beyond SLOTS loops, slots are shared evenly: 100 loops, 5 per slot.
     phases = [scheduler.phase_s(2.0) for _ in range(96)]
     counts = {p: phases.count(p) for p in set(phases)}
     assert len(counts) == SLOTS and set(counts.values()) <= {4, 5, 6}
+
+
+def test_a_slot_fills_before_the_next_opens_and_many_loops_use_every_slot() -> None:
+    scheduler = CycleScheduler(ManualClock())
+    assert scheduler.loops_per_slot == LOOPS_PER_SLOT
+    # A small gateway polls in full bursts: the first slot's loops, then half a cycle on.
+    first = [scheduler.phase_s(1.0) for _ in range(LOOPS_PER_SLOT)]
+    second = [scheduler.phase_s(1.0) for _ in range(LOOPS_PER_SLOT)]
+    assert set(first) == {0.0} and set(second) == {0.5}
+    # SLOTS × LOOPS_PER_SLOT loops: every slot in use, each with LOOPS_PER_SLOT loops.
+    phases = first + second
+    phases += [scheduler.phase_s(1.0) for _ in range((SLOTS - 2) * LOOPS_PER_SLOT)]
+    counts = {p: phases.count(p) for p in set(phases)}
+    assert len(counts) == SLOTS and set(counts.values()) == {LOOPS_PER_SLOT}
+    with pytest.raises(ValueError):
+        CycleScheduler(ManualClock(), loops_per_slot=0)
 
 
 def test_loops_wake_in_due_order_never_early_and_at_most_a_tick_late() -> None:

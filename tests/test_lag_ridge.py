@@ -392,7 +392,8 @@ def test_replay_fl_thermal_ch5_on_the_declared_lag_ridge_model_meets_the_targets
     # set (its family fixed before its first held-out run) with the bias filter chosen on the
     # training cycles. Without probes: 2.33 µm.
     assert at_30["probe_interval_min"] == 30.0 and at_30["rmse_um"] < 1.5
-    assert at_60["probe_interval_min"] == 60.0 and at_60["rmse_um"] < 2.0
+    # The 60-min target with a margin of 0.05 µm (measured 1.88).
+    assert at_60["probe_interval_min"] == 60.0 and at_60["rmse_um"] < 2.0 - 0.05
     assert at_60["rmse_um"] < 0.85 * result["offline"]["rmse_um"]
 
 

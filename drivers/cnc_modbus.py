@@ -37,6 +37,7 @@ from drivers.transmitters import (
     ModbusNoResponseError,
     ModbusRefusedError,
     ModbusRequestError,
+    read_steps,
 )
 
 T = TypeVar("T")
@@ -97,15 +98,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         self._has_run_mode = "run_mode" in self.registers.fields
         self._pause_s = self.registers.workarounds.pause_between_requests_s
         self._silence = Silence()
-        #: The spindle state's read requests as one chain group (built once), and the
-        #: macro reads' chains by first register.
-        self._speed_chain = (
-            tuple(
-                read_step(r.function_code, r.address, r.count, device_id)
-                for r in self.registers.requests
-            ),
-        )
-        self._macro_chains: dict[int, tuple[tuple[Step, ...]]] = {}
+        #: The spindle state's read requests as one chain group (built once).
+        self._speed_chain = (read_steps(self.registers.requests, device_id),)
 
     def macro_register(self, number: int) -> int:
         """First register of macro #number."""
@@ -152,12 +146,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
 
     async def _read_macro(self, link: ModbusConnection, register: int) -> float:
         width = self._macros.width
-        if self._pause_s == 0 and link.chains:
-            chain = self._macro_chains.get(register)
-            if chain is None:
-                chain = self._macro_chains[register] = (
-                    (read_step(3, register, width, self.device_id),),
-                )
+        if self._chains_on(link):  # read_step builds each shape once
+            chain = ((read_step(3, register, width, self.device_id),),)
             return self._macros.decode(await self._chained(link, chain))
         words = await self._paced(
             lambda: link.read_holding_registers(register, width, self.device_id)
@@ -178,7 +168,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
     async def _read_requests(self, link: ModbusConnection) -> list[int]:
         """The map's read requests in turn (one per contiguous block), replies concatenated:
         one chain on the wire when no pause is kept between them (TCP always chains)."""
-        if self._pause_s == 0 and link.chains:
+        if self._chains_on(link):
             return await self._chained(link, self._speed_chain)
         registers: list[int] = []
         for request in self.registers.requests:
@@ -186,6 +176,10 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
                 lambda request=request: link.read(request, self.device_id)
             )
         return registers
+
+    def _chains_on(self, link: ModbusConnection) -> bool:
+        """Requests go as chains: the link runs them (TCP) and the map keeps no pause."""
+        return self._pause_s == 0 and link.chains
 
     async def _chained(self, link: ModbusConnection, chain: tuple[tuple[Step, ...]]) -> list[int]:
         """One device read (a group of register reads) as a chain on the wire; an exception

@@ -98,6 +98,14 @@ class ModbusRefusedError(ModbusRequestError):
         self.code = code
 
 
+def read_steps(requests: Sequence[ReadRequest], device_id: int) -> tuple[modbus_tcp.Step, ...]:
+    """A register map's read requests (one per contiguous block) as one chain group for
+    ``device_id``: a device's whole read, for :meth:`ModbusConnection.read_chain`."""
+    return tuple(
+        modbus_tcp.read_step(r.function_code, r.address, r.count, device_id) for r in requests
+    )
+
+
 class ModbusConnection:
     """One Modbus client (TCP or RTU) whose life cycle the gateway owns.
 
@@ -619,11 +627,7 @@ class TransmitterBus:
         if any(d.registers.workarounds.pause_between_requests_s > 0 for d in self._devices):
             return None
         return tuple(
-            tuple(
-                modbus_tcp.read_step(r.function_code, r.address, r.count, device.device_id)
-                for r in device.registers.requests
-            )
-            for device in self._devices
+            read_steps(device.registers.requests, device.device_id) for device in self._devices
         )
 
     async def _read_chained(

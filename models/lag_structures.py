@@ -185,6 +185,18 @@ def standardisation(gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mean, scale
 
 
+def centring(
+    gram: np.ndarray, cross: np.ndarray, intercept: bool = True
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """(mean, scale, mean of y) a fit removes before it solves: the terms' and the
+    target's means with a fitted intercept, zeros when the intercept is held at 0 µm
+    (the fit passes through the origin; the terms are still scaled by their σ)."""
+    mean, scale = standardisation(gram)
+    if not intercept:
+        return np.zeros_like(mean), scale, 0.0
+    return mean, scale, float(cross[0] / gram[0, 0])
+
+
 def ridge_path(
     gram: np.ndarray,
     cross: np.ndarray,
@@ -205,12 +217,9 @@ def ridge_path(
     the terms are still scaled by their σ on these rows).
     """
     n = gram[0, 0]
-    mean, scale = standardisation(gram)
+    mean, scale, y_mean = centring(gram, cross, intercept)
     if not standardise:
         scale = np.ones_like(scale)
-    y_mean = cross[0] / n
-    if not intercept:
-        mean, y_mean = np.zeros_like(mean), 0.0
     centred = gram[1:, 1:] - n * np.outer(mean, mean)
     centred_y = cross[1:] - n * mean * y_mean
     weight = np.where(groups == SPEED_GROUP, 1.0 / math.sqrt(ratio), 1.0) / scale
@@ -283,10 +292,7 @@ class CandidatePaths:
         from sklearn.linear_model import lasso_path
 
         gram, cross = self.grams.total(sorted(members))
-        mean, scale = standardisation(gram)
-        y_mean = cross[0] / gram[0, 0]
-        if self.structure.intercept == ZERO:  # no centring: the fit passes through 0 µm
-            mean, y_mean = np.zeros_like(mean), 0.0
+        mean, scale, y_mean = centring(gram, cross, self.structure.intercept == FITTED)
         rows = self.rows_of(members)
         z = (self.terms[rows] - mean) / scale
         y = self.y[rows] - y_mean

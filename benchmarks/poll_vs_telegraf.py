@@ -323,8 +323,11 @@ async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, schedule
     the macro (the reads of a full cycle, without the rest of it)."""
     from gateway.app import build_buses, build_cnc
 
+    cycle_s = section.cycle_s
     buses, cnc = build_buses(section), build_cnc(section, clock)
-    due = clock.now() + scheduler.phase_s(section.cycle_s)
+    # On the scheduler's grid, as MachineLoop.run: an overrun polls again at once, then
+    # the next grid time.
+    due = grid_due = scheduler.next_due_s(scheduler.phase_s(cycle_s), cycle_s)
     try:
         while not stop.is_set():
             await scheduler.wait_until(due, stop)
@@ -332,7 +335,13 @@ async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, schedule
                 break
             now = clock.now()
             await poll_once(buses, cnc, now, now - due, stats)
-            due = max(due + section.cycle_s, clock.now())
+            grid_due += cycle_s
+            now = clock.now()
+            if grid_due <= now:
+                grid_due += (now - grid_due) // cycle_s * cycle_s
+                due = now
+            else:
+                due = grid_due
     finally:
         for bus in buses:
             await bus.close()

@@ -17,6 +17,14 @@ between replies, and full bursts let more replies share a wake-up (measured: abo
 15 % less CPU per request at 200 machines, no change seen at 50). From
 ``SLOTS × LOOPS_PER_SLOT`` loops on, every slot is used and they fill evenly. One
 watcher per stop event wakes every loop waiting on it at once.
+
+The slots sit on one grid for the process (:meth:`CycleScheduler.next_due_s`):
+times ``origin + phase + k × period``, the origin taken when the first loop asks.
+A loop that starts later than the others (built after a slow connect, restarted,
+back from an overrun) still polls with its slot's burst; a phase counted from each
+loop's own start would scatter the loops over the cycle, one wake-up each: the
+poll benchmark's loops, built one after the other, cost 3.4× the CPU per request
+that way (95 µs against 28 µs at 50 machines).
 """
 
 from __future__ import annotations
@@ -24,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
+import math
 
 from drivers.clock import Clock
 
@@ -91,6 +100,7 @@ class CycleScheduler:
         self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
         self._order = itertools.count()
         self._phases = itertools.count()
+        self._origin_s: float | None = None
         self._timer: asyncio.Task[None] | None = None
         self._timer_due: float | None = None
         self._rearm = asyncio.Event()
@@ -106,6 +116,21 @@ class CycleScheduler:
         else:  # every slot is full: one more each, in turn
             slot = SLOT_ORDER[index % SLOTS]
         return slot * period_s / SLOTS
+
+    def next_due_s(self, phase_s: float, period_s: float, after_s: float | None = None) -> float:
+        """The first time on the grid of ``phase_s`` (``origin + phase_s + k·period_s``)
+        that is not before ``after_s`` (default: now); the grid's origin is the machine
+        time of the first call, shared by every loop of the scheduler."""
+        if not period_s > 0:
+            raise ValueError(f"period_s must be > 0, got {period_s}")
+        now = self.clock.now()
+        if self._origin_s is None:
+            self._origin_s = now
+        after = now if after_s is None else after_s
+        first = self._origin_s + phase_s
+        if after <= first:
+            return first
+        return first + math.ceil((after - first) / period_s - 1e-9) * period_s
 
     @property
     def waiting(self) -> int:

@@ -509,10 +509,11 @@ class MachineLoop:
         """Cycle every ``cycle_s`` of machine time until ``stop`` is set or ``cycles`` ran.
 
         With a ``scheduler`` (the gateway's, shared by every machine) the loop waits on
-        its one timer, and its first cycle is due ``phase_s`` after the start, so the
-        machines' polls are spread over the cycle; without one it sleeps on its own
+        its one timer, and its cycles are due on the scheduler's grid for ``phase_s``
+        (:meth:`CycleScheduler.next_due_s`), so the machines' polls are spread over the
+        cycle and each slot's loops poll together; without one it sleeps on its own
         and starts at once. An overrun starts the next cycle at once, without catching
-        up in a burst.
+        up in a burst; the cycles after it are back on the grid.
 
         ``stop`` cuts the wait between cycles short, so a stop request is served at
         once whatever ``cycle_s`` is. A cycle in progress gets ``STOP_GRACE_S`` (wall)
@@ -521,7 +522,11 @@ class MachineLoop:
         the next start reads what the macro holds before it writes.
         """
         stop = stop or asyncio.Event()
-        next_due = self.clock.now() + phase_s
+        cycle_s = self.config.cycle_s
+        if scheduler is not None:
+            next_due = grid_due = scheduler.next_due_s(phase_s, cycle_s)
+        else:
+            next_due = grid_due = self.clock.now() + phase_s
         done = 0
         guard = _StopGuard(stop, self.config.id)
         try:
@@ -534,13 +539,18 @@ class MachineLoop:
                 if not await guard.cycle(self.run_cycle):
                     return
                 done += 1
-                next_due += self.config.cycle_s
+                grid_due += cycle_s
                 now = self.clock.now()
-                if next_due <= now:
-                    next_due = now  # overrun: do not try to catch up in a burst
+                if grid_due <= now:
+                    # Overrun: the next cycle at once, no catching up in a burst; the
+                    # one after it on the grid again (the last grid time not after now).
+                    grid_due += math.floor((now - grid_due) / cycle_s) * cycle_s
+                    next_due = now
                     await asyncio.sleep(0)
-                elif scheduler is None:
-                    await self.clock.sleep(next_due - now, stop)
+                else:
+                    next_due = grid_due
+                    if scheduler is None:
+                        await self.clock.sleep(next_due - now, stop)
         finally:
             guard.close()
 

@@ -8,7 +8,13 @@ import asyncio
 import pytest
 
 from drivers.clock import ManualClock, WallClock
-from gateway.cycle_scheduler import LOOPS_PER_SLOT, SLOTS, CycleScheduler, spread_fraction
+from gateway.cycle_scheduler import (
+    DEFAULT_TICK_S,
+    LOOPS_PER_SLOT,
+    SLOTS,
+    CycleScheduler,
+    spread_fraction,
+)
 
 
 def test_phases_stay_evenly_spread_whatever_the_number_of_loops() -> None:
@@ -117,3 +123,63 @@ def test_a_cancelled_waiter_is_not_woken_and_the_others_are() -> None:
 def test_tick_must_not_be_negative() -> None:
     with pytest.raises(ValueError, match="tick_s"):
         CycleScheduler(ManualClock(), tick_s=-0.001)
+
+
+def test_the_grid_is_shared_so_a_loop_that_starts_late_polls_with_its_slot() -> None:
+    clock = ManualClock(origin_s=10.0)
+    scheduler = CycleScheduler(clock)
+    assert scheduler.next_due_s(0.25, 1.0) == 10.25  # the first call sets the origin (10.0)
+    clock.advance(3.4)  # a loop built 3.4 s later, same phase: the grid's next time
+    assert scheduler.next_due_s(0.25, 1.0) == 14.25
+    assert scheduler.next_due_s(0.5, 1.0) == 13.5
+    assert scheduler.next_due_s(0.25, 1.0, after_s=14.25) == 14.25  # on the grid: itself
+    assert scheduler.next_due_s(0.25, 2.0, after_s=14.26) == 16.25
+    with pytest.raises(ValueError, match="period_s"):
+        scheduler.next_due_s(0.0, 0.0)
+
+
+def test_loops_started_apart_run_their_cycles_on_one_wake_up() -> None:
+    """Two machine loops whose tasks start 0.3 s apart still poll in the same burst: the
+    late one waits for the grid time, and an overrun comes back onto the grid."""
+    from types import SimpleNamespace
+
+    from gateway.runtime import MachineLoop
+
+    clock = ManualClock(origin_s=0.0)
+    stop = asyncio.Event()
+
+    class Cycles:
+        """MachineLoop.run's scheduling around a cycle that only notes when it ran;
+        the late loop's third cycle overruns by 1.5 cycles."""
+
+        run = MachineLoop.run
+
+        def __init__(self, name: str) -> None:
+            self.config = SimpleNamespace(id=name, cycle_s=1.0)
+            self.clock = clock
+            self.starts: list[float] = []
+
+        async def run_cycle(self) -> None:
+            self.starts.append(clock.now())
+            if len(self.starts) == 3 and self.config.id == "late":
+                clock.advance(1.5)
+            if len(self.starts) >= 6 and self.config.id == "late":
+                stop.set()
+
+    early, late = Cycles("early"), Cycles("late")
+
+    async def scenario() -> None:
+        scheduler = CycleScheduler(clock)
+        phase = scheduler.phase_s(1.0)
+        first = asyncio.create_task(early.run(stop, scheduler=scheduler, phase_s=phase))
+        await asyncio.sleep(0)
+        clock.advance(0.3)
+        second = asyncio.create_task(late.run(stop, scheduler=scheduler, phase_s=phase))
+        await asyncio.wait_for(asyncio.gather(first, second), 5.0)
+
+    asyncio.run(scenario())
+    tick = DEFAULT_TICK_S
+    # The late loop's first cycle is the grid's next time, on the other loop's wake-up.
+    assert late.starts[0] == early.starts[1] == pytest.approx(1.0 + tick)
+    assert late.starts[3] == pytest.approx(late.starts[2] + 1.5)  # after the overrun: at once
+    assert late.starts[4:] == pytest.approx([5.0 + tick, 6.0 + tick])  # then on the grid again

@@ -322,6 +322,7 @@ async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, schedule
     """One machine's poll on the gateway's scheduler: transmitters and speed together, then
     the macro (the reads of a full cycle, without the rest of it)."""
     from gateway.app import build_buses, build_cnc
+    from gateway.cycle_scheduler import after_cycle
 
     cycle_s = section.cycle_s
     buses, cnc = build_buses(section), build_cnc(section, clock)
@@ -335,13 +336,7 @@ async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, schedule
                 break
             now = clock.now()
             await poll_once(buses, cnc, now, now - due, stats)
-            grid_due += cycle_s
-            now = clock.now()
-            if grid_due <= now:
-                grid_due += (now - grid_due) // cycle_s * cycle_s
-                due = now
-            else:
-                due = grid_due
+            due, grid_due = after_cycle(grid_due, cycle_s, clock.now())
     finally:
         for bus in buses:
             await bus.close()

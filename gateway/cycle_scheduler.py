@@ -63,6 +63,18 @@ def spread_fraction(index: int) -> float:
     return fraction
 
 
+def after_cycle(grid_due_s: float, period_s: float, now_s: float) -> tuple[float, float]:
+    """(due time of the next cycle, its grid time) after the cycle due at ``grid_due_s``
+    ended at ``now_s``: the next grid time, or, after an overrun, at once (no catching
+    up in a burst) with the grid time the cycle after it counts on from (the last one
+    not after now)."""
+    grid_due_s += period_s
+    if grid_due_s > now_s:
+        return grid_due_s, grid_due_s
+    grid_due_s += math.floor((now_s - grid_due_s) / period_s) * period_s
+    return now_s, grid_due_s
+
+
 def _slot_order() -> tuple[int, ...]:
     """Every slot once, in the order the van der Corput points first reach it (0, the
     half cycle, the quarters, …): the slots in use are spread evenly at any count."""

@@ -42,7 +42,7 @@ from drivers.cnc import CncClient, CncError
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.compensation import CompensationPolicy
 from gateway.config import MachineSection
-from gateway.cycle_scheduler import CycleScheduler
+from gateway.cycle_scheduler import CycleScheduler, after_cycle
 from gateway.effect_state import EffectStates
 from gateway.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.plausibility import Plausibility
@@ -539,18 +539,12 @@ class MachineLoop:
                 if not await guard.cycle(self.run_cycle):
                     return
                 done += 1
-                grid_due += cycle_s
                 now = self.clock.now()
-                if grid_due <= now:
-                    # Overrun: the next cycle at once, no catching up in a burst; the
-                    # one after it on the grid again (the last grid time not after now).
-                    grid_due += math.floor((now - grid_due) / cycle_s) * cycle_s
-                    next_due = now
+                next_due, grid_due = after_cycle(grid_due, cycle_s, now)
+                if next_due <= now:  # an overrun: at once
                     await asyncio.sleep(0)
-                else:
-                    next_due = grid_due
-                    if scheduler is None:
-                        await self.clock.sleep(next_due - now, stop)
+                elif scheduler is None:
+                    await self.clock.sleep(next_due - now, stop)
         finally:
             guard.close()
 

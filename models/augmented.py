@@ -31,22 +31,47 @@ from models.registry import METHODS, make_model
 from models.store import StoreError, data_fingerprint, refuse_non_finite, safe_model_id
 
 FORMAT = "thermal-gateway-augmented-model"
-FORMAT_VERSION = 1
+#: 2: a ridge or PLS base is one term, its penalised prediction (see :func:`stored_base`).
+FORMAT_VERSION = 2
 FOLDER = "augmented"
 
 
 def fit_augmented(
     analysis: ResidualAnalysis, accepted: list[Accepted]
 ) -> tuple[ThermalModel, np.ndarray, list[dict[str, Any]]]:
-    """Base model fitted on all rows, then every coefficient refitted jointly with the effects.
+    """Base model fitted on the analysis's rows, then every coefficient refitted jointly with
+    the effects.
 
     Returns the base model (its structure), the coefficients (intercept, base
-    terms, effect terms) and the effects as stored.
+    terms, effect terms) and the effects as stored. The base is fitted with
+    ``fit_rows`` on the whole recording: a base with lag terms (lag-ridge) builds them
+    over every row, so the rows left out (a held-out run, the rows between probes)
+    still carry the heat of the rows before them.
     """
+    base, design, effects = _augmented_design(analysis, accepted)
+    return base, _coefficients(analysis, design), effects
+
+
+def augmented_prediction(analysis: ResidualAnalysis, accepted: list[Accepted]) -> np.ndarray:
+    """The fitted augmented model's prediction (µm) on every row of the analysis's data,
+    the rows it was not fitted on included (a held-out run)."""
+    _, design, _ = _augmented_design(analysis, accepted)
+    return design @ _coefficients(analysis, design)
+
+
+def _coefficients(analysis: ResidualAnalysis, design: np.ndarray) -> np.ndarray:
+    """Least squares on the rows with a known target (every row unless probe rows only)."""
+    rows = analysis.fit_rows
+    coef, *_ = np.linalg.lstsq(design[rows], analysis.y[rows], rcond=None)
+    return coef
+
+
+def _augmented_design(
+    analysis: ResidualAnalysis, accepted: list[Accepted]
+) -> tuple[ThermalModel, np.ndarray, list[dict[str, Any]]]:
     prepared = analysis.prepared
-    rows = analysis.fit_rows  # rows with a known target (every row unless probe rows only)
-    base = make_model(analysis.method, analysis.base.sensors).fit(
-        prepared.inputs.take(rows), prepared.error_um[rows]
+    base = make_model(analysis.method, analysis.base.sensors).fit_rows(
+        prepared.inputs, prepared.error_um, analysis.fit_rows
     )
     columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]
     effects = []
@@ -54,8 +79,7 @@ def fit_augmented(
         block = a.family.variants[a.overall].build()
         columns.append(block)
         effects.append({"effect": a.family.effect, "params": a.params, "terms": block.shape[1]})
-    coef, *_ = np.linalg.lstsq(np.column_stack(columns)[rows], prepared.error_um[rows], rcond=None)
-    return base, coef, effects
+    return base, np.column_stack(columns), effects
 
 
 def build_augmented_document(
@@ -129,23 +153,45 @@ def load(path: str | Path) -> dict[str, Any]:
     return document
 
 
-def predict(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
-    """Predicted error (µm) of a stored augmented model on prepared data."""
-    base_info = document["base"]
-    base = METHODS[base_info["method"]].from_params(base_info["hyperparams"], base_info["params"])
+def stored_base(document: dict[str, Any]) -> ThermalModel:
+    """The base model of a stored augmented model, as its terms were fitted.
+
+    Documents before format 2 with a ridge or PLS base stored the coefficients of
+    the base's sensors refitted by least squares (the analysis undid the penalty):
+    their base terms are those rises, an mlr on the same sensors.
+    """
+    info = document["base"]
+    method = info["method"]
+    if method not in METHODS:
+        raise StoreError(f"{document.get('model_id')}: unknown base method {method!r}")
+    if document.get("format_version", 1) < 2 and method in ("ridge", "pls"):
+        method = "mlr"
+    return METHODS[method].from_params(info["hyperparams"], info["params"])
+
+
+def stored_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
+    """The design (intercept, base terms, effect terms) of a stored augmented model."""
+    base = stored_base(document)
     columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]
     effect_sensors = tuple(document.get("effect_sensors", base.sensors_used_))
     families = {f.effect: f for f in candidate_families(prepared, effect_sensors)}
     for effect in document["effects"]:
         family = families.get(effect["effect"])
-        if family is None:
-            raise StoreError(f"this data cannot provide the effect {effect['effect']!r}")
-        matches = [v for v in family.variants if v.params == effect["params"]]
+        matches = (
+            [] if family is None else [v for v in family.variants if v.params == effect["params"]]
+        )
         if not matches:
-            raise StoreError(f"no {effect['effect']} term with parameters {effect['params']}")
+            raise StoreError(
+                f"this data cannot provide the effect {effect['effect']} {effect['params']}"
+            )
         columns.append(matches[0].build())
+    return np.column_stack(columns)
+
+
+def predict(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
+    """Predicted error (µm) of a stored augmented model on prepared data."""
+    design = stored_design(document, prepared)
     coef = np.asarray(document["coefficients"]["all_um_per_unit"], dtype=float)
-    design = np.column_stack(columns)
     if design.shape[1] != coef.size:
         raise StoreError(f"{coef.size} coefficients stored for {design.shape[1]} terms")
     return design @ coef

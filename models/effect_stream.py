@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 
+from models.augmented import stored_base
 from models.base import ModelInputs
 from models.effect_terms import SPEED_SCALE_RPM
-from models.registry import METHODS
 from models.store import StoreError
 
 SECONDS_PER_HOUR = 3600.0
@@ -81,14 +81,7 @@ class StreamingAugmented:
         start_s: float | None = None,
     ) -> None:
         self.model_id = str(document["model_id"])
-        base_info = document["base"]
-        try:
-            method = METHODS[base_info["method"]]
-        except KeyError:
-            raise StoreError(
-                f"{self.model_id}: unknown base method {base_info['method']!r}"
-            ) from None
-        self.base = method.from_params(base_info["hyperparams"], base_info["params"])
+        self.base = stored_base(document)
         # A base whose own terms remember the history (models.lag_ridge) steps its own lags.
         make_stream = getattr(self.base, "stream", None)
         self.base_stream = make_stream() if callable(make_stream) else None

@@ -73,7 +73,14 @@ class MlrModel(ThermalModel):
         self.sensors_used_ = used
 
     def fit_rows(self, inputs: ModelInputs, error_um: np.ndarray, rows: np.ndarray) -> MlrModel:
-        """``fit`` on ``rows``, reading them straight from ``inputs`` into the design."""
+        """``fit`` on ``rows``, reading them straight from ``inputs`` into the design.
+
+        Only for least squares on the declared sensors: a subclass that chooses its
+        sensors or penalises its coefficients (grey-mlr, ridge, pls) fits its own way
+        on the rows taken.
+        """
+        if type(self)._fit is not MlrModel._fit:
+            return super().fit_rows(inputs, error_um, rows)
         used = tuple(self.sensors) if self.sensors is not None else inputs.sensors
         y = np.asarray(error_um, dtype=float)
         if y.shape != (inputs.n_samples,):

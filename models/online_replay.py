@@ -58,13 +58,13 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from models.effect_terms import candidate_families, first_order_lag
+from models.augmented import stored_design
+from models.effect_terms import first_order_lag
 from models.features import Prepared
 from models.lag_ridge import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, lag_terms
 from models.metrics import accuracy
 from models.online_correction import CorrectionParams, OnlineCorrection
-from models.registry import METHODS, make_model
-from models.store import StoreError
+from models.registry import make_model
 
 LAG_TAU_SETS_S: tuple[tuple[float, ...], ...] = ((600.0, 3600.0), (1800.0, 7200.0))
 RIDGE_PENALTIES = (0.01, 0.03, 0.1)
@@ -285,26 +285,6 @@ def _declared_prediction(
     return predicted
 
 
-def augmented_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
-    """The design (intercept, base terms, effect terms) of a stored augmented model."""
-    base_info = document["base"]
-    base = METHODS[base_info["method"]].from_params(base_info["hyperparams"], base_info["params"])
-    columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]
-    effect_sensors = tuple(document.get("effect_sensors", base.sensors_used_))
-    families = {f.effect: f for f in candidate_families(prepared, effect_sensors)}
-    for effect in document["effects"]:
-        family = families.get(effect["effect"])
-        matches = (
-            [] if family is None else [v for v in family.variants if v.params == effect["params"]]
-        )
-        if not matches:
-            raise StoreError(
-                f"this data cannot provide the effect {effect['effect']} {effect['params']}"
-            )
-        columns.append(matches[0].build())
-    return np.column_stack(columns)
-
-
 # --- the nested choice ------------------------------------------------------------------
 
 
@@ -415,7 +395,7 @@ def replay_interval(
             lagged[used] = LaggedFeatures(prepared, used, interval_s, method == "lag-ridge")
         return lagged[used]
 
-    design = augmented_design(document, prepared) if base == "augmented" else None
+    design = stored_design(document, prepared) if base == "augmented" else None
     grams = (
         {
             r: (design[slices[r]].T @ design[slices[r]], design[slices[r]].T @ y[slices[r]])

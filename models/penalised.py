@@ -78,6 +78,23 @@ class _PenalisedLinear(MlrModel):
     def _tuned(self, X: np.ndarray, y: np.ndarray, groups: np.ndarray) -> tuple[Any, float]:
         raise NotImplementedError
 
+    #: The penalised coefficients depend on the data fitted, and so does the design below.
+    fixed_design = False
+
+    def design_matrix(self, inputs: ModelInputs) -> np.ndarray:
+        """One column: the fitted prediction, µm.
+
+        Residual analysis refits its base terms by least squares jointly with a
+        candidate's; refitting the sensors' coefficients without their penalty would
+        undo it (the analysis of a ridge base was the analysis of mlr), so the
+        analysis scales the penalised prediction instead (coefficient ≈ 1).
+        """
+        return self.predict(inputs)[:, None]
+
+    def conditioning_design(self, inputs: ModelInputs) -> tuple[np.ndarray, list[str]]:
+        """The rises of the sensors read, for the condition number and VIF."""
+        return inputs.columns(self.sensors_used_), list(self.sensors_used_)
+
     def fitted_params(self) -> dict[str, Any]:
         return {**super().fitted_params(), self.choice_key: self.choice_}
 

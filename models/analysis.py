@@ -79,6 +79,11 @@ RULES = {
         "thermal_lag, unsensed_heat, ambient may enter twice (two time constants)"
     ),
     "max_steps": MAX_STEPS,
+    "heldout_figure": (
+        "the analysis's own: each effect's parameter is chosen inside its folds, but its entry "
+        "is judged on every fold's held-out residual, the scored one included; analyze --nested "
+        "scores the whole procedure on runs no choice saw"
+    ),
 }
 
 

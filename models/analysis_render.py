@@ -282,6 +282,11 @@ def text_report(result: AnalysisResult) -> str:
     lines += ["", "per run (held-out):"]
     lines += ["  " + line for line in columns(RUN_HEADER, run_rows(result), numbers)]
     lines += ["", f"next: {result.next_step_text}"]
+    if result.added_steps:
+        lines.append(
+            "note: an effect's entry was judged with every held-out run, the scored ones "
+            "included; analyze --nested gives a figure no choice saw"
+        )
     return "\n".join(lines)
 
 

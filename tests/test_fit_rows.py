@@ -103,3 +103,19 @@ def test_a_ridge_base_stored_before_format_2_still_loads_as_it_was_fitted(
     np.testing.assert_allclose(augmented.predict(loaded, shaft), fitted, atol=1e-9)
     assert StreamingAugmented(loaded).sensors  # the coefficient count checks out
     np.testing.assert_allclose(streamed(loaded, shaft), fitted, atol=1e-6)
+
+
+def test_a_lag_ridge_base_known_at_probe_rows_is_fitted_with_its_whole_history(
+    shaft: Prepared,
+) -> None:
+    """With the target known every 30th row (a probe), the augmented model's base is the
+    lag-ridge fitted on those rows with its lags run over every row, not over the probe
+    rows alone as if they followed one another."""
+    known = np.zeros(shaft.data.n_samples, dtype=bool)
+    known[::30] = True
+    analysis = ResidualAnalysis(shaft, "lag-ridge", fit_rows=known)
+    base, _, _ = augmented.fit_augmented(analysis, [])
+    whole = make_model("lag-ridge").fit_rows(shaft.inputs, shaft.error_um, known)
+    taken = make_model("lag-ridge").fit(shaft.inputs.take(known), shaft.error_um[known])
+    assert base.fitted_params() == whole.fitted_params()
+    assert base.fitted_params() != taken.fitted_params()

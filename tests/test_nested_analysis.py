@@ -132,6 +132,8 @@ def test_cli_auto_and_nested_json(shaft_lag: Path, tmp_path: Path) -> None:
             "--nested",
             "--json",
             str(out),
+            "--store",
+            str(tmp_path / "store"),
             "--no-progress",
         ],
         cwd=ROOT,
@@ -148,6 +150,9 @@ def test_cli_auto_and_nested_json(shaft_lag: Path, tmp_path: Path) -> None:
     assert choice["kept"] == min(AUTO_BASES, key=lambda m: (scores[m], AUTO_BASES.index(m)))
     assert document["model"] == choice["kept"]
     assert document["after"]["rmse_um"] == pytest.approx(scores[choice["kept"]], abs=1e-4)
+    stored = augmented.load(document["stored_model"]["path"])  # the kept base is what is saved
+    assert stored["base"]["method"] == choice["kept"]
+    assert stored["model_id"].startswith(f"{choice['kept']}-error_um-")
     nested = document["nested"]
     assert [r["run"] for r in nested["runs"]] == list(dict.fromkeys(load_runs(shaft_lag).run_ids))
     for run in nested["runs"]:

@@ -727,27 +727,31 @@ def analyze(
     from models.nested_analysis import AUTO_BASES, analyse_bases, nested_analysis
 
     methods = AUTO_BASES if method == "auto" else (method,)
+    base_choice = None
     if method == "auto":
         method, analyses = analyse_bases(prepared, methods, sensor_list, fit_rows)
-        result, accepted, analysis = (
-            analyses[method].result,
-            analyses[method].accepted,
-            analyses[method].analysis,
-        )
-        scores = ", ".join(f"{m} {a.heldout_rmse_um:.2f}" for m, a in analyses.items())
-        click.echo(
-            f"base models analysed, held-out RMSE: {scores} µm; kept {method} (its figure below "
-            "is optimistic by this choice" + (": see the nested figure" if nested else "") + ")"
-        )
+        kept = analyses[method]
+        result, accepted, analysis = kept.result, kept.accepted, kept.analysis
+        base_choice = {
+            "models": list(methods),
+            "heldout_rmse_um": {m: round(a.heldout_rmse_um, 4) for m, a in analyses.items()},
+            "kept": method,
+            "note": "the kept model's figures are optimistic by this choice",
+        }
     else:
         result, accepted, analysis = run_analysis(
             prepared, method, sensor_list, show_progress, fit_rows=fit_rows
         )
+    outer = (
+        nested_analysis(prepared, methods, sensor_list, fit_rows, show_progress) if nested else None
+    )
     result = replace(
         result,
         data_fingerprint=data_fingerprint(prepared.inputs, prepared.error_um),
         skipped_rows="; ".join(s.describe() for s in data.skipped) or None,
         tolerance_um=tolerance_um,
+        base_choice=base_choice,
+        nested=outer,
     )
     click.echo(result.to_text())
     if store_dir is not None:
@@ -762,19 +766,7 @@ def analyze(
         from gateway.offline.analysis_report import write_report
 
         click.echo(f"wrote {write_report(result, report_dir)}")
-    document = result.as_dict()
-    if len(methods) > 1:
-        document["base_choice"] = {
-            "models": list(methods),
-            "heldout_rmse_um": {m: round(a.heldout_rmse_um, 4) for m, a in analyses.items()},
-            "kept": method,
-            "note": "the kept model's figures are optimistic by this choice",
-        }
-    if nested:
-        outer = nested_analysis(prepared, methods, sensor_list, fit_rows, show_progress)
-        click.echo(outer.to_text(tolerance_um))
-        document["nested"] = outer.as_dict()
-    write_json(json_out, document)
+    write_json(json_out, result.as_dict())
 
 
 @main.command()

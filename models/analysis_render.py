@@ -287,7 +287,19 @@ def text_report(result: AnalysisResult) -> str:
             "note: an effect's entry was judged with every held-out run, the scored ones "
             "included; analyze --nested gives a figure no choice saw"
         )
+    if result.base_choice is not None:
+        lines.append(f"base: {base_choice_text(result.base_choice)}")
+    if result.nested is not None:
+        lines += ["", result.nested.to_text(result.tolerance_um)]
     return "\n".join(lines)
+
+
+def base_choice_text(choice: dict[str, Any]) -> str:
+    scores = ", ".join(f"{m} {um_text(v)}" for m, v in choice["heldout_rmse_um"].items())
+    return (
+        f"every base analysed, held-out RMSE {scores} µm; kept {choice['kept']}, "
+        "its figures optimistic by this choice"
+    )
 
 
 def html_report(result: AnalysisResult, plots: Sequence[Any]) -> str:
@@ -323,4 +335,6 @@ def html_report(result: AnalysisResult, plots: Sequence[Any]) -> str:
         numeric=NUMERIC_CANDIDATE_COLUMNS,
         steps=steps,
         plots=list(plots),
+        base_choice=None if result.base_choice is None else base_choice_text(result.base_choice),
+        nested=None if result.nested is None else result.nested.tables(result.tolerance_um),
     )

@@ -36,6 +36,8 @@ from models.metrics import Accuracy
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
+    from models.nested_analysis import NestedAnalysis
+
 #: The held-out RMSE the compensation must reach, µm (``analyze --tolerance-um``).
 DEFAULT_TOLERANCE_UM = 2.5
 #: p-values below this print as "< 1e-16": the F distribution's tail underflows to
@@ -264,6 +266,11 @@ class AnalysisResult:
     skipped_rows: str | None = None
     stored_model: dict[str, Any] | None = field(default=None)
     tolerance_um: float = DEFAULT_TOLERANCE_UM
+    #: ``--model auto``: every base's held-out RMSE and the one kept (its figures above
+    #: are then optimistic by that choice).
+    base_choice: dict[str, Any] | None = None
+    #: ``--nested``: the whole analysis scored by an outer leave-one-run-out.
+    nested: NestedAnalysis | None = None
 
     # ---- figures derived once, read by every renderer ------------------------------
 
@@ -427,7 +434,15 @@ class AnalysisResult:
             "data_fingerprint": self.data_fingerprint,
             "skipped_rows": self.skipped_rows,
             "stored_model": self.stored_model,
-        }
+        } | self._optional_json()
+
+    def _optional_json(self) -> dict[str, Any]:
+        extra: dict[str, Any] = {}
+        if self.base_choice is not None:
+            extra["base_choice"] = self.base_choice
+        if self.nested is not None:
+            extra["nested"] = self.nested.as_dict()
+        return extra
 
 
 def run_groups(run: np.ndarray, time_s: np.ndarray) -> list[tuple[str, np.ndarray]]:

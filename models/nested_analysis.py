@@ -34,6 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from models.analysis import Accepted, Folds, ResidualAnalysis, analyze
+from models.analysis_render import Row, columns
 from models.analysis_result import AnalysisResult
 from models.augmented import augmented_prediction
 from models.features import Prepared
@@ -121,43 +122,36 @@ class NestedAnalysis:
     def accuracy(self, which: str = "chosen") -> Accuracy:
         return accuracy(self.measured_um, self.predicted_um[which])
 
-    def to_text(self, tolerance_um: float | None = None) -> str:
-        run_w = max(len("held out"), *(len(r.run) for r in self.runs))
-        base_w = max(len("base"), *(len(m) for m in self.methods))
-        cell_w = max(11, run_w)
+    def tables(self, tolerance_um: float | None = None) -> dict[str, Any]:
+        """The figures as text cells, shared by the terminal and the HTML report."""
         chosen = self.accuracy()
         target = "" if tolerance_um is None else f" (target {tolerance_um:g} µm)"
-        lines = [
-            f"nested analysis of {self.target}: every choice made on the training runs only, "
-            f"outer {self.scheme}",
-            f"base in each outer fold: {BASE_CHOICE_RULE}",
-            f"  {'held out':<{run_w}}  {'chosen base':<{base_w}}  held-out RMSE (µm)",
+        base_rows = [
+            [m]
+            + [f"{r.inner_rmse_um[m]:.2f} → {r.rmse_um[m]:.2f}" for r in self.runs]
+            + [f"{self.accuracy(m).rmse_um:.2f}"]
+            for m in self.methods
         ]
-        for run in self.runs:
-            lines.append(
-                f"  {run.run:<{run_w}}  {run.chosen:<{base_w}}  {run.rmse_um['chosen']:.2f}"
-            )
-        lines.append(
-            f"nested held-out RMSE {chosen.rmse_um:.2f} µm{target}, max |e| "
-            f"{chosen.max_abs_um:.2f} µm"
-        )
-        if len(self.methods) > 1:
-            lines += [
-                "each base: inner RMSE (its analysis on the training runs) → held-out RMSE, µm",
-                f"  {'base':<{base_w}}"
-                + "".join(f"  {r.run:>{cell_w}}" for r in self.runs)
-                + "  nested alone",
-            ]
-            for m in self.methods:
-                cells = "".join(
-                    f"  {f'{r.inner_rmse_um[m]:.2f}→{r.rmse_um[m]:.2f}':>{cell_w}}"
-                    for r in self.runs
-                )
-                lines.append(f"  {m:<{base_w}}{cells}  {self.accuracy(m).rmse_um:12.2f}")
-            lines.append(
-                "  (a base picked from the last column afterwards would be picked on the scored "
-                "data)"
-            )
+        return {
+            "title": f"nested analysis of {self.target}: every choice made on the training "
+            f"runs only, outer {self.scheme}",
+            "rule": f"base in each outer fold: {BASE_CHOICE_RULE}",
+            "run_header": ["held out", "chosen base", "held-out RMSE (µm)"],
+            "run_rows": [[r.run, r.chosen, f"{r.rmse_um['chosen']:.2f}"] for r in self.runs],
+            "headline": f"nested held-out RMSE {chosen.rmse_um:.2f} µm{target}, "
+            f"max |e| {chosen.max_abs_um:.2f} µm",
+            "base_note": "each base: inner RMSE (its analysis on the training runs) → held-out "
+            "RMSE, µm; a base picked from the last column afterwards would be picked on the "
+            "scored data",
+            "base_header": ["base", *(r.run for r in self.runs), "nested alone"],
+            "base_rows": base_rows if len(self.methods) > 1 else [],
+        }
+
+    def to_text(self, tolerance_um: float | None = None) -> str:
+        t = self.tables(tolerance_um)
+        lines = [t["title"], t["rule"], *_aligned(t["run_header"], t["run_rows"], 2), t["headline"]]
+        if t["base_rows"]:
+            lines += [t["base_note"], *_aligned(t["base_header"], t["base_rows"], 1)]
         return "\n".join(lines)
 
     def as_dict(self) -> dict[str, Any]:
@@ -230,3 +224,10 @@ def nested_analysis(
         measured_um=np.concatenate(measured),
         predicted_um={m: np.concatenate(p) for m, p in predicted.items()},
     )
+
+
+def _aligned(header: Sequence[str], rows: Sequence[Sequence[str]], first_number: int) -> list[str]:
+    """Indented columns, as the analysis's own tables: text left, numbers right."""
+    numeric = frozenset(range(first_number, len(header)))
+    lines = columns(header, [Row(tuple(r)) for r in rows], numeric)
+    return ["  " + line for line in lines]

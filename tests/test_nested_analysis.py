@@ -134,6 +134,8 @@ def test_cli_auto_and_nested_json(shaft_lag: Path, tmp_path: Path) -> None:
             str(out),
             "--store",
             str(tmp_path / "store"),
+            "--report",
+            str(tmp_path / "report"),
             "--no-progress",
         ],
         cwd=ROOT,
@@ -159,6 +161,14 @@ def test_cli_auto_and_nested_json(shaft_lag: Path, tmp_path: Path) -> None:
         inner = run["inner_rmse_um"]
         assert run["chosen_model"] == min(AUTO_BASES, key=lambda m: (inner[m], AUTO_BASES.index(m)))
         assert run["rmse_um"]["chosen"] == run["rmse_um"][run["chosen_model"]]
-    assert f"nested held-out RMSE {nested['heldout']['rmse_um']:.2f} µm" in done.stdout
+    # One results object: the terminal, the HTML report and the JSON give the same figures.
+    headline = f"nested held-out RMSE {nested['heldout']['rmse_um']:.2f} µm"
+    page = (tmp_path / "report" / "index.html").read_text(encoding="utf-8")
+    assert headline in done.stdout and headline in page
+    for run in nested["runs"]:
+        cells = f"<td>{run['run']}</td><td>{run['chosen_model']}</td>"
+        assert cells + f'<td class="num">{run["rmse_um"]["chosen"]:.2f}</td>' in page
+    kept_line = f"kept {choice['kept']}, its figures optimistic by this choice"
+    assert kept_line in done.stdout and kept_line in page
     # The nested figure is on data no choice saw: here it is above the kept model's own.
     assert nested["heldout"]["rmse_um"] > document["after"]["rmse_um"]

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -59,7 +60,13 @@ class BaseAnalysis:
     result: AnalysisResult
     accepted: list[Accepted]
     analysis: ResidualAnalysis
-    predicted_um: np.ndarray  # the fitted augmented model on every row
+
+    @cached_property
+    def predicted_um(self) -> np.ndarray:
+        """The augmented model fitted on the analysed rows, predicting every row. Made when
+        asked (the nested loop scores each base with it; ``--model auto`` alone does not,
+        and a lag-ridge base costs a whole fit)."""
+        return augmented_prediction(self.analysis, self.accepted)
 
     @property
     def heldout_rmse_um(self) -> float:
@@ -80,8 +87,7 @@ def analyse_bases(
     analyses = {}
     for method in methods:
         result, accepted, analysis = analyze(prepared, method, sensors, fit_rows=fit_rows)
-        predicted = augmented_prediction(analysis, accepted)
-        analyses[method] = BaseAnalysis(method, result, accepted, analysis, predicted)
+        analyses[method] = BaseAnalysis(method, result, accepted, analysis)
     chosen = min(methods, key=lambda m: (analyses[m].heldout_rmse_um, methods.index(m)))
     return chosen, analyses
 

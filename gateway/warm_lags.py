@@ -13,6 +13,8 @@ rise at each of those τ, with the very recursion a stream uses::
 
     x_k = a_k x_{k−1} + (1 − a_k) u_k,   a_k = exp(−Δt_k / τ),   x_0 = u_0
 
+(across a logging gap, :func:`models.effect_terms.lag_coefficients`' exact
+response to an input linear between samples; each input's last value is kept)
 A model promoted later takes its lag states from here (:meth:`WarmLags.state_for`)
 and predicts what it would have predicted had it been in the bank from the
 first cycle. One difference: here each input steps whenever it is good, where a
@@ -40,7 +42,13 @@ from models.effect_stream import (
     TIME_KEY,
     StreamingAugmented,
 )
-from models.effect_terms import AMBIENT_TAUS_S, HEAT_TAUS_S, LAG_TAUS_S, SPEED_SCALE_RPM
+from models.effect_terms import (
+    AMBIENT_TAUS_S,
+    HEAT_TAUS_S,
+    LAG_TAUS_S,
+    SPEED_SCALE_RPM,
+    lag_step,
+)
 
 #: Every time constant the residual analysis searches (s), zero (no lag) left out.
 TAUS_S = tuple(sorted({t for t in (*LAG_TAUS_S, *HEAT_TAUS_S, *AMBIENT_TAUS_S) if t > 0}))
@@ -66,6 +74,7 @@ class WarmLags:
         self.time_s: float | None = None  # last cycle stepped
         self._values: dict[str, np.ndarray] = {}
         self._times: dict[str, float] = {}
+        self._last: dict[str, float] = {}  # each input's last good value
 
     def step(self, time_s: float, rises_C: Mapping[str, float], speed_rpm: float | None) -> None:
         """Advance the lag of every input that is good this cycle."""
@@ -93,14 +102,15 @@ class WarmLags:
             else:
                 self._values[name] = np.full(self.taus_s.size, good[name])
         for dt_s, names in by_dt.items():
-            a = np.exp(-dt_s / self.taus_s)
             previous = np.array([self._values[name] for name in names])
             inputs_now = np.array([[good[name]] for name in names])
-            stepped = a * previous + (1.0 - a) * inputs_now
+            inputs_before = np.array([[self._last.get(name, good[name])] for name in names])
+            stepped = lag_step(previous, inputs_before, inputs_now, dt_s, self.taus_s)
             for name, row in zip(names, stepped, strict=True):
                 self._values[name] = row
         for name in good:
             self._times[name] = float(time_s)
+            self._last[name] = good[name]
 
     def state_for(self, stream: StreamingAugmented) -> tuple[dict[str, float] | None, str]:
         """``stream``'s state as if it had been stepped since the first cycle, or (None, why)."""
@@ -111,17 +121,25 @@ class WarmLags:
             RUN_START_KEY: self.start_s,
             RECORDING_START_KEY: self.start_s,
         }
+        inputs: dict[str, float] = {}
+        complete = True  # every input's last value known (not a state of an earlier release)
         for term in stream.terms:
             if not term.lagged:
                 continue
             matches = np.flatnonzero(np.isclose(self.taus_s, term.tau_s, rtol=0, atol=1e-9))
             if matches.size == 0:
                 return None, f"{term.effect} τ = {term.tau_s:g} s is not a searched time constant"
-            for key, column in zip(term.state_keys(), term.columns, strict=True):
+            for key, input_key, column in zip(
+                term.state_keys(), term.input_keys(), term.columns, strict=True
+            ):
                 values = self._values.get(column)
                 if values is None:
                     return None, f"no good value of {column} has been seen yet"
                 state[key] = float(values[matches[0]])
+                complete &= column in self._last
+                inputs[input_key] = self._last.get(column, math.nan)
+        if complete:
+            state.update(inputs)
         return state, ""
 
     def export_state(self) -> dict[str, Any]:
@@ -130,7 +148,11 @@ class WarmLags:
             "start_s": self.start_s,
             "time_s": self.time_s,
             "inputs": {
-                name: {"time_s": self._times[name], "values": [float(v) for v in values]}
+                name: {
+                    "time_s": self._times[name],
+                    "values": [float(v) for v in values],
+                    "last": self._last.get(name),
+                }
                 for name, values in self._values.items()
             },
         }
@@ -145,4 +167,9 @@ class WarmLags:
             raise ValueError("a saved lag is not a finite row of the right length")
         self.start_s = None if state["start_s"] is None else float(state["start_s"])
         self.time_s = None if state["time_s"] is None else float(state["time_s"])
-        self._values, self._times = values, times
+        # "last" is absent from states saved by an earlier release: the next step holds
+        saved = state["inputs"].items()
+        last = {str(k): float(v["last"]) for k, v in saved if v.get("last") is not None}
+        if not all(math.isfinite(v) for v in last.values()):
+            raise ValueError("a saved input is not finite")
+        self._values, self._times, self._last = values, times, last

@@ -9,6 +9,9 @@ own Δt, using the same recursion as :func:`models.effect_terms.first_order_lag`
 
     x_k = a_k x_{k−1} + (1 − a_k) u_k,   a_k = exp(−Δt_k / τ),   x_0 = u_0
 
+(across a logging gap longer than :data:`models.effect_terms.GAP_S`, the exact
+response to an input linear between u_{k−1} and u_k, so each lag also keeps
+its last input)
 (x_0 = 0 for the lags of the speed, ``unsensed_heat``: the part they stand
 for is cold when the stream starts, even with the spindle already turning)
 
@@ -40,7 +43,7 @@ import numpy as np
 
 from models.augmented import stored_base
 from models.base import ModelInputs
-from models.effect_terms import SPEED_SCALE_RPM
+from models.effect_terms import SPEED_SCALE_RPM, lag_step
 from models.store import StoreError
 
 SECONDS_PER_HOUR = 3600.0
@@ -68,6 +71,10 @@ class EffectTerm:
 
     def state_keys(self) -> list[str]:
         return [f"{self.effect}#{self.index}.{column}" for column in self.columns]
+
+    def input_keys(self) -> list[str]:
+        """Keys of the last input each lag stepped with (the start of a gap's line)."""
+        return [f"{key}.input" for key in self.state_keys()]
 
 
 class StreamingAugmented:
@@ -156,6 +163,7 @@ class StreamingAugmented:
         self._recording_start_s = self._start_s
         self._run_start_s = self._start_s
         self._lags: dict[int, np.ndarray] = {}
+        self._last_inputs: dict[int, np.ndarray] = {}  # each lag's last input
         if self.base_stream is not None:
             self.base_stream.reset()
 
@@ -182,6 +190,11 @@ class StreamingAugmented:
             if term.lagged:
                 values = self._lags[term.index]
                 state.update(zip(term.state_keys(), map(float, values), strict=True))
+        lagged = [term for term in self.terms if term.lagged]
+        if all(term.index in self._last_inputs for term in lagged):  # not from an old state
+            for term in lagged:
+                last = self._last_inputs[term.index]
+                state.update(zip(term.input_keys(), map(float, last), strict=True))
         if self.base_stream is not None:
             state.update(
                 {f"{BASE_PREFIX}{k}": v for k, v in self.base_stream.export_state().items()}
@@ -189,19 +202,24 @@ class StreamingAugmented:
         return state
 
     def import_state(self, state: Mapping[str, float]) -> None:
-        """Carry on from :meth:`export_state` of the same model; {} starts afresh."""
+        """Carry on from :meth:`export_state` of the same model; {} starts afresh.
+
+        A state saved before the lags kept their last input (no ``….input`` keys)
+        still loads: its next step holds the new sample, gap or not.
+        """
         if not state:
             self.reset()
             return
         lag_keys = [key for term in self.terms if term.lagged for key in term.state_keys()]
+        input_keys = [key for term in self.terms if term.lagged for key in term.input_keys()]
         base_state = {
             k[len(BASE_PREFIX) :]: v for k, v in state.items() if k.startswith(BASE_PREFIX)
         }
         state = {k: v for k, v in state.items() if not k.startswith(BASE_PREFIX)}
         if self.base_stream is None and base_state:
             raise ValueError(f"{self.model_id}: state holds base lags this model does not have")
-        expected = {TIME_KEY, RUN_START_KEY, RECORDING_START_KEY, *lag_keys}
-        if set(state) != expected:
+        expected = {TIME_KEY, RUN_START_KEY, RECORDING_START_KEY, *lag_keys, *input_keys}
+        if set(state) != expected and set(state) != expected - set(input_keys):
             missing, extra = sorted(expected - set(state)), sorted(set(state) - expected)
             raise ValueError(
                 f"{self.model_id}: state does not fit this model (missing {missing}, "
@@ -219,6 +237,11 @@ class StreamingAugmented:
             term.index: np.array([values[key] for key in term.state_keys()])
             for term in self.terms
             if term.lagged
+        }
+        self._last_inputs = {
+            term.index: np.array([values[key] for key in term.input_keys()])
+            for term in self.terms
+            if term.lagged and term.input_keys()[0] in values
         }
 
     # --- one sample ----------------------------------------------------------------------
@@ -254,12 +277,14 @@ class StreamingAugmented:
             values = self._inputs(term, time_s, rises_C, speed, ambient_rise_C)
             if term.lagged:
                 previous = self._lags.get(term.index)
+                now = values
                 if previous is not None:
-                    a = math.exp(-dt_s / term.tau_s)
-                    values = a * previous + (1.0 - a) * values
+                    before = self._last_inputs.get(term.index)
+                    values = lag_step(previous, before, now, dt_s, term.tau_s)
                 elif term.effect == "unsensed_heat":
                     values = np.zeros_like(values)  # the unsensed part starts cold
                 self._lags[term.index] = values
+                self._last_inputs[term.index] = now
             row.append(values)
         self._time_s = float(time_s)
         return float(self.coefficients @ np.concatenate(row))

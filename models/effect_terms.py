@@ -30,6 +30,17 @@ Lag states start at the recording's first sample and carry across runs of one
 continuous recording; each recording that starts cold starts its filter afresh:
 a rise's lag at the rise's first value (≈ 0, the reference), a lag of the speed
 at 0 (the unsensed part is cold, even when the spindle is already turning).
+
+Between two samples a lag takes its input as the later sample (held over the
+step), which is what a logger's rows mean at their own rate. Across a logging
+gap (a step longer than :data:`GAP_S`) that would be wrong: a speed that went
+from 8000 to 5000 r/min somewhere in a 25-minute gap would be charged as
+5000 r/min for all of it. There the input is taken as the straight line between
+the samples either side (first-order hold), the expected path of a change that
+fell at an unknown moment in the gap, and the lag is the exact response to it.
+One function, :func:`lag_coefficients`, gives both steps to the batch filter
+and to every stream (:mod:`models.effect_stream`, :mod:`models.lag_ridge`,
+``gateway/warm_lags.py``), so they agree across gaps too.
 """
 
 from __future__ import annotations
@@ -51,6 +62,11 @@ AMBIENT_TAUS_S = (0.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
 SPEED_SCALE_RPM = 1000.0
 DISPLACEMENT_SUFFIX = "_um"
 UNIFORM_TOLERANCE = 1e-3  # relative spread of dt under which a recording counts as evenly sampled
+#: A step between samples longer than this is a logging gap, s: across it a lag's
+#: input is the straight line between the samples either side. Every logger and
+#: poll rate here is 60 s or faster; a slower one is treated as gaps throughout,
+#: which is the better rule at that rate anyway.
+GAP_S = 120.0
 
 
 @dataclass(frozen=True)
@@ -70,6 +86,43 @@ class EffectFamily:
     variants: tuple[Variant, ...] = field(default_factory=tuple)
 
 
+def lag_coefficients(
+    dt_s: np.ndarray | float, tau_s: np.ndarray | float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(a, b_now, b_before) of one lag step: x_k = a x_{k−1} + b_now u_k + b_before u_{k−1}.
+
+    a = exp(−Δt/τ). A step up to :data:`GAP_S` holds the new sample
+    (b_now = 1 − a, b_before = 0). A longer step is a logging gap: the input is
+    linear between u_{k−1} and u_k, whose exact response is
+    b_before = (τ/Δt)(1 − a) − a, b_now = 1 − a − b_before. Arrays broadcast.
+    """
+    dt = np.asarray(dt_s, dtype=float)
+    tau = np.asarray(tau_s, dtype=float)
+    ratio = dt / tau
+    a = np.exp(-ratio)
+    one_minus_a = -np.expm1(-ratio)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        linear = np.where(ratio > 0, one_minus_a / np.where(ratio > 0, ratio, 1.0) - a, 0.0)
+    b_before = np.where(dt > GAP_S, linear, 0.0)
+    return a, one_minus_a - b_before, b_before
+
+
+def lag_step(
+    state: np.ndarray,
+    before: np.ndarray | None,
+    now: np.ndarray,
+    dt_s: float,
+    tau_s: np.ndarray | float,
+) -> np.ndarray:
+    """One step of a stream's lag from the input ``before`` to ``now`` over ``dt_s``.
+
+    ``before`` None (a state saved before the input was kept) holds ``now``.
+    """
+    a, b_now, b_before = lag_coefficients(dt_s, tau_s)
+    previous = now if before is None else before
+    return a * state + b_now * now + b_before * previous
+
+
 def first_order_lag(
     values: np.ndarray,
     time_s: np.ndarray,
@@ -79,6 +132,7 @@ def first_order_lag(
 ) -> np.ndarray:
     """x_k = a_k x_{k−1} + (1 − a_k) u_k, a_k = exp(−Δt_k / τ), per recording.
 
+    Across a logging gap the step is :func:`lag_coefficients`'s first-order hold.
     The state starts at the recording's first value, so a rise that is 0 at the
     reference stays 0 until the input moves. With ``start_cold`` it starts at 0,
     the cold machine at rest: the lag of a heat input (the speed) in a recording
@@ -98,16 +152,21 @@ def first_order_lag(
         if dt.size == 0:
             out[s:e] = first
             continue
+        out[s] = first
         if np.ptp(dt) <= UNIFORM_TOLERANCE * np.median(dt):
-            a = float(np.exp(-np.median(dt) / tau_s))
-            out[s] = first
-            out[s + 1 : e], _ = lfilter([1 - a], [1, -a], segment[1:], axis=0, zi=a * first)
+            a, b_now, b_before = (float(c) for c in lag_coefficients(np.median(dt), tau_s))
+            # transposed direct form II: the state before u_1 is a·x_0 + b_before·u_0
+            zi = a * first + b_before * segment[:1]
+            out[s + 1 : e], _ = lfilter([b_now, b_before], [1, -a], segment[1:], axis=0, zi=zi)
         else:
-            a_k = np.exp(-dt / tau_s)
+            a_k, b_now_k, b_before_k = lag_coefficients(dt, tau_s)
             state = first[0].copy()
-            out[s] = state
             for k in range(1, e - s):
-                state = a_k[k - 1] * state + (1 - a_k[k - 1]) * segment[k]
+                state = (
+                    a_k[k - 1] * state
+                    + b_now_k[k - 1] * segment[k]
+                    + b_before_k[k - 1] * segment[k - 1]
+                )
                 out[s + k] = state
     return out[:, 0] if squeeze else out
 

@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from models.base import ModelInputs, ThermalModel
-from models.effect_terms import SPEED_SCALE_RPM, first_order_lag
+from models.effect_terms import SPEED_SCALE_RPM, first_order_lag, lag_step
 from models.lag_structures import (
     DEFAULT_SPEED_POWERS,
     DEFAULT_TAUS_S,
@@ -398,6 +398,7 @@ class LagRidgeStream:
     def reset(self) -> None:
         self._time_s: float | None = None
         self._lags: np.ndarray | None = None  # (τ, direct terms)
+        self._last: np.ndarray | None = None  # the direct terms last stepped with
 
     @property
     def time_s(self) -> float | None:
@@ -422,13 +423,13 @@ class LagRidgeStream:
             return None
         if self._time_s is not None and time_s < self._time_s:
             raise ValueError(f"lag-ridge: time went back: {time_s} s after {self._time_s} s")
-        taus = np.asarray(self.model.lag_taus_s)
+        taus = np.asarray(self.model.lag_taus_s)[:, None]
         if self._lags is None or self._time_s is None:
             self._lags = np.tile(u, (taus.size, 1))
         else:
-            a = np.exp(-(time_s - self._time_s) / taus)[:, None]
-            self._lags = a * self._lags + (1.0 - a) * u
+            self._lags = lag_step(self._lags, self._last, u, time_s - self._time_s, taus)
         self._time_s = float(time_s)
+        self._last = u
         return np.r_[u, self._lags.ravel()]
 
     def step(
@@ -442,19 +443,27 @@ class LagRidgeStream:
     def state_keys(self) -> list[str]:
         return [f"{name}@lag{tau:g}s" for tau in self.model.lag_taus_s for name in self.names]
 
+    def input_keys(self) -> list[str]:
+        """Keys of the direct terms last stepped with (the start of a gap's line)."""
+        return [f"{name}@input" for name in self.names]
+
     def export_state(self) -> dict[str, float]:
         if self._time_s is None or self._lags is None:
             return {}
         state = {"time_s": self._time_s}
         state.update(zip(self.state_keys(), map(float, self._lags.ravel()), strict=True))
+        if self._last is not None:
+            state.update(zip(self.input_keys(), map(float, self._last), strict=True))
         return state
 
     def import_state(self, state: Mapping[str, float]) -> None:
+        """Carry on from :meth:`export_state`; a state saved without the last inputs
+        (an earlier release) loads too, and its next step holds the new sample."""
         if not state:
             self.reset()
             return
-        expected = {"time_s", *self.state_keys()}
-        if set(state) != expected:
+        expected = {"time_s", *self.state_keys(), *self.input_keys()}
+        if set(state) != expected and set(state) != expected - set(self.input_keys()):
             missing, unknown = sorted(expected - set(state)), sorted(set(state) - expected)
             raise ValueError(
                 f"lag-ridge: state does not fit this model (missing {missing}, unknown {unknown})"
@@ -464,3 +473,7 @@ class LagRidgeStream:
             raise ValueError("lag-ridge: state holds a value that is not finite")
         self._time_s = float(state["time_s"])
         self._lags = values.reshape(len(self.model.lag_taus_s), len(self.names))
+        last = [state.get(k) for k in self.input_keys()]
+        self._last = None if last[0] is None else np.array([float(v) for v in last])
+        if self._last is not None and not np.all(np.isfinite(self._last)):
+            raise ValueError("lag-ridge: state holds a value that is not finite")

@@ -17,7 +17,7 @@ import pytest
 from models import augmented
 from models.analysis import Accepted, ResidualAnalysis, _shape_sse, _taken_in_fold, analyze
 from models.dataset import load_runs
-from models.effect_terms import first_order_lag
+from models.effect_terms import GAP_S, first_order_lag
 from models.features import prepare
 from models.store import StoreError
 from simulator.params import load_params
@@ -186,6 +186,52 @@ def test_first_order_lag_steady_state_uneven_sampling_and_recordings() -> None:
     ragged = first_order_lag(u, uneven, np.zeros(uneven.size, int), 1800.0)
     even = np.interp(uneven, time_s[:600], lagged[:600])
     assert np.max(np.abs(ragged - even)) < 0.03
+
+
+def test_a_lag_across_a_logging_gap_takes_the_input_as_a_line_between_the_samples() -> None:
+    # 60 s rows, then a 30-min gap in which the speed went from 8 to 5 (a change at an
+    # unknown moment: its expected path is the line), then 60 s rows again.
+    time_s = np.r_[np.arange(0, 3600, 60.0), np.arange(5400, 9000, 60.0)]
+    u = np.where(time_s < 3600, 8.0, 5.0)
+    tau = 3600.0
+    lagged = first_order_lag(u, time_s, np.zeros(time_s.size, int), tau)
+    # The exact response, integrated finely: the input held at each row's value over
+    # the 60 s before it (as the rows mean), and a straight line across the gap.
+    fine = np.arange(0.0, time_s[-1] + 0.25, 0.5)
+    gap = (fine > 3540) & (fine < 5400)
+    row = np.searchsorted(time_s, fine)  # the row each instant is charged to
+    path = np.where(gap, np.interp(fine, [3540, 5400], [8.0, 5.0]), u[np.minimum(row, u.size - 1)])
+    x, exact = u[0], np.empty(fine.size)
+    for k, value in enumerate(path):  # midpoint steps of 0.5 s
+        x += (value - x) * (1 - np.exp(-0.5 / tau)) if k else 0.0
+        exact[k] = x
+    at_rows = np.interp(time_s, fine, exact)
+    assert np.max(np.abs(lagged - at_rows)) < 2e-3
+    # Held at 5 over the whole gap instead, the lag would be this far off just after it:
+    held = 8.0 + (5.0 - 8.0) * (1 - np.exp(-1860 / tau))
+    assert abs(held - at_rows[60]) > 0.5  # 0.55 of the 3 change
+    # Steps up to GAP_S hold the new sample exactly as before (the rule's only change is
+    # in gaps); a logger slower than GAP_S everywhere is gaps throughout, evenly or not.
+    even = np.arange(0, 7200, GAP_S)
+    v = np.sin(even / 900.0)
+    a = np.exp(-GAP_S / 600.0)
+    held_rows = [v[0]]
+    for value in v[1:]:
+        held_rows.append(a * held_rows[-1] + (1 - a) * value)
+    one = np.zeros(even.size, int)
+    assert np.max(np.abs(first_order_lag(v, even, one, 600.0) - held_rows)) < 1e-12
+    slow = np.arange(0, 36000, 300.0)
+    jittered = slow + np.r_[0, 0, 0, 2.0, np.zeros(slow.size - 4)]
+    w = np.sin(slow / 3000.0)
+    assert (
+        np.max(
+            np.abs(
+                first_order_lag(w, slow, one[:1].repeat(slow.size), 1800.0)
+                - first_order_lag(w, jittered, one[:1].repeat(slow.size), 1800.0)
+            )
+        )
+        < 1e-3
+    )
 
 
 def test_inner_score_is_the_residual_shape_from_gram_sums() -> None:

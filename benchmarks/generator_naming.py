@@ -40,9 +40,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=8)
     args = parser.parse_args()
-    print(
-        "| generator | effect | named first | other names | before µm | after µm | worst after/before |"
-    )
+    columns = ("generator", "effect", "named first", "other names", "before µm", "after µm")
+    print("| " + " | ".join(columns) + " | worst after/before |")
     print("|---|---|---|---|---:|---:|---:|")
     cases = [("shaft", e) for e in independent_shaft.EFFECTS]
     cases += [("network", e) for e in independent_machine.EFFECTS]

@@ -26,7 +26,8 @@ training rows before a penalty applies. The validation around ``fit``
 therefore never lets the held-out run steer a choice.
 
 A lag is ``x_k = a_k x_{k−1} + (1 − a_k) u_k`` with ``a_k = exp(−Δt_k / τ)``
-(:func:`models.effect_terms.first_order_lag`), started at the recording's first
+(:func:`models.effect_terms.first_order_lag`; across a logging gap the exact
+response to an input linear between the samples), started at the recording's first
 sample and carried across the runs of one continuous recording. Inputs without
 a time (``ModelInputs.time_s`` None: single rows such as the store's probe) are
 taken at a steady state, every lag equal to its input; a constant sensor bias

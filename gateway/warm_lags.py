@@ -15,6 +15,7 @@ rise at each of those τ, with the very recursion a stream uses::
 
 (across a logging gap, :func:`models.effect_terms.lag_coefficients`' exact
 response to an input linear between samples; each input's last value is kept)
+
 A model promoted later takes its lag states from here (:meth:`WarmLags.state_for`)
 and predicts what it would have predicted had it been in the bank from the
 first cycle. One difference: here each input steps whenever it is good, where a

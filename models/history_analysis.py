@@ -29,6 +29,7 @@ import numpy as np
 from models import augmented
 from models.analysis import analyze
 from models.dataset import MeasuredRuns
+from models.effect_terms import GAP_S
 from models.features import prepare
 
 HISTORY_RUN = "logged-history"
@@ -73,7 +74,9 @@ class History:
         """The history on an even time grid of ``step_s``, from its first to its last row.
 
         Temperatures are interpolated linearly between their good readings, the speed
-        held from the last reading, and each probe's error moved to the nearest grid
+        held from the last reading (linear across a logging gap longer than
+        :data:`models.effect_terms.GAP_S`, as the lags take it on a file and in the
+        runtime's streams), and each probe's error moved to the nearest grid
         row (at most ``step_s``/2 away; of two probes on one row the later stays). An
         even grid lets the lag terms run as one filter (:func:`models.effect_terms.
         first_order_lag`), where jittered cycle times would step them sample by
@@ -98,7 +101,10 @@ class History:
         )
         error[nearest] = rows.error_um[probe]
         ambient = None if rows.ambient_C is None else np.interp(grid, rows.time_s, rows.ambient_C)
-        return History(grid, rows.speed_rpm[held], self.sensors, temps, error, ambient)
+        following = np.minimum(held + 1, rows.n_samples - 1)
+        in_gap = rows.time_s[following] - rows.time_s[held] > GAP_S
+        speed = np.where(in_gap, np.interp(grid, rows.time_s, rows.speed_rpm), rows.speed_rpm[held])
+        return History(grid, speed, self.sensors, temps, error, ambient)
 
     def as_runs(self, source: str = "logged history") -> MeasuredRuns:
         numeric = {

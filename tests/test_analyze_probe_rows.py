@@ -17,7 +17,8 @@ import pytest
 
 from gateway.demo_effect import SENSORS, InProcessPlant
 from gateway.monitor import MonitorSink
-from models.history_analysis import analyse_history
+from models.effect_terms import GAP_S, first_order_lag
+from models.history_analysis import History, analyse_history
 from models.residual_monitor import MonitorParams
 from simulator.programs import production_program
 from tests.cli import gateway_in_process
@@ -94,3 +95,27 @@ def test_probe_rows_still_refuse_an_absurd_target_value(history, tmp_path: Path)
     assert done.returncode == 2
     assert f"history.csv:{probe_line + 1}: column 'error_um'" in done.stderr, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_the_grid_takes_the_speed_across_a_logging_gap_as_the_lags_of_a_file_do() -> None:
+    # Cycles every 60 s, a 30-min hole (the logger was down) in which the speed went from
+    # 8000 to 5000 r/min, and a 90 s sensor dropout (not a gap) with the speed steady.
+    time_s = np.r_[np.arange(0, 3600, 60.0), np.arange(5400, 9000, 60.0)]
+    speed = np.where(time_s < 3600, 8000.0, 5000.0)
+    temps = 20 + np.linspace(0, 5, time_s.size)[:, None]
+    temps[70, 0] = np.nan  # one bad reading: a 120 s step, held as before
+    history = History(time_s, speed, ("T1",), temps, np.full(time_s.size, np.nan))
+    grid = history.on_grid(15.0)
+    gap = (grid.time_s > 3540) & (grid.time_s < 5400)
+    assert np.allclose(grid.speed_rpm[gap], np.interp(grid.time_s[gap], [3540, 5400], [8000, 5000]))
+    assert np.all(grid.speed_rpm[~gap & (grid.time_s <= 3540)] == 8000.0)
+    assert np.all(grid.speed_rpm[grid.time_s >= 5400] == 5000.0)
+    assert GAP_S >= 120.0  # the dropout's 120 s step is not a gap
+    # So the grid's lag of the speed is the file's lag of it, where holding the last
+    # reading across the gap (the grid's rule before) was 0.21 of the change off.
+    on_file = first_order_lag(speed, time_s, np.zeros(time_s.size, int), 3600.0)
+    on_grid = first_order_lag(grid.speed_rpm, grid.time_s, np.zeros(grid.n_samples, int), 3600.0)
+    assert np.max(np.abs(np.interp(time_s, grid.time_s, on_grid) - on_file)) < 20.0  # r/min
+    held = np.where(gap, 8000.0, grid.speed_rpm)
+    held_lag = first_order_lag(held, grid.time_s, np.zeros(grid.n_samples, int), 3600.0)
+    assert np.max(np.abs(np.interp(time_s, grid.time_s, held_lag) - on_file)) > 0.2 * 3000

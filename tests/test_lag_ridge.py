@@ -24,6 +24,7 @@ from models.fitting import fit_and_store
 from models.lag_ridge import (
     GroupGrams,
     LagRidgeModel,
+    candidate_paths,
     lag_terms,
     ridge_path,
     term_groups,
@@ -32,7 +33,10 @@ from models.lag_ridge import (
 from models.lag_structures import (
     DEFAULT_SPEED_POWERS,
     DEFAULT_TAUS_S,
+    MINIMUM,
+    ONE_STANDARD_ERROR,
     STRUCTURE_NAMES,
+    TWO_GROUP_RIDGE,
     Structure,
 )
 from models.store import ModelStore, load_file
@@ -160,6 +164,49 @@ def test_the_stack_is_the_weighted_sum_of_its_structures_fitted_alone(synthetic:
     assert sum(w > 0 for w in weights.values()) >= 2
     every_term = term_names(synthetic.inputs.sensors, DEFAULT_TAUS_S, DEFAULT_SPEED_POWERS)
     assert stack.structure_.estimator == "stack" and stack.coef_.size == len(every_term)
+
+
+def test_the_one_standard_error_rule_takes_the_most_penalised_point_within_one_se(
+    synthetic: Prepared,
+) -> None:
+    plain = Structure("plain", TAUS_S, POWERS, TWO_GROUP_RIDGE)
+    smooth = Structure("smooth", TAUS_S, POWERS, TWO_GROUP_RIDGE, "fitted", ONE_STANDARD_ERROR)
+    labels = synthetic.data.run_index
+    paths = candidate_paths(
+        synthetic.inputs, synthetic.inputs.sensors, [plain, smooth], synthetic.error_um, labels
+    )
+    members = paths[0].members
+    assert len(members) == 4
+    # By hand: each run's squared error at each grid point, fitted on the other three.
+    sse = np.array(
+        [
+            [paths[0].grams.sse(held, beta) for beta in paths[0].path(members - {held})]
+            for held in sorted(members)
+        ]
+    )
+    total = sse.sum(axis=0)
+    lowest = int(np.argmin(total))
+    limit = total[lowest] + 2.0 * sse[:, lowest].std(ddof=1)  # √4 × the spread over the runs
+    within = [k for k in range(total.size) if total[k] <= limit]
+    grid = paths[1].grid
+    expected = max(within, key=lambda k: (grid[k]["sensors"], grid[k]["speed"]))
+    assert paths[0].choose(members) == lowest
+    assert paths[1].choose(members) == expected
+    assert expected != lowest  # the rule moves the choice on these runs
+    assert grid[expected]["sensors"] >= grid[lowest]["sensors"]
+    # Below three runs there is no spread to take: the lowest point.
+    two = frozenset(sorted(members)[:2])
+    assert paths[1].choose(two) == paths[0].choose(two)
+
+
+def test_the_penalty_choice_is_stored_with_the_structure_and_older_ones_load() -> None:
+    smooth = Structure("s", TAUS_S, POWERS, TWO_GROUP_RIDGE, "fitted", ONE_STANDARD_ERROR)
+    assert Structure.from_dict(json.loads(json.dumps(smooth.as_dict()))) == smooth
+    older = {k: v for k, v in smooth.as_dict().items() if k != "penalty_choice"}
+    assert Structure.from_dict(older).penalty_choice == MINIMUM
+    with pytest.raises(ValueError, match="unknown penalty choice"):
+        Structure.from_dict(smooth.as_dict() | {"penalty_choice": "smallest"})
+    assert "two-group-1se" in STRUCTURE_NAMES
 
 
 def test_a_model_stored_before_the_structure_choice_still_loads(synthetic: Prepared) -> None:

@@ -64,7 +64,10 @@ the same rule written down first, plus: ch1's best inner structure must improve.
   ch3 and ch5 stacks unchanged (two-group alone; lasso-30min-zero alone); generators and
   simulator within 0.5 % everywhere (shaft speed_direct 0.429 → 0.399, simulator
   none and speed_direct 0.267 → 0.268, network thermal_lag 0.207 → 0.208). Passes;
-  adopted (``models/lag_structures.py``) and committed before its one held-out run.
+  adopted and committed (c548685) before its one held-out run, which made fl_thermal
+  worse: ch1 1.76 → 1.87 µm (c6, the very cycle whose inner scores had favoured it,
+  2.18 → 2.81), ch3 2.57 → 2.58, ch5 2.33 → 2.36. Taken out of the family again; the
+  rule stays a structure option (``penalty_choice``) for this benchmark.
 
 Prints one JSON document: variant → data set → RMSE µm.
 

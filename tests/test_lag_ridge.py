@@ -206,7 +206,6 @@ def test_the_penalty_choice_is_stored_with_the_structure_and_older_ones_load() -
     assert Structure.from_dict(older).penalty_choice == MINIMUM
     with pytest.raises(ValueError, match="unknown penalty choice"):
         Structure.from_dict(smooth.as_dict() | {"penalty_choice": "smallest"})
-    assert "two-group-1se" in STRUCTURE_NAMES
 
 
 def test_a_model_stored_before_the_structure_choice_still_loads(synthetic: Prepared) -> None:

@@ -79,8 +79,8 @@ class History:
         runtime's streams), and each probe's error moved to the nearest grid
         row (at most ``step_s``/2 away; of two probes on one row the later stays). An
         even grid lets the lag terms run as one filter (:func:`models.effect_terms.
-        first_order_lag`), where jittered cycle times would step them sample by
-        sample; a grid of 15 s changes a lag of τ ≥ 5 min by a fraction of its input's
+        first_order_lag`), where jittered cycle times would take its slower
+        uneven path; a grid of 15 s changes a lag of τ ≥ 5 min by a fraction of its input's
         change over 15 s.
         """
         rows = self.complete()

@@ -17,7 +17,7 @@ import pytest
 from models import augmented
 from models.analysis import Accepted, ResidualAnalysis, _shape_sse, _taken_in_fold, analyze
 from models.dataset import load_runs
-from models.effect_terms import GAP_S, first_order_lag
+from models.effect_terms import GAP_S, first_order_lag, lag_coefficients
 from models.features import prepare
 from models.store import StoreError
 from simulator.params import load_params
@@ -232,6 +232,25 @@ def test_a_lag_across_a_logging_gap_takes_the_input_as_a_line_between_the_sample
         )
         < 1e-3
     )
+
+
+def test_an_uneven_lag_is_the_step_by_step_recursion_on_jittered_rows_and_gaps() -> None:
+    rng = np.random.default_rng(0)
+    time_s = np.cumsum(rng.uniform(10.0, 20.0, 6000))  # a poll's jitter
+    time_s[2000:] += 7200.0  # a 2 h gap
+    time_s[4000:] += 3 * 86400.0  # three days off: far longer than any τ
+    u = 50 + np.cumsum(rng.normal(size=(time_s.size, 3)), axis=0)
+    one = np.zeros(time_s.size, int)
+    for tau in (300.0, 1800.0, 86400.0):
+        for cold in (False, True):
+            a, b_now, b_before = lag_coefficients(np.diff(time_s), tau)
+            x = np.zeros(3) if cold else u[0].copy()
+            expected = [x]
+            for k in range(1, time_s.size):
+                x = a[k - 1] * x + b_now[k - 1] * u[k] + b_before[k - 1] * u[k - 1]
+                expected.append(x)
+            got = first_order_lag(u, time_s, one, tau, start_cold=cold)
+            assert np.max(np.abs(got - np.array(expected))) < 1e-10 * np.max(np.abs(u))
 
 
 def test_inner_score_is_the_residual_shape_from_gram_sums() -> None:

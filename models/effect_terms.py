@@ -181,19 +181,21 @@ def _uneven_lag(first: np.ndarray, u: np.ndarray, dt: np.ndarray, tau_s: float) 
     where a loop over rows took seconds.
     """
     a, b_now, b_before = lag_coefficients(dt, tau_s)
-    c = b_now[:, None] * u[1:] + b_before[:, None] * u[:-1]
     decay = np.cumsum(dt / tau_s)
     block = np.floor(decay / _BLOCK_DECAY)
     starts = np.flatnonzero(np.r_[True, block[1:] != block[:-1]])
     ends = np.r_[starts[1:], decay.size]
-    out = np.empty_like(c)
+    out = np.empty((dt.size, u.shape[1]))
     state = first.astype(float, copy=True)
     for s, e in zip(starts, ends, strict=True):
-        state = a[s] * state + c[s]
+        # step k (row k + 1) takes c_k = b_now u_{k+1} + b_before u_k; made per block, so a
+        # million-row file holds one (rows, columns) array besides its input
+        c = b_now[s:e, None] * u[s + 1 : e + 1] + b_before[s:e, None] * u[s:e]
+        state = a[s] * state + c[0]
         out[s] = state
         if e - s > 1:
             rel = decay[s + 1 : e] - decay[s]
-            summed = np.cumsum(c[s + 1 : e] * np.exp(rel)[:, None], axis=0)
+            summed = np.cumsum(c[1:] * np.exp(rel)[:, None], axis=0)
             out[s + 1 : e] = np.exp(-rel)[:, None] * (state + summed)
             state = out[e - 1]
     return out

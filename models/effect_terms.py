@@ -38,13 +38,14 @@ from 8000 to 5000 r/min somewhere in a 25-minute gap would be charged as
 5000 r/min for all of it. There the input is taken as the straight line between
 the samples either side (first-order hold), the expected path of a change that
 fell at an unknown moment in the gap, and the lag is the exact response to it.
-One function, :func:`lag_coefficients`, gives both steps to the batch filter
-and to every stream (:mod:`models.effect_stream`, :mod:`models.lag_ridge`,
-``gateway/warm_lags.py``), so they agree across gaps too.
+:func:`lag_coefficients` gives both steps to the batch filter, and
+:func:`lag_step`, its one-sample form, to every stream (:mod:`models.effect_stream`,
+:mod:`models.lag_ridge`, ``gateway/warm_lags.py``), so they agree across gaps too.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -116,8 +117,14 @@ def lag_step(
 ) -> np.ndarray:
     """One step of a stream's lag from the input ``before`` to ``now`` over ``dt_s``.
 
-    ``before`` None (a state saved before the input was kept) holds ``now``.
+    ``before`` None (a state saved before the input was kept) holds ``now``. The
+    common step, no gap, is the hold of :func:`lag_coefficients` written out: a
+    stream takes it every cycle for every lag, and the general form costs ten times
+    as much per call.
     """
+    if dt_s <= GAP_S or before is None:
+        a = np.exp(-dt_s / tau_s) if isinstance(tau_s, np.ndarray) else math.exp(-dt_s / tau_s)
+        return a * state + (1.0 - a) * now
     a, b_now, b_before = lag_coefficients(dt_s, tau_s)
     previous = now if before is None else before
     return a * state + b_now * now + b_before * previous

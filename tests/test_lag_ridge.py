@@ -38,6 +38,7 @@ from models.lag_structures import (
     STRUCTURE_NAMES,
     TWO_GROUP_RIDGE,
     Structure,
+    structure_named,
 )
 from models.store import ModelStore, load_file
 from tests.cli import ROOT, gateway_in_process
@@ -252,6 +253,52 @@ def test_the_zero_intercept_lasso_passes_through_0_um_and_streams_its_speed_lags
     # A structure stored before the intercept was part of it loads as a fitted intercept.
     older = {k: v for k, v in stored["structure"].items() if k != "intercept"}
     assert Structure.from_dict(older).intercept == "fitted"
+
+
+def with_a_twin_of_t1(prepared: Prepared, seed: int = 5) -> ModelInputs:
+    """The inputs with a fourth sensor T4 that reads T1 plus 0.01 °C of noise: two sensors
+    on one housing, rising together."""
+    x = prepared.inputs
+    twin = x.rise_C[:, 0] + np.random.default_rng(seed).normal(0, 0.01, x.rise_C.shape[0])
+    return ModelInputs(
+        np.column_stack([x.rise_C, twin]),
+        (*x.sensors, "T4"),
+        x.speed_rpm,
+        x.run_index,
+        x.time_s,
+        x.recording,
+    )
+
+
+def test_the_elastic_net_shares_weight_across_sensors_that_rise_together(
+    synthetic: Prepared,
+) -> None:
+    inputs, y = with_a_twin_of_t1(synthetic), synthetic.error_um
+    one_group = np.zeros(y.size, dtype=int)
+    twins = {}
+    for name in ("lasso-30min-zero", "enet-30min-zero"):
+        (paths,) = candidate_paths(inputs, inputs.sensors, [structure_named(name)], y, one_group)
+        t1, t4 = paths.names.index("T1") + 1, paths.names.index("T4") + 1
+        twins[name] = np.array([(b[t1], b[t4]) for b in paths.path(paths.members)])
+    lasso, enet = twins["lasso-30min-zero"], twins["enet-30min-zero"]
+    # Along its penalty grid the lasso puts the twins' weight on one of them, and which one
+    # carries it changes from one penalty to the next.
+    alone = (np.abs(lasso).max(axis=1) > 0.5) & (np.abs(lasso).min(axis=1) < 0.05)
+    assert alone.sum() >= 3
+    assert set(np.argmax(np.abs(lasso[alone]), axis=1)) == {0, 1}
+    # The elastic net shares it at every penalty: one sign, within 20 % of each other.
+    assert np.all(enet[:, 0] * enet[:, 1] > 0)
+    assert np.all(np.abs(enet).min(axis=1) >= 0.8 * np.abs(enet).max(axis=1))
+
+
+def test_the_elastic_net_is_stored_by_name_and_streams_as_its_batch(synthetic: Prepared) -> None:
+    model = LagRidgeModel(structures=["enet-30min-zero"]).fit(synthetic.inputs, synthetic.error_um)
+    stored = json.loads(json.dumps(model.fitted_params()))
+    assert stored["structure"]["estimator"] == "elastic net"
+    assert stored["structure"]["intercept"] == "zero"
+    loaded = LagRidgeModel.from_params(model.hyperparams(), stored)
+    part = synthetic.take(synthetic.data.run == "R3")
+    assert np.max(np.abs(streamed(loaded.stream(), part) - loaded.predict(part.inputs))) < 1e-9
 
 
 def test_its_stream_crosses_a_logging_gap_as_the_batch_does_also_through_a_restart(

@@ -82,8 +82,12 @@ not worse by more than 2 % on ch3 and ch5. ``--quick``:
   simulator within 0.4 % everywhere, the shaft's speed_direct 0.429 → 0.363. Passes.
 - ``enet-zero-for-lasso`` (replacing the lasso): ch5's best inner 2.39 → 3.24. Fails.
 
-``adopted+enet-zero`` was made the shipped family and committed before its one held-out
-run on fl_thermal.
+``adopted+enet-zero`` was made the shipped family and committed (d1a195f) before its one
+held-out run on fl_thermal, which made every channel worse: 1.76 / 2.57 / 2.33 → 1.78 /
+2.64 / 2.48 µm (ch1 c5 1.75 → 1.85; ch3 c5 1.98 → 2.28; ch5 c2 2.28 → 2.46). On all six
+cycles the new member's inner score equals the lasso's on ch1 (1.89 µm both) and is worse
+on ch3 and ch5 (2.54 against 2.37 and 2.31): its gain in the c6-out fold belonged to that
+fold. Taken out of the family again; ``ELASTIC_NET`` stays an estimator for this benchmark.
 
 Prints one JSON document: variant → data set → RMSE µm.
 

@@ -571,7 +571,10 @@ def _require_columns(
     for required in (RUN_COLUMN, TIME_COLUMN, SPEED_COLUMN):
         if required not in names:
             raise DataError(
-                path, HEADER_LINE, required, f"missing required column (header has: {header})"
+                path,
+                HEADER_LINE,
+                required,
+                f"missing required column (header has: {header}){_separator_hint(names)}",
             )
     if target not in names:
         if target == DEFAULT_TARGET:
@@ -591,6 +594,20 @@ def _require_columns(
                 name,
                 f"unknown sensor in --sensors (temperature columns: {', '.join(sensor_names)})",
             )
+
+
+def _separator_hint(names: list[str]) -> str:
+    """Why a header read as one column, when another separator split it: a spreadsheet
+    saved with regional settings writes ';' (and decimal commas), a logger often tabs."""
+    if len(names) != 1:
+        return ""
+    for separator, called in ((";", "';'"), ("\t", "tabs"), ("|", "'|'")):
+        if separator in names[0]:
+            return (
+                f"; the header is one column separated by {called}: the format is "
+                "comma-separated with a decimal point"
+            )
+    return ""
 
 
 def group_bounds(labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

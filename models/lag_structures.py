@@ -61,7 +61,8 @@ taken.
 
 Every fit is a sum over runs: a ridge path from the runs' Gram products of the
 terms (one eigendecomposition per penalty ratio serves every penalty), a lasso
-path from the rows (scikit-learn's ``lasso_path`` on the standardised terms).
+path from the rows (scikit-learn's ``enet_path``, all L1 for a lasso, on the
+standardised terms).
 Paths are kept per set of runs, so the nested loops fit each set once.
 """
 
@@ -302,7 +303,9 @@ class CandidatePaths:
         cached = self._paths.get(members)
         if cached is None:
             cached = (
-                self._lasso(members) if self.structure.estimator in SPARSE else self._ridge(members)
+                self._sparse(members)
+                if self.structure.estimator in SPARSE
+                else self._ridge(members)
             )
             self._paths[members] = cached
         return cached
@@ -315,7 +318,7 @@ class CandidatePaths:
             path.extend(ridge_path(gram, cross, self.groups, ratio, intercept=fitted))
         return path
 
-    def _lasso(self, members: frozenset[int]) -> list[np.ndarray]:
+    def _sparse(self, members: frozenset[int]) -> list[np.ndarray]:
         from sklearn.exceptions import ConvergenceWarning
         from sklearn.linear_model import enet_path
 

@@ -18,7 +18,7 @@ import sys
 from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -29,6 +29,9 @@ from models.catalogue import (
     METHOD_NAMES,
     POLICIES,
 )
+
+if TYPE_CHECKING:
+    from simulator.serve import SimulatedPlant
 
 #: The project's input errors (``models.dataset.DataError``, ``models.store.StoreError``,
 #: ``gateway.config.ConfigError``, …) are all ``ValueError``s, so catching the
@@ -362,16 +365,28 @@ def serve_simulator(
     plant = SimulatedPlant(config)
     click.echo(
         f"serving simulated machine '{plant.machine.params.name}' (programme {config.program}, "
-        f"×{config.speedup:g} machine time); Ctrl-C stops"
+        f"×{config.speedup:g} machine time); Ctrl-C or SIGTERM stops"
     )
     probe = plant.machine.params.probe
     click.echo(f"  probe #{probe.macro}: every {probe.period_s:g} s, noise {probe.noise_um:g} µm")
     for endpoint in plant.endpoints:
         click.echo(f"  {type(endpoint).__name__}: {describe_endpoint(endpoint)}")
-    try:
-        event_loop.run(plant.serve_forever())
-    except KeyboardInterrupt:
-        click.echo("stopped")
+    event_loop.run(_serve_until_signalled(plant))
+    click.echo("stopped")
+
+
+async def _serve_until_signalled(plant: SimulatedPlant) -> None:
+    """Serve until SIGINT or SIGTERM, as ``run`` does. Handlers set on the loop also
+    replace a SIGINT that the process inherited as ignored (a shell script starting it
+    in the background), where the interpreter's own Ctrl-C would never fire."""
+    import asyncio
+    import signal
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    await plant.serve_until(stop)
 
 
 def describe_endpoint(endpoint: object) -> str:

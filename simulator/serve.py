@@ -280,6 +280,7 @@ class SimulatedPlant:
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
 
-    async def serve_forever(self) -> None:
+    async def serve_until(self, stop: asyncio.Event) -> None:
+        """Serve until ``stop`` is set, then close every endpoint."""
         async with self:
-            await asyncio.Event().wait()
+            await stop.wait()

@@ -224,3 +224,46 @@ def test_simulate_serves_config_yaml_until_interrupted(tmp_path: Path) -> None:
     assert len(values) == 2 and all(180 <= v <= 400 for v in values)  # 18–40 °C in 0.1 °C
     assert "serving simulated machine 'vmc-8000'" in out
     assert proc.returncode in (0, -signal.SIGINT), err
+
+
+@pytest.mark.parametrize("stop_signal", ["SIGINT", "SIGTERM"])
+def test_simulate_stops_on_sigint_or_sigterm_even_started_with_sigint_ignored(
+    tmp_path: Path, stop_signal: str
+) -> None:
+    """A shell script that starts the simulator in the background hands it SIGINT as
+    ignored; the interpreter's own Ctrl-C then never fires, so it sets its handlers."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+
+    cnc_port = free_tcp_port()
+    config = tmp_path / "config.yaml"
+    simulator = {"program": "const4000", "speedup": 600, "cnc": {"modbus": {"port": cnc_port}}}
+    config.write_text(yaml.safe_dump({"simulator": simulator}))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "gateway", "simulate", "--config", str(config)],
+        cwd=Path(__file__).resolve().parent.parent,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        wait_for_port(cnc_port, timeout_s=20)
+        sent = time.monotonic()
+        proc.send_signal(getattr(signal, stop_signal))
+        out, err = proc.communicate(timeout=10)
+        stopped_s = time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 0, err
+    assert out.splitlines()[-1] == "stopped"
+    assert stopped_s < 3.0
+    with pytest.raises(OSError):  # the endpoints were closed, not left to the exit
+        socket.create_connection(("127.0.0.1", cnc_port), timeout=1).close()

@@ -31,6 +31,7 @@ from models.catalogue import (
 )
 
 if TYPE_CHECKING:
+    from gateway.config import GatewayConfig
     from simulator.serve import SimulatedPlant
 
 #: The project's input errors (``models.dataset.DataError``, ``models.store.StoreError``,
@@ -470,15 +471,31 @@ def promotion_summary(machine) -> str:
 @input_errors_exit
 def run(config_path: Path, log_level: str) -> None:
     """Run the compensation loop for every machine in the configuration."""
-    import asyncio
     import gc
-    import signal
 
-    from gateway import event_loop
     from gateway.config import load_config
+    from gateway.instance_lock import StateDirInUseError, hold_state_dir
 
     setup_logging(log_level)
     config = load_config(config_path, check_host=True)
+    try:
+        with hold_state_dir(Path(config.state_dir)):
+            serve_config(config)
+    except StateDirInUseError as exc:
+        raise StateDirInUseError(f"{config_path}: {exc}") from None
+    # The interpreter's last garbage collection walks every object of the OPC UA
+    # address spaces and the models: seconds on an edge box, after the state is
+    # saved. Frozen objects are left to the process exit, so a stop takes < 1 s.
+    gc.freeze()
+    click.echo("stopped")
+
+
+def serve_config(config: GatewayConfig) -> None:
+    """Every machine's loop until SIGINT or SIGTERM (the state folder already held)."""
+    import asyncio
+    import signal
+
+    from gateway import event_loop
     from gateway.app import Gateway  # the runtime only once the file is known good
 
     gateway_app = Gateway(config)
@@ -494,11 +511,6 @@ def run(config_path: Path, log_level: str) -> None:
         f"running {len(config.machines)} machine(s): {', '.join(m.id for m in config.machines)}"
     )
     event_loop.run(serve(), config.event_loop)
-    # The interpreter's last garbage collection walks every object of the OPC UA
-    # address spaces and the models: seconds on an edge box, after the state is
-    # saved. Frozen objects are left to the process exit, so a stop takes < 1 s.
-    gc.freeze()
-    click.echo("stopped")
 
 
 @main.command()

@@ -33,9 +33,9 @@ def read_macro_mm(port: int, number: int = 500) -> float:
         client.close()
 
 
-def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path) -> None:
+def bench_config(tmp_path: Path, bus: int, cnc: int) -> Path:
+    """One machine on the simulator's TCP bus and Modbus CNC; models fitted into tmp_path."""
     rig.fit_store(tmp_path)
-    bus, cnc = free_tcp_port(), free_tcp_port()
     devices = [
         {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
         {"device_id": 2, "channels": ["T9", "ambient"]},
@@ -79,6 +79,12 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
     }
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path) -> None:
+    bus, cnc = free_tcp_port(), free_tcp_port()
+    path = bench_config(tmp_path, bus, cnc)
     command = [sys.executable, "-m", "gateway"]
     pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
     simulator = subprocess.Popen([*command, "simulate", "--config", str(path)], **pipes)
@@ -125,4 +131,62 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
         if gateway is not None and gateway.poll() is None:
             gateway.kill()
         simulator.send_signal(signal.SIGINT)
+        simulator.communicate(timeout=30)
+
+
+def test_a_second_run_on_the_same_state_dir_is_refused_and_a_killed_one_leaves_no_lock(
+    tmp_path: Path,
+) -> None:
+    """Two gateways on one configuration would both write #500; the second is refused
+    before it connects to anything, and the first compensates on undisturbed."""
+    bus, cnc = free_tcp_port(), free_tcp_port()
+    path = bench_config(tmp_path, bus, cnc)
+    command = [sys.executable, "-m", "gateway"]
+    pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
+    simulator = subprocess.Popen([*command, "simulate", "--config", str(path)], **pipes)
+    first = third = None
+    heartbeat = tmp_path / "state" / "bench-1-heartbeat.json"
+    try:
+        wait_for_port(cnc)
+        first = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not heartbeat.exists():
+            time.sleep(0.1)
+        assert heartbeat.exists()
+        second = subprocess.run(
+            [*command, "run", "--config", str(path)], capture_output=True, text=True, timeout=60
+        )
+        assert second.returncode == 2, second.stdout + second.stderr
+        assert second.stderr.splitlines() == [
+            f"error: {path}: state_dir {tmp_path / 'state'}: another gateway (pid {first.pid}) "
+            "is running on it; two would write the same CNC macros and state files: stop that "
+            "one, or give this one a state_dir of its own"
+        ]
+        assert "running" not in second.stdout
+        # The first one goes on: its heartbeat is renewed after the refusal.
+        refused_at = heartbeat.stat().st_mtime
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and heartbeat.stat().st_mtime <= refused_at:
+            time.sleep(0.1)
+        assert heartbeat.stat().st_mtime > refused_at and first.poll() is None
+        # kill -9 leaves the lock file behind but not the lock: a restart runs.
+        first.kill()
+        first.communicate(timeout=30)
+        assert (tmp_path / "state" / "gateway.lock").exists()
+        killed_at = heartbeat.stat().st_mtime
+        third = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and heartbeat.stat().st_mtime <= killed_at:
+            time.sleep(0.1)
+        assert heartbeat.stat().st_mtime > killed_at and third.poll() is None
+        third.send_signal(signal.SIGTERM)
+        out, err = third.communicate(timeout=30)
+        assert third.returncode == 0, err
+        assert "running 1 machine(s): bench-1" in out and "stopped" in out
+    finally:
+        for process in (first, third):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.communicate()
+        simulator.send_signal(signal.SIGTERM)
         simulator.communicate(timeout=30)

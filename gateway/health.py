@@ -83,7 +83,7 @@ def write_heartbeat(
     }
     if health is not None:
         payload["health"] = dict(health)
-    return write_json_atomic(path, payload, indent=None)
+    return write_json_atomic(path, payload, indent=None, durable=False)
 
 
 def check(state_dir: str | Path, max_age_s: float, now: float | None = None) -> tuple[bool, str]:

@@ -17,10 +17,12 @@ is, from the start of the recording to its end, whatever the spindle did first.
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
 
 from models.json_files import write_json_atomic
+from models.plausibility import TEMPERATURE_C
 
 
 class TemperatureReference:
@@ -29,8 +31,7 @@ class TemperatureReference:
         self.state_file = state_file
         self.values_C: dict[str, float] = dict(fixed_C)
         if mode == "first-reading" and state_file is not None and state_file.exists():
-            saved = json.loads(state_file.read_text(encoding="utf-8"))
-            self.values_C.update({k: float(v) for k, v in saved.get("reference_C", {}).items()})
+            self.values_C.update(read_saved_reference(state_file))
 
     def observe(self, good_readings_C: Mapping[str, float]) -> None:
         """Take the first good reading of each sensor that has no reference yet."""
@@ -56,3 +57,32 @@ class TemperatureReference:
     def _save(self) -> None:
         if self.state_file is not None:
             write_json_atomic(self.state_file, {"reference_C": self.values_C}, sort_keys=True)
+
+
+def read_saved_reference(state_file: Path) -> dict[str, float]:
+    """The cold reference saved by an earlier start, °C per sensor.
+
+    A file that cannot be read stops the gateway with its name and what to do, rather
+    than being replaced: a new first reading now, with the machine possibly warm, would
+    make every rise too small, and once the machine cooled below it the rises would turn
+    negative and the compensation would move the tool the wrong way.
+    """
+    try:
+        saved = json.loads(state_file.read_text(encoding="utf-8"))
+        values = saved["reference_C"]
+        if not isinstance(values, dict):
+            raise TypeError("'reference_C' is not an object")
+        reference = {str(k): float(v) for k, v in values.items()}
+        low, high = TEMPERATURE_C.low, TEMPERATURE_C.high
+        bad = [k for k, v in reference.items() if not (math.isfinite(v) and low <= v <= high)]
+        if bad:
+            raise ValueError(
+                f"sensor {bad[0]}: expected {TEMPERATURE_C.describe()}, found {values[bad[0]]!r}"
+            )
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        reason = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise ValueError(
+            f"{state_file}: the machine's saved cold reference is unreadable ({reason}); "
+            "restore the file, or delete it to take a new reference with the machine cold"
+        ) from None
+    return reference

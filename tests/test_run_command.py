@@ -190,3 +190,29 @@ def test_a_second_run_on_the_same_state_dir_is_refused_and_a_killed_one_leaves_n
                 process.communicate()
         simulator.send_signal(signal.SIGTERM)
         simulator.communicate(timeout=30)
+
+
+def test_run_with_a_damaged_cold_reference_stops_before_connecting_naming_the_file(
+    tmp_path: Path,
+) -> None:
+    """A power cut left the reference empty: no new (possibly warm) first reading is taken."""
+    path = bench_config(tmp_path, free_tcp_port(), free_tcp_port())  # nothing listens there
+    saved = tmp_path / "state" / "bench-1-reference.json"
+    saved.parent.mkdir(parents=True)
+    saved.write_bytes(b"")
+    result = subprocess.run(
+        [sys.executable, "-m", "gateway", "run", "--config", str(path)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2, result.stdout + result.stderr
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
+    assert errors == [
+        f"error: {saved}: the machine's saved cold reference is unreadable (Expecting value: "
+        "line 1 column 1 (char 0)); restore the file, or delete it to take a new reference "
+        "with the machine cold"
+    ]
+    assert "running" not in result.stdout and saved.read_bytes() == b""
+    assert not (tmp_path / "state" / "bench-1-heartbeat.json").exists()

@@ -626,7 +626,7 @@ def export(
             raise ValueError(
                 f"{config.logging.local_store}: no local store yet (has the gateway run?)"
             )
-        source = LocalStore(config.logging.local_store)
+        source = LocalStore(config.logging.local_store, set_aside_damaged=False)
         where = f"local store {config.logging.local_store}"
     try:
         result = export_runs(source, machine, parse_time_s(start), parse_time_s(stop), out_csv)

@@ -27,6 +27,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from gateway.sqlite_bounds import at_cap, bounded_write, cap_size, is_out_of_space, used_bytes
+from gateway.sqlite_open import open_database
 from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
@@ -60,6 +61,8 @@ class LocalStore:
         max_bytes: the largest the file may grow (None: unbounded); at the cap the
             oldest points make room for the newest.
         retention_s: the oldest point :meth:`enforce_retention` keeps, s (None: all).
+        set_aside_damaged: a file SQLite cannot read is renamed aside and a new one
+            started (the gateway); False refuses it with a ``ValueError`` (``export``).
     """
 
     def __init__(
@@ -68,6 +71,7 @@ class LocalStore:
         synchronous: str = "NORMAL",
         max_bytes: int | None = None,
         retention_s: float | None = None,
+        set_aside_damaged: bool = True,
     ) -> None:
         if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
             raise ValueError(f"unknown SQLite synchronous level {synchronous!r}")
@@ -80,10 +84,14 @@ class LocalStore:
         self.evicted = 0  # points deleted to stay within max_bytes
         self._failing = False
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
-        self._db.executescript(SCHEMA)
+
+        def prepare(db: sqlite3.Connection) -> None:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute(f"PRAGMA synchronous={synchronous.upper()}")
+            db.executescript(SCHEMA)
+
+        # A file SQLite cannot read is kept aside and a new one started (gateway.sqlite_open).
+        self._db, self.set_aside_as = open_database(self.path, prepare, set_aside_damaged)
         if max_bytes is not None:
             cap_size(self._db, max_bytes)
 

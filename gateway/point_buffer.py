@@ -35,6 +35,7 @@ from collections.abc import Iterable
 from pathlib import Path
 
 from gateway.sqlite_bounds import at_cap, bounded_write, cap_size, is_out_of_space, used_bytes
+from gateway.sqlite_open import open_database
 from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
@@ -88,12 +89,19 @@ class PointBuffer:
         self._removed_through = 0  # sent points whose removal the full disk refused …
         self._hidden = 0  # … and how many they are
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(self.path, check_same_thread=False, isolation_level=None)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute(f"PRAGMA synchronous={synchronous.upper()}")
-        self._db.executescript(SCHEMA)
-        self._count = self._db.execute("SELECT COUNT(*) FROM points").fetchone()[0]
-        self._dropped = self._db.execute("SELECT value FROM meta WHERE key='dropped'").fetchone()[0]
+        counted: dict[str, int] = {}
+
+        def prepare(db: sqlite3.Connection) -> None:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute(f"PRAGMA synchronous={synchronous.upper()}")
+            db.executescript(SCHEMA)
+            counted["points"] = db.execute("SELECT COUNT(*) FROM points").fetchone()[0]
+            dropped = db.execute("SELECT value FROM meta WHERE key='dropped'").fetchone()
+            counted["dropped"] = dropped[0]
+
+        # A file SQLite cannot read is kept aside and a new one started (gateway.sqlite_open).
+        self._db, self.set_aside_as = open_database(self.path, prepare)
+        self._count, self._dropped = counted["points"], counted["dropped"]
         if max_bytes is not None:
             cap_size(self._db, max_bytes)
         if self._count > max_points:  # reopened with a smaller bound

@@ -216,3 +216,32 @@ def test_run_with_a_damaged_cold_reference_stops_before_connecting_naming_the_fi
     ]
     assert "running" not in result.stdout and saved.read_bytes() == b""
     assert not (tmp_path / "state" / "bench-1-heartbeat.json").exists()
+
+
+def test_run_with_a_damaged_local_store_keeps_it_aside_and_runs_on(tmp_path: Path) -> None:
+    path = bench_config(tmp_path, free_tcp_port(), free_tcp_port())  # nothing listens there
+    store = tmp_path / "data" / "points.sqlite"
+    store.parent.mkdir(parents=True)
+    store.write_bytes(b"not a database\n" * 200)
+    heartbeat = tmp_path / "state" / "bench-1-heartbeat.json"
+    gateway = subprocess.Popen(
+        [sys.executable, "-m", "gateway", "run", "--config", str(path)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not heartbeat.exists():
+            time.sleep(0.1)
+        assert heartbeat.exists() and gateway.poll() is None
+    finally:
+        gateway.send_signal(signal.SIGTERM)
+        _, err = gateway.communicate(timeout=30)
+    assert gateway.returncode == 0, err
+    (aside,) = store.parent.glob("points.sqlite.unreadable-*")
+    assert aside.read_bytes() == b"not a database\n" * 200
+    told = f"{store}: not a readable SQLite database (file is not a database); kept as {aside}"
+    assert told in err
+    assert store.read_bytes().startswith(b"SQLite format 3\x00")

@@ -66,6 +66,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from drivers.opcua_common import CELSIUS, MICROMETRE, RPM, ServerLifecycle
 from gateway.login_throttle import Key, LoginThrottle, ThrottlePolicy
 from gateway.runtime import CycleRecord
+from gateway.scada_trust import TolerantTrustStore
 
 _logger = logging.getLogger(__name__)
 
@@ -226,6 +227,7 @@ class _ClientTrust:
         self._trust_all = trust_all
         self._rejected_keep = rejected_keep
         self._admitted: set[bytes] = set()
+        self._warned: set[tuple[str, int, int]] = set()  # unreadable trust files named
 
     def admitted(self, certificate_der: bytes) -> bool:
         return bytes(certificate_der) in self._admitted
@@ -239,7 +241,7 @@ class _ClientTrust:
             options |= CertificateValidatorOptions.TRUSTED | CertificateValidatorOptions.REVOKED
             # Reloaded at every session: a certificate copied into trusted/ counts at once.
             if any(self._trusted.glob("*.*")):
-                store = TrustStore([self._trusted], [self._crl])
+                store = TolerantTrustStore([self._trusted], [self._crl], self._warned)
                 await store.load()
         try:
             if not self._trust_all and store is None:

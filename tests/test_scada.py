@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import json
+import logging
 import os
 import shutil
 from collections.abc import Awaitable, Callable
@@ -27,6 +28,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gateway.runtime import CycleRecord
 from gateway.scada import (
+    CRL_DIR,
     NAMESPACE,
     REJECTED_DIR,
     SERVER_CERT,
@@ -418,3 +420,32 @@ def test_settings_and_constructor_are_checked(tmp_path: Path) -> None:
     assert not (tmp_path / "pki").exists()
     assert server.endpoint.startswith("opc.tcp://127.0.0.1:")
     assert NAMESPACE == "urn:spindle-gateway:scada"
+
+
+def test_a_damaged_file_in_trusted_or_crl_does_not_lock_out_the_trusted_clients(
+    tmp_path: Path, node_pki: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An engineer copies a wrong file into trusted/ (a private key, a cut-short copy) or
+    crl/: the other trusted certificates still count, and the file is named once."""
+    pki = tmp_path / "pki"
+    scada_settings = settings(pki, trust_all_clients=False)
+    read = [{"read": f"{MACHINE}.ModelId"}]
+
+    async def check(server: ScadaServer, calls: list) -> None:
+        code, reply = await node_client(server, read, node_pki, user=VIEWER)
+        assert code == 1 and reply["status"] == "BadCertificateUntrusted", reply
+        (rejected,) = (pki / REJECTED_DIR).glob("*.der")
+        rejected.rename(pki / TRUSTED_DIR / rejected.name)
+        (pki / TRUSTED_DIR / "client_key.pem").write_text("-----BEGIN PRIVATE KEY-----\nAA==\n")
+        (pki / TRUSTED_DIR / "copy.der").write_bytes(rejected.name.encode())  # not DER
+        (pki / CRL_DIR / "revoked.pem").write_text("not a revocation list\n")
+        for _ in range(2):
+            code, reply = await node_client(server, read, node_pki, user=VIEWER)
+            assert code == 0 and reply["results"][0]["value"] == "mlr-high-v3", reply
+
+    with caplog.at_level(logging.WARNING, logger="gateway.scada"):
+        run_with_server(scada_settings, check)
+    skipped = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
+    assert len(skipped) == 3, skipped  # each file named once, not at every session
+    for name in ("client_key.pem", "copy.der", "revoked.pem"):
+        assert sum(name in message for message in skipped) == 1, skipped

@@ -17,6 +17,7 @@ is, from the start of the recording to its end, whatever the spindle did first.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -24,22 +25,29 @@ from pathlib import Path
 from models.json_files import write_json_atomic
 from models.plausibility import TEMPERATURE_C
 
+log = logging.getLogger(__name__)
+
 
 class TemperatureReference:
     def __init__(self, mode: str, fixed_C: Mapping[str, float], state_file: Path | None) -> None:
         self.mode = mode
         self.state_file = state_file
         self.values_C: dict[str, float] = dict(fixed_C)
+        self._unsaved = False  # first readings taken that the file does not hold yet
+        self._save_failing = False
         if mode == "first-reading" and state_file is not None and state_file.exists():
             self.values_C.update(read_saved_reference(state_file))
 
     def observe(self, good_readings_C: Mapping[str, float]) -> None:
-        """Take the first good reading of each sensor that has no reference yet."""
+        """Take the first good reading of each sensor that has no reference yet, and save
+        the reference until a save succeeds."""
         if self.mode != "first-reading":
             return
         new = {k: v for k, v in good_readings_C.items() if k not in self.values_C}
         if new:
             self.values_C.update(new)
+            self._unsaved = True
+        if self._unsaved:
             self._save()
 
     def rises_C(
@@ -55,8 +63,26 @@ class TemperatureReference:
         return {s: v - self.values_C[s] for s, v in readings_C.items() if s in self.values_C}
 
     def _save(self) -> None:
-        if self.state_file is not None:
+        """Write the reference; a full or failing disk keeps it in memory, named once, and
+        the next cycle tries again (the loop goes on compensating meanwhile)."""
+        if self.state_file is None:
+            self._unsaved = False
+            return
+        try:
             write_json_atomic(self.state_file, {"reference_C": self.values_C}, sort_keys=True)
+        except OSError as exc:
+            if not self._save_failing:
+                log.error(
+                    "%s: cannot save the cold reference (%s); it is kept in memory and saved "
+                    "once the disk allows: a restart before that takes a new one",
+                    self.state_file,
+                    exc.strerror or exc,
+                )
+                self._save_failing = True
+            return
+        if self._save_failing:
+            log.info("%s: the cold reference is saved now", self.state_file)
+        self._unsaved = self._save_failing = False
 
 
 def read_saved_reference(state_file: Path) -> dict[str, float]:

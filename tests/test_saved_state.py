@@ -7,6 +7,7 @@ replaced by a new first reading from a machine that may be warm.
 from __future__ import annotations
 
 import json
+import logging
 import os
 import stat
 from pathlib import Path
@@ -94,3 +95,24 @@ def test_the_heartbeat_rewritten_every_cycle_is_not_synced(
     calls = synced(monkeypatch)
     path = write_heartbeat(tmp_path, "bench-1", 60.0, 1, wall_time=1.0e9)
     assert calls == [] and json.loads(path.read_text(encoding="utf-8"))["machine"] == "bench-1"
+
+
+def test_a_full_disk_keeps_the_cold_reference_in_memory_and_saves_it_once_space_returns(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from tests.test_retention import fill, small_disk
+
+    with small_disk(tmp_path / "disk", "1m") as disk:
+        state = disk / "bench-1-reference.json"
+        filler = fill(disk)
+        reference = TemperatureReference("first-reading", {}, state)
+        with caplog.at_level(logging.INFO, logger="gateway.reference"):
+            for cycle in range(5):  # the loop goes on: nothing is raised
+                reference.observe({"T1": 20.5 + cycle, "T2": 21.0})
+            assert reference.values_C == {"T1": 20.5, "T2": 21.0} and not state.exists()
+            failed = [r for r in caplog.records if "cannot save the cold reference" in r.message]
+            assert len(failed) == 1 and "No space left on device" in failed[0].message
+            filler.unlink()
+            reference.observe({"T1": 30.0, "T2": 31.0})
+        assert read_saved_reference(state) == {"T1": 20.5, "T2": 21.0}
+        assert "the cold reference is saved now" in caplog.text

@@ -13,6 +13,7 @@ file keeps the holder's process id only to say who holds it.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 from collections.abc import Iterator
@@ -42,8 +43,10 @@ def hold_state_dir(state_dir: Path) -> Iterator[Path]:
                 "two would write the same CNC macros and state files: stop that one, or give "
                 "this one a state_dir of its own"
             ) from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+        # Only to name the holder: a full disk must not stop the gateway from starting.
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
         yield path
     finally:
         os.close(fd)  # closing the last descriptor releases the lock

@@ -26,3 +26,16 @@ def test_a_left_over_lock_file_with_anything_in_it_does_not_block(tmp_path: Path
     (tmp_path / "gateway.lock").write_bytes(b"\x00stale 99999 \xff")
     with hold_state_dir(tmp_path) as lock:
         assert lock.read_text(encoding="ascii") == f"{os.getpid()}\n"
+
+
+def test_the_lock_is_taken_on_a_full_disk(tmp_path: Path) -> None:
+    from tests.test_retention import fill, small_disk
+
+    with small_disk(tmp_path / "disk", "1m") as disk:
+        (disk / "state").mkdir()
+        fill(disk)
+        with hold_state_dir(disk / "state") as lock:
+            assert lock.exists()  # held, though there was no room to write the pid
+            refused = r"another gateway \(pid unknown\)"
+            with pytest.raises(StateDirInUseError, match=refused), hold_state_dir(disk / "state"):
+                pass

@@ -14,6 +14,7 @@ so ``--help`` and the container's health check start in a fraction of a second
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections.abc import Callable
 from functools import wraps
@@ -41,6 +42,20 @@ if TYPE_CHECKING:
 INPUT_ERRORS = (ValueError, KeyError, OSError)
 
 
+class FiniteFloatRange(click.FloatRange):
+    """click's ``FloatRange`` that also refuses NaN and ±inf. The range check alone passes
+    NaN (every comparison with it is false), and an infinite interval or speed-up reached
+    integer conversions far from the option that carried it."""
+
+    name = "finite float range"
+
+    def convert(self, value: Any, param: click.Parameter | None, ctx: click.Context | None) -> Any:
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return number
+
+
 def input_errors_exit(command: Callable[..., Any]) -> Callable[..., Any]:
     """Turn a bad-input exception into one clear line and exit status 2."""
 
@@ -63,7 +78,7 @@ def quantity_option(
     declarations = (flag,) if name is None else (flag, name)
     return click.option(
         *declarations,
-        type=click.FloatRange(min=0, min_open=True),
+        type=FiniteFloatRange(min=0, min_open=True),
         default=default,
         show_default=True,
         help=help,
@@ -223,7 +238,7 @@ def fit(
 @click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write the ranking.")
 @click.option(
     "--tolerance-pct",
-    type=click.FloatRange(min=0.0),
+    type=FiniteFloatRange(min=0.0),
     default=1.0,
     show_default=True,
     help="Accuracies closer than this (%) are tied; robustness (SD) decides.",
@@ -241,7 +256,7 @@ def regimes(sigma_csv: Path, json_out: Path | None, tolerance_pct: float) -> Non
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
 @click.option("--sensors", help="Temperature columns to test (default: every T<n>).")
-@click.option("--alpha", type=click.FloatRange(0.0, 1.0, min_open=True), default=0.05)
+@click.option("--alpha", type=FiniteFloatRange(0.0, 1.0, min_open=True), default=0.05)
 @quantity_option("--band-rpm", 100.0, "Speeds are grouped to the nearest multiple of this, r/min.")
 @click.option("--target", default="error_um", show_default=True)
 @click.option("--json", "json_out", type=click.Path(path_type=Path))
@@ -306,12 +321,12 @@ def significance(
 )
 @click.option(
     "--probe-period-s",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloatRange(min=0, min_open=True),
     help="Machine seconds between probe measurements (overrides config / machine.yaml).",
 )
 @click.option(
     "--probe-noise-um",
-    type=click.FloatRange(min=0),
+    type=FiniteFloatRange(min=0),
     help="Probe measurement noise, 1 σ in µm (overrides config / machine.yaml).",
 )
 @input_errors_exit
@@ -519,8 +534,8 @@ def serve_config(config: GatewayConfig) -> None:
 )
 @click.option("--program", default="production-7", show_default=True, help="The unseen programme.")
 @click.option("--seed", type=int, default=1, show_default=True)
-@click.option("--speedup", type=click.FloatRange(min=1), default=400.0, show_default=True)
-@click.option("--cycle-s", type=click.FloatRange(min=0.1), default=15.0, show_default=True)
+@click.option("--speedup", type=FiniteFloatRange(min=1), default=400.0, show_default=True)
+@click.option("--cycle-s", type=FiniteFloatRange(min=0.1), default=15.0, show_default=True)
 @click.option(
     "--workdir", type=click.Path(path_type=Path), default=Path(".cache/demo"), show_default=True
 )
@@ -825,7 +840,7 @@ def analyze(
 @click.option(
     "--probe-interval-min",
     "intervals",
-    type=click.FloatRange(min=0, min_open=True),
+    type=FiniteFloatRange(min=0, min_open=True),
     multiple=True,
     help="Minutes between probes (repeatable; default 60).",
 )

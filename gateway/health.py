@@ -151,8 +151,8 @@ def main(argv: list[str] | None = None) -> int:
         "--max-age-s", type=float, required=True, help="oldest acceptable heartbeat, s"
     )
     args = parser.parse_args(argv)
-    if not args.max_age_s > 0:
-        parser.error("--max-age-s must be > 0")
+    if not (math.isfinite(args.max_age_s) and args.max_age_s > 0):
+        parser.error("--max-age-s must be a finite number > 0")
     healthy, message = check(args.state_dir, args.max_age_s)
     print(message, file=sys.stdout if healthy else sys.stderr)
     return 0 if healthy else 1

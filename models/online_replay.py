@@ -171,7 +171,7 @@ def replay_run(
         raise ValueError(f"replay of a {params.kind} filter needs the model's prediction")
     applied = np.zeros(time_s.size)
     rows = probe_rows(time_s, interval_s)
-    ends = [*rows[1:], time_s.size]
+    ends = [*rows[1:], time_s.size] if rows.size else []  # a run shorter than the interval
     for row, end in zip(rows, ends, strict=True):
         at = None if predicted_um is None else float(predicted_um[row])
         correction.update(float(time_s[row]), float(residual_um[row]), predicted_um=at)

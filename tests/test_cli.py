@@ -178,3 +178,35 @@ def test_bad_input_exits_2_with_one_clear_line(
     assert result.returncode == 2
     assert message.format(**names) in result.stderr
     assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("value", ["nan", "inf"])  # -inf: below every range
+@pytest.mark.parametrize(
+    ("command", "option"),
+    [
+        (("simulate", "--record", "{tmp}/runs.csv"), "--sample-s"),
+        (("demo", "--workdir", "{tmp}/demo"), "--speedup"),
+        (("replay", "{csv}"), "--probe-interval-min"),
+        (("fit", "{csv}", "--store", "{tmp}/store"), "--sensor-accuracy-C"),
+    ],
+)
+def test_a_quantity_that_is_not_a_finite_number_is_refused_by_the_option(
+    tmp_path: Path, command: tuple[str, ...], option: str, value: str
+) -> None:
+    """A range check alone passes NaN (every comparison with it is false); inf reached an
+    integer conversion deep in the command (an OverflowError traceback for --sample-s)."""
+    csv = write_runs_csv(tmp_path / "runs.csv", seed=2)
+    args = [a.format(tmp=tmp_path, csv=csv) for a in command]
+    result = gateway_in_process(*args, option, value)
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert f"Invalid value for '{option}': '{value}' is not a finite number." in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_replay_refuses_a_probe_interval_longer_than_every_run(tmp_path: Path) -> None:
+    csv = write_runs_csv(tmp_path / "runs.csv", seed=2)
+    result = gateway_in_process("replay", csv, "--probe-interval-min", "1e9")
+    assert result.returncode == 2, result.stdout + result.stderr
+    (line,) = result.stderr.splitlines()
+    assert line.startswith("error: --probe-interval-min 1e+09: no probe would be taken, the ")
+    assert line.endswith(" min") and "longest run of runs.csv lasts" in line

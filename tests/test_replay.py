@@ -117,6 +117,16 @@ def test_replay_uses_only_probes_from_the_past():
     assert not np.array_equal(applied[cut:], applied_changed[cut:])
 
 
+def test_a_run_shorter_than_the_probe_interval_gets_no_probe_and_no_correction():
+    """One short run among longer ones (a shift cut short) is replayed without a probe;
+    it raised a zip length error before."""
+    time_s = np.arange(0.0, 50 * 60.0, 15.0)
+    params = CorrectionParams(process_um2_per_h=5.0, probe_noise_um=0.1)
+    applied, rows, correction = replay_run(params, time_s, np.ones(time_s.size), 3600.0)
+    assert rows.size == 0 and np.all(applied == 0.0)
+    assert correction.correction_at(np.array([time_s[-1]]))[0] == 0.0
+
+
 def nested_choice_case(tmp_path, gain: float, seed: int):
     """Four 8-h runs whose model prediction ŷ warms up and steps at a speed change, and a
     residual g·ŷ plus a random-walk bias: (prepared data, inner residual)."""

@@ -72,6 +72,15 @@ def run_replay(
     data = load_runs(data_csv, target=target, sensors=sensors)
     for skipped in data.skipped:
         say(f"note: {skipped.describe()}")
+    longest_min = max(
+        (data.time_s[part][-1] - data.time_s[part][0]) / 60.0 for _, part in data.run_slices()
+    )
+    for interval in intervals_min:
+        if interval > longest_min:
+            raise ValueError(
+                f"--probe-interval-min {interval:g}: no probe would be taken, the longest run "
+                f"of {data_csv.name} lasts {longest_min:.0f} min"
+            )
     prepared = prepare(data, sensors)
     described = "lagged lag-ridge" if base == "lagged" and method == "lag-ridge" else base
     say(

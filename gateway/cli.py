@@ -303,7 +303,7 @@ def significance(
     multiple=True,
     help="Hidden effect (repeatable): thermal_lag, speed_direct, ambient, drift, cooler or none.",
 )
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @quantity_option("--sample-s", 60.0, "Seconds between the rows written.")
 @click.option(
     "--params",
@@ -533,7 +533,7 @@ def serve_config(config: GatewayConfig) -> None:
     "--json", "json_out", type=click.Path(path_type=Path), help="Write the figures as JSON."
 )
 @click.option("--program", default="production-7", show_default=True, help="The unseen programme.")
-@click.option("--seed", type=int, default=1, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=1, show_default=True)
 @click.option("--speedup", type=FiniteFloatRange(min=1), default=400.0, show_default=True)
 @click.option("--cycle-s", type=FiniteFloatRange(min=0.1), default=15.0, show_default=True)
 @click.option(

@@ -210,3 +210,10 @@ def test_replay_refuses_a_probe_interval_longer_than_every_run(tmp_path: Path) -
     (line,) = result.stderr.splitlines()
     assert line.startswith("error: --probe-interval-min 1e+09: no probe would be taken, the ")
     assert line.endswith(" min") and "longest run of runs.csv lasts" in line
+
+
+@pytest.mark.parametrize("command", [("simulate", "--record", "{tmp}/runs.csv"), ("demo",)])
+def test_a_negative_seed_is_refused_by_the_option(tmp_path: Path, command: tuple[str, ...]) -> None:
+    result = gateway_in_process(*(a.format(tmp=tmp_path) for a in command), "--seed", "-1")
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "Invalid value for '--seed': -1 is not in the range x>=0." in result.stderr

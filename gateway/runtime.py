@@ -143,6 +143,7 @@ class MachineLoop:
         self.online = OnlineCorrection(online.params()) if online.enabled else None
         self._probe_basis: tuple[float, float] | None = None  # (predicted, applied) µm, last cycle
         self._link_down: set[str] = set()
+        self._reverse_noted = False  # a negative (reverse) spindle speed was logged once
         self._external_note = ""  # this cycle's external change, for the write status
         #: Machine time the cycle in progress (or the last one) was due at.
         self.due_s = 0.0
@@ -279,7 +280,17 @@ class MachineLoop:
         if isinstance(speed, BaseException):
             failures["CNC"] = str(speed)
         elif math.isfinite(speed.actual_rpm):
-            speed_rpm = float(speed.actual_rpm)
+            # A control that signs the speed by direction (M04, reverse) heats the bearings
+            # as M03 does: the models, the regime rules and the log take its magnitude.
+            speed_rpm = abs(float(speed.actual_rpm))
+            if speed.actual_rpm < 0 and not self._reverse_noted:
+                log.info(
+                    "%s: the CNC reports a negative spindle speed (%g r/min, turning in "
+                    "reverse); its magnitude is used",
+                    self.config.id,
+                    speed.actual_rpm,
+                )
+                self._reverse_noted = True
         else:
             failures["CNC"] = f"spindle speed is not a number ({speed.actual_rpm})"
         self._log_link_changes(failures)

@@ -585,3 +585,28 @@ def test_bad_write_path_settings_are_refused_with_their_line(
     with pytest.raises(ConfigError) as refused:
         load_config(path)
     assert str(refused.value) == f"{path}:13: machines[0].compensation.{message}"
+
+
+@pytest.mark.parametrize("cnc_kind", CNCS)
+def test_a_spindle_turning_in_reverse_counts_by_its_magnitude(
+    cnc_kind: str, store: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A control that signs the actual speed by direction (M04) reports −4000 r/min; the
+    bearings heat as at +4000, so the loop takes 4000, and says so once."""
+
+    async def body() -> list[CycleRecord]:
+        async with bench(cnc_kind, store) as b:
+            forward = await b.cycles(2)
+            b.cnc.set_snapshot(
+                MachineSnapshot(0.0, {}, -4000.0, -4000.0, RunMode.AUTO, macros=dict(b.cnc.macros))
+            )
+            return [*forward, *await b.cycles(3)]
+
+    with caplog.at_level(logging.INFO, logger="gateway.runtime"):
+        records = run(body)
+    assert [r.speed_rpm for r in records] == [4000.0] * 5
+    noted = [r.getMessage() for r in caplog.records if "negative spindle speed" in r.getMessage()]
+    assert noted == [
+        "wp-1: the CNC reports a negative spindle speed (-4000 r/min, turning in reverse); "
+        "its magnitude is used"
+    ]

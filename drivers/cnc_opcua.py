@@ -27,6 +27,8 @@ from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
 T = TypeVar("T")
 
 DEFAULT_NAMESPACE = "urn:spindle-gateway:simulated-cnc"
+#: The types a macro is written as: the one the server holds it in.
+WRITABLE_TYPES = (ua.VariantType.Double, ua.VariantType.Float)
 
 #: Status codes with which a working server refuses one request; anything else
 #: (session or channel invalid, timeouts, shutdown) means the session is unusable.
@@ -56,6 +58,8 @@ class _Session:
     commanded: Node
     run_mode: Node | None
     macros: dict[int, Node] = field(default_factory=dict)
+    #: The variant type each macro's value has on this server (learned from a read).
+    macro_types: dict[int, ua.VariantType] = field(default_factory=dict)
 
 
 class OpcUaCnc(ReconnectingSession[_Session]):
@@ -119,16 +123,30 @@ class OpcUaCnc(ReconnectingSession[_Session]):
         return await self._call("reading spindle speed", _refusals_as_cnc(read))
 
     async def write_macro(self, number: int, value: float) -> None:
-        """Write macro #number as a Double (asyncua would send a bare int as Int64).
+        """Write macro #number as the type the CNC holds it in: Double, or Float where a
+        server (a PLC gateway, some controls' user variables) declares it so and would
+        answer a Double with ``BadTypeMismatch``. The type is learned from a read of the
+        macro (the loop reads it every cycle; otherwise one Read first). A macro held as
+        an integer or text is refused here, naming its type: a rounded offset is not one
+        the loop decided.
 
         A non-finite value raises ``ValueError`` before any I/O: a NaN must never
         reach a machine offset.
         """
         if not math.isfinite(value):
             raise ValueError(f"macro #{number}: refusing to write non-finite value {value!r}")
-        datavalue = ua.DataValue(ua.Variant(float(value), ua.VariantType.Double))
 
         async def write(session: _Session) -> None:
+            vtype = session.macro_types.get(number)
+            if vtype is None:
+                _learn_type(session, number, await self._macro(session, number).read_data_value())
+                vtype = session.macro_types[number]
+            if vtype not in WRITABLE_TYPES:
+                raise CncRefusedError(
+                    f"{self._macro_id(number)} holds a {vtype.name}; the compensation writes "
+                    "a Double or a Float"
+                )
+            datavalue = ua.DataValue(ua.Variant(float(value), vtype))
             await self._macro(session, number).write_value(datavalue)
 
         await self._call(
@@ -140,7 +158,9 @@ class OpcUaCnc(ReconnectingSession[_Session]):
 
         async def read(session: _Session) -> float:
             datavalue = await self._macro(session, number).read_data_value()
-            return _number(datavalue, self._macro_id(number))
+            value = _number(datavalue, self._macro_id(number))
+            _learn_type(session, number, datavalue)
+            return value
 
         return await self._call(
             f"reading macro #{number} ({self._macro_id(number)})", _refusals_as_cnc(read)
@@ -213,6 +233,13 @@ def _refusals_as_cnc(
             raise
 
     return run
+
+
+def _learn_type(session: _Session, number: int, datavalue: ua.DataValue) -> None:
+    """Remember the variant type of macro #number's value (Double when it has none)."""
+    variant = datavalue.Value
+    known = variant is not None and variant.Value is not None
+    session.macro_types[number] = variant.VariantType if known else ua.VariantType.Double
 
 
 def _number(datavalue: ua.DataValue, node: str) -> float:

@@ -16,7 +16,7 @@ from collections.abc import Awaitable, Callable
 from typing import TypeVar
 
 import pytest
-from asyncua import Server, ua
+from asyncua import Client, Server, ua
 
 from drivers.cnc import CncClient, CncError, CncRefusedError, SpeedReading
 from drivers.cnc_modbus import ModbusCnc
@@ -319,3 +319,51 @@ def test_modbus_wrong_endpoint_names_it() -> None:
         await cnc.close()
 
     run(body)
+
+
+async def typed_macro_server(port: int) -> Server:
+    """Another vendor's CNC: #500 held as a Float, #501 as an Int32, #502 as a Double, each
+    writable by anyone (asyncua refuses a write whose type differs: BadTypeMismatch)."""
+    server = Server()
+    await server.init()
+    server.set_endpoint(f"opc.tcp://{HOST}:{port}/cnc")
+    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    ns = await server.register_namespace(NAMESPACE)
+    for nodeid, variant in [
+        ("Macro.500", ua.Variant(0.0, ua.VariantType.Float)),
+        ("Macro.501", ua.Variant(0, ua.VariantType.Int32)),
+        ("Macro.502", ua.Variant(0.0, ua.VariantType.Double)),
+    ]:
+        node = await server.nodes.objects.add_variable(
+            ua.NodeId(nodeid, ns), ua.QualifiedName(nodeid, ns), variant
+        )
+        await node.set_writable()
+    await server.start()
+    return server
+
+
+def test_opcua_writes_a_macro_as_the_type_the_cnc_holds_it_in() -> None:
+    async def body() -> None:
+        port = free_tcp_port()
+        server = await typed_macro_server(port)
+        try:
+            # A first write with no read before it: the type is read first.
+            cnc = OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=1.0)
+            await cnc.write_macro(500, 0.0125)
+            assert await cnc.read_macro(500) == pytest.approx(0.0125, abs=1e-9)  # float32
+            await cnc.write_macro(502, -0.0375)
+            assert await cnc.read_macro(502) == -0.0375
+            with pytest.raises(CncRefusedError, match=r"Macro\.501 holds a Int32; the comp"):
+                await cnc.write_macro(501, 0.01)
+            assert await cnc.read_macro(501) == 0.0  # untouched
+            # An independent client sees what landed, as the type the server holds.
+            async with Client(f"opc.tcp://{HOST}:{port}/cnc", timeout=5) as client:
+                ns = await client.get_namespace_index(NAMESPACE)
+                held = await client.get_node(ua.NodeId("Macro.500", ns)).read_data_value()
+                assert held.Value.VariantType == ua.VariantType.Float
+                assert held.Value.Value == pytest.approx(0.0125, abs=1e-9)
+            await cnc.close()
+        finally:
+            await server.stop()
+
+    asyncio.run(body())

@@ -14,12 +14,17 @@ from __future__ import annotations
 
 import asyncio
 import math
+import socket
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TypeVar
 
 from asyncua import Client, Node, ua
+from asyncua.crypto import security_policies
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
+from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.backoff import Backoff
 from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
@@ -46,6 +51,41 @@ _REFUSALS = frozenset(
         ua.StatusCodes.BadIndexRangeInvalid,
     }
 )
+
+
+#: The security policies the CNC link offers, by the name the configuration uses.
+SECURITY_POLICIES = {
+    "Basic256Sha256": security_policies.SecurityPolicyBasic256Sha256,
+    "Aes128_Sha256_RsaOaep": security_policies.SecurityPolicyAes128Sha256RsaOaep,
+    "Aes256_Sha256_RsaPss": security_policies.SecurityPolicyAes256Sha256RsaPss,
+}
+SECURITY_MODES = {
+    "Sign": ua.MessageSecurityMode.Sign,
+    "SignAndEncrypt": ua.MessageSecurityMode.SignAndEncrypt,
+}
+
+
+@dataclass(frozen=True)
+class OpcUaSecurity:
+    """A signed, and by default encrypted, channel to the CNC.
+
+    ``certificate`` and ``private_key``: the gateway's own, made on the first connect
+    when neither file exists (self-signed, for the CNC's trust list; an engineer copies
+    ``certificate`` there once). ``server_certificate``: the CNC's certificate, pinned;
+    None takes the one the CNC's endpoint list presents.
+    """
+
+    certificate: Path
+    private_key: Path
+    policy: str = "Basic256Sha256"
+    mode: str = "SignAndEncrypt"
+    server_certificate: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.policy not in SECURITY_POLICIES:
+            raise ValueError(f"policy {self.policy!r}: expected one of {list(SECURITY_POLICIES)}")
+        if self.mode not in SECURITY_MODES:
+            raise ValueError(f"mode {self.mode!r}: expected one of {list(SECURITY_MODES)}")
 
 
 @dataclass
@@ -82,6 +122,7 @@ class OpcUaCnc(ReconnectingSession[_Session]):
         timeout_s: float = 2.0,
         username: str | None = None,
         password: str | None = None,
+        security: OpcUaSecurity | None = None,
         *,
         backoff: Backoff | None = None,
         clock: Callable[[], float] = time.monotonic,
@@ -97,6 +138,7 @@ class OpcUaCnc(ReconnectingSession[_Session]):
         self._macro_node = macro_node
         self._username = username
         self._password = password
+        self._security = security
 
     @property
     def namespace_index(self) -> int | None:
@@ -170,6 +212,8 @@ class OpcUaCnc(ReconnectingSession[_Session]):
 
     async def _open(self) -> _Session:
         client = Client(self.endpoint, timeout=self._timeout_s)
+        if self._security is not None:
+            await _secure(client, self._security)
         if self._username is not None:
             client.set_user(self._username)
         if self._password is not None:
@@ -233,6 +277,32 @@ def _refusals_as_cnc(
             raise
 
     return run
+
+
+async def _secure(client: Client, security: OpcUaSecurity) -> None:
+    """Set the client's certificate, key, policy and mode; make the certificate and key
+    on first use. Its application URI is the client's, as the CNC checks it."""
+    if not security.certificate.exists() and not security.private_key.exists():
+        security.certificate.parent.mkdir(parents=True, exist_ok=True)
+        security.private_key.parent.mkdir(parents=True, exist_ok=True)
+        await setup_self_signed_certificate(
+            security.private_key,
+            security.certificate,
+            client.application_uri,
+            socket.gethostname(),
+            [ExtendedKeyUsageOID.CLIENT_AUTH],
+            {"organizationName": "spindle-gateway"},
+        )
+        security.private_key.chmod(0o600)
+    await client.set_security(
+        SECURITY_POLICIES[security.policy],
+        str(security.certificate),
+        str(security.private_key),
+        server_certificate=(
+            None if security.server_certificate is None else str(security.server_certificate)
+        ),
+        mode=SECURITY_MODES[security.mode],
+    )
 
 
 def _learn_type(session: _Session, number: int, datavalue: ua.DataValue) -> None:

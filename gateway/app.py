@@ -96,6 +96,7 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
             timeout_s=o.timeout_s,
             username=o.username,
             password=o.password(),
+            security=None if o.security is None else o.security.settings(),
             clock=now,
         )
     assert cnc.modbus is not None

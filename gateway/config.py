@@ -64,6 +64,7 @@ from models.regime_rules import RegimeRules, SpeedBand
 from models.residual_monitor import MonitorParams
 
 if TYPE_CHECKING:  # the plausibility module brings the whole model stack (scipy): not at load
+    from drivers.cnc_opcua import OpcUaSecurity
     from gateway.plausibility import PlausibilityLimits
 
 MAX_CLAMP_UM = 1000.0
@@ -200,6 +201,35 @@ class Credentials(Strict):
         return self
 
 
+class OpcUaSecuritySection(Strict):
+    """A signed (and encrypted) channel to a CNC that requires one.
+
+    ``certificate`` / ``private_key``: the gateway's own; made on the first connect
+    when neither exists (copy ``certificate`` into the CNC's trusted list once).
+    ``server_certificate``: the CNC's certificate to pin; without it the gateway takes
+    the one the CNC's endpoint list presents.
+    """
+
+    policy: Literal["Basic256Sha256", "Aes128_Sha256_RsaOaep", "Aes256_Sha256_RsaPss"] = (
+        "Basic256Sha256"
+    )
+    mode: Literal["Sign", "SignAndEncrypt"] = "SignAndEncrypt"
+    certificate: Path
+    private_key: Path
+    server_certificate: Path | None = None
+
+    def settings(self) -> OpcUaSecurity:
+        from drivers.cnc_opcua import OpcUaSecurity  # asyncua only where the link is built
+
+        return OpcUaSecurity(
+            self.certificate,
+            self.private_key,
+            self.policy,
+            self.mode,
+            self.server_certificate,
+        )
+
+
 class OpcUaCncSection(Credentials):
     endpoint: str
     namespace: str = "urn:spindle-gateway:simulated-cnc"
@@ -208,6 +238,7 @@ class OpcUaCncSection(Credentials):
     run_mode_node: str | None = "Cnc.RunMode"
     macro_node: str = "Macro.{n}"
     timeout_s: float = Field(default=2.0, gt=0)
+    security: OpcUaSecuritySection | None = None
 
     @field_validator("endpoint")
     @classmethod
@@ -818,6 +849,9 @@ def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
     for index, machine in enumerate(config.machines):
         if machine.cnc.opcua is not None:
             problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
+            if machine.cnc.opcua.security is not None:
+                loc = ("machines", index, "cnc", "opcua", "security")
+                problems += _security_problems(machine.cnc.opcua.security, loc)
     if config.scada is not None:
         for index, user in enumerate(config.scada.users):
             problems += _secret_problems(user, ("scada", "users", index))
@@ -847,6 +881,31 @@ def _secret_problems(credentials: Credentials, loc: Loc) -> list[tuple[Loc, str]
     if secret == "" and credentials.password_file is not None:
         return [((*loc, key), f"password_file {credentials.password_file} is empty")]
     return []
+
+
+def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[Loc, str]]:
+    """The client certificate and key both present, or both absent and creatable; a pinned
+    server certificate present."""
+    pair = {"certificate": security.certificate, "private_key": security.private_key}
+    present = {key: path.is_file() for key, path in pair.items()}
+    if present["certificate"] != present["private_key"]:
+        missing = next(key for key, there in present.items() if not there)
+        return [
+            (
+                (*loc, missing),
+                f"{pair[missing]} does not exist, but "
+                f"{pair['private_key' if missing == 'certificate' else 'certificate']} does: "
+                "give both, or neither to have them made on the first connect",
+            )
+        ]
+    problems: list[tuple[Loc, str]] = []
+    if not present["certificate"]:
+        for key, path in pair.items():
+            problems += _file_problems(path, (*loc, key))
+    pinned = security.server_certificate
+    if pinned is not None and not pinned.is_file():
+        problems.append(((*loc, "server_certificate"), f"{pinned} does not exist"))
+    return problems
 
 
 def _folder_problems(folder: Path, loc: Loc, subject: Path | None = None) -> list[tuple[Loc, str]]:

@@ -13,6 +13,7 @@ import math
 import struct
 import time
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import TypeVar
 
 import pytest
@@ -367,3 +368,84 @@ def test_opcua_writes_a_macro_as_the_type_the_cnc_holds_it_in() -> None:
             await server.stop()
 
     asyncio.run(body())
+
+
+def test_opcua_over_a_signed_and_encrypted_channel_with_its_own_certificate(
+    tmp_path: Path,
+) -> None:
+    """A control that takes Basic256Sha256 SignAndEncrypt only: a plain client is refused,
+    the secured one makes its certificate on first use, reads and writes; pinned to the
+    CNC's certificate it works, pinned to another it does not."""
+    from drivers.cnc_opcua import OpcUaSecurity
+
+    async def body() -> None:
+        link = FixedLink(snapshot())
+        served = (tmp_path / "cnc" / "cert.der", tmp_path / "cnc" / "key.pem")
+        async with CncOpcUaServer(link, port=free_tcp_port(), secure=served) as server:
+            plain = OpcUaCnc(server.endpoint, timeout_s=1.0)
+            with pytest.raises(CncError, match=r"No matching endpoints: 1, .*SecurityPolicy#None"):
+                await plain.read_speed()
+            await plain.close()
+
+            mine = OpcUaSecurity(tmp_path / "pki" / "cert.der", tmp_path / "pki" / "key.pem")
+            secured = OpcUaCnc(server.endpoint, timeout_s=2.0, security=mine)
+            assert await secured.read_speed() == SpeedReading(4000.0, 4500.0, int(RunMode.AUTO))
+            assert mine.certificate.exists() and mine.private_key.stat().st_mode & 0o077 == 0
+            await check_macro_round_trip(secured, link, -0.0375)
+            await secured.close()
+
+            pinned = OpcUaSecurity(mine.certificate, mine.private_key, server_certificate=served[0])
+            right = OpcUaCnc(server.endpoint, timeout_s=2.0, security=pinned)
+            assert (await right.read_speed()).actual_rpm == 4000.0
+            await right.close()
+
+            stranger = (tmp_path / "other" / "cert.der", tmp_path / "other" / "key.pem")
+            async with CncOpcUaServer(FixedLink(snapshot()), port=free_tcp_port(), secure=stranger):
+                pass  # only to make another server's certificate
+            key, cert = mine.private_key, mine.certificate
+            wrong = OpcUaSecurity(cert, key, server_certificate=stranger[0])
+            impostor = OpcUaCnc(server.endpoint, timeout_s=1.0, security=wrong)
+            with pytest.raises(CncError, match="cannot connect"):  # the CNC cannot decrypt it
+                await impostor.read_speed()
+            await impostor.close()
+
+    run(body)
+
+
+def test_the_configured_security_reaches_the_cnc_client(tmp_path: Path) -> None:
+    from gateway.app import build_cnc
+    from gateway.config import MachineSection
+
+    async def body() -> None:
+        link = FixedLink(snapshot())
+        served = (tmp_path / "cnc" / "cert.der", tmp_path / "cnc" / "key.pem")
+        async with CncOpcUaServer(link, port=free_tcp_port(), secure=served) as server:
+            machine = MachineSection.model_validate(
+                {
+                    "id": "m1",
+                    "transmitters": [
+                        {
+                            "name": "bus1",
+                            "tcp": {"host": HOST, "port": free_tcp_port()},
+                            "devices": [{"device_id": 1, "channels": ["T1"]}],
+                        }
+                    ],
+                    "cnc": {
+                        "opcua": {
+                            "endpoint": server.endpoint,
+                            "security": {
+                                "certificate": str(tmp_path / "pki" / "gateway_cert.der"),
+                                "private_key": str(tmp_path / "pki" / "gateway_key.pem"),
+                                "server_certificate": str(served[0]),
+                            },
+                        }
+                    },
+                    "models": {"store": str(tmp_path / "models")},
+                }
+            )
+            cnc = build_cnc(machine)
+            assert (await cnc.read_speed()).actual_rpm == 4000.0
+            await check_macro_round_trip(cnc, link, 0.0125)
+            await cnc.close()
+
+    run(body)

@@ -20,9 +20,12 @@ from __future__ import annotations
 import logging
 import math
 from datetime import UTC, datetime
+from pathlib import Path
 
 from asyncua import Node, Server, ua
+from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.server.address_space import NodeData
+from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.opcua_common import MICROMETRE, RPM, SECOND, ServerLifecycle
 from simulator.link import MACRO_FIRST, MACRO_LAST, MachineLink, MachineSnapshot
@@ -63,7 +66,11 @@ class CncOpcUaServer(ServerLifecycle):
         port: int,
         namespace: str = DEFAULT_NAMESPACE,
         macro_range: tuple[int, int] = (MACRO_FIRST, MACRO_LAST),
+        secure: tuple[Path, Path] | None = None,
     ) -> None:
+        """``secure``: (certificate, private key) of a server that takes Basic256Sha256
+        SignAndEncrypt channels only, as a control that requires them (made when
+        missing); None: plain TCP."""
         first, last = macro_range
         # The link refuses macros outside #500–#999 (the retained common variables);
         # serving a node whose writes can only fail would be a trap for clients.
@@ -77,6 +84,7 @@ class CncOpcUaServer(ServerLifecycle):
         self._host = host
         self._port = port
         self._namespace = namespace
+        self._secure = secure
         self._macro_numbers = range(first, last + 1)
         self._server: Server | None = None
         self._ns: int | None = None
@@ -121,8 +129,24 @@ class CncOpcUaServer(ServerLifecycle):
         server.set_endpoint(self.endpoint)
         server.set_server_name("Simulated CNC (spindle-gateway)")
         await server.set_application_uri(f"{self._namespace}:server")
-        # Plain TCP, anonymous only: a simulator on loopback, nothing to protect.
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        if self._secure is None:
+            # Plain TCP, anonymous only: a simulator on loopback, nothing to protect.
+            server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        else:
+            certificate, key = self._secure
+            for folder in {certificate.parent, key.parent}:
+                folder.mkdir(parents=True, exist_ok=True)
+            await setup_self_signed_certificate(
+                key,
+                certificate,
+                f"{self._namespace}:server",
+                self._host,
+                [ExtendedKeyUsageOID.SERVER_AUTH],
+                {"organizationName": "simulated CNC"},
+            )
+            server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
+            await server.load_certificate(str(certificate))
+            await server.load_private_key(str(key))
         server.set_identity_tokens([ua.AnonymousIdentityToken])
         # asyncua maps a user named "admin" to a role that ignores AccessLevel;
         # read-only must stay read-only for every client.

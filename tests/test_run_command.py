@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import yaml
@@ -31,6 +32,25 @@ def read_macro_mm(port: int, number: int = 500) -> float:
         )
     finally:
         client.close()
+
+
+def gateway_process(*args: str | Path) -> subprocess.Popen[str]:
+    """``python -m gateway ARGS`` as its own process, its output captured."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "gateway", *(str(a) for a in args)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float = 60.0) -> bool:
+    """Poll ``condition`` every 0.1 s until it holds or ``timeout_s`` passes; its last value."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not condition():
+        time.sleep(0.1)
+    return condition()
 
 
 def bench_config(tmp_path: Path, bus: int, cnc: int) -> Path:
@@ -141,21 +161,14 @@ def test_a_second_run_on_the_same_state_dir_is_refused_and_a_killed_one_leaves_n
     before it connects to anything, and the first compensates on undisturbed."""
     bus, cnc = free_tcp_port(), free_tcp_port()
     path = bench_config(tmp_path, bus, cnc)
-    command = [sys.executable, "-m", "gateway"]
-    pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
-    simulator = subprocess.Popen([*command, "simulate", "--config", str(path)], **pipes)
+    simulator = gateway_process("simulate", "--config", path)
     first = third = None
     heartbeat = tmp_path / "state" / "bench-1-heartbeat.json"
     try:
         wait_for_port(cnc)
-        first = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not heartbeat.exists():
-            time.sleep(0.1)
-        assert heartbeat.exists()
-        second = subprocess.run(
-            [*command, "run", "--config", str(path)], capture_output=True, text=True, timeout=60
-        )
+        first = gateway_process("run", "--config", path)
+        assert wait_until(heartbeat.exists)
+        second = gateway_cli("run", "--config", path, timeout_s=60)
         assert second.returncode == 2, second.stdout + second.stderr
         assert second.stderr.splitlines() == [
             f"error: {path}: state_dir {tmp_path / 'state'}: another gateway (pid {first.pid}) "
@@ -165,20 +178,16 @@ def test_a_second_run_on_the_same_state_dir_is_refused_and_a_killed_one_leaves_n
         assert "running" not in second.stdout
         # The first one goes on: its heartbeat is renewed after the refusal.
         refused_at = heartbeat.stat().st_mtime
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline and heartbeat.stat().st_mtime <= refused_at:
-            time.sleep(0.1)
-        assert heartbeat.stat().st_mtime > refused_at and first.poll() is None
+        assert wait_until(lambda: heartbeat.stat().st_mtime > refused_at, 20)
+        assert first.poll() is None
         # kill -9 leaves the lock file behind but not the lock: a restart runs.
         first.kill()
         first.communicate(timeout=30)
         assert (tmp_path / "state" / "gateway.lock").exists()
         killed_at = heartbeat.stat().st_mtime
-        third = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and heartbeat.stat().st_mtime <= killed_at:
-            time.sleep(0.1)
-        assert heartbeat.stat().st_mtime > killed_at and third.poll() is None
+        third = gateway_process("run", "--config", path)
+        assert wait_until(lambda: heartbeat.stat().st_mtime > killed_at)
+        assert third.poll() is None
         third.send_signal(signal.SIGTERM)
         out, err = third.communicate(timeout=30)
         assert third.returncode == 0, err
@@ -200,13 +209,7 @@ def test_run_with_a_damaged_cold_reference_stops_before_connecting_naming_the_fi
     saved = tmp_path / "state" / "bench-1-reference.json"
     saved.parent.mkdir(parents=True)
     saved.write_bytes(b"")
-    result = subprocess.run(
-        [sys.executable, "-m", "gateway", "run", "--config", str(path)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    result = gateway_cli("run", "--config", path, timeout_s=60)
     assert result.returncode == 2, result.stdout + result.stderr
     errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
     assert errors == [
@@ -224,18 +227,9 @@ def test_run_with_a_damaged_local_store_keeps_it_aside_and_runs_on(tmp_path: Pat
     store.parent.mkdir(parents=True)
     store.write_bytes(b"not a database\n" * 200)
     heartbeat = tmp_path / "state" / "bench-1-heartbeat.json"
-    gateway = subprocess.Popen(
-        [sys.executable, "-m", "gateway", "run", "--config", str(path)],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    gateway = gateway_process("run", "--config", path)
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not heartbeat.exists():
-            time.sleep(0.1)
-        assert heartbeat.exists() and gateway.poll() is None
+        assert wait_until(heartbeat.exists) and gateway.poll() is None
     finally:
         gateway.send_signal(signal.SIGTERM)
         _, err = gateway.communicate(timeout=30)

@@ -376,6 +376,17 @@ def test_no_unsecured_access(tmp_path: Path, node_pki: Path) -> None:
     run_with_server(settings(tmp_path / "pki"), scenario)
 
 
+async def refused_then_trusted(
+    server: ScadaServer, pki: Path, read: list[dict[str, str]], node_pki: Path
+) -> Path:
+    """The node-opcua client refused as untrusted, its certificate kept in rejected/, then
+    moved to trusted/ as an engineer does after checking the thumbprint (its new path)."""
+    code, reply = await node_client(server, read, node_pki, user=VIEWER)
+    assert code == 1 and reply["status"] == "BadCertificateUntrusted", reply
+    (rejected,) = (pki / REJECTED_DIR).glob("*.der")
+    return rejected.rename(pki / TRUSTED_DIR / rejected.name)
+
+
 def test_untrusted_client_refused_until_trusted_and_certificate_kept(
     tmp_path: Path, node_pki: Path
 ) -> None:
@@ -384,12 +395,7 @@ def test_untrusted_client_refused_until_trusted_and_certificate_kept(
     read = [{"read": f"{MACHINE}.ModelId"}]
 
     async def first_run(server: ScadaServer, calls: list) -> None:
-        code, reply = await node_client(server, read, node_pki, user=VIEWER)
-        assert code == 1 and reply["status"] == "BadCertificateUntrusted", reply
-        rejected = list((pki / REJECTED_DIR).glob("*.der"))
-        assert len(rejected) == 1
-        # What an engineer does after checking the thumbprint: move it to trusted/.
-        rejected[0].rename(pki / TRUSTED_DIR / rejected[0].name)
+        await refused_then_trusted(server, pki, read, node_pki)
         code, reply = await node_client(server, read, node_pki, user=VIEWER)
         assert code == 0 and reply["results"][0]["value"] == "mlr-high-v3", reply
 
@@ -432,12 +438,9 @@ def test_a_damaged_file_in_trusted_or_crl_does_not_lock_out_the_trusted_clients(
     read = [{"read": f"{MACHINE}.ModelId"}]
 
     async def check(server: ScadaServer, calls: list) -> None:
-        code, reply = await node_client(server, read, node_pki, user=VIEWER)
-        assert code == 1 and reply["status"] == "BadCertificateUntrusted", reply
-        (rejected,) = (pki / REJECTED_DIR).glob("*.der")
-        rejected.rename(pki / TRUSTED_DIR / rejected.name)
+        trusted = await refused_then_trusted(server, pki, read, node_pki)
         (pki / TRUSTED_DIR / "client_key.pem").write_text("-----BEGIN PRIVATE KEY-----\nAA==\n")
-        (pki / TRUSTED_DIR / "copy.der").write_bytes(rejected.name.encode())  # not DER
+        (pki / TRUSTED_DIR / "copy.der").write_bytes(trusted.name.encode())  # not DER
         (pki / CRL_DIR / "revoked.pem").write_text("not a revocation list\n")
         for _ in range(2):
             code, reply = await node_client(server, read, node_pki, user=VIEWER)

@@ -13,7 +13,6 @@ so ``--help`` and the container's health check start in a fraction of a second
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from collections.abc import Callable
@@ -95,8 +94,11 @@ def parse_sensors(value: str | None) -> list[str] | None:
 
 
 def write_json(path: Path | None, payload: dict[str, Any]) -> None:
+    """A command's ``--json`` result, whole or not at all (a script may read it at once)."""
     if path is not None:
-        path.write_text(json.dumps(payload, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
+        from models.json_files import write_json_atomic
+
+        write_json_atomic(path, payload)
         click.echo(f"wrote {path}")
 
 
@@ -342,8 +344,9 @@ def simulate(
     probe_noise_um: float | None,
 ) -> None:
     """Run the simulated machine: serve it over its protocols, or record runs (--record)."""
+    from models.json_files import atomic_text
     from simulator.programs import program_by_name
-    from simulator.record import DEFAULT_PROGRAMS, record, write_recording
+    from simulator.record import DEFAULT_PROGRAMS, record
 
     if record_path is None:
         serve_simulator(config_path, probe_period_s, probe_noise_um)
@@ -351,7 +354,8 @@ def simulate(
     params = with_probe(load_machine_params(params_file), probe_period_s, probe_noise_um)
     chosen = [program_by_name(name) for name in (programs or DEFAULT_PROGRAMS)]
     recording = record(params, chosen, effects or ("none",), seed=seed, sample_s=sample_s)
-    write_recording(record_path, recording)
+    with atomic_text(record_path) as out:  # a full disk leaves no half file behind
+        out.write(recording.to_csv())
     runs = ", ".join(p.name for p in chosen)
     click.echo(
         f"wrote {record_path}: {len(recording.rows)} rows, runs {runs}, "

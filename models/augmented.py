@@ -27,6 +27,7 @@ from models.analysis_result import AnalysisResult
 from models.base import ThermalModel
 from models.effect_terms import candidate_families
 from models.features import Prepared
+from models.json_files import write_json_atomic
 from models.registry import METHODS, make_model
 from models.store import StoreError, data_fingerprint, refuse_non_finite, safe_model_id
 
@@ -131,11 +132,8 @@ def build_augmented_document(
 
 def save(document: dict[str, Any], store_dir: str | Path) -> Path:
     refuse_non_finite(document)
-    folder = Path(store_dir) / FOLDER
-    folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{document['model_id']}.json"
-    path.write_text(json.dumps(document, indent=2, ensure_ascii=False) + "\n", encoding="utf-8")
-    return path
+    path = Path(store_dir) / FOLDER / f"{document['model_id']}.json"
+    return write_json_atomic(path, document)
 
 
 def load(path: str | Path) -> dict[str, Any]:

@@ -116,3 +116,36 @@ def test_a_full_disk_keeps_the_cold_reference_in_memory_and_saves_it_once_space_
             reference.observe({"T1": 30.0, "T2": 31.0})
         assert read_saved_reference(state) == {"T1": 20.5, "T2": 21.0}
         assert "the cold reference is saved now" in caplog.text
+
+
+def test_a_full_disk_leaves_the_old_file_whole_and_the_error_names_the_file(
+    tmp_path: Path,
+) -> None:
+    from models.json_files import atomic_text
+    from tests.test_retention import fill, small_disk
+
+    with small_disk(tmp_path / "disk", "1m") as disk:
+        target = disk / "runs.csv"
+        with atomic_text(target) as out:
+            out.write("run,time_s\n")
+        fill(disk)
+        with pytest.raises(OSError) as refused, atomic_text(target) as out:
+            out.write("x" * 100_000)
+        assert refused.value.filename == str(target)
+        assert "No space left on device" in str(refused.value)
+        assert target.read_text(encoding="utf-8") == "run,time_s\n"  # as it was
+        assert sorted(p.name for p in disk.iterdir()) == ["filler", "runs.csv"]  # no temp
+
+
+def test_simulate_record_on_a_full_disk_says_so_and_leaves_no_half_file(tmp_path: Path) -> None:
+    from tests.cli import gateway_in_process
+    from tests.test_retention import fill, small_disk
+
+    with small_disk(tmp_path / "disk", "64k") as disk:
+        fill(disk)
+        result = gateway_in_process("simulate", "--record", disk / "runs.csv")
+        assert result.returncode == 2, result.stdout + result.stderr
+        assert result.stderr.splitlines() == [
+            f"error: [Errno 28] No space left on device: '{disk / 'runs.csv'}'"
+        ]
+        assert sorted(p.name for p in disk.iterdir()) == ["filler"]

@@ -53,6 +53,7 @@ from gateway.timeseries import (
     to_time_ns,
 )
 from models.dataset import ambient_sensor_of
+from models.json_files import atomic_text
 from models.plausibility import DISPLACEMENT_UM, SPEED_RPM, TEMPERATURE_C
 
 SENSOR_PATTERN = re.compile(r"^T(\d+)$")
@@ -177,8 +178,7 @@ def export_runs(
             "has a probe (spindle_probe error_um) value"
         )
     incomplete = 0
-    out_csv.parent.mkdir(parents=True, exist_ok=True)
-    with out_csv.open("w", newline="", encoding="utf-8") as handle:
+    with atomic_text(out_csv) as handle:  # a full disk leaves no half file behind
         writer = csv.writer(handle)
         writer.writerow(columns)
         for row, time_ns in enumerate(times):

@@ -18,12 +18,13 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from collections.abc import Mapping
 from pathlib import Path
 
+import numpy as np
+
 from models.json_files import write_json_atomic
-from models.plausibility import TEMPERATURE_C
+from models.plausibility import TEMPERATURE_C, first_implausible
 
 log = logging.getLogger(__name__)
 
@@ -99,11 +100,12 @@ def read_saved_reference(state_file: Path) -> dict[str, float]:
         if not isinstance(values, dict):
             raise TypeError("'reference_C' is not an object")
         reference = {str(k): float(v) for k, v in values.items()}
-        low, high = TEMPERATURE_C.low, TEMPERATURE_C.high
-        bad = [k for k, v in reference.items() if not (math.isfinite(v) and low <= v <= high)]
-        if bad:
+        sensors = list(values)
+        bad = first_implausible(np.array(list(reference.values())), TEMPERATURE_C)
+        if bad is not None:
             raise ValueError(
-                f"sensor {bad[0]}: expected {TEMPERATURE_C.describe()}, found {values[bad[0]]!r}"
+                f"sensor {sensors[bad]}: expected {TEMPERATURE_C.describe()}, "
+                f"found {values[sensors[bad]]!r}"
             )
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         reason = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)

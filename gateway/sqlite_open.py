@@ -37,17 +37,17 @@ def open_database(
     problem = header_problem(path)
     if problem is not None and not set_aside_damaged:
         raise ValueError(f"{path}: not a readable SQLite database ({problem})")
-    db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+    db = _connect(path)
     try:
         prepare(db)
         return db, None
     except sqlite3.DatabaseError as exc:
-        if getattr(exc, "sqlite_errorcode", None) not in UNREADABLE:
+        unreadable = getattr(exc, "sqlite_errorcode", None) in UNREADABLE
+        if not (unreadable and set_aside_damaged):
             db.close()
+            if unreadable:
+                raise ValueError(f"{path}: not a readable SQLite database ({exc})") from None
             raise
-        if not set_aside_damaged:
-            db.close()
-            raise ValueError(f"{path}: not a readable SQLite database ({exc})") from None
         # Renamed while still open: closing a connection deletes the -wal and -shm files
         # at the names it opened, and the old -wal may hold the last points written.
         aside = set_aside(path)
@@ -61,13 +61,18 @@ def open_database(
     except BaseException:
         db.close()
         raise
-    db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+    db = _connect(path)
     try:
         prepare(db)
     except BaseException:
         db.close()
         raise
     return db, aside
+
+
+def _connect(path: Path) -> sqlite3.Connection:
+    """The gateway's connection settings: shared between threads, autocommit."""
+    return sqlite3.connect(path, check_same_thread=False, isolation_level=None)
 
 
 def header_problem(path: Path) -> str | None:

@@ -126,8 +126,7 @@ def lag_step(
         a = np.exp(-dt_s / tau_s) if isinstance(tau_s, np.ndarray) else math.exp(-dt_s / tau_s)
         return a * state + (1.0 - a) * now
     a, b_now, b_before = lag_coefficients(dt_s, tau_s)
-    previous = now if before is None else before
-    return a * state + b_now * now + b_before * previous
+    return a * state + b_now * now + b_before * before
 
 
 def first_order_lag(

@@ -743,7 +743,7 @@ class ScadaSection(Strict):
     """The gateway's own OPC UA server for SCADA (Basic256Sha256 SignAndEncrypt only).
 
     ``host`` 0.0.0.0 serves every interface (a container); client certificates
-    must be copied into ``<pki_dir>/trusted`` (see gateway/SCADA.md).
+    must be copied into ``<pki_dir>/trusted`` (see docs/scada.md).
     """
 
     host: str = "127.0.0.1"
@@ -767,11 +767,44 @@ class ScadaSection(Strict):
         return self
 
 
+class WebSection(Strict):
+    """The operator console in the browser (gateway/web, docs/console.md).
+
+    ``users``: the accounts and roles of ``scada.users`` when not given here.
+    ``tls_cert``/``tls_key`` (PEM) serve HTTPS; both or neither. ``reports_dir``:
+    where ``analyze --report`` output is kept, browsable from the console.
+    """
+
+    host: str = "127.0.0.1"
+    port: int = Field(default=8080, ge=1, le=65535)
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    users: list[ScadaUserSection] | None = None
+    reports_dir: Path | None = None
+    session_hours: float = Field(default=12.0, gt=0, le=24 * 30)
+    login_max_failures: int = Field(default=5, ge=1, le=1000)
+    login_window_s: float = Field(default=60.0, gt=0, le=86_400)
+    login_lockout_s: float = Field(default=30.0, gt=0, le=86_400)
+    login_max_lockout_s: float = Field(default=900.0, gt=0, le=86_400)
+
+    @model_validator(mode="after")
+    def _tls_pair(self) -> WebSection:
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ValueError("tls_cert and tls_key go together: give both or neither")
+        if self.login_lockout_s > self.login_max_lockout_s:
+            raise ValueError(
+                f"login_lockout_s ({self.login_lockout_s}) must not exceed "
+                f"login_max_lockout_s ({self.login_max_lockout_s})"
+            )
+        return self
+
+
 class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
     state_dir: Path = Path(".cache/state")
     logging: LoggingSection = LoggingSection()
     scada: ScadaSection | None = None
+    web: WebSection | None = None
     simulator: dict[str, Any] | None = None  # checked by simulator.serve
     # The runtime's event loop (gateway/event_loop.py): uvloop, or asyncio's own.
     event_loop: EventLoopName = DEFAULT_EVENT_LOOP

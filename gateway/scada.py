@@ -3,7 +3,7 @@
 Per machine, SCADA reads what the compensation loop measured and decided (the
 temperatures with their quality, speed, regime, model, predicted and applied
 compensation, health counters) and may switch the compensation on or off. The
-address space, units and examples are in ``gateway/SCADA.md``.
+address space, units and examples are in ``docs/scada.md``.
 
 Security (asyncua's defaults are open, so every layer is set explicitly):
 
@@ -435,7 +435,7 @@ def _temperature(value: float | None, quality: str | None, reason: str | None) -
 
 
 class ScadaServer(ServerLifecycle):
-    """The secured OPC UA server SCADA connects to (address space in ``SCADA.md``).
+    """The secured OPC UA server SCADA connects to (address space in ``docs/scada.md``).
 
     ``machines`` lists the machine ids, or maps each id to its sensor names so the
     temperature nodes exist from the start (a sensor first seen in a record gets

@@ -36,6 +36,7 @@ from gateway.promotion import Promotions, proposals_view
 from gateway.runtime import CycleRecord, MachineLoop, Sink
 from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
 from gateway.supervision import Supervised
+from gateway.web.server import WebConsole, build_web
 from models.dataset import ambient_sensor_of
 
 log = logging.getLogger(__name__)
@@ -166,6 +167,9 @@ class Gateway:
         self.scada = self._build_scada()
         if self.scada is not None:
             sinks = [*sinks, self._publish_to_scada]
+        self.web: WebConsole | None = None  # built once the loops exist (it reads them)
+        if config.web is not None:
+            sinks = [*sinks, self._to_web]
         sinks = [*sinks, self.outputs.beat]
         hubs = shared_hubs(config.machines)
         self.loops = [
@@ -195,6 +199,12 @@ class Gateway:
             )
             for loop in self.loops
         }
+        if config.web is not None:
+            self.web = build_web(config, self)
+
+    def _to_web(self, record: CycleRecord) -> None:
+        if self.web is not None:
+            self.web.record(record)
 
     def health(self, machine_id: str) -> dict[str, int | bool | str | dict[str, int] | None]:
         """Every health counter of one machine, plus the gateway-wide forwarder's."""
@@ -287,6 +297,8 @@ class Gateway:
         if self.scada is not None:
             await self.scada.start()
             log.info("SCADA server at %s", self.scada.endpoint)
+        if self.web is not None:
+            await self.web.start()
         tasks = [
             asyncio.create_task(supervisor.supervise(stop), name=supervisor.name)
             for supervisor in self.supervisors.values()
@@ -308,6 +320,9 @@ class Gateway:
                     log.exception("%s: closing the loop failed", loop.config.id)
             for monitor in self.monitors.values():
                 monitor.close()
+            if self.web is not None:
+                log.debug("stopping: web console")
+                await self.web.stop()
             if self.scada is not None:
                 log.debug("stopping: SCADA server")
                 await self.scada.stop()

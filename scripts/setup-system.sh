@@ -13,6 +13,9 @@ missing=()
 for tool in socat mbpoll; do
     command -v "$tool" >/dev/null 2>&1 || missing+=("$tool")
 done
+# Headless Chromium and its WebDriver for the web console's browser tests.
+command -v chromium >/dev/null 2>&1 || missing+=(chromium)
+command -v chromedriver >/dev/null 2>&1 || missing+=(chromium-driver)
 # The container tools, with runc named so apt does not pick crun for podman.
 for tool in podman runc mmdebstrap; do
     if ! command -v "$tool" >/dev/null 2>&1; then

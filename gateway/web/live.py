@@ -1,0 +1,123 @@
+"""The overview's live rows: what each machine's last cycle showed, and who is watching.
+
+The gateway's sink (:meth:`LiveBoard.record`) only stores the cycle's record and
+marks the machine changed: no formatting, no I/O, so a cycle is never delayed by
+the browsers. A single ticker task (:meth:`LiveBoard.run`) turns the changed
+machines into rows once per ``tick_s`` and encodes them once as a server-sent
+event that every open overview receives; twenty browsers cost one encoding.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from gateway.runtime import CycleRecord
+
+#: ``machine id → extra facts`` the gateway adds to a row (health counters, loop state).
+Facts = Callable[[str], Mapping[str, Any]]
+
+
+def _num(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else round(float(value), 3)
+
+
+@dataclass
+class _Machine:
+    record: CycleRecord | None = None
+    probe_error_um: float | None = None
+    probe_residual_um: float | None = None
+    probe_time_s: float | None = None
+
+
+@dataclass
+class LiveBoard:
+    """The last record of every machine, turned into overview rows on a timer."""
+
+    machines: list[str]
+    facts: Facts
+    tick_s: float = 1.0
+    _state: dict[str, _Machine] = field(default_factory=dict)
+    _changed: set[str] = field(default_factory=set)
+    _event: bytes = b""
+    _serial: int = 0
+    _news: asyncio.Condition | None = None
+
+    def __post_init__(self) -> None:
+        self._state = {m: _Machine() for m in self.machines}
+
+    def record(self, record: CycleRecord) -> None:
+        """The gateway's sink: keep the record (and a probe's residual) for the next tick."""
+        state = self._state.setdefault(record.machine, _Machine())
+        state.record = record
+        if record.probe_error_um is not None and record.predicted_um is not None:
+            state.probe_error_um = record.probe_error_um
+            state.probe_residual_um = record.probe_error_um - record.predicted_um
+            state.probe_time_s = time.time()
+        self._changed.add(record.machine)
+
+    def row(self, machine: str) -> dict[str, Any]:
+        """What the overview shows of one machine (also the page's first render)."""
+        state = self._state.get(machine) or _Machine()
+        rec = state.record
+        facts = dict(self.facts(machine))
+        row: dict[str, Any] = {"machine": machine, **facts}
+        if rec is None:
+            return {**row, "sensors": [], "waiting": True}
+        sensors = [
+            {
+                "name": name,
+                "value_C": _num(value),
+                "quality": rec.quality.get(name, "unknown"),
+                "reason": rec.quality_reasons.get(name, ""),
+            }
+            for name, value in rec.temperatures_C.items()
+        ]
+        return {
+            **row,
+            "waiting": False,
+            "regime": rec.regime,
+            "model_id": rec.model_id,
+            "speed_rpm": _num(rec.speed_rpm),
+            "predicted_um": _num(rec.predicted_um),
+            "applied_um": _num(rec.applied_um),
+            "correction_um": _num(rec.correction_um),
+            "written_cnc": _num(rec.written_cnc),
+            "write_status": rec.write_status,
+            "link_errors": len(rec.link_errors),
+            "sensors": sensors,
+            "probe_error_um": _num(state.probe_error_um),
+            "probe_residual_um": _num(state.probe_residual_um),
+        }
+
+    def rows(self) -> list[dict[str, Any]]:
+        return [self.row(m) for m in self._state]
+
+    async def run(self, stop: asyncio.Event) -> None:
+        """Every ``tick_s``: encode the changed machines' rows once and wake the watchers."""
+        self._news = asyncio.Condition()
+        while not stop.is_set():
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(stop.wait(), self.tick_s)
+            if not self._changed:
+                continue
+            changed, self._changed = sorted(self._changed), set()
+            payload = json.dumps([self.row(m) for m in changed], separators=(",", ":"))
+            self._serial += 1
+            self._event = f"id: {self._serial}\nevent: rows\ndata: {payload}\n\n".encode()
+            async with self._news:
+                self._news.notify_all()
+
+    async def next_event(self, after: int) -> tuple[int, bytes]:
+        """Wait for an event newer than ``after``; (its serial, its bytes)."""
+        if self._news is None:
+            raise RuntimeError("the board's ticker is not running")
+        async with self._news:
+            await self._news.wait_for(lambda: self._serial > after)
+            return self._serial, self._event

@@ -1,0 +1,176 @@
+"""Server-side plots as SVG (matplotlib), drawn in a worker process off the event loop.
+
+A long series is cut to a min/max envelope per pixel column before drawing
+(:func:`envelope`): 24 h of 1 Hz data (86 400 points a series) becomes about two
+points per column, every spike still visible, and draws in well under a second.
+Rendering runs in one spawned worker process (:class:`PlotRenderer`), so neither
+the drawing nor the reading of the store holds the gateway's interpreter; the
+newest SVG of each request is kept for ``cache_s``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import io
+import multiprocessing
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Any
+
+import numpy as np
+
+from gateway.web.series import MachineSeries, SourceSpec, read_machine
+
+#: Pixel columns of a plot: the envelope keeps two points per column.
+COLUMNS = 900
+
+
+def envelope(t: np.ndarray, y: np.ndarray, columns: int = COLUMNS) -> tuple[np.ndarray, ...]:
+    """``(t, y)`` reduced to each column's minimum and maximum, in time order.
+
+    ``t`` must be sorted. NaNs are dropped. Short series come back unchanged.
+    """
+    keep = np.isfinite(y)
+    t, y = t[keep], y[keep]
+    if len(t) <= 2 * columns:
+        return t, y
+    span = max(float(t[-1] - t[0]), 1e-9)
+    column = np.minimum(((t - t[0]) / span * columns).astype(np.int64), columns - 1)
+    starts = np.flatnonzero(np.r_[True, column[1:] != column[:-1]])
+    lows = np.minimum.reduceat(y, starts)
+    highs = np.maximum.reduceat(y, starts)
+    ends = np.r_[starts[1:], len(t)] - 1
+    return np.column_stack([t[starts], t[ends]]).ravel(), np.column_stack([lows, highs]).ravel()
+
+
+def _dates(t: np.ndarray) -> list[datetime]:
+    return [datetime.fromtimestamp(float(x)) for x in t]
+
+
+def _line(ax: Any, t: np.ndarray, y: np.ndarray, label: str, **style: Any) -> None:
+    te, ye = envelope(t, y)
+    if len(te):
+        ax.plot(_dates(te), ye, label=label, linewidth=0.9, **style)
+
+
+def _figure(rows: int) -> tuple[Any, Sequence[Any]]:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 2.3 * rows), dpi=90, layout="constrained")
+    axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
+    return fig, axes
+
+
+def _svg(fig: Any) -> str:
+    out = io.StringIO()
+    fig.savefig(out, format="svg")
+    return out.getvalue()
+
+
+def machine_svg(data: MachineSeries, title: str) -> str:
+    """The machine page's four panels: temperatures, speed, compensation, probes."""
+    fig, (temps, speed, comp, probe) = _figure(4)
+    for sensor, (t, y) in sorted(data.temperatures_C.items()):
+        _line(temps, t, y, sensor)
+    temps.set_ylabel("temperature (°C)")
+    _line(speed, data.t_s, data.speed_rpm, "speed")
+    speed.set_ylabel("speed (r/min)")
+    _line(comp, data.t_s, data.predicted_um, "predicted")
+    _line(comp, data.t_s, data.applied_um, "applied")
+    _line(comp, data.t_s, data.cnc_um, "CNC holds", linestyle="--")
+    _line(comp, data.t_s, data.correction_um, "online correction", linestyle=":")
+    comp.set_ylabel("Z compensation (µm)")
+    if len(data.probe_t_s):
+        dates = _dates(data.probe_t_s)
+        probe.plot(dates, data.probe_error_um, "o", markersize=4, label="probe measured")
+        probe.plot(dates, data.probe_residual_um, "x", markersize=5, label="residual")
+    probe.axhline(0.0, color="grey", linewidth=0.5)
+    probe.set_ylabel("probe error (µm)")
+    probe.set_xlabel("local time")
+    for ax in (temps, speed, comp, probe):
+        ax.grid(True, linewidth=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(loc="upper left", fontsize=7, ncols=6)
+    temps.set_title(title, fontsize=10)
+    return _svg(fig)
+
+
+def proposal_svg(data: MachineSeries, before_rmse_um: float, after_rmse_um: float) -> str:
+    """A proposal's effect: the logged probe residuals, and its held-out RMSE before/after."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 2.6), dpi=90, layout="constrained")
+    resid, bars = fig.subplots(1, 2, width_ratios=[3, 1])
+    if len(data.probe_t_s):
+        resid.plot(_dates(data.probe_t_s), data.probe_residual_um, "o", markersize=4)
+    resid.axhline(0.0, color="grey", linewidth=0.5)
+    resid.set_ylabel("logged probe residual (µm)")
+    resid.set_xlabel("local time")
+    resid.grid(True, linewidth=0.3)
+    bars.bar(["before", "after"], [before_rmse_um, after_rmse_um], color=["#b55", "#5a5"])
+    bars.set_ylabel("held-out RMSE (µm)")
+    return _svg(fig)
+
+
+def render_machine(spec: SourceSpec, machine: str, window_s: float, cnc_um_per_unit: float) -> str:
+    """Worker entry: read the window and draw it (runs in the plot process)."""
+    now = time.time()
+    data = read_machine(spec, machine, now - window_s, now, cnc_um_per_unit)
+    hours = window_s / 3600
+    return machine_svg(data, f"{machine}: last {hours:g} h ({data.cycles} cycles)")
+
+
+def render_proposal(
+    spec: SourceSpec, machine: str, window_s: float, before_um: float, after_um: float
+) -> str:
+    now = time.time()
+    data = read_machine(spec, machine, now - window_s, now, 1.0)
+    return proposal_svg(data, before_um, after_um)
+
+
+@dataclass
+class _Cached:
+    made_s: float
+    svg: str
+
+
+class PlotRenderer:
+    """One worker process for every plot; results cached for ``cache_s`` per request."""
+
+    def __init__(self, cache_s: float = 15.0, max_entries: int = 64) -> None:
+        self.cache_s = cache_s
+        self.max_entries = max_entries
+        self._pool: concurrent.futures.ProcessPoolExecutor | None = None
+        self._cache: dict[tuple[Any, ...], _Cached] = {}
+        self._pending: dict[tuple[Any, ...], asyncio.Future[str]] = {}
+
+    async def render(self, key: tuple[Any, ...], function: Any, *args: Any) -> str:
+        """The SVG of ``function(*args)``: cached, shared by concurrent requests."""
+        hit = self._cache.get(key)
+        if hit is not None and time.monotonic() - hit.made_s < self.cache_s:
+            return hit.svg
+        pending = self._pending.get(key)
+        if pending is None:
+            loop = asyncio.get_running_loop()
+            pending = asyncio.ensure_future(loop.run_in_executor(self._executor(), function, *args))
+            self._pending[key] = pending
+            pending.add_done_callback(lambda _: self._pending.pop(key, None))
+        svg = await asyncio.shield(pending)
+        if len(self._cache) >= self.max_entries:
+            self._cache.pop(next(iter(self._cache)))
+        self._cache[key] = _Cached(time.monotonic(), svg)
+        return svg
+
+    def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
+        if self._pool is None:
+            context = multiprocessing.get_context("spawn")  # no fork of the running loop
+            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=context)
+        return self._pool
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None

@@ -23,9 +23,7 @@ def generate() -> str:
     from grpc_tools import protoc  # dev dependency: only needed to regenerate
 
     with tempfile.TemporaryDirectory() as out:
-        status = protoc.main(
-            ["protoc", f"--proto_path={HERE}", f"--python_out={out}", str(PROTO)]
-        )
+        status = protoc.main(["protoc", f"--proto_path={HERE}", f"--python_out={out}", str(PROTO)])
         if status != 0:
             raise RuntimeError(f"protoc failed on {PROTO} (status {status})")
         return (Path(out) / "sparkplug_b_pb2.py").read_text(encoding="utf-8")

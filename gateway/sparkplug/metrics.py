@@ -1,0 +1,101 @@
+"""What each machine (a Sparkplug device) publishes: its metrics and one cycle's values.
+
+The metric set of a machine is fixed by its sensors and the health counters, so the
+births (NBIRTH/DBIRTH) declare every metric once with an alias that stays the same
+for the life of the process.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from gateway.runtime import CycleRecord
+from gateway.sparkplug.payload import BOOLEAN, DOUBLE, STRING, UINT64, MetricSpec, Value
+
+BD_SEQ = "bdSeq"
+REBIRTH = "Node Control/Rebirth"
+ENABLED = "Compensation/Enabled"
+PROMOTE = "Command/Promote Proposal"
+ROLLBACK = "Command/Rollback Models"
+CYCLES = "Health/cycles"
+
+#: Aliases: node metrics below 100, device ``i`` from ``(i + 1) * ALIAS_BLOCK``.
+ALIAS_BLOCK = 1000
+NODE_METRICS = (MetricSpec(BD_SEQ, UINT64, 1), MetricSpec(REBIRTH, BOOLEAN, 2))
+
+_RECORD_METRICS = (
+    ("Spindle/Speed", DOUBLE, "r/min"),
+    ("Regime", STRING, ""),
+    ("Model", STRING, ""),
+    ("Prediction", DOUBLE, "µm"),
+    ("Online Correction", DOUBLE, "µm"),
+    ("Compensation/Target", DOUBLE, "µm"),
+    ("Compensation/Applied", DOUBLE, "µm"),
+    ("Compensation/Write Status", STRING, ""),
+    (ENABLED, BOOLEAN, ""),
+    ("Probe/Error", DOUBLE, "µm"),
+    ("Probe/Residual", DOUBLE, "µm"),
+    (PROMOTE, STRING, ""),
+    (ROLLBACK, BOOLEAN, ""),
+)
+
+
+def device_specs(
+    index: int, sensors: Sequence[str], health_keys: Sequence[str]
+) -> list[MetricSpec]:
+    """The metrics of the ``index``-th machine, with aliases unique across the node."""
+    named: list[tuple[str, int, str]] = []
+    for sensor in sensors:
+        named.append((f"Temperature/{sensor}", DOUBLE, "°C"))
+        named.append((f"Temperature/{sensor}/Quality", STRING, ""))
+    named.extend(_RECORD_METRICS)
+    named.extend((f"Health/{key}", UINT64, "") for key in health_keys)
+    base = (index + 1) * ALIAS_BLOCK
+    return [MetricSpec(name, kind, base + i, unit) for i, (name, kind, unit) in enumerate(named)]
+
+
+def health_counters(health: Mapping[str, Any]) -> dict[str, int]:
+    """The integer counters of a machine's health (flags, texts and nested maps left out)."""
+    return {
+        key: int(value)
+        for key, value in sorted(health.items())
+        if isinstance(value, int) and not isinstance(value, bool)
+    }
+
+
+def snapshot(record: CycleRecord, health: Mapping[str, Any]) -> dict[str, Value]:
+    """One cycle of one machine as metric values by name."""
+    values: dict[str, Value] = {}
+    for sensor, value in record.temperatures_C.items():
+        values[f"Temperature/{sensor}"] = value
+        values[f"Temperature/{sensor}/Quality"] = record.quality.get(sensor)
+    residual = None
+    if record.probe_error_um is not None and record.predicted_um is not None:
+        residual = record.probe_error_um - record.predicted_um
+    values.update(
+        {
+            "Spindle/Speed": record.speed_rpm,
+            "Regime": record.regime,
+            "Model": record.model_id,
+            "Prediction": record.predicted_um,
+            "Online Correction": record.correction_um,
+            "Compensation/Target": record.target_um,
+            "Compensation/Applied": record.applied_um,
+            "Compensation/Write Status": record.write_status,
+            ENABLED: bool(health.get("compensation_enabled", True)),
+            "Probe/Error": record.probe_error_um,
+            "Probe/Residual": residual,
+            PROMOTE: "",
+            ROLLBACK: False,
+        }
+    )
+    values.update({f"Health/{k}": v for k, v in health_counters(health).items()})
+    return values
+
+
+def changed(
+    specs: Sequence[MetricSpec], before: Mapping[str, Value], now: Mapping[str, Value]
+) -> list[MetricSpec]:
+    """The metrics whose value differs from ``before``; the cycle counter always."""
+    return [s for s in specs if s.name == CYCLES or before.get(s.name, object()) != now.get(s.name)]

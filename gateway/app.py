@@ -16,6 +16,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from drivers.bus_hub import BusHub
 from drivers.clock import Clock, WallClock
@@ -38,6 +39,9 @@ from gateway.scada import ScadaServer, ScadaSettings, ScadaUser, health_of
 from gateway.supervision import Supervised
 from gateway.web.server import WebConsole, build_web
 from models.dataset import ambient_sensor_of
+
+if TYPE_CHECKING:
+    from gateway.sparkplug.node import EdgeNode
 
 log = logging.getLogger(__name__)
 
@@ -187,6 +191,7 @@ class Gateway:
         # One timer for every loop, and each loop's polls at its own phase of the cycle.
         self.scheduler = CycleScheduler(self.clock)
         self.monitors = attach_monitors(self.loops, Path(config.state_dir))
+        self.sparkplug = self._build_sparkplug()
         self.supervisors = {
             loop.config.id: Supervised(
                 f"machine {loop.config.id} loop",
@@ -246,6 +251,26 @@ class Gateway:
             on_rollback=self.rollback,
         )
 
+    def _build_sparkplug(self) -> EdgeNode | None:
+        """The Sparkplug B edge node (config ``sparkplug``), its sink before the heartbeat;
+        its commands call the same functions as the SCADA methods."""
+        if self.config.sparkplug is None:
+            return None
+        from gateway.sparkplug.build import build_node
+        from gateway.sparkplug.commands import Actions
+
+        by = "Sparkplug host"
+        actions = Actions(
+            set_enabled=self._set_enabled,
+            promote=lambda machine, proposal: self.promote(machine, proposal, by=by),
+            rollback=lambda machine: self.rollback(machine, by=by),
+            rebirth=lambda: node.rebirth(),
+        )
+        node = build_node(self.config, self.health, actions)
+        for loop in self.loops:
+            loop.sinks.insert(max(len(loop.sinks) - 1, 0), node.sink)
+        return node
+
     def _loop_of(self, machine_id: str) -> MachineLoop:
         return next(loop for loop in self.loops if loop.config.id == machine_id)
 
@@ -294,6 +319,10 @@ class Gateway:
         """Run every machine until ``stop``; on the way out save state and close links."""
         stop = stop or asyncio.Event()
         self.outputs.start()
+        sparkplug_stop = asyncio.Event()
+        sparkplug_task = None
+        if self.sparkplug is not None:
+            sparkplug_task = asyncio.create_task(self.sparkplug.run(sparkplug_stop))
         if self.scada is not None:
             await self.scada.start()
             log.info("SCADA server at %s", self.scada.endpoint)
@@ -318,6 +347,12 @@ class Gateway:
                     await loop.close()
                 except Exception:  # one machine's failure to close must not keep the others open
                     log.exception("%s: closing the loop failed", loop.config.id)
+            if sparkplug_task is not None:
+                log.debug("stopping: Sparkplug edge node (DDEATH, NDEATH)")
+                sparkplug_stop.set()
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(sparkplug_task, 3.0)
+                self.sparkplug.buffer.close()  # type: ignore[union-attr]
             for monitor in self.monitors.values():
                 monitor.close()
             if self.web is not None:

@@ -799,11 +799,69 @@ class WebSection(Strict):
         return self
 
 
+class SparkplugCommandsSection(Strict):
+    """Which Sparkplug device commands (DCMD) the gateway acts on; each off unless set."""
+
+    set_compensation: bool = False
+    promote_proposal: bool = False
+    rollback_models: bool = False
+
+
+class SparkplugSection(Credentials):
+    """The gateway as a Sparkplug B edge node (gateway/sparkplug, docs/fleet.md).
+
+    ``brokers`` are tried in turn (fail-over): ``mqtt://host:port`` or, with TLS,
+    ``mqtts://host:port`` (``ca_file``, and ``cert_file``/``key_file`` for a client
+    certificate). The password comes from ``password_env`` or ``password_file``.
+    """
+
+    brokers: list[str] = Field(min_length=1)
+    group_id: str
+    edge_node_id: str
+    primary_host_id: str | None = None
+    client_id: str | None = None
+    qos: Literal[0, 1] = 1
+    keepalive_s: int = Field(default=30, ge=5, le=3600)
+    ca_file: Path | None = None
+    cert_file: Path | None = None
+    key_file: Path | None = None
+    startup_delay_max_s: float = Field(default=5.0, ge=0, le=600)
+    reconnect_max_s: float = Field(default=30.0, gt=0, le=3600)
+    buffer_path: Path = Path(".cache/state/sparkplug-buffer.sqlite")
+    buffer_max_points: int = Field(default=1_000_000, ge=1)
+    commands: SparkplugCommandsSection = SparkplugCommandsSection()
+
+    @model_validator(mode="after")
+    def _checked(self) -> SparkplugSection:
+        from gateway.sparkplug.topics import check_id
+
+        for key in ("group_id", "edge_node_id", "primary_host_id"):
+            value = getattr(self, key)
+            if value is not None:
+                try:
+                    check_id(value, key)
+                except ValueError as exc:
+                    raise KeyPathError((key,), str(exc)) from None
+        for index, url in enumerate(self.brokers):
+            if urlsplit(url).scheme not in ("mqtt", "mqtts"):
+                raise KeyPathError(
+                    ("brokers", index), f"'{url}': expected mqtt://host:port or mqtts://host:port"
+                )
+            try:
+                _host_port(url)
+            except ValueError as exc:
+                raise KeyPathError(("brokers", index), str(exc)) from None
+        if self.key_file is not None and self.cert_file is None:
+            raise KeyPathError(("key_file",), "a key_file needs its cert_file")
+        return self
+
+
 class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
     state_dir: Path = Path(".cache/state")
     logging: LoggingSection = LoggingSection()
     scada: ScadaSection | None = None
+    sparkplug: SparkplugSection | None = None
     web: WebSection | None = None
     simulator: dict[str, Any] | None = None  # checked by simulator.serve
     # The runtime's event loop (gateway/event_loop.py): uvloop, or asyncio's own.

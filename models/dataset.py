@@ -40,6 +40,7 @@ from models.plausibility import (
 
 RUN_COLUMN = "run"
 SPEED_COLUMN = "speed_rpm"
+REVERSE_NOTE = "speed_rpm reversed"  # key of the note on negative speeds
 AMBIENT_COLUMN = "ambient_C"
 AMBIENT_SENSORS = ("ambient_C", "ambient")  # machine sensor names that feed AMBIENT_COLUMN
 DEFAULT_TARGET = "error_um"
@@ -446,6 +447,8 @@ class _ColumnReader:
             worst: tuple[int, str, float] | None = None
             for name in self.needed:
                 values = chunk[name].to_numpy(dtype=np.float64)[keep]
+                if name == SPEED_COLUMN:
+                    values = self._speed_magnitude(values, kept_lines)
                 bad = first_implausible(values, bounds_of(name))
                 if bad is not None and name in self.sparse:
                     present = np.flatnonzero(~np.isnan(values))
@@ -518,6 +521,20 @@ class _ColumnReader:
             skipped=skipped,
             notes=tuple(self.notes.values()),
         )
+
+    def _speed_magnitude(self, values: np.ndarray, lines: np.ndarray) -> np.ndarray:
+        """A control that signs the speed by direction (M04, reverse) heats the bearings as
+        much as forward: the magnitude counts, as in the live loop; noted once per file."""
+        negative = np.flatnonzero(values < 0)
+        if negative.size == 0:
+            return values
+        if REVERSE_NOTE not in self.notes:
+            first = int(negative[0])
+            self.notes[REVERSE_NOTE] = (
+                f"column '{SPEED_COLUMN}': line {int(lines[first])}: a negative speed "
+                f"({values[first]:g} r/min, turning in reverse); its magnitude is used"
+            )
+        return np.abs(values)
 
     def _locate_text(self) -> set[str]:
         """Typed columns holding a cell that is not a number; refuses one the command needs."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -151,3 +152,53 @@ def test_label_per_run_refuses_a_run_with_two_labels(tmp_path: Path) -> None:
     with pytest.raises(DataError) as caught:
         data.label_per_run("note")
     assert caught.value.line == 3 and "changes its note from 'cold' to 'warm'" in str(caught.value)
+
+
+def reversed_copy(source: Path, target: Path) -> int:
+    """``source`` with every speed of its last run negated (a control signing M04 as minus);
+    the number of rows negated."""
+    lines = source.read_text(encoding="utf-8").splitlines()
+    last_run = lines[-1].split(",")[0]
+    negated = 0
+    for index, line in enumerate(lines[1:], start=1):
+        cells = line.split(",")
+        if cells[0] == last_run and float(cells[2]) > 0:
+            cells[2] = f"-{cells[2]}"
+            lines[index] = ",".join(cells)
+            negated += 1
+    target.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return negated
+
+
+def test_a_negative_speed_counts_by_its_magnitude_noted_once(tmp_path: Path) -> None:
+    """A reversed spindle heats as much as forward: the live loop takes the magnitude of a
+    negative speed, so the measured runs do too (one note naming the first line)."""
+    rows = [*GOOD_ROWS[:3], "K2,0,-4000,20.1,21.0,20.2,0.1,cold\n"]
+    rows.append("K2,180,-4000,21.1,21.6,20.2,3.0,warm\n")
+    data = load_runs(write(tmp_path, HEADER + "".join(rows)))
+    np.testing.assert_array_equal(data.speed_rpm, [0, 2000, 2000, 4000, 4000])
+    assert data.notes == (
+        "column 'speed_rpm': line 5: a negative speed (-4000 r/min, turning in reverse); "
+        "its magnitude is used",
+    )
+
+
+def test_fit_on_a_reversed_run_gives_the_model_of_the_forward_run(tmp_path: Path) -> None:
+    """Through the command as a process: the same model as with the speeds unsigned."""
+    from tests.cli import gateway
+    from tests.synthetic import write_runs_csv
+
+    forward = write_runs_csv(tmp_path / "forward.csv", seed=3)
+    reverse = tmp_path / "reverse.csv"
+    assert reversed_copy(forward, reverse) > 10
+    documents = []
+    for path in (forward, reverse):
+        store = tmp_path / f"store-{path.stem}"
+        result = gateway("fit", path, "--store", store, "--no-progress")
+        assert result.returncode == 0, result.stderr
+        notes = [line for line in result.stderr.splitlines() if "turning in reverse" in line]
+        assert len(notes) == (path == reverse), result.stderr
+        (document,) = sorted(store.rglob("*.json"))
+        documents.append(json.loads(document.read_text(encoding="utf-8")))
+    for key in ("params", "validation", "regime"):
+        assert documents[0][key] == documents[1][key], key

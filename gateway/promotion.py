@@ -160,7 +160,13 @@ class Promotions:
 
     # -- at start ---------------------------------------------------------------------------
     def load(self, bank: ModelBank) -> SwapOutcome:
-        """Put the version in force into a freshly loaded bank (start-up, check-config)."""
+        """Put the version in force into a freshly loaded bank (start-up, check-config).
+
+        The running loop first cleans up after a change killed mid-write
+        (:meth:`models.proposals.ModelVersions.recover`); a check writes nothing."""
+        if self.running:
+            for line in self.store.versions.recover():
+                log.warning("%s: model store recovered: %s", self.machine.id, line)
         self._version_key = self.store.versions.pointer_key()
         outcome = self._apply(self.store.versions.current(), bank, at_start=True)
         self._refresh_proposals()

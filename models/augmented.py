@@ -8,6 +8,11 @@ terms need time and filter states (lags since the reference): the runtime's
 model bank loads it apart from the plain models, and the machine loop runs it
 sample by sample (:mod:`models.effect_stream`), carrying those states.
 
+Every reader checks ``format_version`` (:data:`SUPPORTED_VERSIONS`) and names the
+file: a document of a newer format is refused, never run as if it were an older
+one. With a signing key (:mod:`models.signing`) :func:`save` signs and
+:func:`load` requires the signature, over the bytes the checksum covers.
+
 ``predict`` rebuilds every term from a prepared data set exactly as the
 analysis did, so a stored document can be checked against fresh data.
 """
@@ -22,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from models import signing
 from models.analysis import Accepted, ResidualAnalysis
 from models.analysis_result import AnalysisResult
 from models.base import ThermalModel
@@ -34,6 +40,8 @@ from models.store import StoreError, data_fingerprint, refuse_non_finite, safe_m
 FORMAT = "thermal-gateway-augmented-model"
 #: 2: a ridge or PLS base is one term, its penalised prediction (see :func:`stored_base`).
 FORMAT_VERSION = 2
+#: the format versions this software reads (1: before ridge and PLS bases were one term)
+SUPPORTED_VERSIONS = (1, 2)
 FOLDER = "augmented"
 
 
@@ -131,24 +139,51 @@ def build_augmented_document(
 
 
 def save(document: dict[str, Any], store_dir: str | Path) -> Path:
+    """Write ``document`` into the store's augmented folder, signed if the store has a key."""
     refuse_non_finite(document)
     path = Path(store_dir) / FOLDER / f"{document['model_id']}.json"
+    document = sign(document, signing.key_for_store(store_dir))
     return write_json_atomic(path, document)
 
 
-def load(path: str | Path) -> dict[str, Any]:
-    """Read a stored augmented model and check its format and checksum."""
+def load(path: str | Path, key: bytes | None = None) -> dict[str, Any]:
+    """Read a stored augmented model and check its format, version, checksum and signature
+    (``key``, default the key of the store the file is in)."""
+    path = Path(path)
     try:
-        document = json.loads(Path(path).read_text(encoding="utf-8"))
+        document = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, json.JSONDecodeError) as err:
         raise StoreError(f"{path}: cannot read an augmented model: {err}") from None
-    if document.get("format") != FORMAT:
-        raise StoreError(f"{path}: not an augmented model (format {document.get('format')!r})")
-    stored = document.pop("sha256", None)
-    if stored != _checksum(document):
-        raise StoreError(f"{path}: checksum mismatch: the file was changed after it was written")
-    document["sha256"] = stored
+    if not isinstance(document, dict):
+        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    if key is None:
+        key = signing.key_for_store(path.parent.parent)
+    check(document, str(path), key)
     return document
+
+
+def check(document: dict[str, Any], where: str, key: bytes | None) -> None:
+    """Raise StoreError (naming ``where``) unless ``document`` is an augmented model of a
+    supported format version, whole (checksum) and, with ``key``, signed by it."""
+    if document.get("format") != FORMAT:
+        raise StoreError(f"{where}: not an augmented model (format {document.get('format')!r})")
+    version = document.get("format_version")
+    if version not in SUPPORTED_VERSIONS:
+        raise StoreError(
+            f"{where}: format_version {version!r} is not supported (this software reads "
+            f"versions {', '.join(map(str, SUPPORTED_VERSIONS))}); a newer gateway wrote it"
+        )
+    if document.get("sha256") != _checksum(document):
+        raise StoreError(f"{where}: checksum mismatch: the file was changed after it was written")
+    try:
+        signing.verify(document, key, canonical_bytes(document), where)
+    except signing.SigningError as exc:
+        raise StoreError(str(exc)) from None
+
+
+def sign(document: dict[str, Any], key: bytes | None) -> dict[str, Any]:
+    """``document`` signed with ``key`` (unchanged without one)."""
+    return signing.sign(document, key, canonical_bytes(document))
 
 
 def stored_base(document: dict[str, Any]) -> ThermalModel:
@@ -196,13 +231,19 @@ def predict(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
 
 
 def sealed(document: dict[str, Any]) -> dict[str, Any]:
-    """``document`` as plain JSON with its checksum, as :func:`load` checks it."""
+    """``document`` as plain JSON with its checksum, as :func:`load` checks it (a signature
+    it carries is kept: the checksum does not cover it)."""
     document = json.loads(json.dumps(document, ensure_ascii=False))
     document.pop("sha256", None)
     document["sha256"] = _checksum(document)
     return document
 
 
+def canonical_bytes(document: dict[str, Any]) -> bytes:
+    """What the checksum and the signature cover: every field but those two."""
+    content = {k: v for k, v in document.items() if k not in ("sha256", signing.FIELD)}
+    return json.dumps(content, sort_keys=True, ensure_ascii=False).encode("utf-8")
+
+
 def _checksum(document: dict[str, Any]) -> str:
-    text = json.dumps(document, sort_keys=True, ensure_ascii=False)
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+    return hashlib.sha256(canonical_bytes(document)).hexdigest()

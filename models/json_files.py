@@ -50,7 +50,7 @@ def atomic_text(path: Path, *, durable: bool = True) -> Iterator[TextIO]:
         Path(tmp).unlink(missing_ok=True)
         raise
     if durable:
-        _fsync_folder(path.parent)
+        fsync_folder(path.parent)
 
 
 def write_json_atomic(
@@ -76,7 +76,21 @@ def write_json_atomic(
     return path
 
 
-def _fsync_folder(folder: Path) -> None:
+def remove_temporaries(folder: Path, patterns: tuple[str, ...] = (".*.tmp",)) -> list[Path]:
+    """Remove the temporary files a writer killed mid-write left in ``folder`` (``.*.tmp``,
+    as :func:`atomic_text` names them); the caller makes sure no writer is at work there
+    (a lock). Returns the files removed."""
+    if not folder.is_dir():
+        return []
+    found = sorted({path for pattern in patterns for path in folder.glob(pattern)})
+    for path in found:
+        path.unlink(missing_ok=True)
+    if found:
+        fsync_folder(folder)
+    return found
+
+
+def fsync_folder(folder: Path) -> None:
     """Make a rename in ``folder`` durable (POSIX: an ``fsync`` of the folder itself)."""
     handle = os.open(folder, os.O_RDONLY)
     try:

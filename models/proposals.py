@@ -17,9 +17,28 @@ so a reader never sees half a file)::
 Every change of the promoted set writes a new version: a promotion adds (or
 replaces) one entry, a rollback writes a version whose set is the one in force
 before the version it leaves, and which rolls back further, to that version's
-own predecessor, when rolled back again. Nothing is deleted, so the version
-files are the audit trail. Version 0 is implicit: the store's own models, none
-promoted.
+own predecessor, when rolled back again. Nothing in force is deleted, so the
+version files are the audit trail. Version 0 is implicit: the store's own
+models, none promoted.
+
+One commit point. A change writes ``versions/<n>.json`` (n = the version in
+force + 1, fsynced), then replaces ``versions/current.json`` (fsynced): that
+rename is the change. A process killed before it leaves a version file that was
+never in force: it is not history, and the next writer (or :meth:`ModelVersions.recover`,
+run at the start of ``run`` and of every ``models`` command) removes it with any
+temporary file a killed writer left. A proposal's status is *derived* from the
+versions in force (:meth:`ModelVersions.derive`): promoted while it is in the
+version in force, superseded or rejected (rolled back) from the version that
+took it out; only what no version says (published, rejected while open, a
+machine's refusal of the version in force) comes from its own file. The status
+written in the file, and its history, follow after the commit and are brought
+in line by the next recovery, so a reader never sees a status that contradicts
+the version in force, wherever a writer was killed.
+
+Every file read is checked for its ``format`` and a supported ``format_version``,
+naming the file; so are the augmented models inside proposals and versions
+(:func:`models.augmented.check`), and their signatures when the store has a
+signing key (:mod:`models.signing`).
 
 A promoted entry names the model it takes the place of (``replaces``, a model
 id of the store, or None: every regime). Promoting a proposal for the same
@@ -47,14 +66,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from models import augmented
-from models.json_files import write_json_atomic
+from models import augmented, signing
+from models.json_files import fsync_folder, remove_temporaries, write_json_atomic
 from models.store import StoreError
 
 PROPOSALS_FOLDER = "proposals"
 VERSIONS_FOLDER = "versions"
 CURRENT_FILE = "current.json"
 LOCK_FILE = ".lock"
+#: temporary files of writers (models.json_files; ``tmp*.tmp``: before they were dot-named)
+TEMPORARIES = (".*.tmp", "tmp*.tmp")
 
 PROPOSAL_FORMAT = "thermal-gateway-model-proposal"
 VERSION_FORMAT = "thermal-gateway-model-version"
@@ -152,6 +173,7 @@ class Proposal:
     def from_json(cls, data: Mapping[str, Any], where: str) -> Proposal:
         if data.get("format") != PROPOSAL_FORMAT:
             raise ProposalError(f"{where}: not a model proposal (format {data.get('format')!r})")
+        check_format_version(data, where)
         try:
             proposal = cls(
                 id=str(data["id"]),
@@ -231,6 +253,9 @@ class Version:
     proposal_id: str | None = None  # promote: the proposal promoted
     restores: int | None = None  # rollback: the version whose set this one restores
 
+    def proposal_ids(self) -> set[str]:
+        return {e.proposal_id for e in self.active}
+
     def for_machine(self, machine_id: str) -> list[ActiveEntry]:
         return [e for e in self.active if e.machine_id == machine_id]
 
@@ -261,6 +286,7 @@ class Version:
     def from_json(cls, data: Mapping[str, Any], where: str) -> Version:
         if data.get("format") != VERSION_FORMAT:
             raise ProposalError(f"{where}: not a model version (format {data.get('format')!r})")
+        check_format_version(data, where)
         try:
             return cls(
                 number=int(data["version"]),
@@ -320,36 +346,39 @@ class ProposalStore:
                 raise ProposalError(f"proposal {name} must be a finite number ≥ 0, got {value!r}")
         if int(probe_rows) < 1:
             raise ProposalError(f"proposal probe_rows must be at least 1, got {probe_rows!r}")
-        sealed = checked_document(document, "proposal document")
+        key = signing.key_for_store(self.store_dir)
+        sealed = checked_document(document, "proposal document", key, sign_unsigned=True)
         created = time.time() if created_s is None else float(created_s)
         params_json = json.loads(json.dumps(dict(params)))
         self.folder.mkdir(parents=True, exist_ok=True)
         figures = {name: float(value) for name, value in figures.items()}
         published = {"status": PROPOSED, "time_s": created, "note": "published"}
-        while True:
-            proposal = Proposal(
-                self._next_id(),
-                str(machine_id),
-                created,
-                str(effect),
-                params_json,
-                probe_rows=int(probe_rows),
-                document=sealed,
-                replaces=replaces,
-                note=note,
-                history=(published,),
-                **figures,
-            )
-            if _write_new(self._path(proposal.id), proposal.to_json()):
-                return proposal
+        with self.versions.locked():  # a recovery removes temporary files under it
+            while True:
+                proposal = Proposal(
+                    self._next_id(),
+                    str(machine_id),
+                    created,
+                    str(effect),
+                    params_json,
+                    probe_rows=int(probe_rows),
+                    document=sealed,
+                    replaces=replaces,
+                    note=note,
+                    history=(published,),
+                    **figures,
+                )
+                if _write_new(self._path(proposal.id), proposal.to_json()):
+                    return proposal
 
     def list(self, machine_id: str | None = None, status: str | None = None) -> list[Proposal]:
         """Every proposal (of ``machine_id``, with ``status``), oldest first."""
         if not self.folder.is_dir():
             return []
         found = []
+        log = self.versions.history()
         for path in sorted(self.folder.glob("P*.json"), key=lambda p: _id_number(p.stem)):
-            proposal = self._read(path)
+            proposal = self.versions.with_status(self._read(path), log)
             if machine_id is not None and proposal.machine_id != machine_id:
                 continue
             if status is not None and proposal.status != status:
@@ -358,6 +387,11 @@ class ProposalStore:
         return found
 
     def get(self, proposal_id: str) -> Proposal:
+        """The proposal, its status derived from the versions in force (module docstring)."""
+        return self.versions.with_status(self.read_file(proposal_id), self.versions.history())
+
+    def read_file(self, proposal_id: str) -> Proposal:
+        """The proposal as its file says (status and history as last written)."""
         path = self._path(proposal_id) if _ID_PATTERN.match(proposal_id) else None
         if path is None or not path.exists():
             have = [p.id for p in self.list()]
@@ -376,21 +410,26 @@ class ProposalStore:
                     f"proposal {proposal_id} is {proposal.status}; only a proposed one can be "
                     "rejected (roll back a promoted one)"
                 )
-            return self.set_status(proposal, REJECTED, note or "rejected", time_s)
+            raw = self.read_file(proposal_id)
+            return self.set_status(raw, REJECTED, note or "rejected", time_s)
 
     def set_status(
-        self, proposal: Proposal, status: str, note: str, time_s: float | None
+        self,
+        proposal: Proposal,
+        status: str,
+        note: str,
+        time_s: float | None,
+        extra: Mapping[str, Any] | None = None,
     ) -> Proposal:
         """Record a status change in the proposal's file and history (the caller holds
-        :meth:`ModelVersions.locked`; promote, rollback and reject change statuses)."""
-        if proposal.status == status:
+        :meth:`ModelVersions.locked`; promote, rollback and reject change statuses).
+        ``proposal`` as its file says (:meth:`read_file`); ``extra``: more keys of the
+        history entry (a machine's record names the version it is about)."""
+        if proposal.status == status and not extra:
             return proposal
         stamp = time.time() if time_s is None else float(time_s)
-        changed = replace(
-            proposal,
-            status=status,
-            history=(*proposal.history, {"status": status, "time_s": stamp, "note": note}),
-        )
+        entry = {"status": status, "time_s": stamp, "note": note, **(extra or {})}
+        changed = replace(proposal, status=status, history=(*proposal.history, entry))
         write_json_atomic(self._path(proposal.id), changed.to_json())
         return changed
 
@@ -426,17 +465,26 @@ class ModelVersions:
         return (status.st_ino, status.st_mtime_ns, status.st_size)
 
     def current(self) -> Version:
-        """The version in force (version 0 before any promotion)."""
+        """The version in force (version 0 before any promotion), its models checked: format
+        version and, with a signing key for the store, signature (naming the file)."""
+        version = self.get(self.current_number())
+        key = signing.key_for_store(self.folder.parent)
+        for entry in version.active:
+            where = f"{self.folder / f'{version.number}.json'}, model of {entry.proposal_id}"
+            checked_document(entry.document, where, key)
+        return version
+
+    def current_number(self) -> int:
+        """The number of the version in force, from ``current.json`` (0 before any)."""
         if not self.pointer.exists():
-            return START
+            return 0
         pointer = read_json(self.pointer)
         try:
-            number = int(pointer["version"])
+            return int(pointer["version"])
         except (KeyError, TypeError, ValueError):
             raise ProposalError(
                 f"{self.pointer}: field 'version' is missing or malformed"
             ) from None
-        return self.get(number)
 
     def get(self, number: int) -> Version:
         if number == 0:
@@ -450,16 +498,47 @@ class ModelVersions:
         return version
 
     def history(self) -> list[Version]:
-        """Every version written, oldest first (version 0 included)."""
-        numbers = sorted(int(p.stem) for p in self.folder.glob("*.json") if p.stem.isdigit())
-        return [START, *(self.get(n) for n in numbers)]
+        """Every version that was in force, oldest first (version 0 included); a version file
+        above the one in force was never in force (a writer killed before its commit)."""
+        last = self.current_number()
+        return [START, *(self.get(n) for n in self._numbers() if n <= last)]
+
+    def with_status(self, proposal: Proposal, log: list[Version]) -> Proposal:
+        """``proposal`` with the status :meth:`derive` gives it."""
+        status, _ = self.derive(proposal, log)
+        return proposal if status == proposal.status else replace(proposal, status=status)
+
+    def derive(self, proposal: Proposal, log: list[Version]) -> tuple[str, str]:
+        """The proposal's status and why, from the versions in force (``log``, oldest first).
+
+        In the version in force: promoted (or what a machine recorded about that very
+        version: refused, or promoted again as the one it kept). Out of it after being in
+        one: superseded or rejected, as the version that took it out says. Never in one:
+        what its own file says if that is proposed or rejected, else proposed.
+        """
+        current = log[-1]
+        last_entry = proposal.history[-1] if proposal.history else {}
+        if "machine" in last_entry and last_entry.get("version") == current.number:
+            return str(last_entry["status"]), str(last_entry.get("note", ""))
+        holding = [i for i, v in enumerate(log) if proposal.id in v.proposal_ids()]
+        if holding and holding[-1] == len(log) - 1:
+            return PROMOTED, f"in force in version {current.number}"
+        if holding:
+            leaving = log[holding[-1] + 1]
+            if leaving.action == "rollback":
+                return REJECTED, f"rolled back in version {leaving.number}"
+            return SUPERSEDED, f"superseded by {leaving.proposal_id}"
+        if proposal.status in (PROPOSED, REJECTED):
+            return proposal.status, ""
+        return PROPOSED, "never in force"
 
     def promote(self, proposal_id: str, by: str = "", time_s: float | None = None) -> Version:
         """Put the proposal's model in force: a new version, the proposal ``promoted``.
 
         A promoted entry of the same machine in the same place (``replaces``) is
         superseded. Refused for a proposal that is not open (already promoted,
-        rejected or superseded: publish it again to reconsider it).
+        rejected or superseded: publish it again to reconsider it), and for a model of
+        an unsupported format version or, with a signing key, not signed with it.
         """
         with self.locked():
             proposal = self.proposals.get(proposal_id)
@@ -468,7 +547,9 @@ class ModelVersions:
                     f"proposal {proposal_id} is {proposal.status}; only a proposed one can be "
                     "promoted"
                 )
-            checked_document(proposal.document, f"proposal {proposal_id}")
+            where = f"{self.proposals.folder / f'{proposal_id}.json'}, its model"
+            key = signing.key_for_store(self.folder.parent)
+            checked_document(proposal.document, where, key)
             current = self.current()
             entry = ActiveEntry(
                 proposal.id, proposal.machine_id, proposal.replaces, proposal.document
@@ -480,13 +561,14 @@ class ModelVersions:
             ]
             version = self._write(
                 action="promote",
+                current=current,
                 previous=current.number,
                 active=(*kept, entry),
                 by=by,
                 time_s=time_s,
                 proposal_id=proposal.id,
             )
-            self._update_statuses(current, version, SUPERSEDED, f"superseded by {proposal.id}")
+            self.reconcile(version.created_s)
             return version
 
     def rollback(self, by: str = "", time_s: float | None = None) -> Version:
@@ -501,15 +583,14 @@ class ModelVersions:
             restored = self.get(current.previous)
             version = self._write(
                 action="rollback",
+                current=current,
                 previous=restored.previous,
                 active=restored.active,
                 by=by,
                 time_s=time_s,
                 restores=restored.number,
             )
-            self._update_statuses(
-                current, version, REJECTED, f"rolled back in version {version.number}"
-            )
+            self.reconcile(version.created_s)
             return version
 
     def refused_by_machine(
@@ -524,16 +605,47 @@ class ModelVersions:
         that the proposal it kept serving in its place, if any, is in force there again.
 
         The version stays as written (a rollback or a new promotion replaces it): the
-        store then says what the machine runs, not only what was asked of it.
+        store then says what the machine runs, not only what was asked of it. Both
+        records name the version in force; the next version overrides them.
         """
         with self.locked():
-            refused = self.proposals.get(proposal_id)
+            about = {"machine": machine_id, "version": self.current_number()}
+            refused = self.proposals.read_file(proposal_id)
             note = f"machine {machine_id} refused it: {reason}"
-            self.proposals.set_status(refused, REFUSED, note, time_s)
+            self.proposals.set_status(refused, REFUSED, note, time_s, about)
             if kept_proposal_id is not None:
-                kept = self.proposals.get(kept_proposal_id)
+                kept = self.proposals.read_file(kept_proposal_id)
                 note = f"machine {machine_id} still runs it: it refused {proposal_id}"
-                self.proposals.set_status(kept, PROMOTED, note, time_s)
+                self.proposals.set_status(kept, PROMOTED, note, time_s, about)
+
+    def recover(self) -> list[str]:
+        """Clean up after a writer killed mid-change (at the start of ``run`` and of the
+        ``models`` commands): remove temporary files and version files never in force, and
+        bring each proposal file's status in line with the versions. Returns what was done."""
+        if not self.folder.is_dir() and not self.proposals.folder.is_dir():
+            return []
+        with self.locked():
+            done: list[str] = []
+            for folder in (self.folder, self.proposals.folder):
+                done += [f"removed {p}" for p in remove_temporaries(folder, TEMPORARIES)]
+            done += [f"removed {p}, never in force" for p in self._remove_orphans()]
+            done += self.reconcile(time.time())
+            return done
+
+    def reconcile(self, time_s: float) -> list[str]:
+        """Write into each proposal file the status the versions give it, where it differs
+        (the caller holds the lock). Returns one line per proposal changed."""
+        if not self.proposals.folder.is_dir():
+            return []
+        log = self.history()
+        changed = []
+        for path in sorted(self.proposals.folder.glob("P*.json")):
+            raw = self.proposals._read(path)
+            status, note = self.derive(raw, log)
+            if status != raw.status:
+                self.proposals.set_status(raw, status, note, time_s)
+                changed.append(f"{raw.id}: {raw.status} → {status} ({note})")
+        return changed
 
     @contextlib.contextmanager
     def locked(self) -> Iterator[None]:
@@ -546,10 +658,24 @@ class ModelVersions:
             finally:
                 fcntl.flock(handle, fcntl.LOCK_UN)
 
+    def _numbers(self) -> list[int]:
+        return sorted(int(p.stem) for p in self.folder.glob("*.json") if p.stem.isdigit())
+
+    def _remove_orphans(self) -> list[Path]:
+        """Remove version files above the one in force (the caller holds the lock)."""
+        last = self.current_number()
+        orphans = [self.folder / f"{n}.json" for n in self._numbers() if n > last]
+        for path in orphans:
+            path.unlink(missing_ok=True)
+        if orphans:
+            fsync_folder(self.folder)
+        return orphans
+
     def _write(
         self,
         *,
         action: str,
+        current: Version,
         previous: int | None,
         active: tuple[ActiveEntry, ...] | list[ActiveEntry],
         by: str,
@@ -557,9 +683,11 @@ class ModelVersions:
         proposal_id: str | None = None,
         restores: int | None = None,
     ) -> Version:
-        numbers = [int(p.stem) for p in self.folder.glob("*.json") if p.stem.isdigit()]
+        """Write version ``current + 1`` and put it in force (replacing ``current.json`` is
+        the commit); a version file left above the one in force is removed first."""
+        self._remove_orphans()
         version = Version(
-            number=max(numbers, default=0) + 1,
+            number=current.number + 1,
             previous=previous,
             action=action,
             created_s=time.time() if time_s is None else float(time_s),
@@ -573,28 +701,32 @@ class ModelVersions:
         write_json_atomic(self.pointer, {"version": version.number, "changed_s": version.created_s})
         return version
 
-    def _update_statuses(self, old: Version, new: Version, left_as: str, note: str) -> None:
-        """Proposals in the new set are ``promoted``; those that left it become ``left_as``."""
-        now_in = {e.proposal_id for e in new.active}
-        was_in = {e.proposal_id for e in old.active}
-        for proposal_id in sorted(now_in | was_in):
-            try:
-                proposal = self.proposals.get(proposal_id)
-            except KeyError:
-                continue  # a version may outlive a proposal file moved away by hand
-            if proposal_id in now_in:
-                self.proposals.set_status(
-                    proposal, PROMOTED, f"in force in version {new.number}", new.created_s
-                )
-            else:
-                self.proposals.set_status(proposal, left_as, note, new.created_s)
-
 
 # -- helpers --------------------------------------------------------------------------------
 
 
-def checked_document(document: Mapping[str, Any], where: str) -> dict[str, Any]:
-    """The augmented-model document as plain JSON with a valid checksum, or ProposalError."""
+def check_format_version(data: Mapping[str, Any], where: str) -> None:
+    """Raise ProposalError naming ``where`` unless ``data`` is of the format version read here."""
+    if data.get("format_version") != FORMAT_VERSION:
+        raise ProposalError(
+            f"{where}: format_version {data.get('format_version')!r} is not supported (this "
+            f"software reads version {FORMAT_VERSION}); a newer gateway wrote it"
+        )
+
+
+def checked_document(
+    document: Mapping[str, Any],
+    where: str,
+    key: bytes | None = None,
+    *,
+    sign_unsigned: bool = False,
+) -> dict[str, Any]:
+    """The augmented-model document as plain JSON with a valid checksum, or ProposalError.
+
+    Its format version must be one :mod:`models.augmented` reads; with ``key`` it must be
+    signed with it (``sign_unsigned``: one that is not yet signed is signed here, as a
+    proposal the residual monitor publishes).
+    """
     plain = json.loads(json.dumps(dict(document), ensure_ascii=False))
     if plain.get("format") != augmented.FORMAT:
         raise ProposalError(f"{where}: not an augmented model (format {plain.get('format')!r})")
@@ -604,6 +736,12 @@ def checked_document(document: Mapping[str, Any], where: str) -> dict[str, Any]:
     sealed = augmented.sealed(plain)
     if stored is not None and stored != sealed["sha256"]:
         raise ProposalError(f"{where}: checksum mismatch: the model was changed after it was made")
+    if sign_unsigned and key is not None and signing.FIELD not in sealed:
+        sealed = augmented.sign(sealed, key)
+    try:
+        augmented.check(sealed, where, key)
+    except StoreError as exc:
+        raise ProposalError(str(exc)) from None
     return sealed
 
 
@@ -622,12 +760,15 @@ def read_json(path: Path) -> dict[str, Any]:
 
 
 def _write_new(path: Path, payload: Mapping[str, Any]) -> bool:
-    """Write a complete file at ``path`` only if none is there yet (False if one was)."""
-    handle, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    """Write a complete file at ``path`` only if none is there yet (False if one was); its
+    data and its name reach the disk before this returns."""
+    handle, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(handle, "w", encoding="utf-8") as out:
             json.dump(payload, out, indent=2, ensure_ascii=False)
             out.write("\n")
+            out.flush()
+            os.fsync(out.fileno())
         try:
             os.link(tmp, path)  # atomic and exclusive: fails if the name is taken
         except FileExistsError:
@@ -635,6 +776,7 @@ def _write_new(path: Path, payload: Mapping[str, Any]) -> bool:
         return True
     finally:
         Path(tmp).unlink(missing_ok=True)
+        fsync_folder(path.parent)
 
 
 def _id_number(stem: str) -> int:

@@ -25,6 +25,11 @@ every other field and validated on load.
 
 Writes go to a temporary file that is then renamed, so a crash mid-write never
 leaves half a model behind.
+
+``signature`` (:mod:`models.signing`): with a signing key configured, an HMAC of
+the bytes the checksum covers, written by :meth:`ModelStore.save` and required by
+:func:`load_file`; the checksum proves the file is whole, the signature that it
+was written by a holder of the key. Without a key, nothing is signed or checked.
 """
 
 from __future__ import annotations
@@ -39,6 +44,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from models import signing
 from models.base import ModelInputs, ThermalModel
 from models.json_files import write_json_atomic
 from models.registry import METHODS
@@ -99,6 +105,8 @@ class StoredModel(BaseModel):
     #: rises and 0 r/min (its intercept) and each training recording's own origin; absent
     #: in files written when the error was rebased on each recording's leading readings.
     error_reference: dict[str, Any] | None = None
+    #: HMAC of the checksummed content (:mod:`models.signing`); absent without a key.
+    signature: dict[str, Any] | None = None
 
     def relations(self) -> SensorRelations | None:
         """The training sensors' relations, or None for a file saved without them."""
@@ -116,10 +124,15 @@ def data_fingerprint(inputs: ModelInputs, error_um: np.ndarray) -> str:
     return digest.hexdigest()
 
 
-def _checksum(document: dict[str, Any]) -> str:
-    content = {k: v for k, v in document.items() if k != "sha256"}
+def canonical_bytes(document: dict[str, Any]) -> bytes:
+    """What the checksum and the signature cover: every field but those two, canonical JSON."""
+    content = {k: v for k, v in document.items() if k not in ("sha256", signing.FIELD)}
     canonical = json.dumps(content, sort_keys=True, ensure_ascii=False, separators=(",", ":"))
-    return hashlib.sha256(canonical.encode()).hexdigest()
+    return canonical.encode()
+
+
+def _checksum(document: dict[str, Any]) -> str:
+    return hashlib.sha256(canonical_bytes(document)).hexdigest()
 
 
 def safe_model_id(text: str) -> str:
@@ -269,6 +282,8 @@ class ModelStore:
         """
         refuse_non_finite(document)
         StoredModel.model_validate(document)
+        key = signing.key_for_store(self.root)
+        document = signing.sign(document, key, canonical_bytes(document))
         return write_json_atomic(self.path_of(document["model_id"]), document, allow_nan=False)
 
     def load(self, model_id: str) -> tuple[ThermalModel, StoredModel]:
@@ -279,7 +294,8 @@ class ModelStore:
 
 
 def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
-    """Load, validate and self-check one model file."""
+    """Load, validate and self-check one model file (and its signature, with a key for its
+    store: :func:`models.signing.key_for_store`)."""
     path = Path(path)
     try:
         raw = json.loads(path.read_text(encoding="utf-8"))
@@ -308,6 +324,10 @@ def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
         raise StoreError(
             f"{path}: checksum mismatch — the file was changed or damaged since it was saved"
         )
+    try:
+        signing.verify(raw, signing.key_for_store(path.parent), canonical_bytes(raw), str(path))
+    except signing.SigningError as exc:
+        raise StoreError(str(exc)) from None
     try:
         document.relations()
     except ValueError as exc:

@@ -122,7 +122,11 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
 
 
 def load_bank(machine: MachineSection) -> ModelBank:
-    """The machine's models, checked against its sensors and its regime rules."""
+    """The machine's models, checked against its sensors and its regime rules (and their
+    signatures, with ``models.signing_key_file``)."""
+    from models import signing
+
+    signing.configure(machine.models.store, machine.models.signing_key_file)
     bank = ModelBank.from_store(
         machine.models.store, ambient_sensor=ambient_sensor_of(machine.sensor_names)
     )
@@ -191,7 +195,6 @@ class Gateway:
         # One timer for every loop, and each loop's polls at its own phase of the cycle.
         self.scheduler = CycleScheduler(self.clock)
         self.monitors = attach_monitors(self.loops, Path(config.state_dir))
-        self.sparkplug = self._build_sparkplug()
         self.supervisors = {
             loop.config.id: Supervised(
                 f"machine {loop.config.id} loop",
@@ -204,6 +207,7 @@ class Gateway:
             )
             for loop in self.loops
         }
+        self.sparkplug = self._build_sparkplug()  # after the supervisors: it reads health
         if config.web is not None:
             self.web = build_web(config, self)
 

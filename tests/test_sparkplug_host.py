@@ -1,0 +1,221 @@
+"""The gateway as a Sparkplug B edge node, seen by a host nobody here wrote.
+
+A real Mosquitto 2 (TLS, password file) on loopback; Eclipse Tahu's JavaScript payload
+library decodes every message in tests/node/sparkplug_host.mjs and checks the sequence
+numbers; three simulated machines over Modbus TCP, the gateway on wall time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.clock import WallClock
+from gateway.app import Gateway
+from gateway.config import GatewayConfig
+from gateway.runtime import CycleRecord
+from tests import gateway_rig as rig
+from tests.mqtt_broker import PASSWORD, USER, Broker, mosquitto
+from tests.sparkplug_host import TahuHost
+
+GROUP, NODE, HOST = "plant1", "edge1", "scada"
+MACHINES = ("m1", "m2", "m3")
+CYCLE_S = 0.2
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return rig.fit_store(tmp_path_factory.mktemp("sparkplug"))
+
+
+def gateway_config(
+    tmp_path: Path, broker: Broker, plants: list[Any], store: Path, commands: dict[str, bool]
+) -> GatewayConfig:
+    return GatewayConfig.model_validate(
+        {
+            "state_dir": str(tmp_path / "state"),
+            "logging": {"local_store": str(tmp_path / "points.sqlite")},
+            "machines": [
+                rig.machine_entry(m, p, store, cycle_s=CYCLE_S)
+                for m, p in zip(MACHINES, plants, strict=True)
+            ],
+            "sparkplug": {
+                "brokers": [broker.url],
+                "group_id": GROUP,
+                "edge_node_id": NODE,
+                "primary_host_id": HOST,
+                "username": USER,
+                "password_env": "SPB_TEST_PASSWORD",
+                "ca_file": str(broker.ca_file),
+                "startup_delay_max_s": 0.5,
+                "reconnect_max_s": 2.0,
+                "buffer_path": str(tmp_path / "state" / "spb.sqlite"),
+                "commands": commands,
+            },
+        }
+    )
+
+
+def cycles_of(host: TahuHost, device: str) -> list[int]:
+    """The cycle counter of every DDATA of ``device``, in arrival order."""
+    return [
+        m["value"]
+        for e in host.messages("DDATA", device)
+        for m in e["metrics"]
+        if m["name"] == "Health/cycles"
+    ]
+
+
+def assert_every_cycle_once_in_order(host: TahuHost, records: list[CycleRecord]) -> None:
+    for machine in MACHINES:
+        seen = cycles_of(host, machine)
+        ran = len([r for r in records if r.machine == machine])
+        assert seen == list(range(seen[0], seen[0] + len(seen))), f"{machine}: gap or repeat"
+        assert seen[0] == 1 and len(seen) >= ran - 1, (machine, len(seen), ran)
+
+
+def assert_on_time(records: list[CycleRecord]) -> None:
+    for machine in MACHINES:
+        times = [r.time_s for r in records if r.machine == machine]
+        steps = [b - a for a, b in itertools.pairwise(times)]
+        assert max(steps) < 2.5 * CYCLE_S, (machine, max(steps))
+
+
+class Run:
+    """Broker, host, plants and a running gateway for one scenario."""
+
+    def __init__(self, tmp_path: Path, store: Path, commands: dict[str, bool]) -> None:
+        self.tmp_path, self.store, self.commands = tmp_path, store, commands
+        self.records: list[CycleRecord] = []
+
+    async def __aenter__(self) -> Run:
+        self.broker_cm = mosquitto(self.tmp_path / "broker")
+        self.broker = self.broker_cm.__enter__()
+        self.host = TahuHost(self.broker, GROUP, HOST)
+        await self.host.wait(lambda: any(e["event"] == "online" for e in self.host.snapshot()),
+                             20, "the host's STATE")  # fmt: skip
+        clock = WallClock()
+        self.plants = [rig.plant(clock, seed=i, cnc=("modbus",)) for i in range(len(MACHINES))]
+        for plant in self.plants:
+            await plant.start()
+        config = gateway_config(self.tmp_path, self.broker, self.plants, self.store, self.commands)
+        self.gateway = Gateway(config, clock=clock, sinks=[self.records.append])
+        self.stop = asyncio.Event()
+        self.task = asyncio.create_task(self.gateway.run(self.stop))
+        return self
+
+    async def stop_gateway(self) -> None:
+        self.stop.set()
+        await asyncio.wait_for(self.task, 20)
+
+    async def __aexit__(self, *exc: object) -> None:
+        if not self.task.done():
+            await self.stop_gateway()
+        for plant in self.plants:
+            await plant.stop()
+        self.host.close()
+        self.broker_cm.__exit__(None, None, None)
+
+    def alias(self, device: str, name: str) -> int:
+        birth = self.host.messages("DBIRTH", device)[0]
+        return next(m["alias"] for m in birth["metrics"] if m["name"] == name)
+
+    def enabled(self, machine: str) -> bool:
+        return self.gateway._loop_of(machine).compensation_enabled
+
+
+def dcmd(run: Run, device: str, metric: dict[str, Any], timestamp: int, seq: int) -> None:
+    run.host.send(op="dcmd", node=NODE, device=device, metrics=[metric], timestamp=timestamp,
+                  seq=seq)  # fmt: skip
+
+
+async def settle(run: Run, sent_before: int) -> None:
+    """Wait until the host has sent one more command and the node had time to act."""
+    await run.host.wait(
+        lambda: len([e for e in run.host.snapshot() if e["event"] == "sent"]) > sent_before,
+        10,
+        "the command sent",
+    )
+    await asyncio.sleep(1.0)
+
+
+def sent_count(run: Run) -> int:
+    return len([e for e in run.host.snapshot() if e["event"] == "sent"])
+
+
+@pytest.mark.parametrize("allowed", [True, False])
+def test_tahu_host_decodes_births_data_rebirth_and_commands(
+    tmp_path: Path, store: Path, allowed: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SPB_TEST_PASSWORD", PASSWORD)
+
+    async def scenario() -> None:
+        async with Run(tmp_path, store, {"set_compensation": allowed}) as run:
+            host = run.host
+            await host.wait(
+                lambda: all(len(cycles_of(host, m)) >= 5 for m in MACHINES), 60, "5 DDATA each"
+            )
+            births = host.messages("NBIRTH")
+            assert len(births) == 1 and births[0]["seq"] == 0
+            bd_seq = next(m["value"] for m in births[0]["metrics"] if m["name"] == "bdSeq")
+            dbirth = host.messages("DBIRTH", "m1")[0]
+            units = {m["name"]: m.get("unit") for m in dbirth["metrics"]}
+            assert units["Temperature/T1"] == "°C" and units["Spindle/Speed"] == "r/min"
+            assert units["Prediction"] == "µm"
+            types = {m["name"]: m["type"] for m in dbirth["metrics"]}
+            assert types["Compensation/Enabled"] == "Boolean" and types["Regime"] == "String"
+
+            host.send(op="rebirth", node=NODE)
+            await host.wait(lambda: len(host.messages("NBIRTH")) == 2, 10, "NBIRTH after rebirth")
+            await host.wait(
+                lambda: all(len(host.messages("DBIRTH", m)) == 2 for m in MACHINES), 10, "DBIRTHs"
+            )
+            again = host.messages("NBIRTH")[1]
+            assert next(m["value"] for m in again["metrics"] if m["name"] == "bdSeq") == bd_seq
+
+            enabled = run.alias("m2", "Compensation/Enabled")
+            assert run.enabled("m2")
+            n = sent_count(run)
+            dcmd(run, "m2", {"alias": enabled, "type": "Boolean", "value": False}, 1000, 1)
+            await settle(run, n)
+            assert run.enabled("m2") is (not allowed)
+            assert run.enabled("m1") and run.enabled("m3")
+            accepted = run.gateway.sparkplug.commands.accepted  # type: ignore[union-attr]
+            assert accepted == (2 if allowed else 1)  # the rebirth, and the DCMD if allowed
+            if allowed:
+                n = sent_count(run)
+                dcmd(run, "m2", {"alias": enabled, "type": "Boolean", "value": True}, 2000, 2)
+                await settle(run, n)
+                assert run.enabled("m2")
+            refused = run.gateway.sparkplug.commands.refused  # type: ignore[union-attr]
+            bad = [
+                ({"alias": enabled, "type": "String", "value": "false"}, 3000, 3),  # datatype
+                ({"alias": 987654, "type": "Boolean", "value": False}, 4000, 4),  # alias
+                ({"alias": enabled, "type": "Boolean", "value": False}, 1000, 1),  # replay
+            ]
+            for metric, timestamp, seq in bad:
+                n = sent_count(run)
+                dcmd(run, "m2", metric, timestamp, seq)
+                await settle(run, n)
+            n = sent_count(run)
+            host.send(op="raw", topic=f"spBv1.0/{GROUP}/DCMD/{NODE}/m2", hex="ffff0a01")
+            await settle(run, n)
+            node = run.gateway.sparkplug
+            assert node is not None
+            assert node.commands.refused == refused + 4
+            assert run.enabled("m2")  # nothing refused was acted on
+            await run.stop_gateway()
+            await host.wait(lambda: len(host.messages("NDEATH")) == 1, 10, "NDEATH at the stop")
+            assert {e["device"] for e in host.messages("DDEATH")} == set(MACHINES)
+
+        events = host.snapshot()
+        assert not [e for e in events if e["event"] == "undecodable"]
+        assert not [e for e in events if e["event"] == "message" and e["gap"]]
+        assert_every_cycle_once_in_order(host, run.records)
+        assert_on_time(run.records)
+
+    asyncio.run(scenario())

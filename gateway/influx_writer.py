@@ -36,12 +36,31 @@ at ERROR with the server's reason and counted in :meth:`Forwarder.health`
 usually a partial write: the server kept the valid points of the batch and
 dropped the others; ``rejected`` counts the points it says it dropped
 (``dropped=N`` in its reason), or the whole batch when it does not say.
+
+The server's other answers are read too (docs/reliability/influxdb.md):
+
+- ``429 Too Many Requests`` / ``503 Service Unavailable`` with ``Retry-After``
+  (seconds or an HTTP date): the next attempt waits at least that long — the
+  back-off's jitter only ever shortens a wait, so without this a ``Retry-After: 10``
+  was retried after 8–9 s.
+- ``413 Payload Too Large``: resending the same batch cannot help, so the batch is
+  halved at once (no wait) until the server takes it, down to one point; the
+  smaller size is kept for the rest of the run (``batch_limit`` in
+  :meth:`Forwarder.health`). A single point the server still refuses as too large
+  is dropped, logged at ERROR and counted in ``too_large`` (and ``rejected``), and
+  the batch size goes back to the last one the server took.
+- Every other failure (5xx, 401/403/404, timeouts, refused connections) keeps the
+  batch and retries after the back-off. Each distinct cause of an outage (its HTTP
+  status, or the kind of connection error) is logged once at WARNING with its
+  status code; the outage's end is logged once at INFO.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import datetime
+import email.utils
 import logging
 import re
 import time
@@ -61,11 +80,36 @@ from gateway.timeseries import Point
 log = logging.getLogger(__name__)
 
 REJECTED_STATUS = {400, 422}  # the request itself is wrong: retrying cannot help
+TOO_LARGE_STATUS = 413  # the request body is over the server's (or a proxy's) limit
 MAX_TIME_NS = 9_223_372_036_854_775_806  # the largest time InfluxDB stores
+MAX_RETRY_AFTER_S = 3600.0  # a longer Retry-After is taken as this (a wrong clock, a typo)
 
 
 class WriteError(RuntimeError):
-    """A write did not reach InfluxDB (server down, timeout, 5xx, auth): retry later."""
+    """A write did not reach InfluxDB (server down, timeout, 5xx, auth): retry later.
+
+    ``status`` is the HTTP status when the server answered (None: no answer);
+    ``retry_after_s`` the wait its ``Retry-After`` header asked for, if any.
+    """
+
+    def __init__(
+        self, message: str, status: int | None = None, retry_after_s: float | None = None
+    ) -> None:
+        super().__init__(message)
+        self.status = status
+        self.retry_after_s = retry_after_s
+
+    @property
+    def cause(self) -> str:
+        """What went wrong, for logging each distinct cause once: "HTTP 429", "timeout"."""
+        if self.status is not None:
+            return f"HTTP {self.status}"
+        origin = self.__cause__
+        return type(origin).__name__ if origin is not None else "unreachable"
+
+
+class WriteTooLargeError(WriteError):
+    """InfluxDB (or a proxy in front) refused the request body as too large (HTTP 413)."""
 
 
 class WriteRejectedError(WriteError):
@@ -75,8 +119,8 @@ class WriteRejectedError(WriteError):
     (a partial write: it stored the others); ``None`` when it does not.
     """
 
-    def __init__(self, message: str, dropped: int | None = None) -> None:
-        super().__init__(message)
+    def __init__(self, message: str, status: int, dropped: int | None = None) -> None:
+        super().__init__(message, status)
         self.dropped = dropped
 
 
@@ -94,6 +138,41 @@ def _describe(exc: BaseException) -> str:
         reason = exc.headers.get("X-Influxdb-Error") if exc.headers else None
         return f"HTTP {exc.status}: {reason or exc.reason or exc.body}"
     return f"{type(exc).__name__}: {exc}"
+
+
+def retry_after_s(value: str | None, now_s: float | None = None) -> float | None:
+    """The wait a ``Retry-After`` header asks for, s: delay-seconds or an HTTP date.
+
+    None when absent or unreadable; never negative; at most ``MAX_RETRY_AFTER_S``.
+    """
+    if value is None or not value.strip():
+        return None
+    text = value.strip()
+    try:
+        seconds = float(text)
+    except ValueError:
+        try:
+            moment = email.utils.parsedate_to_datetime(text)
+        except (TypeError, ValueError):
+            return None
+        if moment.tzinfo is None:
+            moment = moment.replace(tzinfo=datetime.UTC)
+        seconds = moment.timestamp() - (time.time() if now_s is None else now_s)
+    if seconds != seconds:  # NaN
+        return None
+    return min(max(seconds, 0.0), MAX_RETRY_AFTER_S)
+
+
+def _api_error(exc: ApiException, url: str, count: int) -> WriteError:
+    """The WriteError (or subclass) an HTTP error answer stands for."""
+    message = f"InfluxDB {url} refused {count} point(s): {_describe(exc)}"
+    if exc.status in REJECTED_STATUS:
+        found = re.search(r"dropped=(\d+)", message)
+        return WriteRejectedError(message, exc.status, int(found.group(1)) if found else None)
+    if exc.status == TOO_LARGE_STATUS:
+        return WriteTooLargeError(message, exc.status)
+    wait_s = retry_after_s(exc.headers.get("Retry-After") if exc.headers else None)
+    return WriteError(message, exc.status, wait_s)
 
 
 class InfluxWriter:
@@ -122,12 +201,7 @@ class InfluxWriter:
                 bucket=self.bucket, org=self.org, record=records, write_precision=WritePrecision.NS
             )
         except ApiException as exc:
-            message = f"InfluxDB {self.url} refused {len(points)} point(s): {_describe(exc)}"
-            if exc.status in REJECTED_STATUS:
-                found = re.search(r"dropped=(\d+)", message)
-                dropped = int(found.group(1)) if found else None
-                raise WriteRejectedError(message, dropped) from exc
-            raise WriteError(message) from exc
+            raise _api_error(exc, self.url, len(points)) from exc
         except Exception as exc:  # urllib3 connection errors, timeouts, …
             raise WriteError(
                 f"InfluxDB {self.url} unreachable ({len(points)} point(s)): {_describe(exc)}"
@@ -232,7 +306,7 @@ class Forwarder:
         buffer: the store-and-forward buffer.
         writer: anything with ``async write(points)`` that raises on failure
             (:class:`InfluxWriter`); :class:`WriteRejectedError` drops the batch.
-        batch: the most points per write.
+        batch: the most points per write (halved on HTTP 413, see ``batch_limit``).
         retry_s: the first wait after a failure; doubled per failure up to
             ``max_retry_s`` (each shortened by up to 20 % jitter); back to
             ``retry_s`` after a success. The cap is also the longest the
@@ -258,9 +332,18 @@ class Forwarder:
         self.max_retry_s = max_retry_s
         self.backoff = Backoff(initial_s=retry_s, max_s=max_retry_s)
         self.idle_s = idle_s
+        self.batch_limit = batch  # halved on HTTP 413 (and kept): the most points per write
         self.sent = 0
-        self.rejected = 0
+        self.rejected = 0  # points InfluxDB refused and that were dropped (invalid or too large)
+        self.too_large = 0  # of those, single points refused as too large (HTTP 413)
         self.failures = 0
+        self.last_retry_delay_s: float | None = None
+        self._causes: set[str] = set()  # the causes of this outage already logged
+        # HTTP 413: batch_limit becomes "stable" after two acknowledged writes in a row at
+        # that limit; a lone oversized point's binary search ends back at the stable one.
+        self._stable_limit = batch
+        self._last_ok_limit: int | None = None  # limit of the last write, if acknowledged
+        self._told_too_large = False  # the first 413 is logged at WARNING, the rest at DEBUG
         self.last_error: str | None = None
         self.last_error_time: float | None = None
         self.last_success_time: float | None = None
@@ -310,6 +393,8 @@ class Forwarder:
             "buffered": len(self.buffer),
             "dropped": self.buffer.dropped,
             "rejected": self.rejected,
+            "too_large": self.too_large,
+            "batch_limit": self.batch_limit,
             "sent": self.sent,
             "failures": self.failures,
             "last_error": self.last_error,
@@ -322,39 +407,94 @@ class Forwarder:
     async def run(self) -> None:
         """Forward until cancelled (``start`` runs this under a supervisor)."""
         while True:
-            batch = self.buffer.peek(self.batch)
+            batch = self.buffer.peek(self.batch_limit)
             if not batch:
                 await self._idle(self.idle_s)
                 continue
-            points = [point for _, point in batch]
             try:
-                await self.writer.write(points)
+                await self.writer.write([point for _, point in batch])
             except WriteRejectedError as exc:
-                self.rejected += len(points) if exc.dropped is None else exc.dropped
-                self._record_error(exc)
-                log.error("dropping %d point(s) InfluxDB refused: %s", len(points), exc)
-                self.buffer.remove_through(batch[-1][0])
-                continue
+                self._refused(batch, exc)
+            except WriteTooLargeError as exc:
+                self._too_large(batch, exc)
             except Exception as exc:
-                self.failures += 1
-                self._record_error(exc)
-                if not self._down:
-                    log.warning(
-                        "InfluxDB write failed, keeping %d point(s) buffered, retrying: %s",
-                        len(self.buffer),
-                        exc,
-                    )
-                self._down = True
-                # not cut short by wake(): the back-off holds
-                await asyncio.sleep(self.backoff.failed(time.monotonic()))
-                continue
-            self.buffer.remove_through(batch[-1][0])
-            self.sent += len(points)
-            self.last_success_time = time.time()
-            self.backoff.reset()
-            if self._down:
-                log.info("InfluxDB writes succeed again; %d point(s) buffered", len(self.buffer))
-                self._down = False
+                await self._failed(exc)
+            else:
+                self._acknowledged(batch)
+
+    def _acknowledged(self, batch: list[tuple[int, Point]]) -> None:
+        self.buffer.remove_through(batch[-1][0])
+        self.sent += len(batch)
+        self.last_success_time = time.time()
+        self.backoff.reset()
+        self._settle(self.batch_limit)
+        if self._down:
+            log.info("InfluxDB writes succeed again; %d point(s) buffered", len(self.buffer))
+            self._down = False
+            self._causes.clear()
+
+    def _settle(self, limit: int) -> None:
+        """Two acknowledged writes in a row at ``limit``: the server takes that size."""
+        if self._last_ok_limit == limit and self._stable_limit != limit:
+            log.info("InfluxDB takes batches of %d point(s); keeping that size", limit)
+            self._stable_limit = limit
+        self._last_ok_limit = limit
+
+    def _refused(self, batch: list[tuple[int, Point]], exc: WriteRejectedError) -> None:
+        """Invalid points (HTTP 400/422): drop the batch, it would fail for ever."""
+        self.rejected += len(batch) if exc.dropped is None else exc.dropped
+        self._record_error(exc)
+        log.error("dropping %d point(s) InfluxDB refused: %s", len(batch), exc)
+        self.buffer.remove_through(batch[-1][0])
+
+    def _too_large(self, batch: list[tuple[int, Point]], exc: WriteTooLargeError) -> None:
+        """HTTP 413: halve the batch at once; drop a single point that is still too large."""
+        self._record_error(exc)
+        self._last_ok_limit = None
+        if len(batch) > 1:
+            log.log(
+                logging.DEBUG if self._told_too_large else logging.WARNING,
+                "InfluxDB refused a batch of %d point(s) as too large (%s); halving it",
+                len(batch),
+                exc,
+            )
+            self._told_too_large = True
+            self.batch_limit = max(1, len(batch) // 2)
+            return
+        _, point = batch[0]
+        self.too_large += 1
+        self.rejected += 1
+        self.batch_limit = self._stable_limit  # the points behind it fit as before
+        log.error(
+            "dropping one %s point (machine %s, time %d ns) InfluxDB refuses as too large "
+            "even alone: %s",
+            point.measurement,
+            point.tags.get("machine", "?"),
+            point.time_ns,
+            exc,
+        )
+        self.buffer.remove_through(batch[-1][0])
+
+    async def _failed(self, exc: Exception) -> None:
+        """Keep the batch; wait the back-off, or the server's Retry-After when longer."""
+        self.failures += 1
+        self._record_error(exc)
+        cause = exc.cause if isinstance(exc, WriteError) else type(exc).__name__
+        if cause not in self._causes:  # each distinct cause of an outage, once
+            self._causes.add(cause)
+            log.warning(
+                "InfluxDB write failed (%s), keeping %d point(s) buffered, retrying: %s",
+                cause,
+                len(self.buffer),
+                exc,
+            )
+        self._down = True
+        delay_s = self.backoff.failed(time.monotonic())
+        asked_s = exc.retry_after_s if isinstance(exc, WriteError) else None
+        if asked_s is not None and asked_s > delay_s:
+            delay_s = asked_s
+        self.last_retry_delay_s = delay_s
+        await asyncio.sleep(delay_s)  # not cut short by wake(): the back-off holds
 
     def _record_error(self, exc: BaseException) -> None:
         self.last_error = str(exc)

@@ -96,7 +96,7 @@ bind-address = "127.0.0.1:{rpc_port}"
 class InfluxServer:
     """One influxd process with its own data folder; ``stop``/``start`` keep the data."""
 
-    def __init__(self, root: Path, start_timeout_s: float = 30.0) -> None:
+    def __init__(self, root: Path, start_timeout_s: float = 120.0) -> None:
         if not INFLUXD.is_file():
             raise RuntimeError(
                 f"the InfluxDB 1.8.10 server binary {INFLUXD} is missing; build it from the "

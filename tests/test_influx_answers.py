@@ -1,0 +1,151 @@
+"""The forwarder reads InfluxDB's answers: 429/503 Retry-After, 413 too large, 500.
+
+A reverse proxy (tests/influx_proxy.py) stands in front of the real InfluxDB and
+answers some writes itself; the rest reach the server, and what the test reads
+back is what the server stored.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import email.utils
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from gateway.influx_writer import Forwarder, retry_after_s
+from gateway.point_buffer import PointBuffer
+from gateway.timeseries import CYCLE_MEASUREMENT, Point, points_from_record
+from tests.influx_proxy import AnsweringProxy
+from tests.influx_server import InfluxServer
+from tests.test_influx import RecordingWriter, assert_stored_exactly
+from tests.test_timeseries import EPOCH_S, make_records
+
+WRITER_LOG = "gateway.influx_writer"
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[InfluxServer]:
+    with InfluxServer(tmp_path_factory.mktemp("influxdb")) as influx:
+        yield influx
+
+
+def cycle_points(count: int) -> list[Point]:
+    return [p for r in make_records("vmc-1", count) for p in points_from_record(r, EPOCH_S)]
+
+
+def warnings_naming(caplog: pytest.LogCaptureFixture, text: str) -> list[str]:
+    return [
+        r.getMessage()
+        for r in caplog.records
+        if r.name == WRITER_LOG and r.levelno == logging.WARNING and text in r.getMessage()
+    ]
+
+
+def test_retry_after_is_honoured_and_each_cause_is_logged_once(
+    server: InfluxServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    bucket = server.create_database("answers_retry")
+    points = cycle_points(100)
+
+    async def scenario() -> tuple[AnsweringProxy, dict, RecordingWriter]:
+        async with AnsweringProxy(server.url) as proxy:
+            proxy.script = [(500, {}), (500, {}), (429, {"Retry-After": "2"}), (503, {})]
+            proxy.script += [(500, {})]
+            buffer = PointBuffer(tmp_path / "buffer.sqlite")
+            writer = RecordingWriter(proxy.url, server.token, server.org, bucket, timeout_s=5.0)
+            forwarder = Forwarder(buffer, writer, retry_s=0.1, max_retry_s=0.5, idle_s=0.05)
+            buffer.append(points)
+            forwarder.start()
+            assert await forwarder.flush(timeout=20)
+            health = forwarder.health()
+            await forwarder.stop()
+            writer.close()
+            buffer.close()
+            return proxy, health, writer
+
+    with caplog.at_level(logging.INFO, logger=WRITER_LOG):
+        proxy, health, writer = asyncio.run(scenario())
+
+    assert proxy.statuses() == [500, 500, 429, 503, 500, 204]
+    gaps_s = [b.time_s - a.time_s for a, b in zip(proxy.writes, proxy.writes[1:], strict=False)]
+    print(f"gaps between attempts: {[round(g, 2) for g in gaps_s]} s")
+    assert gaps_s[2] >= 2.0, "Retry-After: 2 waited for"  # the back-off alone: ≤ 0.4 s
+    assert gaps_s[2] < 3.5
+    assert all(g < 1.5 for i, g in enumerate(gaps_s) if i != 2)  # no Retry-After: back-off
+    assert health["failures"] == 5 and health["sent"] == len(points)
+    assert health["connected"] and "HTTP 500" in health["last_error"]
+    # each distinct cause once, with its status code; the second 500 is not logged again
+    assert len(warnings_naming(caplog, "HTTP 500")) == 1
+    assert len(warnings_naming(caplog, "HTTP 429")) == 1
+    assert len(warnings_naming(caplog, "HTTP 503")) == 1
+    assert writer.sent() == points
+    assert_stored_exactly(server, bucket, points)
+
+
+def test_too_large_halves_the_batch_drops_a_lone_oversized_point_and_loses_nothing(
+    server: InfluxServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    bucket = server.create_database("answers_413")
+    points = cycle_points(600)  # ~3000 points, ~320 kB of line protocol
+    cycle = next(p for p in points[1000:] if p.measurement == CYCLE_MEASUREMENT)
+    huge = dataclasses.replace(
+        cycle, fields={"write_status": "x" * 30_000}, time_ns=cycle.time_ns + 1
+    )
+    limit_bytes = 20_000
+
+    async def scenario() -> tuple[AnsweringProxy, dict, RecordingWriter]:
+        async with AnsweringProxy(server.url, max_body_bytes=limit_bytes) as proxy:
+            buffer = PointBuffer(tmp_path / "buffer.sqlite")
+            writer = RecordingWriter(proxy.url, server.token, server.org, bucket, timeout_s=5.0)
+            forwarder = Forwarder(buffer, writer, batch=5000, retry_s=0.1, max_retry_s=0.5)
+            buffer.append(points[:1000])
+            buffer.append([huge])
+            buffer.append(points[1000:])
+            forwarder.start()
+            assert await forwarder.flush(timeout=30)  # today's code resends the batch for ever
+            health = forwarder.health()
+            await forwarder.stop()
+            writer.close()
+            buffer.close()
+            return proxy, health, writer
+
+    with caplog.at_level(logging.INFO, logger=WRITER_LOG):
+        proxy, health, writer = asyncio.run(scenario())
+
+    refused = [w for w in proxy.writes if w.status == 413]
+    taken = [w for w in proxy.writes if w.status == 204]
+    print(
+        f"413: {len(refused)} answers; {len(taken)} writes of ≤ {max(w.lines for w in taken)} "
+        f"points; batch_limit {health['batch_limit']}; {len(proxy.writes)} requests in all"
+    )
+    assert all(w.body_bytes <= limit_bytes for w in taken)
+    assert health["too_large"] == 1 and health["rejected"] == 1
+    assert health["buffered"] == 0 and health["sent"] == len(points)
+    # halved until ~20 kB fit, and back to that size after the lone point was dropped
+    assert 1 < health["batch_limit"] <= 5000 // 2**5
+    assert max(w.lines for w in taken) == health["batch_limit"]
+    # 5000 → ~150 takes 5 halvings; the lone point's search from there 8 more (and a
+    # few where the halved batch still held it)
+    assert len(refused) <= 2 * 13
+    assert len(warnings_naming(caplog, "HTTP 413")) == 1
+    dropped = [r for r in caplog.records if r.levelno == logging.ERROR and "too large" in r.msg]
+    assert len(dropped) == 1 and "HTTP 413" in dropped[0].getMessage()
+    assert writer.sent() == points  # in order, each once, without the oversized point
+    assert_stored_exactly(server, bucket, points)
+
+
+def test_retry_after_header_forms() -> None:
+    now_s = 1_767_225_600.0
+    assert retry_after_s("10") == 10.0
+    assert retry_after_s(" 2.5 ") == 2.5
+    assert retry_after_s(email.utils.formatdate(now_s + 30, usegmt=True), now_s) == 30.0
+    assert retry_after_s(email.utils.formatdate(now_s - 30, usegmt=True), now_s) == 0.0
+    assert retry_after_s("-5") == 0.0
+    assert retry_after_s("999999") == 3600.0
+    assert retry_after_s(None) is None
+    assert retry_after_s("soon") is None
+    assert retry_after_s("nan") is None

@@ -79,10 +79,13 @@ def assert_every_cycle_once_in_order(host: TahuHost, records: list[CycleRecord])
 
 
 def assert_on_time(records: list[CycleRecord]) -> None:
+    """Every cycle ran: as many as the run's length allows (5 % for a loaded 2-core host),
+    and no stall longer than a few cycles."""
     for machine in MACHINES:
         times = [r.time_s for r in records if r.machine == machine]
         steps = [b - a for a, b in itertools.pairwise(times)]
-        assert max(steps) < 2.5 * CYCLE_S, (machine, max(steps))
+        assert max(steps) < 4 * CYCLE_S, (machine, max(steps))
+        assert len(times) >= 0.95 * ((times[-1] - times[0]) / CYCLE_S + 1), (machine, len(times))
 
 
 class Run:

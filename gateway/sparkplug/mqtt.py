@@ -113,10 +113,10 @@ class MqttLink:
         try:
             await asyncio.wait_for(asyncio.shield(self._connected), CONNECT_TIMEOUT_S)
         except TimeoutError:
-            self.close()
+            await asyncio.to_thread(self.close)
             raise ConnectionError(f"{self.url} did not answer the connect") from None
         except ConnectionError:
-            self.close()
+            await asyncio.to_thread(self.close)
             raise
 
     async def subscribe(self, topic_filters: Sequence[str]) -> None:

@@ -160,8 +160,8 @@ class EdgeNode:
         finally:
             if stop.is_set() and link.connected:
                 await self._say_goodbye(link)
-            link.close()
             self.link = None
+            await asyncio.to_thread(link.close)  # joins paho's thread: not on the loop
             self.born = False
 
     async def _serve(self, link: MqttLink, stop: asyncio.Event) -> None:

@@ -3,7 +3,7 @@
 #   socat  (a serial pty pair for Modbus RTU without hardware)
 #   mbpoll (an independent libmodbus-based Modbus master)
 #   node-opcua (an independent OPC UA client, pinned in tests/node/package-lock.json)
-#   influxd 1.8.10 (a real time-series server; built once with Go into .cache/bin)
+#   influxd 2.7.12 (a real time-series server; built once with Go and Rust into .cache/bin)
 #   podman, runc, mmdebstrap (the gateway image is built and run: tests/test_container.py),
 #   and the image's base and locked dependencies (scripts/build-image.sh --prepare)
 set -euo pipefail
@@ -13,6 +13,8 @@ missing=()
 for tool in socat mbpoll; do
     command -v "$tool" >/dev/null 2>&1 || missing+=("$tool")
 done
+# Mosquitto 2 and its clients: the broker the Sparkplug B tests start themselves.
+command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || missing+=(mosquitto mosquitto-clients)
 # Headless Chromium and its WebDriver for the web console's browser tests.
 command -v chromium >/dev/null 2>&1 || missing+=(chromium)
 command -v chromedriver >/dev/null 2>&1 || missing+=(chromium-driver)
@@ -39,17 +41,17 @@ if [ -f tests/node/package-lock.json ]; then
     fi
 fi
 
-# InfluxDB 1.8.10 serves the v2 write API and Flux queries influxdb-client uses;
-# Debian's influxdb (1.6) does not. Built from source with Go, cached (git-ignored).
-INFLUXD=.cache/bin/influxd
-if [ ! -x "$INFLUXD" ]; then
-    command -v go >/dev/null || export PATH="$PATH:/usr/local/go/bin"
-    command -v go >/dev/null || { echo "Go is needed to build influxd 1.8.10 for the tests"; exit 1; }
-    echo "building influxd 1.8.10 into .cache/bin (a few minutes, once)"
-    mkdir -p .cache/bin
-    GOBIN="$PWD/.cache/bin" go install -trimpath \
-        -ldflags "-s -w -X main.version=1.8.10" \
-        github.com/influxdata/influxdb/cmd/influxd@v1.8.10
+# InfluxDB 2.7.12, the version deploy/docker-compose.yml ships, as a real server for the
+# tests (tests/influx_server.py). Built from source with Go and Rust into .cache/bin
+# (git-ignored): about 12 minutes once on two cores, then nothing.
+if [ ! -x .cache/bin/influxd2 ]; then
+    mkdir -p .cache
+    echo "building influxd 2.7.12 into .cache/bin (about 12 minutes, once; log: .cache/influxd2-build.log)"
+    bash scripts/build-influxd2.sh >.cache/influxd2-build.log 2>&1 || {
+        tail -n 40 .cache/influxd2-build.log
+        echo "building influxd 2.7.12 failed; the whole log: .cache/influxd2-build.log"
+        exit 1
+    }
 fi
 
 # The image's base (a Debian root filesystem, once per machine) and its locked

@@ -37,7 +37,7 @@ lint: $(STAMP)
 # The residual analysis reports of the bundled real data (HTML and plots, git-ignored).
 reports: $(STAMP)
 	for ch in ch1 ch3 ch5; do \
-		$(PY) -m gateway analyze data/fl_thermal.csv --target $${ch}_um --no-progress \
+		$(PY) -m gateway analyze data/fl_thermal.csv --model mlr --target $${ch}_um --no-progress \
 			--report docs/analysis/fl_thermal_$$ch || exit 1; \
 	done
 

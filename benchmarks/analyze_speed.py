@@ -54,6 +54,8 @@ def analyze_seconds(path: Path, target: str, repeat: int, out: Path) -> tuple[fl
                 "gateway",
                 "analyze",
                 str(path),
+                "--model",
+                "mlr",
                 "--target",
                 target,
                 "--json",

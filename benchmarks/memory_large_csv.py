@@ -121,7 +121,15 @@ def main() -> None:
         generated_s = time.perf_counter() - start
         runs = {
             "fit": ["fit", data, "--method", "mlr", "--store", folder / "store", "--no-progress"],
-            "analyze": ["analyze", data, "--json", folder / "analyze.json", "--no-progress"],
+            "analyze": [
+                "analyze",
+                data,
+                "--model",
+                "mlr",
+                "--json",
+                folder / "analyze.json",
+                "--no-progress",
+            ],
         }
         results = {name: measure([str(a) for a in runs[name]], folder, name) for name in commands}
         size_mb = data.stat().st_size / 1e6

@@ -46,7 +46,8 @@ def main() -> None:
         programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
         write_recording(data, record(load_params(), programs, ["thermal_lag"], seed=2))
         analysis = folder / "analysis"
-        command = [sys.executable, "-m", "gateway", "analyze", str(data), "--store", str(analysis)]
+        command = [sys.executable, "-m", "gateway", "analyze", str(data), "--model", "mlr"]
+        command += ["--store", str(analysis)]
         subprocess.run(command, cwd=ROOT, check=True, capture_output=True)
         (path,) = (analysis / augmented.FOLDER).glob("*.json")
         document = augmented.load(path)

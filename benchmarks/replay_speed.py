@@ -31,6 +31,7 @@ def main() -> None:
         for channel in CHANNELS:
             out = Path(folder) / f"{channel}.json"
             command = [sys.executable, "-m", "gateway", "replay", "data/fl_thermal.csv"]
+            command += ["--model", "mlr", "--base", "lagged"]
             command += ["--target", channel, "--json", str(out)]
             for interval in INTERVALS_MIN:
                 command += ["--probe-interval-min", interval]

@@ -25,6 +25,8 @@ import click
 from gateway import __version__
 from models.catalogue import (
     DEFAULT_MAX_BIAS_ERROR_UM,
+    DEFAULT_METHOD,
+    DEFAULT_REPLAY_BASE,
     DEFAULT_SENSOR_ACCURACY_C,
     METHOD_NAMES,
     POLICIES,
@@ -117,7 +119,13 @@ def main() -> None:
 
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@click.option("--method", type=click.Choice(METHOD_NAMES), default="mlr", show_default=True)
+@click.option(
+    "--method",
+    type=click.Choice(METHOD_NAMES),
+    default=DEFAULT_METHOD,
+    show_default=True,
+    help="The fitting method; the papers' methods (mlr, grey-mlr, pca-quadratic) by name.",
+)
 @click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
 @click.option("--sensors", help="Declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
 @click.option("--per-run", is_flag=True, help="One model per run, cross-evaluated on every run.")
@@ -671,7 +679,7 @@ def export(
     "--model",
     "method",
     type=click.Choice((*METHOD_NAMES, "auto")),
-    default="mlr",
+    default=DEFAULT_METHOD,
     show_default=True,
     help="The declared model whose residual is analysed; auto: every one, keeping the one "
     "whose analysis leaves the lowest held-out RMSE (that figure is then optimistic by the "
@@ -822,7 +830,7 @@ def analyze(
     "--model",
     "method",
     type=click.Choice(METHOD_NAMES),
-    default="mlr",
+    default=DEFAULT_METHOD,
     show_default=True,
     help="The declared model (its sensors feed the base).",
 )
@@ -830,7 +838,7 @@ def analyze(
 @click.option(
     "--base",
     type=click.Choice(["lagged", "declared"]),
-    default="lagged",
+    default=DEFAULT_REPLAY_BASE,
     show_default=True,
     help="lagged: the model's sensors plus first-order lags, ridge, fitted for online use; "
     "declared: the model as fit fits it.",

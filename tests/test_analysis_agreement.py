@@ -225,7 +225,16 @@ def assert_agree(stdout: str, page: Page, payload: dict) -> None:
 def run_analyze(tmp_path: Path, data: Path, *options: str) -> tuple[str, Page, dict]:
     out, report = tmp_path / "out.json", tmp_path / "report"
     done = gateway_in_process(
-        "analyze", data, "--json", out, "--report", report, "--no-progress", *options
+        "analyze",
+        data,
+        "--model",
+        "mlr",
+        "--json",
+        out,
+        "--report",
+        report,
+        "--no-progress",
+        *options,
     )
     assert done.returncode == 0, done.stderr
     return done.stdout, parse_page(report / "index.html"), json.loads(out.read_text("utf-8"))

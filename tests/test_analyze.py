@@ -114,7 +114,9 @@ def test_single_run_falls_back_to_a_blocked_split(tmp_path: Path) -> None:
 def test_cli_contract_report_and_stored_model(tmp_path: Path) -> None:
     data = simulated(tmp_path, "drift", 4)
     out, report, store = tmp_path / "out.json", tmp_path / "report", tmp_path / "store"
-    done = gateway("analyze", data, "--json", out, "--report", report, "--store", store)
+    done = gateway(
+        "analyze", data, "--model", "mlr", "--json", out, "--report", report, "--store", store
+    )
     assert done.returncode == 0, done.stderr
     payload = json.loads(out.read_text(encoding="utf-8"))
     assert payload["model"] == "mlr"
@@ -146,7 +148,9 @@ def test_cli_contract_report_and_stored_model(tmp_path: Path) -> None:
 
 def test_cli_none_keeps_after_equal_to_before(tmp_path: Path) -> None:
     out = tmp_path / "none.json"
-    done = gateway_in_process("analyze", simulated(tmp_path, "none", 3), "--json", out)
+    done = gateway_in_process(
+        "analyze", simulated(tmp_path, "none", 3), "--model", "mlr", "--json", out
+    )
     assert done.returncode == 0, done.stderr
     payload = json.loads(out.read_text(encoding="utf-8"))
     assert payload["effect"] == "none"

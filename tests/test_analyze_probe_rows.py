@@ -44,7 +44,15 @@ def test_probe_rows_find_the_drift_like_the_monitor(history, tmp_path: Path):
     logged.write_csv(str(csv_path))
     out = tmp_path / "result.json"
     done = gateway_in_process(
-        "analyze", csv_path, "--probe-rows", "--json", out, "--store", tmp_path / "s"
+        "analyze",
+        csv_path,
+        "--model",
+        "mlr",
+        "--probe-rows",
+        "--json",
+        out,
+        "--store",
+        tmp_path / "s",
     )
     assert done.returncode == 0, done.stderr
     assert f"({probes} with error_um)" in done.stdout
@@ -63,7 +71,7 @@ def test_without_the_option_the_rows_between_probes_are_skipped(history, tmp_pat
     _, logged = history
     csv_path = tmp_path / "history.csv"
     logged.write_csv(str(csv_path))
-    done = gateway_in_process("analyze", csv_path)
+    done = gateway_in_process("analyze", csv_path, "--model", "mlr")
     skipped = logged.n_samples - int(logged.probe_rows.sum())
     assert f"skipped {skipped} row(s)" in done.stdout + done.stderr
 

@@ -67,7 +67,9 @@ def test_a_utf8_byte_order_mark_is_accepted(tmp_path: Path) -> None:
     for path in (plain, marked):
         out = tmp_path / f"{path.stem}.json"
         store = tmp_path / f"store-{path.stem}"
-        result = gateway_in_process("fit", path, "--store", store, "--json", out, "--no-progress")
+        result = gateway_in_process(
+            "fit", path, "--method", "mlr", "--store", store, "--json", out, "--no-progress"
+        )
         assert result.returncode == 0, result.stderr
         results[path.stem] = json.loads(out.read_text(encoding="utf-8"))["validations"]
     assert results["marked"] == results["plain"]
@@ -82,7 +84,15 @@ def test_a_bad_cell_in_a_column_the_command_does_not_need_is_noted_not_fatal(
     path = tmp_path / "runs.csv"
     path.write_text(source, encoding="utf-8")
     result = gateway_in_process(
-        "fit", path, "--sensors", "T2", "--store", tmp_path / "s", "--no-progress"
+        "fit",
+        path,
+        "--method",
+        "mlr",
+        "--sensors",
+        "T2",
+        "--store",
+        tmp_path / "s",
+        "--no-progress",
     )
     assert result.returncode == 0, result.stderr
     assert (
@@ -160,7 +170,12 @@ def test_no_stored_model_has_a_non_finite_number(tmp_path: Path) -> None:
     """Whatever fit saves passes a strict JSON parser (no NaN, Infinity)."""
     path = write_runs_csv(tmp_path / "runs.csv", seed=6)
     store = tmp_path / "store"
-    assert gateway_in_process("fit", path, "--store", store, "--no-progress").returncode == 0
+    assert (
+        gateway_in_process(
+            "fit", path, "--method", "mlr", "--store", store, "--no-progress"
+        ).returncode
+        == 0
+    )
     files = list(store.glob("*.json"))
     assert files
 

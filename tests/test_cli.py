@@ -88,7 +88,7 @@ def test_fit_per_run_prints_the_sigma_matrix(tmp_path: Path) -> None:
     data = write_runs_csv(tmp_path / "runs.csv")
     out = tmp_path / "fit.json"
     result = gateway_in_process(
-        "fit", data, "--per-run", "--store", tmp_path / "store", "--json", out
+        "fit", data, "--method", "mlr", "--per-run", "--store", tmp_path / "store", "--json", out
     )
     assert result.returncode == 0, result.stderr
     report = json.loads(out.read_text())
@@ -107,7 +107,16 @@ def test_fit_by_regime_column_ranks_regimes(tmp_path: Path) -> None:
     data.write_text("\n".join(lines) + "\n")
     out = tmp_path / "fit.json"
     result = gateway_in_process(
-        "fit", data, "--regime-column", "regime", "--store", tmp_path / "s", "--json", out
+        "fit",
+        data,
+        "--method",
+        "mlr",
+        "--regime-column",
+        "regime",
+        "--store",
+        tmp_path / "s",
+        "--json",
+        out,
     )
     assert result.returncode == 0, result.stderr
     report = json.loads(out.read_text())
@@ -123,7 +132,9 @@ def test_fit_by_regime_column_ranks_regimes(tmp_path: Path) -> None:
 def test_fit_on_a_single_run_uses_a_blocked_split(tmp_path: Path) -> None:
     data = write_runs_csv(tmp_path / "runs.csv", n_runs=1)
     out = tmp_path / "fit.json"
-    result = gateway_in_process("fit", data, "--store", tmp_path / "store", "--json", out)
+    result = gateway_in_process(
+        "fit", data, "--method", "mlr", "--store", tmp_path / "store", "--json", out
+    )
     assert result.returncode == 0, result.stderr
     assert "leave-one-block-out" in json.loads(out.read_text())["validations"]["all"]["scheme"]
 

@@ -351,7 +351,7 @@ def augmented_store(
     data = folder / "hidden.csv"
     programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
     write_recording(data, record(load_params(), programs, ["thermal_lag", "speed_direct"], seed=2))
-    done = gateway_in_process("analyze", data, "--store", models)
+    done = gateway_in_process("analyze", data, "--model", "mlr", "--store", models)
     assert done.returncode == 0, done.stderr
     (path,) = (models / augmented.FOLDER).glob("*.json")
     return models, augmented.load(path)

@@ -20,7 +20,7 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A store with an MLR model on T1–T7 (the synthetic sensors)."""
     folder = tmp_path_factory.mktemp("store")
     data = write_runs_csv(folder / "runs.csv")
-    result = gateway_in_process("fit", data, "--store", folder / "models")
+    result = gateway_in_process("fit", data, "--method", "mlr", "--store", folder / "models")
     assert result.returncode == 0, result.stderr
     return folder / "models"
 

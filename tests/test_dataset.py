@@ -194,7 +194,7 @@ def test_fit_on_a_reversed_run_gives_the_model_of_the_forward_run(tmp_path: Path
     documents = []
     for path in (forward, reverse):
         store = tmp_path / f"store-{path.stem}"
-        result = gateway("fit", path, "--store", store, "--no-progress")
+        result = gateway("fit", path, "--method", "mlr", "--store", store, "--no-progress")
         assert result.returncode == 0, result.stderr
         notes = [line for line in result.stderr.splitlines() if "turning in reverse" in line]
         assert len(notes) == (path == reverse), result.stderr

@@ -39,7 +39,7 @@ TOLERANCE_UM = 1e-6
 
 def analyzed(data: Path, store: Path, *options: str) -> dict[str, Any]:
     """``analyze --store`` as a user runs it; the augmented document it saved."""
-    done = gateway_in_process("analyze", data, *options, "--store", store)
+    done = gateway_in_process("analyze", data, "--model", "mlr", *options, "--store", store)
     assert done.returncode == 0, done.stderr
     (path,) = (store / augmented.FOLDER).glob("*.json")
     return augmented.load(path)

@@ -37,7 +37,9 @@ def two_target_csv(path: Path) -> Path:
 
 def fit(data: Path, store: Path, target: str) -> None:
     """The CLI's model on every sensor, then the library's sensor fallbacks, into one store."""
-    result = gateway_in_process("fit", data, "--store", store, "--target", target)
+    result = gateway_in_process(
+        "fit", data, "--method", "mlr", "--store", store, "--target", target
+    )
     assert result.returncode == 0, result.stderr
     fit_sensor_fallbacks(prepare(load_runs(data, target=target)), "mlr", ModelStore(store))
 

@@ -69,7 +69,7 @@ def lag_document(tmp_path_factory: pytest.TempPathFactory, models_dir: Path) -> 
     data = folder / "hidden.csv"
     programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
     write_recording(data, record(load_params(), programs, ["thermal_lag", "speed_direct"], seed=2))
-    done = gateway_in_process("analyze", data, "--store", folder / "store")
+    done = gateway_in_process("analyze", data, "--model", "mlr", "--store", folder / "store")
     assert done.returncode == 0, done.stderr
     (path,) = (folder / "store" / augmented.FOLDER).glob("*.json")
     document = augmented.load(path)

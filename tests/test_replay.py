@@ -35,6 +35,10 @@ def test_replay_fl_thermal_ch5_a_probe_every_hour(tmp_path):
     done = gateway(
         "replay",
         FL_THERMAL,
+        "--model",
+        "mlr",
+        "--base",
+        "lagged",
         "--target",
         "ch5_um",
         "--probe-interval-min",
@@ -71,8 +75,9 @@ def test_a_stored_bias_gain_filter_reaches_the_runtime(tmp_path):
     and the running gateway takes them with its own limits."""
     store = tmp_path / "store"
     done = gateway_in_process(
-        "replay", FL_THERMAL, "--target", "ch5_um", "--probe-interval-min", "60",
-        "--filter-kind", "bias-gain", "--store", store, "--json", tmp_path / "r.json",
+        "replay", FL_THERMAL, "--model", "mlr", "--base", "lagged", "--target", "ch5_um",
+        "--probe-interval-min", "60", "--filter-kind", "bias-gain", "--store", store,
+        "--json", tmp_path / "r.json",
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "filter bias-gain" in done.stdout
@@ -216,8 +221,9 @@ def assert_stored_model_runs_in_the_bank(store, result) -> None:
 def test_replay_an_analyze_result_refits_its_coefficients_per_held_out_run(tmp_path):
     store = tmp_path / "store"
     done = gateway_in_process(
-        "analyze", FL_THERMAL, "--target", "ch1_um", "--store", store, "--no-progress"
-    )
+        "analyze", FL_THERMAL, "--model", "mlr", "--target", "ch1_um", "--store", store,
+        "--no-progress",
+    )  # fmt: skip
     assert done.returncode == 0, done.stderr
     (model_file,) = (store / augmented.FOLDER).glob("*.json")
     out = tmp_path / "replay.json"

@@ -144,7 +144,9 @@ def test_run_compensates_the_served_machine_and_stops_on_sigterm(tmp_path: Path)
         data = load_runs(exported)
         assert data.n_samples >= 10  # one row per probe measurement (every 120 s)
         assert data.sensors == tuple(f"T{i}" for i in range(1, 10))
-        fitted = gateway_in_process("fit", exported, "--store", tmp_path / "refit")
+        fitted = gateway_in_process(
+            "fit", exported, "--method", "mlr", "--store", tmp_path / "refit"
+        )
         assert fitted.returncode == 0, fitted.stderr
         assert "pooled" in fitted.stdout
     finally:

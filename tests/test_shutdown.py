@@ -47,7 +47,7 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     data = folder / "hidden.csv"
     programs = [program_by_name(name) for name in DEFAULT_PROGRAMS]
     write_recording(data, record(load_params(), programs, ["thermal_lag", "speed_direct"], seed=2))
-    done = gateway_in_process("analyze", data, "--store", models)
+    done = gateway_in_process("analyze", data, "--model", "mlr", "--store", models)
     assert done.returncode == 0, done.stderr
     assert list((models / augmented.FOLDER).glob("*.json"))
     return models

@@ -507,6 +507,19 @@ class ModelsSection(Strict):
     max_bias_error_um: float = Field(default=DEFAULT_MAX_BIAS_ERROR_UM, gt=0, le=1000)
     #: promote a new proposal of the residual monitor without an operator (gateway.promotion)
     auto_promote: bool = False
+    #: HMAC key the store's models must be signed with (models.signing); outside the store
+    signing_key_file: Path | None = None
+
+    @model_validator(mode="after")
+    def _key_outside_the_store(self) -> ModelsSection:
+        key = self.signing_key_file
+        if key is not None and key.resolve().is_relative_to(self.store.resolve()):
+            raise KeyPathError(
+                ("signing_key_file",),
+                f"{key} is inside the model store {self.store}: keep the key where whoever "
+                "can write models cannot read it",
+            )
+        return self
 
 
 class MachineSection(Strict):

@@ -7,6 +7,13 @@ the configuration, ``promote`` first checks the model the way the machine will
 so a model the machine would refuse is refused here, with the reason. A running
 gateway takes every change within a cycle (it watches ``versions/current.json``).
 
+Every command first cleans up after a change killed mid-write (temporary files,
+a version file never put in force, proposal statuses behind the versions:
+:meth:`models.proposals.ModelVersions.recover`) and says what it did on stderr.
+With a signing key (``models.signing_key_file`` of the configuration, or the
+environment variable ``SPINDLE_MODEL_KEY_FILE``) ``promote`` refuses a model that
+is not signed with it.
+
 Like every command, heavy modules load inside the command (tests/test_cli_start.py).
 """
 
@@ -171,13 +178,22 @@ def _stores(
             raise ValueError("give --store or --config, not both")
         if not store_dir.is_dir():
             raise ValueError(f"model store {store_dir}: no such folder")
-        return [(store_dir, machine_id)]
+        return [(_recovered(store_dir), machine_id)]
     machines = _machines(config_path, machine_id)
     seen: dict[Path, str | None] = {}
     for machine in machines:
         # Two machines sharing a store: show all of its proposals.
         seen[machine.models.store] = machine.id if machine.models.store not in seen else None
-    return list(seen.items())
+    return [(_recovered(store), machine) for store, machine in seen.items()]
+
+
+def _recovered(store_dir: Path) -> Path:
+    """``store_dir``, cleaned up after a change killed mid-write (said on stderr)."""
+    from models.proposals import ModelVersions
+
+    for line in ModelVersions(store_dir).recover():
+        click.echo(f"{store_dir}: recovered: {line}", err=True)
+    return store_dir
 
 
 def _store_holding(
@@ -192,7 +208,7 @@ def _store_holding(
     machines = _machines(config_path, None)
     unknown = None
     for machine in machines:
-        store = ProposalStore(machine.models.store)
+        store = ProposalStore(_recovered(machine.models.store))
         try:
             proposal = store.get(proposal_id)
         except KeyError as exc:
@@ -211,8 +227,11 @@ def _store_holding(
 
 def _machines(config_path: Path | None, machine_id: str | None) -> list[Any]:
     from gateway.config import load_config
+    from models import signing
 
     config = load_config(config_path or Path("config.yaml"))
+    for machine in config.machines:
+        signing.configure(machine.models.store, machine.models.signing_key_file)
     machines = list(config.machines)
     if machine_id is not None:
         machines = [m for m in machines if m.id == machine_id]

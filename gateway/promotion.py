@@ -165,12 +165,18 @@ class Promotions:
         The running loop first cleans up after a change killed mid-write
         (:meth:`models.proposals.ModelVersions.recover`); a check writes nothing."""
         if self.running:
-            for line in self.store.versions.recover():
-                log.warning("%s: model store recovered: %s", self.machine.id, line)
+            self._recover()
         self._version_key = self.store.versions.pointer_key()
         outcome = self._apply(self.store.versions.current(), bank, at_start=True)
         self._refresh_proposals()
         return outcome
+
+    def _recover(self) -> None:
+        try:
+            for line in self.store.versions.recover():
+                log.warning("%s: model store recovered: %s", self.machine.id, line)
+        except OSError as exc:  # a read-only store: nothing can have been left half-written
+            log.warning("%s: model store not checked for leftovers: %s", self.machine.id, exc)
 
     # -- every cycle ------------------------------------------------------------------------
     def poll(self, bank: ModelBank) -> SwapOutcome | None:

@@ -33,7 +33,7 @@ from __future__ import annotations
 import csv
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -94,69 +94,18 @@ def read_sigma_csv(path: str | Path) -> list[SigmaRow]:
     """
     path = Path(path)
     rows: list[SigmaRow] = []
-    model_regime_seen: dict[str, tuple[str, int]] = {}
-    data_regime_seen: dict[str, tuple[str, int]] = {}
-    pair_seen: dict[tuple[str, str], int] = {}
-
+    seen = _Seen()
+    header: list[str] | None = None
+    header_line = 1
     with path.open(newline="", encoding="utf-8-sig") as fh:
         reader = csv.reader(fh)
-        header: list[str] | None = None
         for record in reader:
-            line = reader.line_num
-            if header is None:
-                if not record or all(not f.strip() for f in record):
-                    continue  # leading blank lines before the header
-                header = [f.strip() for f in record]
-                header_line = line
-                for col in COLUMNS:
-                    if col not in header:
-                        raise SigmaFileError(
-                            path,
-                            line,
-                            f"expected a header with columns {', '.join(COLUMNS)}, "
-                            f"found {','.join(header)!r}",
-                            column=col,
-                        )
-                index = {col: header.index(col) for col in COLUMNS}
-                continue
             if not record or all(not f.strip() for f in record):
+                continue  # blank lines, before the header too
+            if header is None:
+                header, header_line = _read_header(path, reader.line_num, record), reader.line_num
                 continue
-            if len(record) != len(header):
-                raise SigmaFileError(
-                    path,
-                    line,
-                    f"expected {len(header)} fields as in the header, found {len(record)}",
-                )
-            values = {col: record[index[col]].strip() for col in COLUMNS}
-            for col in ("model", "model_regime", "data", "data_regime"):
-                if not values[col]:
-                    raise SigmaFileError(path, line, "expected a name, found an empty field", col)
-            sigma = _parse_sigma(path, line, values["sigma_um"])
-
-            model, data = values["model"], values["data"]
-            _check_same(
-                path,
-                line,
-                "model_regime",
-                "model",
-                model,
-                values["model_regime"],
-                model_regime_seen,
-            )
-            _check_same(
-                path, line, "data_regime", "run", data, values["data_regime"], data_regime_seen
-            )
-            if (model, data) in pair_seen:
-                raise SigmaFileError(
-                    path,
-                    line,
-                    f"expected one σ per (model, data) pair, found ({model}, {data}) again "
-                    f"(first on line {pair_seen[(model, data)]})",
-                    column="data",
-                )
-            pair_seen[(model, data)] = line
-            rows.append(SigmaRow(model, values["model_regime"], data, values["data_regime"], sigma))
-
+            rows.append(_read_row(path, reader.line_num, header, record, seen))
     if header is None:
         raise SigmaFileError(
             path, 1, f"expected a header with columns {', '.join(COLUMNS)}, found an empty file"
@@ -166,6 +115,56 @@ def read_sigma_csv(path: str | Path) -> list[SigmaRow]:
             path, header_line, "expected at least one data row after the header, found none"
         )
     return rows
+
+
+@dataclass
+class _Seen:
+    """Where each model's regime, each run's regime and each (model, data) pair came first."""
+
+    model_regime: dict[str, tuple[str, int]] = field(default_factory=dict)
+    data_regime: dict[str, tuple[str, int]] = field(default_factory=dict)
+    pair: dict[tuple[str, str], int] = field(default_factory=dict)
+
+
+def _read_header(path: Path, line: int, record: list[str]) -> list[str]:
+    header = [f.strip() for f in record]
+    for col in COLUMNS:
+        if col not in header:
+            raise SigmaFileError(
+                path,
+                line,
+                f"expected a header with columns {', '.join(COLUMNS)}, found {','.join(header)!r}",
+                column=col,
+            )
+    return header
+
+
+def _read_row(path: Path, line: int, header: list[str], record: list[str], seen: _Seen) -> SigmaRow:
+    """One data row, checked against the header and the rows before it."""
+    if len(record) != len(header):
+        raise SigmaFileError(
+            path, line, f"expected {len(header)} fields as in the header, found {len(record)}"
+        )
+    values = {col: record[header.index(col)].strip() for col in COLUMNS}
+    for col in ("model", "model_regime", "data", "data_regime"):
+        if not values[col]:
+            raise SigmaFileError(path, line, "expected a name, found an empty field", col)
+    sigma = _parse_sigma(path, line, values["sigma_um"])
+    model, data = values["model"], values["data"]
+    _check_same(
+        path, line, "model_regime", "model", model, values["model_regime"], seen.model_regime
+    )
+    _check_same(path, line, "data_regime", "run", data, values["data_regime"], seen.data_regime)
+    if (model, data) in seen.pair:
+        raise SigmaFileError(
+            path,
+            line,
+            f"expected one σ per (model, data) pair, found ({model}, {data}) again "
+            f"(first on line {seen.pair[(model, data)]})",
+            column="data",
+        )
+    seen.pair[(model, data)] = line
+    return SigmaRow(model, values["model_regime"], data, values["data_regime"], sigma)
 
 
 def _parse_sigma(path: Path, line: int, text: str) -> float:
@@ -353,51 +352,94 @@ def rank_regimes(rows: Sequence[SigmaRow], tolerance_pct: float = 1.0) -> Regime
     if not math.isfinite(tol) or tol < 0:
         raise ValueError(f"tolerance_pct must be a finite number ≥ 0, got {tolerance_pct!r}")
     rows = _validate(rows)
-    models, data, sigma = sigma_matrix(rows)
-    m_regime = {r.model: r.model_regime for r in rows}
-    d_regime = {r.data: r.data_regime for r in rows}
-    model_regimes = list(dict.fromkeys(m_regime[m] for m in models))
-    data_regimes = list(dict.fromkeys(d_regime[d] for d in data))
+    table = _SigmaTable.of(rows)
+    model_stats = _model_stats(table)
+    best: dict[str, str] = {}
+    decisions: dict[str, str] = {}
+    for reg in table.model_regimes:
+        best[reg], decisions[reg] = _decide(table.members(reg), model_stats, tol)
+    return RegimeReport(
+        blocks=_blocks(table),
+        models=model_stats,
+        pairwise=_pairwise(table, model_stats),
+        best=best,
+        tolerance_pct=tol,
+        decisions=decisions,
+    )
 
-    # Table 4: absolute evaluation per (model regime, data regime) block.
+
+@dataclass(frozen=True)
+class _SigmaTable:
+    """The σ matrix with each model's and each run's regime, in first-seen order."""
+
+    models: list[str]
+    data: list[str]
+    sigma: np.ndarray
+    m_regime: dict[str, str]
+    d_regime: dict[str, str]
+
+    @classmethod
+    def of(cls, rows: Sequence[SigmaRow]) -> _SigmaTable:
+        models, data, sigma = sigma_matrix(rows)
+        m_regime = {r.model: r.model_regime for r in rows}
+        d_regime = {r.data: r.data_regime for r in rows}
+        return cls(models, data, sigma, m_regime, d_regime)
+
+    @property
+    def model_regimes(self) -> list[str]:
+        return list(dict.fromkeys(self.m_regime[m] for m in self.models))
+
+    @property
+    def data_regimes(self) -> list[str]:
+        return list(dict.fromkeys(self.d_regime[d] for d in self.data))
+
+    def members(self, regime: str) -> list[str]:
+        return [m for m in self.models if self.m_regime[m] == regime]
+
+    def values(self, models: Sequence[str], data_regime: str) -> np.ndarray:
+        """The finite σ of ``models`` on the runs of ``data_regime``, flattened."""
+        rows_idx = [self.models.index(m) for m in models]
+        cols_idx = [j for j, d in enumerate(self.data) if self.d_regime[d] == data_regime]
+        block = self.sigma[np.ix_(rows_idx, cols_idx)].ravel()
+        return block[~np.isnan(block)]
+
+
+def _blocks(table: _SigmaTable) -> list[dict]:
+    """Table 4: absolute evaluation per (model regime, data regime) block."""
     blocks: list[dict] = []
-    for mr in model_regimes:
-        rows_idx = [i for i, m in enumerate(models) if m_regime[m] == mr]
-        for dr in data_regimes:
-            cols_idx = [j for j, d in enumerate(data) if d_regime[d] == dr]
-            block = sigma[np.ix_(rows_idx, cols_idx)].ravel()
-            block = block[~np.isnan(block)]
+    for mr in table.model_regimes:
+        for dr in table.data_regimes:
+            block = table.values(table.members(mr), dr)
             if block.size == 0:
                 continue
             mn, sd = _mn_sd(block)
             blocks.append(
-                {
-                    "model_regime": mr,
-                    "data_regime": dr,
-                    "mn_um": mn,
-                    "sd_um": sd,
-                    "n": int(block.size),
-                }
+                {"model_regime": mr, "data_regime": dr, "mn_um": mn, "sd_um": sd, "n": block.size}
             )
+    return blocks
 
-    # Per-model MN/SD over the model's own-regime runs.
-    model_stats: dict[str, dict] = {}
-    for i, m in enumerate(models):
-        reg = m_regime[m]
-        own = np.array([sigma[i, j] for j, d in enumerate(data) if d_regime[d] == reg])
-        own = own[~np.isnan(own)]
+
+def _model_stats(table: _SigmaTable) -> dict[str, dict]:
+    """Per-model MN/SD over the model's own-regime runs."""
+    stats: dict[str, dict] = {}
+    for m in table.models:
+        reg = table.m_regime[m]
+        own = table.values([m], reg)
         if own.size == 0:
             raise ValueError(
                 f"model {m} (regime {reg!r}) has no σ on any run of its own regime "
                 f"(runs with data_regime {reg!r}); cannot rank regime {reg!r}"
             )
         mn, sd = _mn_sd(own)
-        model_stats[m] = {"regime": reg, "mn_um": mn, "sd_um": sd, "n_runs": int(own.size)}
+        stats[m] = {"regime": reg, "mn_um": mn, "sd_um": sd, "n_runs": int(own.size)}
+    return stats
 
-    # Tables 5–6: relative evaluation, paper order (i<j: (i, j) then (j, i)).
+
+def _pairwise(table: _SigmaTable, model_stats: dict[str, dict]) -> list[dict]:
+    """Tables 5–6: relative evaluation, paper order (i<j: (i, j) then (j, i))."""
     pairwise: list[dict] = []
-    for reg in model_regimes:
-        members = [m for m in models if m_regime[m] == reg]
+    for reg in table.model_regimes:
+        members = table.members(reg)
         for ia, a in enumerate(members):
             for b in members[ia + 1 :]:
                 for x, y in ((a, b), (b, a)):
@@ -411,32 +453,16 @@ def rank_regimes(rows: Sequence[SigmaRow], tolerance_pct: float = 1.0) -> Regime
                             "cosd_pct": _relative_pct(sx["sd_um"], sy["sd_um"]),
                         }
                     )
+    return pairwise
 
-    # Decision: accuracy first, then robustness within the tolerance.
-    best: dict[str, str] = {}
-    decisions: dict[str, str] = {}
-    for reg in model_regimes:
-        members = [m for m in models if m_regime[m] == reg]
-        mn_best = min(model_stats[m]["mn_um"] for m in members)
-        gaps = {m: _gap_pct(model_stats[m]["mn_um"], mn_best) for m in members}
-        candidates = [m for m in members if gaps[m] == 0.0 or gaps[m] < tol]
-        winner = min(
-            candidates,
-            key=lambda m: (model_stats[m]["sd_um"], model_stats[m]["mn_um"], m),
-        )
-        best[reg] = winner
-        decisions[reg] = _decision_sentence(
-            winner, members, candidates, gaps, model_stats, mn_best, tol
-        )
 
-    return RegimeReport(
-        blocks=blocks,
-        models=model_stats,
-        pairwise=pairwise,
-        best=best,
-        tolerance_pct=tol,
-        decisions=decisions,
-    )
+def _decide(members: list[str], model_stats: dict[str, dict], tol: float) -> tuple[str, str]:
+    """Accuracy first, then robustness within the tolerance: the winner and why."""
+    mn_best = min(model_stats[m]["mn_um"] for m in members)
+    gaps = {m: _gap_pct(model_stats[m]["mn_um"], mn_best) for m in members}
+    candidates = [m for m in members if gaps[m] == 0.0 or gaps[m] < tol]
+    winner = min(candidates, key=lambda m: (model_stats[m]["sd_um"], model_stats[m]["mn_um"], m))
+    return winner, _decision_sentence(winner, members, candidates, gaps, model_stats, mn_best, tol)
 
 
 def _decision_sentence(

@@ -39,6 +39,18 @@ class SpeedReading:
     run_mode: int | None
 
 
+@dataclass(frozen=True)
+class GuardedWrite:
+    """The outcome of :meth:`CncClient.write_macro_if`.
+
+    ``held``: what the macro held just before the write (CNC unit; NaN: vacant);
+    ``written``: False when that value failed the check and nothing was written.
+    """
+
+    held: float
+    written: bool
+
+
 class CncError(Exception):
     """A CNC call failed; the message names the endpoint and what failed."""
 
@@ -61,6 +73,15 @@ class CncClient(Protocol):
     async def write_macro(self, number: int, value: float) -> None: ...
 
     async def read_macro(self, number: int) -> float: ...
+
+    async def write_macro_if(
+        self, number: int, value: float, holds: Callable[[float], bool]
+    ) -> GuardedWrite:
+        """Read macro #number and write ``value`` only if ``holds(read)``: the read and
+        the write go over one session with nothing awaited between them, so a value
+        someone else put there is not overwritten unseen (only one landing between the
+        read's reply and the write's arrival is)."""
+        ...
 
     async def close(self) -> None: ...
 

@@ -27,7 +27,7 @@ from typing import TypeVar
 
 from drivers.backoff import Backoff
 from drivers.bus_hub import Silence
-from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
+from drivers.cnc import CncRefusedError, GuardedWrite, ReconnectingSession, SpeedReading
 from drivers.modbus_tcp import Step, read_step
 from drivers.register_map import DeviceRegisters, MacroLayout
 from drivers.schema import RegisterMap, Workarounds, check_cnc_map, cnc_map
@@ -126,15 +126,39 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         Non-finite values and values beyond float32 raise ``ValueError`` before any
         I/O: a NaN or a saturated value must never reach a machine offset.
         """
-        register = self.macro_register(number)
-        if not math.isfinite(value) or abs(value) > _FLOAT32_MAX:
-            raise ValueError(f"macro #{number}: {value!r} is not a finite float32")
-        words = self._macros.encode(value)
+        register, words = self._encoded(number, value)
 
         async def write(link: ModbusConnection) -> None:
             await self._paced(lambda: link.write_registers(register, words, self.device_id))
 
         await self._call(f"writing macro #{number} (register {register})", write)
+
+    async def write_macro_if(
+        self, number: int, value: float, holds: Callable[[float], bool]
+    ) -> GuardedWrite:
+        """FC3 read of macro #number, then, only if ``holds(read)``, its FC16 write on
+        the same connection; nothing else is awaited between the read's reply and the
+        write request (Modbus has no conditional write: that gap is what remains)."""
+        register, words = self._encoded(number, value)
+
+        async def read_then_write(link: ModbusConnection) -> GuardedWrite:
+            held = await self._read_macro(link, register)
+            if not holds(held):
+                return GuardedWrite(held, written=False)
+            await self._paced(lambda: link.write_registers(register, words, self.device_id))
+            return GuardedWrite(held, written=True)
+
+        return await self._call(
+            f"checking and writing macro #{number} (register {register})", read_then_write
+        )
+
+    def _encoded(self, number: int, value: float) -> tuple[int, list[int]]:
+        """First register and float32 words of macro #number = ``value``; a non-finite
+        value or one beyond float32 raises ``ValueError`` before any I/O."""
+        register = self.macro_register(number)
+        if not math.isfinite(value) or abs(value) > _FLOAT32_MAX:
+            raise ValueError(f"macro #{number}: {value!r} is not a finite float32")
+        return register, self._macros.encode(value)
 
     async def read_macro(self, number: int) -> float:
         """Read macro #number back (NaN for a vacant variable, as the CNC reports it)."""

@@ -27,7 +27,7 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.backoff import Backoff
-from drivers.cnc import CncRefusedError, ReconnectingSession, SpeedReading
+from drivers.cnc import CncRefusedError, GuardedWrite, ReconnectingSession, SpeedReading
 
 T = TypeVar("T")
 
@@ -175,21 +175,12 @@ class OpcUaCnc(ReconnectingSession[_Session]):
         A non-finite value raises ``ValueError`` before any I/O: a NaN must never
         reach a machine offset.
         """
-        if not math.isfinite(value):
-            raise ValueError(f"macro #{number}: refusing to write non-finite value {value!r}")
+        _check_finite(number, value)
 
         async def write(session: _Session) -> None:
-            vtype = session.macro_types.get(number)
-            if vtype is None:
+            if number not in session.macro_types:
                 _learn_type(session, number, await self._macro(session, number).read_data_value())
-                vtype = session.macro_types[number]
-            if vtype not in WRITABLE_TYPES:
-                raise CncRefusedError(
-                    f"{self._macro_id(number)} holds a {vtype.name}; the compensation writes "
-                    "a Double or a Float"
-                )
-            datavalue = ua.DataValue(ua.Variant(float(value), vtype))
-            await self._macro(session, number).write_value(datavalue)
+            await self._write_on(session, number, value)
 
         await self._call(
             f"writing macro #{number} ({self._macro_id(number)})", _refusals_as_cnc(write)
@@ -197,16 +188,49 @@ class OpcUaCnc(ReconnectingSession[_Session]):
 
     async def read_macro(self, number: int) -> float:
         """Read macro #number back from the controller."""
+        return await self._call(
+            f"reading macro #{number} ({self._macro_id(number)})",
+            _refusals_as_cnc(lambda session: self._read_on(session, number)),
+        )
 
-        async def read(session: _Session) -> float:
-            datavalue = await self._macro(session, number).read_data_value()
-            value = _number(datavalue, self._macro_id(number))
-            _learn_type(session, number, datavalue)
-            return value
+    async def write_macro_if(
+        self, number: int, value: float, holds: Callable[[float], bool]
+    ) -> GuardedWrite:
+        """Read macro #number, then, only if ``holds(read)``, write ``value`` in the same
+        session; nothing else is awaited between the Read's response and the Write
+        request (OPC UA has no conditional write: that gap is what remains). The read
+        also gives the type the value is written as."""
+        _check_finite(number, value)
+
+        async def read_then_write(session: _Session) -> GuardedWrite:
+            held = await self._read_on(session, number)
+            if not holds(held):
+                return GuardedWrite(held, written=False)
+            await self._write_on(session, number, value)
+            return GuardedWrite(held, written=True)
 
         return await self._call(
-            f"reading macro #{number} ({self._macro_id(number)})", _refusals_as_cnc(read)
+            f"checking and writing macro #{number} ({self._macro_id(number)})",
+            _refusals_as_cnc(read_then_write),
         )
+
+    async def _read_on(self, session: _Session, number: int) -> float:
+        """One Read of macro #number's value; its type is remembered for writes."""
+        datavalue = await self._macro(session, number).read_data_value()
+        value = _number(datavalue, self._macro_id(number))
+        _learn_type(session, number, datavalue)
+        return value
+
+    async def _write_on(self, session: _Session, number: int, value: float) -> None:
+        """One Write of macro #number as the type learned from a read of it."""
+        vtype = session.macro_types[number]
+        if vtype not in WRITABLE_TYPES:
+            raise CncRefusedError(
+                f"{self._macro_id(number)} holds a {vtype.name}; the compensation writes "
+                "a Double or a Float"
+            )
+        datavalue = ua.DataValue(ua.Variant(float(value), vtype))
+        await self._macro(session, number).write_value(datavalue)
 
     # -- session life cycle ---------------------------------------------------------
 
@@ -303,6 +327,12 @@ async def _secure(client: Client, security: OpcUaSecurity) -> None:
         ),
         mode=SECURITY_MODES[security.mode],
     )
+
+
+def _check_finite(number: int, value: float) -> None:
+    """A NaN or inf must never reach a machine offset: refused before any I/O."""
+    if not math.isfinite(value):
+        raise ValueError(f"macro #{number}: refusing to write non-finite value {value!r}")
 
 
 def _learn_type(session: _Session, number: int, datavalue: ua.DataValue) -> None:

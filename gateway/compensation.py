@@ -216,6 +216,32 @@ class CompensationPolicy:
         tolerance = 0.5 * 10.0 ** (-self.limits.decimals) + 1e-6 * abs(expected_cnc)
         return math.isfinite(read_cnc) and abs(read_cnc - expected_cnc) <= tolerance
 
+    def holds_applied(self, held_cnc: float) -> bool:
+        """Whether ``held_cnc`` (read from the CNC) is the applied value, as :meth:`observe`
+        judges it: within the CNC's rounding, a vacant macro (NaN) counting as 0.
+
+        The write path reads the macro once more right before each write and writes
+        only when this holds: a different value was put there by someone else since
+        the cycle's first read, and must not be overwritten unseen.
+        """
+        value = held_cnc if math.isfinite(held_cnc) else 0.0
+        return self.same_on_cnc(value, self.to_cnc(self._applied_um))
+
+    def never_written(self, held_cnc: float) -> str | None:
+        """Why the gateway would never have written ``held_cnc``, or None when it might have.
+
+        Beyond the clamp (1e30, or 1.0 typed into a macro in mm where µm was meant)
+        or infinite. A vacant macro (NaN) is not such a value: the CNC reads it as 0.
+        """
+        if math.isnan(held_cnc):
+            return None
+        if math.isinf(held_cnc):
+            return "not a finite number"
+        held_um = self.limits.sign * held_cnc * _UM_PER_UNIT[self.limits.unit]
+        if abs(held_um) > self._clamp_um + 0.5 * self.limits.step_um:
+            return f"{held_um:.4g} µm, beyond the ±{self._clamp_um:g} µm clamp"
+        return None
+
     def observe(self, now_s: float, held_cnc: float) -> ExternalChange | None:
         """What the CNC holds at ``now_s`` (its unit and sign), read before deciding.
 

@@ -40,7 +40,7 @@ import numpy as np
 from drivers.clock import Clock
 from drivers.cnc import CncClient, CncError
 from drivers.transmitters import ChannelResult, TransmitterBus
-from gateway.compensation import CompensationPolicy
+from gateway.compensation import CompensationPolicy, Decision
 from gateway.config import MachineSection
 from gateway.cycle_scheduler import CycleScheduler, after_cycle
 from gateway.effect_state import EffectStates
@@ -145,6 +145,8 @@ class MachineLoop:
         self._link_down: set[str] = set()
         self._reverse_noted = False  # a negative (reverse) spindle speed was logged once
         self._external_note = ""  # this cycle's external change, for the write status
+        #: The handshake count last written and answered (None: none, or unknown).
+        self._handshake_written: float | None = None
         #: Machine time the cycle in progress (or the last one) was due at.
         self.due_s = 0.0
 
@@ -362,8 +364,26 @@ class MachineLoop:
         if held is None:  # what the CNC holds is unknown: never write blind
             self._write_failed(write_s, f"not written: {read_error}", record)
             return
+        await self._write(decision, record)
+
+    async def _write(self, decision: Decision, record: CycleRecord) -> None:
+        """Write the decided value unless the CNC's macro (read again right before) or the
+        handshake token changed since the cycle's read; read it back, confirm, handshake."""
+        comp = self.config.compensation
+        policy = self.policy
+        assert policy is not None
+        if not await self._handshake_is_ours(record):
+            return
         try:
-            await self.cnc.write_macro(comp.macro, decision.value_cnc)
+            guarded = await self.cnc.write_macro_if(
+                comp.macro, decision.value_cnc, policy.holds_applied
+            )
+            if not guarded.written:  # changed since the cycle's read: the CNC's value stays
+                self._observe_cnc((self.clock.now(), guarded.held), record)
+                record.write_status = self._status(
+                    f"not written: #{comp.macro} changed at the CNC just before the write"
+                )
+                return
             read_back = await self.cnc.read_macro(comp.macro)
         except CncError as exc:
             self._write_failed(self.clock.now(), f"write failed: {exc}", record)
@@ -383,12 +403,53 @@ class MachineLoop:
         record.applied_um = policy.applied_um
         record.written_cnc = decision.value_cnc
         record.write_status = self._status(f"ok: {decision.reason}")
-        if comp.handshake_macro is not None:
-            self.handshake += 1
-            try:
-                await self.cnc.write_macro(comp.handshake_macro, float(self.handshake))
-            except CncError as exc:
-                record.write_status += f"; handshake failed: {exc}"
+        await self._bump_handshake(record)
+
+    async def _bump_handshake(self, record: CycleRecord) -> None:
+        """After a confirmed write: the next handshake count, remembered as the token."""
+        macro = self.config.compensation.handshake_macro
+        if macro is None:
+            return
+        self.handshake += 1
+        self._handshake_written = None  # unknown until the write is answered
+        try:
+            await self.cnc.write_macro(macro, float(self.handshake))
+        except CncError as exc:
+            record.write_status += f"; handshake failed: {exc}"
+            return
+        self._handshake_written = float(self.handshake)
+
+    async def _handshake_is_ours(self, record: CycleRecord) -> bool:
+        """The handshake macro as an ownership token: before writing again, it must
+        still hold the count the gateway wrote last. Anything else (an operator or a
+        CNC programme reset it) is an external change: this cycle writes nothing, and
+        the next one moves on from what the CNC holds and writes a new count. With no
+        count written yet (start, a failed handshake write) there is no token to check.
+        """
+        macro = self.config.compensation.handshake_macro
+        ours = self._handshake_written
+        if macro is None or ours is None:
+            return True
+        try:
+            value = await self.cnc.read_macro(macro)
+        except CncError as exc:
+            self._write_failed(self.clock.now(), f"not written: {exc}", record)
+            return False
+        if value == ours:
+            return True
+        self._handshake_written = None
+        self.external_changes += 1
+        note = f"external change: handshake macro #{macro} holds {value}, the gateway wrote {ours}"
+        self._external_note = "; ".join(filter(None, [self._external_note, note]))
+        log.warning(
+            "%s: %s; #%d is not written this cycle (external changes: %d)",
+            self.config.id,
+            note,
+            self.config.compensation.macro,
+            self.external_changes,
+        )
+        record.write_status = self._status("not written: the handshake is not the gateway's")
+        return False
 
     def _status(self, text: str) -> str:
         """``text``, prefixed with this cycle's external change if there was one."""
@@ -417,6 +478,7 @@ class MachineLoop:
             f"({change.held_um:.1f} µm), the gateway had applied {change.believed_um:.1f} µm"
         )
         self._external_note = note
+        self._warn_never_written(value)
         log.warning(
             "%s: %s; compensation moves on from the CNC's value at the slew limit "
             "(external changes: %d)",
@@ -424,6 +486,24 @@ class MachineLoop:
             note,
             self.external_changes,
         )
+
+    def _warn_never_written(self, value: float) -> bool:
+        """Say so when the CNC holds a value the gateway would never write (beyond the
+        clamp, infinite): a typo at the control (1.0 typed in mm where µm was meant) or
+        a corrupted variable. The compensation moves from it within the clamp."""
+        assert self.policy is not None
+        why = self.policy.never_written(value)
+        if why is None:
+            return False
+        log.warning(
+            "%s: CNC macro #%d holds %r (%s): a value the gateway would never write; "
+            "compensation moves from it back within the clamp",
+            self.config.id,
+            self.config.compensation.macro,
+            value,
+            why,
+        )
+        return True
 
     async def _read_probe(self, record: CycleRecord) -> None:
         """The CNC's probe macro (µm): a new value is a measurement of the real error."""
@@ -493,6 +573,8 @@ class MachineLoop:
         probe = CompensationPolicy(limits)
         start_um = probe.from_cnc(value) if math.isfinite(value) else 0.0
         self.policy = CompensationPolicy(limits, start_um=start_um)
+        if self._warn_never_written(value):
+            self.external_changes += 1
         log.info(
             "%s: CNC macro #%d holds %s; compensation starts from %.2f µm",
             self.config.id,

@@ -61,7 +61,11 @@ def run(body: Callable[[], Awaitable[T]], timeout_s: float = 120.0) -> T:
 @pytest.fixture(scope="module")
 def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One MLR model on all seven sensors (error ≈ 4·ΔT1 − 2·ΔT6)."""
-    folder = tmp_path_factory.mktemp("write-path")
+    return model_store(tmp_path_factory.mktemp("write-path"))
+
+
+def model_store(folder: Path) -> Path:
+    """A store in ``folder`` with one MLR model on all seven sensors."""
     prepared = prepare(load_runs(write_runs_csv(folder / "runs.csv")))
     model = make_model("mlr").fit(prepared.inputs, prepared.error_um)
     document = build_document(

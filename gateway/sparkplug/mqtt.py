@@ -127,15 +127,20 @@ class MqttLink:
         return self.client.publish(topic, payload, qos=self.settings.qos)
 
     async def acknowledged(self, infos: Sequence[paho.MQTTMessageInfo], timeout_s: float) -> bool:
-        """Wait until the broker acknowledged every message (QoS 0: sent)."""
+        """Wait until the broker acknowledged every message (QoS 0: sent).
+
+        Acknowledgements are looked at before the link's state: a broker that acked a
+        batch and then died must not have that batch sent twice.
+        """
         deadline = self.loop.time() + timeout_s
-        while self.connected and self.loop.time() < deadline:
+        while True:
             if any(i.rc != paho.MQTT_ERR_SUCCESS for i in infos):
                 return False
             if all(i.is_published() for i in infos):
                 return True
+            if not self.connected or self.loop.time() >= deadline:
+                return False
             await asyncio.sleep(0.002)
-        return False
 
     async def flush(self, timeout_s: float) -> None:
         deadline = self.loop.time() + timeout_s

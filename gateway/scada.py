@@ -216,8 +216,12 @@ class _RoleRuleset(PermissionRuleset):
 class _ClientTrust:
     """Certificate check at CreateSession (asyncua's certificate validator hook).
 
-    Remembers the certificates it admitted, so the user manager can refuse a
-    session whose secure channel was opened with any other one (or none).
+    It raises for a certificate it refuses, which fails that CreateSession; the
+    session remembers the certificate it was admitted with (:func:`_watch_peers`),
+    so the user manager can refuse a session whose secure channel was opened with
+    any other one (or none). The verdict belongs to the session, not to the
+    certificate: under a burst, another session's check of the same certificate
+    may be under way while this one is activated.
     """
 
     def __init__(self, pki_dir: Path, trust_all: bool, rejected_keep: int = 50) -> None:
@@ -226,15 +230,10 @@ class _ClientTrust:
         self._crl = pki_dir / CRL_DIR
         self._trust_all = trust_all
         self._rejected_keep = rejected_keep
-        self._admitted: set[bytes] = set()
         self._warned: set[tuple[str, int, int]] = set()  # unreadable trust files named
-
-    def admitted(self, certificate_der: bytes) -> bool:
-        return bytes(certificate_der) in self._admitted
 
     async def __call__(self, cert: x509.Certificate, app: ua.ApplicationDescription) -> None:
         der = cert.public_bytes(Encoding.DER)
-        self._admitted.discard(der)
         options = CertificateValidatorOptions.TIME_RANGE | CertificateValidatorOptions.URI
         store: TrustStore | None = None
         if not self._trust_all:
@@ -267,7 +266,6 @@ class _ClientTrust:
             else:
                 _logger.warning("SCADA client %r refused: %s", subject, name)
             raise
-        self._admitted.add(der)
 
     def _save_rejected(self, cert: x509.Certificate, der: bytes) -> tuple[Path, int]:
         """Save the certificate, then keep only the newest ``rejected_keep``; (path, removed)."""
@@ -304,21 +302,21 @@ class _UserManager(UserManager):
 
     asyncua does not tell a user manager who is asking; :func:`_watch_peers`
     sets ``peer`` (the remote address) around each ActivateSession, so failed
-    logins can be throttled per address as well as per user name.
+    logins can be throttled per address as well as per user name, and
+    ``admitted_certificate`` (what that session's CreateSession admitted).
     """
 
     def __init__(
         self,
         users: Sequence[ScadaUser],
         allow_anonymous: bool,
-        trust: _ClientTrust,
         throttle: LoginThrottle,
     ):
         self._users = {u.username: u for u in users}
         self._allow_anonymous = allow_anonymous
-        self._trust = trust
         self.throttle = throttle
         self.peer: str | None = None
+        self.admitted_certificate: bytes | None = None  # the judged session's, at CreateSession
 
     def get_user(
         self,
@@ -327,7 +325,8 @@ class _UserManager(UserManager):
         password: str | None = None,
         certificate: Any = None,
     ) -> User | None:
-        if certificate is None or not self._trust.admitted(certificate):
+        admitted = self.admitted_certificate
+        if certificate is None or admitted is None or bytes(certificate) != admitted:
             # An unsecured channel (no certificate) or one that CreateSession did not admit.
             _logger.warning("SCADA session refused: no admitted client certificate on the channel")
             return None
@@ -364,27 +363,42 @@ class _UserManager(UserManager):
 
 
 def _watch_peers(server: Server, manager: _UserManager) -> None:
-    """Tell ``manager`` the remote address of every ActivateSession it judges.
+    """Tell ``manager`` the remote address and the admitted certificate of every
+    ActivateSession it judges.
 
     asyncua names each session by the peer's (host, port) and calls the user
     manager synchronously inside ``InternalSession.activate_session``; wrapping
     that call on every new session lets ``manager.peer`` hold the host meanwhile.
+    The session's own CreateSession is wrapped too: the certificate it carried is
+    kept only if the check (:class:`_ClientTrust`) let it pass. asyncua keeps a
+    session whose CreateSession failed, so a client could still try to activate it.
     """
     iserver = server.iserver
     create_session = iserver.create_session
 
     def create_watched_session(name: Any, *args: Any, **kwargs: Any) -> Any:
         session = create_session(name, *args, **kwargs)
-        activate = session.activate_session
+        create, activate = session.create_session, session.activate_session
         host = str(name[0]) if isinstance(name, tuple) and name else str(name)
+        admitted: list[bytes] = []
+
+        async def create_checked(params: ua.CreateSessionParameters, *a: Any, **kw: Any) -> Any:
+            admitted.clear()
+            result = await create(params, *a, **kw)  # raises if the certificate is refused
+            if params.ClientCertificate:
+                admitted.append(bytes(params.ClientCertificate))
+            return result
 
         def activate_session(*a: Any, **kw: Any) -> Any:
             manager.peer = host
+            manager.admitted_certificate = admitted[0] if admitted else None
             try:
                 return activate(*a, **kw)
             finally:
                 manager.peer = None
+                manager.admitted_certificate = None
 
+        session.create_session = create_checked
         session.activate_session = activate_session
         return session
 
@@ -517,7 +531,7 @@ class ScadaServer(ServerLifecycle):
         settings = self._settings
         trust = _ClientTrust(settings.pki_dir, settings.trust_all_clients, settings.rejected_keep)
         await self._ensure_certificate()
-        manager = _UserManager(settings.users, settings.allow_anonymous, trust, self.login_throttle)
+        manager = _UserManager(settings.users, settings.allow_anonymous, self.login_throttle)
         server = Server(user_manager=manager)
         _watch_peers(server, manager)
         trust_store_log = logging.getLogger(_TRUST_STORE_LOGGER)

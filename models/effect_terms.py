@@ -214,115 +214,127 @@ def hours_since_start(time_s: np.ndarray, group: np.ndarray) -> np.ndarray:
 
 def candidate_families(prepared: Prepared, used_sensors: tuple[str, ...]) -> list[EffectFamily]:
     """Every family this data can support, given the sensors the model uses."""
-    data = prepared.data
-    recording = prepared.plan.recording
-    time_s = data.time_s
-    used_rises = prepared.inputs.columns(used_sensors) if used_sensors else None
+    terms = _Terms(prepared)
+    return [
+        *terms.thermal_lag(used_sensors),
+        *terms.speed(),
+        *terms.ambient(),
+        terms.drift(),
+        *terms.unused_sensor(used_sensors),
+    ]
 
-    # Terms are made when a variant is built, not held: on a million-row file each
-    # (n,) column is megabytes, and only one family is tried at a time.
-    def speed_terms() -> np.ndarray:
+
+class _Terms:
+    """The candidate families' terms, made when a variant is built, not held: on a
+    million-row file each (n,) column is megabytes, and only one family is tried at a time."""
+
+    def __init__(self, prepared: Prepared) -> None:
+        self.prepared = prepared
+        self.data = prepared.data
+        self.recording = prepared.plan.recording
+
+    def speed_terms(self) -> np.ndarray:
         # From 0 r/min, the error's reference state (the cold machine at rest), as the
         # runtime takes them: a run that opens at speed keeps its growth at that speed.
-        speed_krpm = data.speed_rpm / SPEED_SCALE_RPM
+        speed_krpm = self.data.speed_rpm / SPEED_SCALE_RPM
         return np.column_stack([speed_krpm, speed_krpm**2])
 
-    def ambient_rise() -> np.ndarray:
-        return prepared.plan.rises(data.ambient_C)
+    def ambient_rise(self) -> np.ndarray:
+        return self.prepared.plan.rises(self.data.ambient_C)
 
     def lagged(
-        values: Callable[[], np.ndarray], tau: float, start_cold: bool = False
+        self, values: Callable[[], np.ndarray], tau: float, start_cold: bool = False
     ) -> Callable[[], np.ndarray]:
+        time_s, recording = self.data.time_s, self.recording
         return lambda: (
             np.atleast_2d(first_order_lag(values(), time_s, recording, tau, start_cold).T).T
         )
 
-    families: list[EffectFamily] = []
-    if used_rises is not None:
-        families.append(
-            EffectFamily(
-                "thermal_lag",
-                f"first-order lags of the rises of {', '.join(used_sensors)}",
-                tuple(
-                    Variant(
-                        {"tau_s": tau},
-                        lagged(lambda: used_rises, tau),
-                        f"lag (τ = {tau:g} s) of Δ{used_sensors[0]}, °C",
-                    )
-                    for tau in LAG_TAUS_S
-                ),
+    def thermal_lag(self, used_sensors: tuple[str, ...]) -> list[EffectFamily]:
+        if not used_sensors:
+            return []
+        used_rises = self.prepared.inputs.columns(used_sensors)
+        variants = tuple(
+            Variant(
+                {"tau_s": tau},
+                self.lagged(lambda: used_rises, tau),
+                f"lag (τ = {tau:g} s) of Δ{used_sensors[0]}, °C",
             )
+            for tau in LAG_TAUS_S
         )
-    if np.ptp(data.speed_rpm) > 0:
-        families.append(
+        what = f"first-order lags of the rises of {', '.join(used_sensors)}"
+        return [EffectFamily("thermal_lag", what, variants)]
+
+    def speed(self) -> list[EffectFamily]:
+        if not np.ptp(self.data.speed_rpm) > 0:
+            return []
+        heat = tuple(
+            Variant(
+                {"tau_s": tau},
+                self.lagged(self.speed_terms, tau, start_cold=True),
+                f"lag (τ = {tau:g} s) of n, 1000 r/min",
+            )
+            for tau in HEAT_TAUS_S
+        )
+        return [
             EffectFamily(
                 "speed_direct",
                 "speed n and n² (n in 1000 r/min), from rest",
-                (Variant({}, speed_terms, "speed n, 1000 r/min"),),
-            )
-        )
-        families.append(
+                (Variant({}, self.speed_terms, "speed n, 1000 r/min"),),
+            ),
             EffectFamily(
                 "unsensed_heat",
                 "first-order lags of n and n² (heat reaching an unsensed part)",
-                tuple(
-                    Variant(
-                        {"tau_s": tau},
-                        lagged(speed_terms, tau, start_cold=True),
-                        f"lag (τ = {tau:g} s) of n, 1000 r/min",
-                    )
-                    for tau in HEAT_TAUS_S
-                ),
-            )
-        )
-    ambient = data.ambient_C
-    if ambient is not None and np.ptp(ambient) > 0:
-        families.append(
-            EffectFamily(
-                "ambient",
-                "rise of ambient_C, direct (τ = 0) or through a first-order lag",
-                tuple(
-                    Variant(
-                        {"tau_s": tau},
-                        (lambda: ambient_rise()[:, None])
-                        if tau == 0
-                        else lagged(ambient_rise, tau),
-                        f"ambient_C rise (τ = {tau:g} s), °C",
-                    )
-                    for tau in AMBIENT_TAUS_S
-                ),
-            )
-        )
+                heat,
+            ),
+        ]
 
-    def run_hours() -> np.ndarray:
-        return hours_since_start(time_s, data.run_index)[:, None]
-
-    def recording_hours() -> np.ndarray:
-        return hours_since_start(time_s, recording)[:, None]
-
-    drift_variants = [Variant({"origin": "run"}, run_hours, "time in run, h")]
-    if len(prepared.plan.recording_runs) < len(data.run_ids):
-        drift_variants.append(
-            Variant({"origin": "recording"}, recording_hours, "time in recording, h")
-        )
-    families.append(EffectFamily("drift", "time since the start, h", tuple(drift_variants)))
-    unused = unused_columns(prepared, used_sensors)
-    if unused:
-        families.append(
-            EffectFamily(
-                "unused_sensor",
-                "rise of one measured column the model left out",
-                tuple(
-                    Variant(
-                        {"sensor": name},
-                        _column_rise(prepared, name),
-                        f"Δ{name}",
-                    )
-                    for name in unused
-                ),
+    def ambient(self) -> list[EffectFamily]:
+        ambient = self.data.ambient_C
+        if ambient is None or not np.ptp(ambient) > 0:
+            return []
+        variants = tuple(
+            Variant(
+                {"tau_s": tau},
+                (lambda: self.ambient_rise()[:, None])
+                if tau == 0
+                else self.lagged(self.ambient_rise, tau),
+                f"ambient_C rise (τ = {tau:g} s), °C",
             )
+            for tau in AMBIENT_TAUS_S
         )
-    return families
+        what = "rise of ambient_C, direct (τ = 0) or through a first-order lag"
+        return [EffectFamily("ambient", what, variants)]
+
+    def drift(self) -> EffectFamily:
+        time_s, data, recording = self.data.time_s, self.data, self.recording
+        variants = [
+            Variant(
+                {"origin": "run"},
+                lambda: hours_since_start(time_s, data.run_index)[:, None],
+                "time in run, h",
+            )
+        ]
+        if len(self.prepared.plan.recording_runs) < len(data.run_ids):
+            variants.append(
+                Variant(
+                    {"origin": "recording"},
+                    lambda: hours_since_start(time_s, recording)[:, None],
+                    "time in recording, h",
+                )
+            )
+        return EffectFamily("drift", "time since the start, h", tuple(variants))
+
+    def unused_sensor(self, used_sensors: tuple[str, ...]) -> list[EffectFamily]:
+        unused = unused_columns(self.prepared, used_sensors)
+        if not unused:
+            return []
+        variants = tuple(
+            Variant({"sensor": name}, _column_rise(self.prepared, name), f"Δ{name}")
+            for name in unused
+        )
+        what = "rise of one measured column the model left out"
+        return [EffectFamily("unused_sensor", what, variants)]
 
 
 def unused_columns(prepared: Prepared, used_sensors: tuple[str, ...]) -> list[str]:

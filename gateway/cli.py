@@ -903,6 +903,36 @@ def replay(
     write_json(json_out, result)
 
 
+@main.command()
+@click.argument("data_csv", type=click.Path(path_type=Path))
+@click.option(
+    "--model",
+    "model_spec",
+    required=True,
+    help="A model file (fit or analyze --store), or a model id looked up in --store.",
+)
+@click.option(
+    "--store",
+    "store_dir",
+    type=click.Path(path_type=Path),
+    help="The model store to look --model up in (its augmented/ folder too).",
+)
+@click.option("--target", help="Measured error column, µm (default: the model's target).")
+@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@input_errors_exit
+def score(
+    data_csv: Path,
+    model_spec: str,
+    store_dir: Path | None,
+    target: str | None,
+    json_out: Path | None,
+) -> None:
+    """Apply a stored model to measured runs as the gateway would, without refitting."""
+    from gateway.offline.score import score as score_model
+
+    write_json(json_out, score_model(data_csv, model_spec, store_dir, target, click.echo))
+
+
 def _add_models_group() -> None:
     from gateway.models_cli import models_group  # click only at load, like this module
 

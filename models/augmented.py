@@ -36,6 +36,7 @@ from models.features import Prepared
 from models.json_files import write_json_atomic
 from models.registry import METHODS, make_model
 from models.store import StoreError, data_fingerprint, refuse_non_finite, safe_model_id
+from models.training_range import training_range
 
 FORMAT = "thermal-gateway-augmented-model"
 #: 2: a ridge or PLS base is one term, its penalised prediction (see :func:`stored_base`).
@@ -125,6 +126,7 @@ def build_augmented_document(
             "data_sha256": data_fingerprint(prepared.inputs, prepared.error_um),
             "rows": prepared.data.n_samples,
             "runs": list(prepared.data.run_ids),
+            "training_range": training_range(prepared.inputs),
             "validation": result.validation,
             "before": result.before.as_dict(),
             "after": result.after.as_dict(),

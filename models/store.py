@@ -49,6 +49,7 @@ from models.base import ModelInputs, ThermalModel
 from models.json_files import write_json_atomic
 from models.registry import METHODS
 from models.sensor_relations import SensorRelations
+from models.training_range import training_range
 
 FORMAT = "spindle-thermal-model"
 FORMAT_VERSION = 1
@@ -105,6 +106,9 @@ class StoredModel(BaseModel):
     #: rises and 0 r/min (its intercept) and each training recording's own origin; absent
     #: in files written when the error was rebased on each recording's leading readings.
     error_reference: dict[str, Any] | None = None
+    #: the span of each input in the training rows (:mod:`models.training_range`), for
+    #: ``score``; absent in files written before it was recorded.
+    training_range: dict[str, Any] | None = None
     #: HMAC of the checksummed content (:mod:`models.signing`); absent without a key.
     signature: dict[str, Any] | None = None
 
@@ -205,6 +209,7 @@ def build_document(
     }
     if conditioning is not None:
         document["conditioning"] = conditioning
+    document["training_range"] = training_range(inputs)
     if sensor_relations is not None:
         document["sensor_relations"] = sensor_relations
     document["error_reference"] = error_reference_record(model, inputs.sensors, reference)

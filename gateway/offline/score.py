@@ -1,0 +1,274 @@
+"""The ``score`` command's work: a stored model on a new recording, as the gateway runs it.
+
+A plant fits in March and records a validation run in April. ``score`` applies
+the March model to the April file without refitting anything and reports its
+error per run and pooled. It predicts the way the running gateway does:
+
+- the model is loaded and checked by the store's own loaders (format, checksum,
+  signature, probe rows) and banked as :mod:`gateway.model_bank` banks it: a plain
+  model predicts each row from that row's rises; a model whose terms remember the
+  history (``lag-ridge``, an ``analyze --store`` result) is stepped sample by sample
+  through the same stream the live loop steps, its lag states carried warm across
+  the runs of one continuous recording and started afresh at each new recording
+  (a cold start, where a gateway takes its temperature reference);
+- rises and the error are taken by the reference rules the model was fitted with
+  (its stored ``reference`` policy, :mod:`models.references`), so a figure here is
+  comparable with the held-out figure ``fit`` or ``analyze`` stored;
+- inputs that leave what the model was fitted on (a rise beyond any training
+  rise, a speed the training never reached: :mod:`models.training_range`) are named,
+  since a figure inside the training span says nothing about them.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from gateway.model_bank import Banked, BankedAugmented, BankedModel
+from models import augmented
+from models.base import ModelInputs
+from models.dataset import AMBIENT_COLUMN, load_runs
+from models.features import Prepared, prepare
+from models.metrics import accuracy
+from models.references import first_rows
+from models.store import FORMAT as PLAIN_FORMAT
+from models.store import ModelStore, StoreError, load_file
+from models.training_range import Excursion, outside
+
+
+@dataclass(frozen=True)
+class ScoredModel:
+    """A model as the gateway banks it, with what ``score`` reports about it."""
+
+    banked: Banked
+    path: Path
+    kind: str  # "stored" or "augmented"
+    method: str
+    target: str
+    policy: str  # the reference policy it was fitted with
+    training_range: dict[str, Any] | None
+    fitted_on: str  # the training file and runs, for the header line
+    heldout_rmse_um: float | None  # the held-out figure stored at fit time
+
+
+def find_model(spec: str, store_dir: Path | None) -> Path:
+    """``--model``: a model file, or a model id looked up in ``--store`` (plain, then
+    augmented/)."""
+    path = Path(spec)
+    if path.is_file():
+        return path
+    if store_dir is None:
+        raise ValueError(
+            f"--model {spec}: no such model file; give --store DIR to look a model id up"
+        )
+    if not store_dir.is_dir():
+        raise ValueError(f"--store {store_dir}: no such folder")
+    for candidate in (
+        ModelStore(store_dir).path_of(spec),
+        store_dir / augmented.FOLDER / f"{spec}.json",
+    ):
+        if candidate.is_file():
+            return candidate
+    have = sorted(p.stem for p in store_dir.glob("*.json"))
+    have += sorted(p.stem for p in (store_dir / augmented.FOLDER).glob("*.json"))
+    raise ValueError(
+        f"--model {spec}: no model of that id in {store_dir} (have: {', '.join(have) or 'none'})"
+    )
+
+
+def load_model(path: Path) -> ScoredModel:
+    """Load and check the file with the store's loaders; bank it as the gateway would."""
+    try:
+        format_name = json.loads(path.read_text(encoding="utf-8")).get("format")
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, AttributeError) as exc:
+        raise StoreError(f"{path}: not a readable JSON model file ({exc})") from None
+    if format_name == PLAIN_FORMAT:
+        return _plain(path)
+    if format_name == augmented.FORMAT:
+        return _augmented(path)
+    raise StoreError(
+        f"{path}: not a model file (format {format_name!r}, expected {PLAIN_FORMAT!r} "
+        f"or {augmented.FORMAT!r})"
+    )
+
+
+def _plain(path: Path) -> ScoredModel:
+    model, document = load_file(path)
+    if callable(getattr(model, "stream", None)):  # its terms carry lag states
+        banked: Banked = BankedAugmented.from_plain(model, document)
+    else:
+        banked = BankedModel(document.model_id, model, document)
+    pooled = (document.validation or {}).get("pooled") or {}
+    training = document.training_data
+    return ScoredModel(
+        banked=banked,
+        path=path,
+        kind="stored",
+        method=document.method,
+        target=document.target.get("name", "error_um"),
+        policy=str(document.reference.get("policy", "auto")),
+        training_range=document.training_range,
+        fitted_on=f"{training.file} (runs {', '.join(training.runs)})",
+        heldout_rmse_um=pooled.get("rmse_um"),
+    )
+
+
+def _augmented(path: Path) -> ScoredModel:
+    document = augmented.load(path)
+    banked = BankedAugmented.from_document(document, AMBIENT_COLUMN)
+    provenance = document.get("provenance", {})
+    after = provenance.get("after") or {}
+    return ScoredModel(
+        banked=banked,
+        path=path,
+        kind="augmented",
+        method=str(document["base"]["method"]),
+        target=str(document.get("target", {}).get("name", "error_um")),
+        policy=str(document.get("reference", {}).get("policy", "auto")),
+        training_range=provenance.get("training_range"),
+        fitted_on=(
+            f"{provenance.get('source_file', '?')} (runs {', '.join(provenance.get('runs', []))})"
+        ),
+        heldout_rmse_um=after.get("rmse_um"),
+    )
+
+
+def needed_sensors(scored: ScoredModel) -> list[str]:
+    """The temperature columns the model reads, in its own order (its ambient input apart)."""
+    banked = scored.banked
+    if isinstance(banked, BankedModel):
+        return list(banked.model.sensors_used_)
+    return [s for s in banked.stream().sensors if s != AMBIENT_COLUMN]
+
+
+def predictions(scored: ScoredModel, prepared: Prepared) -> np.ndarray:
+    """The model's prediction at every row, µm (NaN where a stream had no complete input)."""
+    if isinstance(scored.banked, BankedModel):
+        inputs = prepared.inputs
+        plain = ModelInputs(
+            rise_C=inputs.rise_C, sensors=inputs.sensors, speed_rpm=inputs.speed_rpm
+        )
+        return np.asarray(scored.banked.model.predict(plain), dtype=float)
+    return streamed(scored.banked, prepared)
+
+
+def streamed(banked: BankedAugmented, prepared: Prepared) -> np.ndarray:
+    """Every row stepped in order through the model's stream, as the live loop steps it;
+    each recording (a cold start) starts a fresh stream, the runs within it carry on."""
+    data, plan = prepared.data, prepared.plan
+    names = list(prepared.inputs.sensors)
+    rises = prepared.inputs.rise_C
+    ambient = None if data.ambient_C is None else plan.rises(data.ambient_C)
+    starts = first_rows(plan.recording)
+    out = np.full(data.n_samples, np.nan)
+    stream = banked.stream()
+    for k in range(data.n_samples):
+        if starts[k] == k:
+            stream = banked.stream()
+        row = dict(zip(names, map(float, rises[k]), strict=True))
+        if ambient is not None:
+            row[AMBIENT_COLUMN] = float(ambient[k])
+        value = stream.step(
+            float(data.time_s[k]), row, float(data.speed_rpm[k]), row.get(AMBIENT_COLUMN)
+        )
+        if value is not None:
+            out[k] = value
+    return out
+
+
+def run_figures(prepared: Prepared, predicted: np.ndarray) -> dict[str, dict[str, float | int]]:
+    """RMSE, σ and max|e| (µm) of each run, then of every row pooled."""
+    measured = prepared.error_um
+    known = np.isfinite(predicted) & np.isfinite(measured)
+    figures: dict[str, dict[str, float | int]] = {}
+    for run_id, rows in prepared.data.run_slices():
+        mask = known[rows]
+        if mask.any():
+            figures[run_id] = accuracy(measured[rows][mask], predicted[rows][mask]).as_dict()
+    if not known.any():
+        raise ValueError("the model predicted no row of this file (an input missing throughout)")
+    figures["pooled"] = accuracy(measured[known], predicted[known]).as_dict()
+    return figures
+
+
+def excursions(scored: ScoredModel, prepared: Prepared) -> list[Excursion]:
+    """Inputs of this file outside the model's training span ([] when none is stored)."""
+    if scored.training_range is None:
+        return []
+    inputs = prepared.inputs
+    rises = {name: inputs.rise_C[:, j] for j, name in enumerate(inputs.sensors)}
+    return outside(scored.training_range, rises, inputs.speed_rpm)
+
+
+def score(
+    data_csv: Path,
+    model_spec: str,
+    store_dir: Path | None,
+    target: str | None,
+    say: Callable[[str], None],
+) -> dict[str, Any]:
+    """Score the model on DATA_CSV; print the table and notes; return the JSON result."""
+    scored = load_model(find_model(model_spec, store_dir))
+    target = target or scored.target
+    data = load_runs(data_csv, target=target, sensors=needed_sensors(scored))
+    if scored.banked.sensors & {AMBIENT_COLUMN} and data.ambient_C is None:
+        raise ValueError(f"{data_csv}: the model needs an {AMBIENT_COLUMN} column; there is none")
+    for skipped in data.skipped:
+        say(f"note: {skipped.describe()}")
+    prepared = prepare(data, needed_sensors(scored), scored.policy)
+    figures = run_figures(prepared, predictions(scored, prepared))
+    found = excursions(scored, prepared)
+    for line in report_lines(scored, prepared, figures, found):
+        say(line)
+    return {
+        "model_id": scored.banked.model_id,
+        "model_file": str(scored.path),
+        "kind": scored.kind,
+        "method": scored.method,
+        "target": target,
+        "data": str(data_csv),
+        "reference": prepared.plan.describe(),
+        "refit": False,
+        "per_run": {k: v for k, v in figures.items() if k != "pooled"},
+        "pooled": figures["pooled"],
+        "heldout_rmse_um_at_fit": scored.heldout_rmse_um,
+        "training_range_stored": scored.training_range is not None,
+        "outside_training": [e.as_dict() for e in found],
+    }
+
+
+def report_lines(
+    scored: ScoredModel,
+    prepared: Prepared,
+    figures: dict[str, dict[str, float | int]],
+    found: list[Excursion],
+) -> list[str]:
+    """The header, one line per run and pooled, then what the figures cannot speak for."""
+    data = prepared.data
+    lines = [
+        f"{Path(data.source).name}: {data.n_samples} rows, {len(data.run_ids)} runs, "
+        f"{len(prepared.plan.recording_runs)} recording(s), target {data.target} (µm)",
+        f"model {scored.banked.model_id} ({scored.method}, {scored.kind}), fitted on "
+        f"{scored.fitted_on}; applied as the gateway runs it, no refit",
+        f"{'run':<16} {'rows':>6} {'RMSE µm':>8} {'σ µm':>7} {'max|e| µm':>9}",
+    ]
+    for name, row in figures.items():
+        lines.append(
+            f"{name:<16} {row['n_samples']:>6} {row['rmse_um']:8.2f} {row['sigma_um']:7.2f} "
+            f"{row['max_abs_um']:9.2f}"
+        )
+    if scored.heldout_rmse_um is not None:
+        lines.append(f"held-out RMSE stored at fit: {scored.heldout_rmse_um:.2f} µm")
+    if scored.training_range is None:
+        lines.append(
+            "note: the model file holds no training range (written by an earlier version): "
+            "whether these data lie inside what it was fitted on is not checked"
+        )
+    for excursion in found:
+        lines.append(f"warning: outside the training data: {excursion.describe()}")
+    return lines

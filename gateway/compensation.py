@@ -43,6 +43,12 @@ the CNC restarted holding 0) becomes the applied value, with the slew budget
 restarting from the moment it was seen, so the compensation moves on from what
 the CNC holds at the slew limit and never steps back to the old value.
 
+Right before writing, the caller reads the macro once more on the write's own
+session and writes only if :meth:`holds_applied` says it still holds the applied
+value; otherwise it hands that value to :meth:`observe` (an external change) and
+writes nothing. :meth:`never_written` names a held value the policy could never have
+written (beyond the clamp, infinite), for a warning.
+
 The caller writes, reads back, and reports with :meth:`confirm` (the read-back
 value becomes the applied value) or :meth:`reject` (nothing changes; a write
 that did land after all is recognised by the next :meth:`observe`). Times are

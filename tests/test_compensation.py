@@ -585,3 +585,36 @@ def test_tracking_converges_to_a_steady_prediction(seed):
         write_ok(policy, now, policy.decide(now, goal_um))
         now += 3.0
     assert abs(policy.applied_um - goal_um) < limits.deadband_um + limits.step_um
+
+
+def test_holds_applied_judges_as_observe_does() -> None:
+    """The compare-before-write: the applied value within the CNC's rounding, NaN as 0."""
+    policy = CompensationPolicy(DEFAULT, start_um=12.3)  # 0.0123 mm on the CNC
+    assert policy.holds_applied(0.0123)
+    assert policy.holds_applied(0.01234)  # within half a step of 4 decimals
+    assert not policy.holds_applied(0.0124)
+    assert not policy.holds_applied(0.0)  # the operator's 0
+    assert not policy.holds_applied(math.nan)  # vacant: 0, not 12.3 µm
+    assert CompensationPolicy(DEFAULT).holds_applied(math.nan)
+    reversed_um = CompensationPolicy(CompensationLimits(unit="um", sign=-1), start_um=5.0)
+    assert reversed_um.holds_applied(-5.0) and not reversed_um.holds_applied(5.0)
+
+
+@pytest.mark.parametrize(
+    ("limits", "held", "expected"),
+    [
+        (DEFAULT, 1e30, "1e+33 µm, beyond the ±50 µm clamp"),
+        (DEFAULT, 1.0, "1000 µm, beyond the ±50 µm clamp"),  # 1 µm typed in mm
+        (DEFAULT, -0.06, "-60 µm, beyond the ±50 µm clamp"),
+        (DEFAULT, math.inf, "not a finite number"),
+        (DEFAULT, 0.05, None),  # the clamp itself
+        (DEFAULT, -0.0499, None),
+        (DEFAULT, math.nan, None),  # vacant: read as 0
+        (CompensationLimits(unit="um", sign=-1), 50.0, None),
+        (CompensationLimits(unit="um", sign=-1), -51.0, "51 µm, beyond the ±50 µm clamp"),
+    ],
+)
+def test_never_written_names_values_beyond_the_clamp(
+    limits: CompensationLimits, held: float, expected: str | None
+) -> None:
+    assert CompensationPolicy(limits).never_written(held) == expected

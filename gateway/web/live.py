@@ -34,6 +34,7 @@ class _Machine:
     probe_error_um: float | None = None
     probe_residual_um: float | None = None
     probe_time_s: float | None = None
+    cnc_value: float | None = None  # the last value written and read back: what the CNC holds
 
 
 @dataclass
@@ -56,6 +57,8 @@ class LiveBoard:
         """The gateway's sink: keep the record (and a probe's residual) for the next tick."""
         state = self._state.setdefault(record.machine, _Machine())
         state.record = record
+        if record.written_cnc is not None:
+            state.cnc_value = record.written_cnc
         if record.probe_error_um is not None and record.predicted_um is not None:
             state.probe_error_um = record.probe_error_um
             state.probe_residual_um = record.probe_error_um - record.predicted_um
@@ -88,7 +91,7 @@ class LiveBoard:
             "predicted_um": _num(rec.predicted_um),
             "applied_um": _num(rec.applied_um),
             "correction_um": _num(rec.correction_um),
-            "written_cnc": _num(rec.written_cnc),
+            "written_cnc": _num(state.cnc_value),
             "write_status": rec.write_status,
             "link_errors": len(rec.link_errors),
             "sensors": sensors,

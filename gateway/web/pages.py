@@ -25,7 +25,7 @@ TEMPLATES = jinja2.Environment(
     loader=jinja2.PackageLoader("gateway.web", "templates"),
     autoescape=jinja2.select_autoescape(default=True),
 )
-TEMPLATES.filters["um"] = lambda v: "–" if v is None else f"{v:.1f}"
+TEMPLATES.filters["um"] = lambda v: f"{v:.1f}" if isinstance(v, int | float) else "–"
 TEMPLATES.filters["clock"] = lambda t: datetime.fromtimestamp(t).strftime("%Y-%m-%d %H:%M:%S")
 
 

@@ -1,0 +1,136 @@
+"""Helpers of the web console's browser tests: headless Chromium through its WebDriver,
+screenshots a person can look at, and a Modbus TCP proxy that breaks a sensor.
+
+Chromium and chromedriver are Debian's (scripts/setup-system.sh installs them);
+as root Chromium needs ``--no-sandbox``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import struct
+import threading
+from pathlib import Path
+
+import numpy as np
+from matplotlib import image
+from selenium import webdriver
+
+ROOT = Path(__file__).resolve().parents[1]
+SHOTS = ROOT / ".cache" / "screenshots" / "console"
+DOCS_IMG = ROOT / "docs" / "img"
+
+
+def chromium(width: int = 1500, height: int = 1000) -> webdriver.Chrome:
+    options = webdriver.ChromeOptions()
+    options.binary_location = shutil.which("chromium") or "/usr/bin/chromium"
+    for argument in (
+        "--headless=new",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--no-first-run",
+        f"--window-size={width},{height}",
+    ):
+        options.add_argument(argument)
+    if os.geteuid() == 0:
+        options.add_argument("--no-sandbox")
+    service = webdriver.ChromeService(shutil.which("chromedriver") or "/usr/bin/chromedriver")
+    driver = webdriver.Chrome(options=options, service=service)
+    driver.set_page_load_timeout(60)
+    return driver
+
+
+def screenshot(driver: webdriver.Chrome, name: str, docs_name: str | None = None) -> Path:
+    """Save the page as ``.cache/screenshots/console/<name>.png`` (and into docs/img
+    as ``docs_name``); refuse a blank one: it must hold some ink and several colours."""
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    path = SHOTS / f"{name}.png"
+    height = driver.execute_script("return document.body.scrollHeight")
+    driver.set_window_size(1500, min(max(int(height) + 150, 700), 4000))
+    assert driver.save_screenshot(str(path)), path
+    pixels = image.imread(path)[..., :3]
+    ink = np.mean(np.any(pixels < 0.9, axis=-1))
+    colours = len(np.unique((pixels * 15).astype(np.uint8).reshape(-1, 3), axis=0))
+    assert ink > 0.02 and colours >= 8, (path, ink, colours)
+    if docs_name is not None:
+        DOCS_IMG.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, DOCS_IMG / docs_name)
+    return path
+
+
+class SensorBreakingProxy:
+    """A Modbus TCP proxy in front of a transmitter server. While ``broken`` is set it
+    answers the 16-register read of ``device_id`` with ``channel`` (0-based) open
+    circuit: its status register 1 and its value register 32767, as a real module
+    reports a broken Pt100."""
+
+    def __init__(self, upstream_port: int, device_id: int = 1, channel: int = 2) -> None:
+        self.upstream_port = upstream_port
+        self.device_id = device_id
+        self.channel = channel
+        self.broken = threading.Event()
+        self._listener = socket.create_server(("127.0.0.1", 0))
+        self.port = self._listener.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self._listener.accept()
+            except OSError:
+                return
+            upstream = socket.create_connection(("127.0.0.1", self.upstream_port))
+            upstream.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            threading.Thread(target=self._requests, args=(client, upstream), daemon=True).start()
+            threading.Thread(target=self._answers, args=(upstream, client), daemon=True).start()
+
+    @staticmethod
+    def _requests(client: socket.socket, upstream: socket.socket) -> None:
+        """Pass the requests on one frame at a time, as the client sent them."""
+        try:
+            while True:
+                header = _exactly(client, 7)
+                length = struct.unpack(">H", header[4:6])[0]
+                upstream.sendall(header + _exactly(client, length - 1))
+        except OSError:
+            pass
+        finally:
+            upstream.close()
+            client.close()
+
+    def _answers(self, upstream: socket.socket, client: socket.socket) -> None:
+        try:
+            while True:
+                header = _exactly(upstream, 7)
+                length = struct.unpack(">H", header[4:6])[0]
+                body = bytearray(_exactly(upstream, length - 1))
+                if self.broken.is_set() and header[6] == self.device_id:
+                    self._break(body)
+                client.sendall(header + bytes(body))
+        except OSError:
+            pass
+        finally:
+            client.close()
+            upstream.close()
+
+    def _break(self, body: bytearray) -> None:
+        if len(body) == 2 + 32 and body[0] == 4 and body[1] == 32:  # FC4, 16 registers
+            value = 2 + 2 * self.channel
+            status = 2 + 2 * (8 + self.channel)
+            body[value : value + 2] = struct.pack(">H", 32767)
+            body[status : status + 2] = struct.pack(">H", 1)
+
+    def close(self) -> None:
+        self._listener.close()
+
+
+def _exactly(sock: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise OSError("closed")
+        data += chunk
+    return data

@@ -61,6 +61,7 @@ import asyncio
 import contextlib
 import datetime
 import email.utils
+import json
 import logging
 import re
 import time
@@ -134,10 +135,24 @@ def to_influx(point: Point) -> InfluxPoint:
 
 
 def _describe(exc: BaseException) -> str:
+    """The status and the server's reason: InfluxDB 1.8 puts it in a header, 2.x in the
+    JSON body's ``message`` (e.g. ``partial write: field type conflict … dropped=1``)."""
     if isinstance(exc, ApiException):
         reason = exc.headers.get("X-Influxdb-Error") if exc.headers else None
-        return f"HTTP {exc.status}: {reason or exc.reason or exc.body}"
+        return f"HTTP {exc.status}: {reason or _body_message(exc.body) or exc.reason}"
     return f"{type(exc).__name__}: {exc}"
+
+
+def _body_message(body: object) -> str | None:
+    if isinstance(body, bytes):
+        body = body.decode("utf-8", errors="replace")
+    if not isinstance(body, str) or not body.strip():
+        return None
+    try:
+        message = json.loads(body).get("message")
+    except (ValueError, AttributeError):
+        return body.strip()[:500]
+    return str(message) if message else body.strip()[:500]
 
 
 def retry_after_s(value: str | None, now_s: float | None = None) -> float | None:

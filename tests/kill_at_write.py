@@ -1,14 +1,22 @@
 """Run ``python -m gateway ARGS`` and SIGKILL it just before its Nth change under a folder.
 
-``python -m tests.kill_at_write N FOLDER ARGS…``: an audit hook (:func:`sys.addaudithook`)
-counts the file-system changes the command makes under FOLDER (a file opened for
-writing, a rename or replace, a link, a removal) and sends the process a real
-``SIGKILL`` as the Nth begins, so every step of a writer can be cut, whatever code
-does the writing. Fewer than N changes: the command ends as it would.
+An audit hook (:func:`sys.addaudithook`) counts the file-system changes the command
+makes under FOLDER (a file opened for writing, a rename or replace, a link, a
+removal) and sends the process a real ``SIGKILL`` as the Nth begins, so every step
+of a writer can be cut, whatever code does the writing. Fewer than N changes: the
+command ends as it would.
+
+``python -m tests.kill_at_write N FOLDER ARGS…`` runs one command so.
+``python -m tests.kill_at_write --serve`` imports the command line once and then,
+for each JSON line ``{"step", "folder", "args", "output"}`` on stdin, forks a child
+that runs the command (its stdout and stderr into ``output``) and answers a JSON
+line ``{"returncode": …}`` (negative: killed by that signal): many killed commands
+without an interpreter's start-up each.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import runpy
 import signal
@@ -31,8 +39,9 @@ def is_change(event: str, args: tuple[Any, ...]) -> str | None:
     return None
 
 
-def main() -> None:
-    limit, folder = int(sys.argv[1]), os.path.realpath(sys.argv[2])
+def kill_at(limit: int, folder: str) -> None:
+    """SIGKILL this process as its ``limit``-th change under ``folder`` begins."""
+    folder = os.path.realpath(folder)
     seen = [0]
 
     def hook(event: str, args: tuple[Any, ...]) -> None:
@@ -43,8 +52,50 @@ def main() -> None:
         if seen[0] >= limit:
             os.kill(os.getpid(), signal.SIGKILL)
 
-    sys.argv = ["gateway", *sys.argv[3:]]
     sys.addaudithook(hook)
+
+
+def run_forked(request: dict[str, Any]) -> int:
+    """Run one request in a forked child; its exit code (negative: the signal)."""
+    from gateway.cli import main
+
+    pid = os.fork()
+    if pid == 0:
+        output = os.open(request["output"], os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        os.dup2(output, 1)
+        os.dup2(output, 2)
+        kill_at(int(request["step"]), request["folder"])
+        code = 0
+        try:
+            main.main(args=list(request["args"]), prog_name="gateway")
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return os.waitstatus_to_exitcode(status)
+
+
+def serve() -> None:
+    # Imported once, before the first fork: what the models commands load.
+    import gateway.cli
+    import gateway.models_cli  # noqa: F401
+    import models.proposals  # noqa: F401
+
+    for line in sys.stdin:
+        code = run_forked(json.loads(line))
+        sys.stdout.write(json.dumps({"returncode": code}) + "\n")
+        sys.stdout.flush()
+
+
+def main() -> None:
+    if sys.argv[1] == "--serve":
+        serve()
+        return
+    kill_at(int(sys.argv[1]), sys.argv[2])
+    sys.argv = ["gateway", *sys.argv[3:]]
     runpy.run_module("gateway", run_name="__main__", alter_sys=True)
 
 

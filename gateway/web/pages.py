@@ -16,7 +16,6 @@ from gateway.web import plots
 from gateway.web.auth import COOKIE, Auth, Session, csrf_ok, same_origin
 from gateway.web.backend import Backend
 from gateway.web.live import LiveBoard
-from gateway.web.series import events, read_machine
 
 log = logging.getLogger(__name__)
 
@@ -124,33 +123,9 @@ class Pages:
             raise web.HTTPBadRequest(text=f"h must be one of {WINDOWS_H}")
         return hours
 
-    async def machine(self, request: web.Request) -> web.Response:
-        machine, hours = self._machine(request), self._window_h(request)
-        spec = self.backend.source()
-        now = time.time()
-        data = await self.renderer.render(
-            ("events", machine, hours, int(now // 10)),
-            read_machine,
-            spec,
-            machine,
-            now - hours * 3600,
-            now,
-            self.backend.cnc_um_per_unit(machine),
-        )
-        return self.page(
-            "machine.html",
-            request,
-            machine=machine,
-            hours=hours,
-            windows=WINDOWS_H,
-            row=self.board.row(machine),
-            events=events(data),
-            stamp=int(now // self.renderer.cache_s),
-        )
-
-    async def machine_plot(self, request: web.Request) -> web.Response:
-        machine, hours = self._machine(request), self._window_h(request)
-        svg = await self.renderer.render(
+    async def _drawn(self, machine: str, hours: int) -> tuple[str, list]:
+        """The window's SVG and events, read and drawn once in the plot process."""
+        return await self.renderer.render(
             ("machine", machine, hours),
             plots.render_machine,
             self.backend.source(),
@@ -158,6 +133,24 @@ class Pages:
             hours * 3600.0,
             self.backend.cnc_um_per_unit(machine),
         )
+
+    async def machine(self, request: web.Request) -> web.Response:
+        machine, hours = self._machine(request), self._window_h(request)
+        _, found = await self._drawn(machine, hours)
+        return self.page(
+            "machine.html",
+            request,
+            machine=machine,
+            hours=hours,
+            windows=WINDOWS_H,
+            row=self.board.row(machine),
+            events=found,
+            stamp=int(time.time() // self.renderer.cache_s),
+        )
+
+    async def machine_plot(self, request: web.Request) -> web.Response:
+        machine, hours = self._machine(request), self._window_h(request)
+        svg, _ = await self._drawn(machine, hours)
         return web.Response(text=svg, content_type="image/svg+xml")
 
     # -- proposals ------------------------------------------------------------------

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from gateway.web.series import MachineSeries, SourceSpec, read_machine
+from gateway.web.series import MachineSeries, SourceSpec, events, read_machine
 
 #: Pixel columns of a plot: the envelope keeps two points per column.
 COLUMNS = 900
@@ -115,12 +115,15 @@ def proposal_svg(data: MachineSeries, before_rmse_um: float, after_rmse_um: floa
     return _svg(fig)
 
 
-def render_machine(spec: SourceSpec, machine: str, window_s: float, cnc_um_per_unit: float) -> str:
-    """Worker entry: read the window and draw it (runs in the plot process)."""
+def render_machine(
+    spec: SourceSpec, machine: str, window_s: float, cnc_um_per_unit: float
+) -> tuple[str, list[tuple[float, str, str]]]:
+    """Worker entry: read the window once, draw it and list its events (in the plot
+    process); the page and its plot share the result through the cache."""
     now = time.time()
     data = read_machine(spec, machine, now - window_s, now, cnc_um_per_unit)
     hours = window_s / 3600
-    return machine_svg(data, f"{machine}: last {hours:g} h ({data.cycles} cycles)")
+    return machine_svg(data, f"{machine}: last {hours:g} h ({data.cycles} cycles)"), events(data)
 
 
 def render_proposal(
@@ -134,7 +137,7 @@ def render_proposal(
 @dataclass
 class _Cached:
     made_s: float
-    svg: str
+    svg: Any
 
 
 class PlotRenderer:
@@ -145,9 +148,9 @@ class PlotRenderer:
         self.max_entries = max_entries
         self._pool: concurrent.futures.ProcessPoolExecutor | None = None
         self._cache: dict[tuple[Any, ...], _Cached] = {}
-        self._pending: dict[tuple[Any, ...], asyncio.Future[str]] = {}
+        self._pending: dict[tuple[Any, ...], asyncio.Future[Any]] = {}
 
-    async def render(self, key: tuple[Any, ...], function: Any, *args: Any) -> str:
+    async def render(self, key: tuple[Any, ...], function: Any, *args: Any) -> Any:
         """The SVG of ``function(*args)``: cached, shared by concurrent requests."""
         hit = self._cache.get(key)
         if hit is not None and time.monotonic() - hit.made_s < self.cache_s:

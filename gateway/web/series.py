@@ -164,6 +164,11 @@ def read_machine(
     )
 
 
+def _refused(status: str) -> bool:
+    """A write the loop did not make for a fault (not a hold or a deadband)."""
+    return bool(status) and not status.startswith(("ok", "no write"))
+
+
 def events(data: MachineSeries) -> list[tuple[float, str, str]]:
     """(Unix s, kind, text), newest first: macro changes, write refusals, sensor flags,
     link losses and reconnects, each at the cycle where it began."""
@@ -172,7 +177,7 @@ def events(data: MachineSeries) -> list[tuple[float, str, str]]:
     for t, status, links in zip(data.t_s, data.write_status, data.link_errors, strict=True):
         if "external" in status and "external" not in previous_status:
             found.append((float(t), "external macro change", status))
-        elif not status.startswith("ok") and status != previous_status:
+        elif _refused(status) and status[:24] != previous_status[:24]:
             found.append((float(t), "write", status))
         links = 0.0 if np.isnan(links) else float(links)
         if links > 0 and previous_links == 0:

@@ -1,0 +1,303 @@
+"""What the web console costs the compensation cycles, and how fast a machine page loads.
+
+1. ``lateness`` (before, with browsers, after; the ratio against both windows
+   without browsers together): ``--machines`` (default 200) machine tasks in one uvloop event loop,
+   each on a 1 s cycle at its own phase, hand a nine-sensor ``CycleRecord`` to the
+   console's sink every cycle, as the gateway's loops do; the console's aiohttp server
+   runs in the same loop. Lateness is how long after its due time a cycle starts.
+   Measured over ``--window-s`` with no browser, then with ``--browsers`` (default 20)
+   overview pages open: each a logged-in client in another process that loads the
+   overview and keeps its server-sent event stream, as a browser tab does.
+   The machines are synthetic (no protocol I/O): what is measured is the console's
+   share of the event loop, not the loops' own polling.
+2. ``machine_page``: a local store holding 24 h of one machine at 1 Hz (86 400 cycles,
+   nine sensors, a probe every 2 min) is served; the time to load the page and its
+   plot, first (cold: read and drawn) and again (cached), over HTTP and in headless
+   Chromium (navigation start until the plot image is complete) when it is installed.
+
+Prints one JSON document.
+
+    .venv/bin/python benchmarks/console_cost.py [--machines 200] [--browsers 20] [--window-s 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import multiprocessing
+import os
+import platform
+import shutil
+import socket
+import sqlite3
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import aiohttp
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from gateway.local_store import SCHEMA  # noqa: E402
+from gateway.login_throttle import ThrottlePolicy  # noqa: E402
+from gateway.runtime import CycleRecord  # noqa: E402
+from gateway.scada import ScadaUser  # noqa: E402
+from gateway.web.server import WebConsole, WebSettings  # noqa: E402
+
+SENSORS = [f"T{i}" for i in range(1, 10)]
+USER = ("bench", "bench-secret")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class StubGateway:
+    """The parts of :class:`gateway.app.Gateway` the console reads."""
+
+    def __init__(self, machines: list[str], store: Path) -> None:
+        comp = SimpleNamespace(unit="mm", sign=1)
+        self.loops = [
+            SimpleNamespace(
+                config=SimpleNamespace(id=m, compensation=comp),
+                compensation_enabled=True,
+                cycles=0,
+                promotions=SimpleNamespace(version=0),
+            )
+            for m in machines
+        ]
+        self.supervisors: dict[str, Any] = {}
+        self.config = SimpleNamespace(logging=SimpleNamespace(influxdb=None, local_store=store))
+
+    def health(self, machine_id: str) -> dict[str, Any]:
+        return {"cycles": 1, "failed_writes": 0, "link_errors_total": 0}
+
+
+def record(machine: str, t: float) -> CycleRecord:
+    temps = {s: 25.0 + 0.1 * i + (t % 60) / 600 for i, s in enumerate(SENSORS)}
+    return CycleRecord(
+        machine=machine,
+        time_s=t,
+        temperatures_C=temps,
+        quality=dict.fromkeys(SENSORS, "good"),
+        quality_reasons={},
+        speed_rpm=8000.0,
+        regime="variable",
+        model_id="mlr-error_um-variable",
+        predicted_um=12.3,
+        target_um=12.3,
+        applied_um=12.1,
+        written_cnc=0.0121,
+        write_status="ok: tracking",
+    )
+
+
+async def machine_task(name: str, phase_s: float, stop_s: float, sink: Any, out: list) -> None:
+    due = time.monotonic() + phase_s  # the loop's own clock rounds to whole ms
+    while due < stop_s:
+        await asyncio.sleep(max(due - time.monotonic(), 0))
+        out.append(time.monotonic() - due)
+        sink(record(name, time.time()))
+        due += 1.0
+
+
+async def measure(console: WebConsole, machines: list[str], window_s: float) -> list[float]:
+    lateness: list[float] = []
+    stop = time.monotonic() + window_s
+    await asyncio.gather(
+        *(
+            machine_task(m, i / len(machines), stop, console.record, lateness)
+            for i, m in enumerate(machines)
+        )
+    )
+    return lateness
+
+
+def browsers(url: str, n: int, seconds: float, ready: Any) -> None:
+    """``n`` overview pages with their event streams, for ``seconds`` (another process)."""
+
+    async def one(received: list[int]) -> None:
+        jar = aiohttp.CookieJar(unsafe=True)
+        async with aiohttp.ClientSession(cookie_jar=jar) as session:
+            form = {"username": USER[0], "password": USER[1]}
+            async with session.post(url + "/login", data=form) as response:
+                await response.read()
+            async with session.get(url + "/events") as stream:
+                async for _ in stream.content:
+                    received[0] += 1
+
+    async def run() -> None:
+        received = [0]
+        tasks = [asyncio.create_task(one(received)) for _ in range(n)]
+        await asyncio.sleep(3)
+        ready.set()
+        await asyncio.sleep(seconds)
+        for task in tasks:
+            task.cancel()
+
+    asyncio.run(run())
+
+
+def p(samples: list[float], q: float) -> float:
+    ordered = sorted(samples)
+    return ordered[min(int(q * len(ordered)), len(ordered) - 1)] * 1000
+
+
+def summary(samples: list[float]) -> dict[str, float]:
+    return {
+        "cycles": len(samples),
+        "median_ms": round(statistics.median(samples) * 1000, 2),
+        "p99_ms": round(p(samples, 0.99), 2),
+        "max_ms": round(max(samples) * 1000, 2),
+    }
+
+
+def fill_day(store: Path, machine: str, now_s: float) -> None:
+    """24 h of 1 Hz points of ``machine``, written as the local store holds them."""
+    db = sqlite3.connect(store)
+    db.executescript(SCHEMA)
+    rows = []
+    for k in range(86_400):
+        t = now_s - 86_400 + k
+        ns = int(t * 1e9)
+        growth = 10 + 8 * ((k % 7200) / 7200)
+        fields = {
+            "speed_rpm": 8000.0 if (k // 3600) % 2 else 3000.0,
+            "predicted_um": growth,
+            "applied_um": growth - 0.2,
+            "written_cnc": (growth - 0.2) / 1000,
+            "write_status": "ok: tracking",
+            "link_errors": 0,
+        }
+        rows.append(
+            ("spindle_cycle", machine, json.dumps({"machine": machine}), ns, json.dumps(fields))
+        )
+        for i, s in enumerate(SENSORS):
+            tags = {"machine": machine, "sensor": s, "quality": "good"}
+            value = {"value_C": 22 + i * 0.5 + growth / 5}
+            rows.append(("spindle_temperature", machine, json.dumps(tags), ns, json.dumps(value)))
+        if k % 120 == 0:
+            rows.append(
+                (
+                    "spindle_probe",
+                    machine,
+                    json.dumps({"machine": machine}),
+                    ns,
+                    json.dumps({"error_um": growth + 1}),
+                )
+            )
+    db.executemany("INSERT INTO points VALUES (?, ?, ?, ?, ?)", rows)
+    db.commit()
+    db.close()
+
+
+async def page_load(url: str, machine: str) -> dict[str, float]:
+    jar = aiohttp.CookieJar(unsafe=True)
+    times = {}
+    async with aiohttp.ClientSession(cookie_jar=jar) as session:
+        form = {"username": USER[0], "password": USER[1]}
+        async with session.post(url + "/login", data=form) as response:
+            await response.read()
+        for attempt in ("cold", "cached"):
+            started = time.perf_counter()
+            async with session.get(f"{url}/machines/{machine}?h=24") as response:
+                await response.read()
+            async with session.get(f"{url}/machines/{machine}/plot.svg?h=24") as response:
+                svg = await response.read()
+            times[f"http_{attempt}_s"] = round(time.perf_counter() - started, 3)
+        times["svg_bytes"] = len(svg)
+    return times
+
+
+def chromium_load(url: str, machine: str) -> float | None:
+    if shutil.which("chromium") is None or shutil.which("chromedriver") is None:
+        return None
+    sys.path.insert(0, str(ROOT))
+    from selenium.webdriver.common.by import By
+
+    from tests.browser import chromium
+
+    driver = chromium()
+    try:
+        driver.get(url + "/login")
+        driver.find_element(By.ID, "username").send_keys(USER[0])
+        driver.find_element(By.ID, "password").send_keys(USER[1])
+        driver.find_element(By.ID, "login").click()
+        started = time.perf_counter()
+        driver.get(f"{url}/machines/{machine}?h=24&fresh=1")
+        plot = driver.find_element(By.ID, "plot")
+        while not driver.execute_script("return arguments[0].complete", plot):
+            time.sleep(0.02)
+        return round(time.perf_counter() - started, 3)
+    finally:
+        driver.quit()
+
+
+async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
+    machines = [f"m{i:03d}" for i in range(args.machines)]
+    store = folder / "points.sqlite"
+    fill_day(store, machines[0], time.time())
+    port = free_port()
+    settings = WebSettings(
+        host="127.0.0.1",
+        port=port,
+        users=[ScadaUser(USER[0], USER[1], "viewer")],
+        throttle=ThrottlePolicy(),
+    )
+    console = WebConsole(settings, StubGateway(machines, store))  # type: ignore[arg-type]
+    await console.start()
+    url = f"http://127.0.0.1:{port}"
+    try:
+        await measure(console, machines, 3.0)  # warm-up
+        alone = await measure(console, machines, args.window_s)
+        ready = multiprocessing.get_context("spawn").Event()
+        watchers = multiprocessing.get_context("spawn").Process(
+            target=browsers, args=(url, args.browsers, args.window_s + 5, ready)
+        )
+        watchers.start()
+        while not ready.is_set():
+            await asyncio.sleep(0.1)
+        watched = await measure(console, machines, args.window_s)
+        watchers.join()
+        after = await measure(console, machines, args.window_s)
+        page = await page_load(url, machines[0])
+        chromium_s = await asyncio.get_running_loop().run_in_executor(
+            None, chromium_load, url, machines[0]
+        )
+    finally:
+        await console.stop()
+    result = {
+        "no_browser_before": summary(alone),
+        f"{args.browsers}_browsers": summary(watched),
+        "no_browser_after": summary(after),
+        "p99_ratio": round(p(watched, 0.99) / p(alone + after, 0.99), 3),
+        "machine_page_24h_1hz": {**page, "chromium_s": chromium_s},
+    }
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--machines", type=int, default=200)
+    parser.add_argument("--browsers", type=int, default=20)
+    parser.add_argument("--window-s", type=float, default=30.0)
+    args = parser.parse_args()
+    import uvloop
+
+    with tempfile.TemporaryDirectory() as tmp:
+        result = uvloop.run(main_async(args, Path(tmp)))
+    result["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version()}
+    result["args"] = vars(args)
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -19,11 +19,16 @@ error of the machine's cold reference, one reading per sensor: it shifts every
 rise by a constant, which the relation's coefficients b_j carry into the
 residual. A sensor is *suspect* when |z| > ``plausibility_sigma`` (default 5). When the
 readings disagree, the sensor to blame is the one whose removal leaves the
-others consistent (the smallest worst |z| among the remaining sensors, each
-judged from the remaining ones only); it is removed and the search repeats
-while the rest still disagree. A second fault while the first sensor is held
-is judged by the sensors left. Three or more sensors are needed to say which
-one is wrong; with fewer the rule says nothing.
+others most consistent (the smallest worst |z| among the remaining sensors,
+each judged from the remaining ones only), whether or not its own |z| is past
+the threshold: a drifting sensor drags the neighbours whose relations lean on
+it, and one of those may cross the threshold first; removing the drifting
+sensor explains it, removing the neighbour does not. The culprit is removed and
+the search repeats while the rest still disagree. Held sensors never judge the
+others. When a new sensor is held, a sensor held earlier that has disagreed
+ever since and agrees with the sensors left is released at once: the new
+culprit explained its disagreement. Three or more sensors are needed to say
+which one is wrong; with fewer the rule says nothing.
 
 A suspect sensor goes BAD ("implausible: +7.4σ from its neighbours …") and is
 *held*: it no longer predicts the others and the model bank switches to the
@@ -53,15 +58,24 @@ of the loop's clock: a simulated machine served faster than the gateway's wall
 clock needs the bound scaled by the same factor.
 
 **A reference taken while the spindle turns** (the gateway started for the
-first time in the middle of a run) makes every rise relative to that moment's
-transient, when a fast sensor leads the others; the relation would then flag
-sound sensors as the transient settles. So rule 1 arms itself at the first
-cycle with rises: if the spindle was turning at the gateway's first cycle and
-the rises are all within ``FRESH_REFERENCE_C`` of zero (the reference was
-just taken), it stays off for this run, logged once (the remedy: delete the
-reference file and start the gateway with the machine cold and at rest, which
-the models need too). A reference kept from an earlier start (rises already
-larger), or taken with the spindle at rest, arms it.
+first time, or with a new state folder, in the middle of a run) holds each
+sensor's true rise at that moment, d_i, so every rise reads low by d_i and the
+fitted intercepts no longer fit. Rule 1 then judges the rises *since the
+reference* instead: with r = ΔT − d and the reference instant t₀ (r(t₀) = 0),
+the relation ΔT_i = a + Σ b_j ΔT_j + e becomes exactly::
+
+    r_i = Σ b_j r_j + e(t) − e(t₀)
+
+the same coefficients without the intercept, the residual now a difference of
+two residuals, so σ_held-out is counted twice (σ_eff² = 2 σ² + the reference
+term). The sensors are judged from the first cycle, at the cost of √2 in
+sensitivity. The mode is decided at the first cycle with rises: a reference the
+state folder marks as taken with the spindle turning (``taken_turning``), or,
+for a reference file without the mark, rises all within ``FRESH_REFERENCE_C``
+of zero while the spindle turned at the gateway's first cycle. It applies to
+every later start on the same reference too. One line names how many machines
+start this way (:class:`WarmStarts`); their models predict from the warm
+reference as well, which only a reference taken cold mends.
 
 **Without relations** (a model file saved before they were stored) rule 1 is
 unavailable, which :attr:`Plausibility.available` says and the loop logs once;
@@ -73,6 +87,7 @@ Every hold and release is logged once.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 from collections import deque
@@ -93,6 +108,7 @@ __all__ = [
     "Plausibility",
     "PlausibilityLimits",
     "Suspect",
+    "WarmStarts",
     "relations_from_bank",
 ]
 
@@ -169,6 +185,53 @@ class _Hold:
     agree_since_s: float | None = None
 
 
+class WarmStarts:
+    """The machines whose reference was taken with the spindle turning, named in one line.
+
+    A gateway restarted mid-shift with a new state folder finds every machine
+    warm: one line per machine would be a thousand at a thousand machines. The
+    machines noted within ``delay_s`` of the first (their first cycles run
+    together) are logged as one line with their count.
+    """
+
+    def __init__(self, delay_s: float = 2.0, shown: int = 5) -> None:
+        self.delay_s = delay_s
+        self.shown = shown
+        self.machines: list[str] = []
+        self._pending = False
+
+    def note(self, machine: str) -> None:
+        self.machines.append(machine)
+        if self._pending:
+            return
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no event loop (plain calls): say it now
+            self.flush()
+            return
+        self._pending = True
+        loop.call_later(self.delay_s, self.flush)
+
+    def flush(self) -> None:
+        self._pending = False
+        names, self.machines = self.machines, []
+        if not names:
+            return
+        more = len(names) - self.shown
+        listed = ", ".join(names[: self.shown]) + (f" and {more} more" if more > 0 else "")
+        log.warning(
+            "%d machine(s) started with the temperature reference taken while the spindle "
+            "turned (%s): the sensor plausibility check judges the rises since then (σ ×√2); "
+            "the models predict from that warm reference too: delete the reference files and "
+            "start with the machines cold to mend both",
+            len(names),
+            listed,
+        )
+
+
+WARM_STARTS = WarmStarts()
+
+
 def relations_from_bank(bank: ModelBank, sensors: Iterable[str]) -> SensorRelations | None:
     """The stored relation covering most of the machine's sensors (then most rows, then id).
 
@@ -224,6 +287,10 @@ class Plausibility:
         self.limits = limits
         self.machine = machine
         self.armed: bool | None = None  # rule 1: decided at the first cycle with rises
+        #: Rule 1 on rises since a reference taken warm (no intercepts; see the docstring).
+        self.warm = False
+        #: The reference's own mark: taken with the spindle turning (None: not known).
+        self.reference_turning: bool | None = None
         self._turning_at_start: bool | None = None
         self.holds: dict[str, _Hold] = {}
         self.flags = 0  # how many times a sensor was newly held
@@ -272,9 +339,13 @@ class Plausibility:
             return self.reasons()
         known = {s: v for s, v in rises_C.items() if s in self.relations.sensors}
         trusted = {s: v for s, v in known.items() if s not in self.holds}
-        for sensor, z, said in self._blame(trusted):
+        earlier = [s for s, hold in self.holds.items() if hold.agree_since_s is None]
+        blamed = self._blame(trusted)
+        for sensor, z, said in blamed:
             self._hold(now_s, sensor, f"implausible: {z:+.1f}σ from its neighbours ({said})")
             trusted.pop(sensor)
+        if blamed:
+            self._release_explained(earlier, known, trusted, [b[0] for b in blamed])
         for sensor in [s for s in self.holds if s in known]:
             self._judge_agreement(now_s, sensor, known[sensor], trusted)
         return self.reasons()
@@ -289,9 +360,13 @@ class Plausibility:
         assert self.relations is not None
         said = self.relations.predict(sensor, others)
         carried = REFERENCE_SIGMA_C**2 * (1.0 + sum(b * b for b in said.coefficients))
-        sigma = max(math.sqrt(said.sigma_C**2 + carried), self.limits.min_sigma_C)
-        z = (value_C - said.predicted_rise_C) / sigma
-        text = f"rise {value_C:.2f} °C, the others say {said.predicted_rise_C:.2f} ± {sigma:.2f} °C"
+        predicted, spread = said.predicted_rise_C, said.sigma_C**2
+        if self.warm:  # rises since a warm reference: no intercept, two residuals' spread
+            predicted, spread = predicted - said.intercept_C, 2.0 * spread
+        sigma = max(math.sqrt(spread + carried), self.limits.min_sigma_C)
+        z = (value_C - predicted) / sigma
+        since = " since the reference" if self.warm else ""
+        text = f"rise{since} {value_C:.2f} °C, the others say {predicted:.2f} ± {sigma:.2f} °C"
         return z, text
 
     def _worst(self, rises_C: Mapping[str, float]) -> tuple[float, dict[str, tuple[float, str]]]:
@@ -311,19 +386,45 @@ class Plausibility:
             if worst <= self.limits.sigma:
                 self.largest_sound_z = max(self.largest_sound_z, worst)
                 break
-            candidates = [s for s, (z, _) in scores.items() if abs(z) > self.limits.sigma]
-
+            # Every sensor may be the explanation, not only those past the threshold.
             culprit = min(
-                candidates,
+                active,
                 key=lambda c: (
                     self._worst({s: v for s, v in active.items() if s != c})[0],
                     -abs(scores[c][0]),
                 ),
             )
             z, said = scores[culprit]
+            if abs(z) <= self.limits.sigma:
+                dragged = max(scores, key=lambda s: abs(scores[s][0]))
+                said += f"; explains {dragged}'s {scores[dragged][0]:+.1f}σ"
             blamed.append((culprit, z, said))
             del active[culprit]
         return blamed
+
+    def _release_explained(
+        self,
+        earlier: list[str],
+        known: Mapping[str, float],
+        trusted: Mapping[str, float],
+        culprits: list[str],
+    ) -> None:
+        """Release the sensors held before whose disagreement the new culprits explain."""
+        for sensor in earlier:
+            others = {s: v for s, v in trusted.items() if s != sensor}
+            if sensor not in known or len(others) < MIN_SENSORS_TO_BLAME - 1:
+                continue
+            z, _ = self.z_score(sensor, known[sensor], others)
+            if abs(z) <= AGREE_SHARE * self.limits.sigma:
+                hold = self.holds.pop(sensor)
+                log.info(
+                    "%s: sensor %s agrees without %s; trusted again (held since %.0f s, "
+                    "its disagreement was theirs)",
+                    self.machine,
+                    sensor,
+                    ", ".join(culprits),
+                    hold.since_s,
+                )
 
     def _judge_agreement(
         self, now_s: float, sensor: str, value_C: float, trusted: Mapping[str, float]
@@ -430,20 +531,23 @@ class Plausibility:
         if self._turning_at_start is None:
             self._turning_at_start = speed_rpm is not None and speed_rpm > 0
         if self.armed is None and rises_C:
-            fresh = max(abs(v) for v in rises_C.values()) <= FRESH_REFERENCE_C
-            self.armed = not (fresh and self._turning_at_start)
-            if not self.armed and self.relations is not None:
-                log.warning(
-                    "%s: plausibility check off: the temperature reference was taken with the "
-                    "spindle turning; delete the reference file and start the gateway with the "
-                    "machine cold and at rest to arm it",
-                    self.machine,
-                )
+            self._arm(rises_C)
         self._history.append(
             _Past(now_s, {s: v for s, v in rises_C.items() if s not in self.holds})
         )
         while self._history and now_s - self._history[0].time_s > RATE_HORIZON_S:
             self._history.popleft()
+
+    def _arm(self, rises_C: Mapping[str, float]) -> None:
+        """Rule 1 on rises above a cold reference, or since a warm one (module docstring)."""
+        self.armed = True
+        if self.reference_turning is not None:
+            self.warm = self.reference_turning
+        else:
+            fresh = max(abs(v) for v in rises_C.values()) <= FRESH_REFERENCE_C
+            self.warm = bool(fresh and self._turning_at_start)
+        if self.warm and self.relations is not None:
+            WARM_STARTS.note(self.machine)
 
     def _allowed_um(self, span_s: _Span) -> _Span:
         lim = self.limits

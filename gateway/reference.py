@@ -12,6 +12,12 @@ The error has no reference here: a gateway never rebases its error. Models are
 fitted on the error as measured, whose reference is the model's own intercept
 (the stored ``error_reference``), and the loop compensates the prediction as it
 is, from the start of the recording to its end, whatever the spindle did first.
+
+The file also marks whether the first readings were taken with the spindle
+turning (``taken_turning``): a warm reference, which the sensor plausibility
+check must judge differently (:mod:`gateway.plausibility`) at this start and at
+every later one on the same file. A file without the mark (an older gateway)
+leaves it unknown.
 """
 
 from __future__ import annotations
@@ -36,16 +42,27 @@ class TemperatureReference:
         self.values_C: dict[str, float] = dict(fixed_C)
         self._unsaved = False  # first readings taken that the file does not hold yet
         self._save_failing = False
+        #: Whether the first readings were taken with the spindle turning (None: unknown).
+        self.taken_turning: bool | None = None
+        # The speed at this start's first cycle: a machine already running when the
+        # gateway started is warm, whichever cycle the first good readings come at.
+        self._start_speed_rpm: tuple[float | None] | None = None
         if mode == "first-reading" and state_file is not None and state_file.exists():
             self.values_C.update(read_saved_reference(state_file))
+            self.taken_turning = read_taken_turning(state_file)
 
-    def observe(self, good_readings_C: Mapping[str, float]) -> None:
+    def observe(self, good_readings_C: Mapping[str, float], speed_rpm: float | None = None) -> None:
         """Take the first good reading of each sensor that has no reference yet, and save
-        the reference until a save succeeds."""
+        the reference until a save succeeds; ``speed_rpm`` at the first call says whether
+        the machine was running when the gateway started."""
         if self.mode != "first-reading":
             return
+        if self._start_speed_rpm is None:
+            self._start_speed_rpm = (speed_rpm,)
         new = {k: v for k, v in good_readings_C.items() if k not in self.values_C}
         if new:
+            if not self.values_C and self._start_speed_rpm[0] is not None:
+                self.taken_turning = abs(self._start_speed_rpm[0]) > 0
             self.values_C.update(new)
             self._unsaved = True
         if self._unsaved:
@@ -70,7 +87,10 @@ class TemperatureReference:
             self._unsaved = False
             return
         try:
-            write_json_atomic(self.state_file, {"reference_C": self.values_C}, sort_keys=True)
+            document: dict[str, object] = {"reference_C": self.values_C}
+            if self.taken_turning is not None:
+                document["taken_turning"] = self.taken_turning
+            write_json_atomic(self.state_file, document, sort_keys=True)
         except OSError as exc:
             if not self._save_failing:
                 log.error(
@@ -114,3 +134,17 @@ def read_saved_reference(state_file: Path) -> dict[str, float]:
             "restore the file, or delete it to take a new reference with the machine cold"
         ) from None
     return reference
+
+
+def read_taken_turning(state_file: Path) -> bool | None:
+    """The saved reference's ``taken_turning`` mark (None: absent); ValueError if not a boolean.
+
+    Called after :func:`read_saved_reference` accepted the file.
+    """
+    mark = json.loads(state_file.read_text(encoding="utf-8")).get("taken_turning")
+    if mark is not None and not isinstance(mark, bool):
+        raise ValueError(
+            f"{state_file}: 'taken_turning' must be true or false, found {mark!r}; "
+            "correct it, or delete the file to take a new reference with the machine cold"
+        )
+    return mark

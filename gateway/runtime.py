@@ -163,7 +163,8 @@ class MachineLoop:
         checks = self.quality.check(now, readings, self.reference.values_C)
         good = {n for n, c in checks.items() if c.quality is Quality.GOOD}
         good_values = {n: readings[n][0] for n in good if readings[n][0] is not None}
-        self.reference.observe(good_values)
+        self.reference.observe(good_values, speed_rpm)
+        self.plausibility.reference_turning = self.reference.taken_turning
         augmented_um = self.effects.advance(
             now, self.reference.available_rises_C(good_values), speed_rpm
         )

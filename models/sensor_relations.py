@@ -59,6 +59,7 @@ class RelationPrediction:
     sigma_C: float  # held-out σ of this very relation
     using: tuple[str, ...]
     coefficients: tuple[float, ...]  # of ``using``, °C per °C
+    intercept_C: float = 0.0  # the relation's constant, included in ``predicted_rise_C``
 
 
 class SensorRelations:
@@ -145,6 +146,7 @@ class SensorRelations:
             found.sigma_held_out_C,
             tuple(found.coefficients),
             tuple(found.coefficients.values()),
+            found.intercept_C,
         )
 
     # --- JSON ---------------------------------------------------------------------------

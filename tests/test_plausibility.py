@@ -237,15 +237,29 @@ def test_a_bad_threshold_is_refused_with_its_line(tmp_path: Path, value: str) ->
         load_config(path)
 
 
-def test_a_reference_taken_with_the_spindle_turning_leaves_rule_1_off(
+def test_a_reference_taken_with_the_spindle_turning_judges_the_rises_since_it(
     relations: SensorRelations,
 ) -> None:
     check = Plausibility(relations, LIMITS)
     check.accept(0.0, {}, 8000.0)  # the gateway's first cycle: spindle turning, no rises yet
     check.accept(30.0, dict.fromkeys(SENSORS, 0.0), 8000.0)  # the reference just taken
-    assert check.armed is False and not check.available
-    rises = rises_at(8.0, 4.0) | {"C": rises_at(8.0, 4.0)["C"] + 3.0}
-    assert check.judge(60.0, rises) == {}
+    assert check.armed and check.warm and check.available
+    # The machine was at (8, 4) when the reference was taken: rises count from there.
+    warm = rises_at(8.0, 4.0)
+    since = {s: v - warm[s] for s, v in rises_at(11.0, 6.0).items()}
+    assert check.judge(60.0, since) == {}
+    since["C"] += 3.0
+    assert list(check.judge(90.0, since)) == ["C"]
+
+
+def test_a_reference_marked_warm_stays_warm_after_a_restart(relations: SensorRelations) -> None:
+    check = Plausibility(relations, LIMITS)
+    check.reference_turning = True  # the saved file's mark; the rises are no longer near 0
+    warm = rises_at(8.0, 4.0)
+    since = {s: v - warm[s] for s, v in rises_at(14.0, 7.0).items()}
+    check.accept(0.0, since, 0.0)
+    assert check.warm
+    assert check.judge(30.0, since) == {}
 
 
 def test_a_reference_taken_at_rest_or_kept_from_before_arms_rule_1(

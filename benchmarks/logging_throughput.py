@@ -80,7 +80,7 @@ async def main_async(cycles: int) -> dict[str, object]:
 
     with InfluxServer(folder / "influx") as server:
         bucket = server.create_database("bench")
-        writer = InfluxWriter(server.url, "-", "-", bucket, timeout_s=30.0)
+        writer = InfluxWriter(server.url, server.token, server.org, bucket, timeout_s=30.0)
         flat = [p for batch in batches for p in batch]
         start = time.perf_counter()
         for i in range(0, len(flat), 5000):
@@ -89,7 +89,9 @@ async def main_async(cycles: int) -> dict[str, object]:
 
         # The buffer filled while the database was "away" (above); now it is back.
         replay_bucket = server.create_database("replay")
-        forwarder = Forwarder(buffer, InfluxWriter(server.url, "-", "-", replay_bucket, 30.0))
+        forwarder = Forwarder(
+            buffer, InfluxWriter(server.url, server.token, server.org, replay_bucket, 30.0)
+        )
         start = time.perf_counter()
         forwarder.start()
         drained = await forwarder.flush(timeout=600.0)

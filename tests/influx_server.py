@@ -1,18 +1,23 @@
-"""A real InfluxDB 1.8.10 server for tests, on 127.0.0.1 at free ports.
+"""A real InfluxDB 2.7.12 server for tests, on 127.0.0.1 at a free port.
 
-influxd 1.8.10 serves the v2 write API and Flux queries that ``influxdb-client``
-uses (bucket ``"<database>/autogen"``, any token, org ``"-"``). The binary is
-built into ``.cache/bin/influxd`` by ``scripts/setup-system.sh``; a missing
-binary fails the test with the command that builds it (no skip: these tests are
-part of the suite).
+The same version deploy/docker-compose.yml ships, so the writer, the forwarder's
+outage handling, ``export`` and the Grafana dashboard's queries are tested against
+the database a deployment runs: token authentication, an organisation, buckets,
+the v2 write API and Flux. The binary is built into ``.cache/bin/influxd2`` by
+``scripts/build-influxd2.sh`` (called by ``scripts/setup-system.sh`` when missing);
+a missing binary fails the test with that command (no skip: these tests are part
+of the suite).
+
+The first start runs the server's one-time setup (``POST /api/v2/setup``) with a
+known operator token, organisation and bucket; later starts reuse its data.
 
 Usage::
 
     with InfluxServer(tmp_path) as server:
-        bucket = server.create_database("gateway")
+        bucket = server.create_database("gateway")   # a bucket in server.org
         ...
         server.stop()    # an outage: the process ends, data stays on disk
-        server.start()   # the same data directory and ports
+        server.start()   # the same data folder and port
 """
 
 from __future__ import annotations
@@ -23,99 +28,40 @@ import signal
 import subprocess
 import time
 import urllib.error
-import urllib.parse
 import urllib.request
 from pathlib import Path
 
 from tests.ports import free_tcp_port
 
 REPO = Path(__file__).resolve().parents[1]
-INFLUXD = REPO / ".cache" / "bin" / "influxd"
-BUILD_COMMAND = (
-    'GOBIN=$PWD/.cache/bin go install -trimpath -ldflags "-s -w -X main.version=1.8.10" '
-    "github.com/influxdata/influxdb/cmd/influxd@v1.8.10"
-)
-TOKEN = "test-token"  # influxd 1.8 with auth off accepts any token
-ORG = "-"
-
-CONFIG = """\
-reporting-disabled = true
-bind-address = "127.0.0.1:{rpc_port}"
-
-[meta]
-  dir = "{root}/meta"
-  logging-enabled = false
-
-[data]
-  dir = "{root}/data"
-  wal-dir = "{root}/wal"
-  query-log-enabled = false
-  trace-logging-enabled = false
-
-[monitor]
-  store-enabled = false
-
-[subscriber]
-  enabled = false
-
-[continuous_queries]
-  enabled = false
-
-[http]
-  enabled = true
-  bind-address = "127.0.0.1:{http_port}"
-  auth-enabled = false
-  log-enabled = false
-  write-tracing = false
-  pprof-enabled = false
-  flux-enabled = true
-  flux-log-enabled = false
-
-[logging]
-  level = "warn"
-  suppress-logo = true
-
-[[graphite]]
-  enabled = false
-  bind-address = "127.0.0.1:{http_port}"
-
-[[collectd]]
-  enabled = false
-  bind-address = "127.0.0.1:{http_port}"
-
-[[opentsdb]]
-  enabled = false
-  bind-address = "127.0.0.1:{http_port}"
-
-[[udp]]
-  enabled = false
-  bind-address = "127.0.0.1:{http_port}"
-"""
+INFLUXD = REPO / ".cache" / "bin" / "influxd2"
+VERSION = "2.7.12"  # = deploy/docker-compose.yml's influxdb image
+BUILD_COMMAND = "bash scripts/build-influxd2.sh"
+TOKEN = "spindle-test-operator-token"  # the operator token the setup creates
+ORG = "spindle"
+USER = "admin"
+PASSWORD = "spindle-test-password"
+SETUP_BUCKET = "setup"
 
 
 class InfluxServer:
-    """One influxd process with its own data folder; ``stop``/``start`` keep the data."""
+    """One influxd 2 process with its own data folder; ``stop``/``start`` keep the data."""
 
     def __init__(self, root: Path, start_timeout_s: float = 120.0) -> None:
         if not INFLUXD.is_file():
             raise RuntimeError(
-                f"the InfluxDB 1.8.10 server binary {INFLUXD} is missing; build it from the "
+                f"the InfluxDB {VERSION} server binary {INFLUXD} is missing; build it from the "
                 f"repository root with:\n  {BUILD_COMMAND}\n(scripts/setup-system.sh does this "
-                "when .cache/bin/influxd is missing)"
+                "when it is missing; about 12 minutes once)"
             )
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self.http_port = free_tcp_port()
-        self.rpc_port = free_tcp_port()
         self.url = f"http://127.0.0.1:{self.http_port}"
         self.token = TOKEN
         self.org = ORG
+        self.org_id: str | None = None
         self.start_timeout_s = start_timeout_s
-        self.config_path = self.root / "influxdb.conf"
-        self.config_path.write_text(
-            CONFIG.format(root=self.root, rpc_port=self.rpc_port, http_port=self.http_port),
-            encoding="utf-8",
-        )
         self.log_path = self.root / "influxd.log"
         self._process: subprocess.Popen[bytes] | None = None
 
@@ -124,20 +70,37 @@ class InfluxServer:
     def running(self) -> bool:
         return self._process is not None and self._process.poll() is None
 
+    def command(self) -> list[str]:
+        return [
+            str(INFLUXD),
+            "--http-bind-address",
+            f"127.0.0.1:{self.http_port}",
+            "--bolt-path",
+            str(self.root / "influxd.bolt"),
+            "--engine-path",
+            str(self.root / "engine"),
+            "--sqlite-path",
+            str(self.root / "influxd.sqlite"),
+            "--reporting-disabled",
+            "--log-level",
+            "warn",
+        ]
+
     def start(self) -> None:
-        """Start influxd (again) on the same ports and data folder; return once healthy."""
+        """Start influxd (again) on the same port and data folder; return once set up."""
         if self.running:
             return
-        env = {k: v for k, v in os.environ.items() if not k.startswith("INFLUXDB_")}
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("INFLUX", "INFLUXD_"))}
         with self.log_path.open("ab") as log:
             self._process = subprocess.Popen(
-                [str(INFLUXD), "run", "-config", str(self.config_path)],
+                self.command(),
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 stdin=subprocess.DEVNULL,
                 env=env,
             )
         self._wait_healthy()
+        self._set_up()
 
     def stop(self, timeout_s: float = 15.0) -> None:
         """End the process (SIGTERM, then SIGKILL); its data stays for ``start``."""
@@ -175,9 +138,8 @@ class InfluxServer:
                     f"influxd exited with status {self._process.returncode}:\n{self.log_tail()}"
                 )
             try:
-                with urllib.request.urlopen(f"{self.url}/health", timeout=1.0) as reply:
-                    body = json.loads(reply.read().decode())
-                if reply.status == 200 and body.get("status") == "pass":
+                body = self.api("GET", "/health", auth=False, timeout_s=1.0)
+                if body.get("status") == "pass":
                     return
                 last = str(body)
             except (OSError, ValueError) as exc:
@@ -188,6 +150,26 @@ class InfluxServer:
             f"influxd not healthy after {self.start_timeout_s:g} s ({last}):\n{self.log_tail()}"
         )
 
+    def _set_up(self) -> None:
+        """The one-time setup on a new data folder: user, org, bucket, operator token."""
+        if self.api("GET", "/api/v2/setup", auth=False).get("allowed"):
+            answer = self.api(
+                "POST",
+                "/api/v2/setup",
+                {
+                    "username": USER,
+                    "password": PASSWORD,
+                    "org": ORG,
+                    "bucket": SETUP_BUCKET,
+                    "token": TOKEN,
+                },
+                auth=False,
+            )
+            self.org_id = answer["org"]["id"]
+        else:
+            (org,) = self.api("GET", f"/api/v2/orgs?org={ORG}")["orgs"]
+            self.org_id = org["id"]
+
     def log_tail(self, lines: int = 30) -> str:
         try:
             text = self.log_path.read_text(encoding="utf-8", errors="replace")
@@ -195,18 +177,50 @@ class InfluxServer:
             return "(no log)"
         return "\n".join(text.splitlines()[-lines:])
 
-    # --- InfluxQL administration (the v2 API of 1.8 has no bucket endpoints) ------------
-    def influxql(self, statement: str) -> dict:
-        data = urllib.parse.urlencode({"q": statement}).encode()
-        request = urllib.request.Request(f"{self.url}/query", data=data, method="POST")
-        with urllib.request.urlopen(request, timeout=10.0) as reply:
-            body = json.loads(reply.read().decode())
-        for result in body.get("results", []):
-            if "error" in result:
-                raise RuntimeError(f"{statement}: {result['error']}")
-        return body
+    # --- the HTTP API -------------------------------------------------------------------
+    def api(
+        self,
+        method: str,
+        path: str,
+        body: dict | None = None,
+        auth: bool = True,
+        timeout_s: float = 10.0,
+    ) -> dict:
+        """One JSON call of the server's API; raises RuntimeError with its message."""
+        headers = {"Content-Type": "application/json"}
+        if auth:
+            headers["Authorization"] = f"Token {self.token}"
+        data = None if body is None else json.dumps(body).encode()
+        request = urllib.request.Request(self.url + path, data, headers, method=method)
+        try:
+            with urllib.request.urlopen(request, timeout=timeout_s) as reply:
+                text = reply.read().decode()
+        except urllib.error.HTTPError as exc:
+            raise RuntimeError(f"{method} {path}: HTTP {exc.code} {exc.read().decode()}") from None
+        return json.loads(text) if text.strip() else {}
 
     def create_database(self, name: str) -> str:
-        """Create database ``name``; return its bucket name for the v2 API."""
-        self.influxql(f'CREATE DATABASE "{name}"')
-        return f"{name}/autogen"
+        """Create bucket ``name`` (infinite retention) in ``org``; return its name."""
+        self.api(
+            "POST", "/api/v2/buckets", {"orgID": self.org_id, "name": name, "retentionRules": []}
+        )
+        return name
+
+    create_bucket = create_database
+
+    def create_token(self, description: str, bucket: str, write: bool = True) -> str:
+        """A token that may read (and write) one bucket only, as a deployment gives out."""
+        resource = {"type": "buckets", "orgID": self.org_id, "name": bucket}
+        (found,) = self.api("GET", f"/api/v2/buckets?orgID={self.org_id}&name={bucket}")["buckets"]
+        resource["id"] = found["id"]
+        actions = ["read", "write"] if write else ["read"]
+        answer = self.api(
+            "POST",
+            "/api/v2/authorizations",
+            {
+                "orgID": self.org_id,
+                "description": description,
+                "permissions": [{"action": a, "resource": resource} for a in actions],
+            },
+        )
+        return answer["token"]

@@ -1,10 +1,11 @@
 """The InfluxDB forwarder of a running gateway survives influxd dying and its own failure.
 
 Two simulated machines (Modbus TCP transmitters and CNC on loopback) compensated
-by one gateway on an accelerated clock, logging to a real influxd 1.8 through the
-disk buffer. influxd is killed and started again; meanwhile the forwarder task
-itself fails once (the buffer's disk reporting an I/O error) and is restarted by
-its supervisor. Every point the loops produced reaches InfluxDB exactly once.
+by one gateway on an accelerated clock, logging to a real InfluxDB 2.7.12 (with a
+token of its bucket) through the disk buffer. influxd is killed and started again;
+meanwhile the forwarder task itself fails once (the buffer's disk reporting an I/O
+error) and is restarted by its supervisor. Every point the loops produced reaches
+InfluxDB exactly once.
 """
 
 from __future__ import annotations
@@ -55,6 +56,8 @@ def test_forwarder_is_supervised_and_loses_nothing_through_an_influxd_kill(
 
     with InfluxServer(tmp_path / "influxdb") as server:
         bucket = server.create_database("gateway")
+        token_file = tmp_path / "influx.token"
+        token_file.write_text(server.create_token("gateway", bucket), encoding="utf-8")
 
         async def scenario() -> dict[str, int]:
             clock = AcceleratedClock(SPEEDUP, origin_s=time.time())
@@ -65,7 +68,13 @@ def test_forwarder_is_supervised_and_loses_nothing_through_an_influxd_kill(
                 {
                     "state_dir": str(tmp_path / "state"),
                     "logging": {
-                        "influxdb": {"url": server.url, "bucket": bucket, "timeout_s": 2.0},
+                        "influxdb": {
+                            "url": server.url,
+                            "org": server.org,
+                            "bucket": bucket,
+                            "token_file": str(token_file),
+                            "timeout_s": 2.0,
+                        },
                         "buffer_path": str(buffer_path),
                     },
                     "machines": [

@@ -1,4 +1,7 @@
-"""Store and forward to a real InfluxDB 1.8.10 (influxd on 127.0.0.1, no mocks).
+"""Store and forward to a real InfluxDB 2.7.12 (influxd on 127.0.0.1, no mocks).
+
+The version deploy/docker-compose.yml ships: token, organisation and bucket, the v2
+write API and Flux (tests/influx_server.py).
 
 The server runs once for the module; every test has its own database. Machine time
 runs fast: cycles 0.2 s of machine time apart are produced every ~20 ms of real
@@ -278,7 +281,7 @@ def test_refused_batch_is_dropped_counted_and_does_not_block(
     server: InfluxServer, bucket: str, tmp_path: Path
 ) -> None:
     good = [p for r in make_records("vmc-1", 10) for p in points_from_record(r, EPOCH_S)]
-    # speed_rpm is a float field: a string in the same shard is a type conflict (HTTP 400)
+    # speed_rpm is a float field: a string in the same shard is a type conflict (HTTP 422)
     conflicting = Point(
         CYCLE_MEASUREMENT, {"machine": "vmc-1"}, {"speed_rpm": "fast"}, good[0].time_ns + 1
     )
@@ -298,7 +301,8 @@ def test_refused_batch_is_dropped_counted_and_does_not_block(
         return forwarder.health()
 
     health = asyncio.run(scenario())
-    assert health["rejected"] == 1 and "HTTP 400" in health["last_error"]
+    # InfluxDB 2 answers a partial write with 422 (1.8 answered 400), naming the count
+    assert health["rejected"] == 1 and "HTTP 422" in health["last_error"]
     assert "field type conflict" in health["last_error"]
     assert health["sent"] == len(good) and health["buffered"] == 0
     assert_stored_exactly(server, bucket, good)

@@ -19,6 +19,7 @@ import secrets
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Optional
 from urllib.parse import urlsplit
 
 from aiohttp import web
@@ -103,6 +104,10 @@ class Auth:
             del self._sessions[sid]
         while len(self._sessions) >= MAX_SESSIONS:
             del self._sessions[next(iter(self._sessions))]
+
+
+#: Where the middleware keeps the request's session (None: not logged in).
+SESSION = web.RequestKey("session", Optional["Session"])
 
 
 def same_origin(request: web.Request) -> bool:

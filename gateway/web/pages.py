@@ -13,7 +13,7 @@ import jinja2
 from aiohttp import web
 
 from gateway.web import plots
-from gateway.web.auth import COOKIE, Auth, Session, csrf_ok, same_origin
+from gateway.web.auth import COOKIE, SESSION, Auth, Session, csrf_ok, same_origin
 from gateway.web.backend import Backend
 from gateway.web.live import LiveBoard
 
@@ -48,7 +48,7 @@ class Pages:
         self.secure = secure
 
     def page(self, name: str, request: web.Request, **context: Any) -> web.Response:
-        session: Session | None = request.get("session")
+        session: Session | None = request.get(SESSION)
         html = TEMPLATES.get_template(name).render(
             session=session, machines=self.backend.machines, **context
         )
@@ -207,7 +207,7 @@ class Pages:
         raise web.HTTPSeeOther(f"/machines/{machine}/proposals?" + _query(msg=text))
 
     def _check_post(self, request: web.Request, form: Any) -> Session:
-        session: Session | None = request.get("session")
+        session: Session | None = request.get(SESSION)
         if session is None:
             raise web.HTTPUnauthorized(text="log in first")
         if not same_origin(request):

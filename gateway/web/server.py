@@ -22,7 +22,7 @@ from aiohttp import web
 from gateway.login_throttle import ThrottlePolicy
 from gateway.runtime import CycleRecord
 from gateway.scada import ScadaUser
-from gateway.web.auth import Auth
+from gateway.web.auth import SESSION, Auth
 from gateway.web.backend import Backend, GatewayLike
 from gateway.web.live import LiveBoard
 from gateway.web.pages import Pages
@@ -108,7 +108,7 @@ class WebConsole:
     @web.middleware
     async def _session_middleware(self, request: web.Request, handler: Handler):  # type: ignore[no-untyped-def]
         session = self.auth.session(request)
-        request["session"] = session
+        request[SESSION] = session
         if session is None and not request.path.startswith(OPEN_PATHS):
             if request.method == "GET":
                 raise web.HTTPSeeOther(f"/login?next={request.path}")

@@ -24,6 +24,7 @@ checked too: secrets readable, ``state_dir`` and the stores writable.
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import tempfile
@@ -62,6 +63,10 @@ from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURA
 from models.online_correction import CorrectionParams
 from models.regime_rules import RegimeRules, SpeedBand
 from models.residual_monitor import MonitorParams
+
+# The map of the ``*_register`` keys is checked field by field (about 50 ms); a plant of
+# 1000 machines has a handful of distinct ones. A refused map raises, and is not kept.
+_cnc_map_once = functools.lru_cache(maxsize=256)(cnc_map)
 
 if TYPE_CHECKING:  # the plausibility module brings the whole model stack (scipy): not at load
     from drivers.cnc_opcua import OpcUaSecurity
@@ -302,7 +307,7 @@ class ModbusCncSection(TcpEndpoint):
         """The CNC's registers: the ``map``, or the one the ``*_register`` keys describe."""
         if self.map is not None:
             return self.map
-        return cnc_map(
+        return _cnc_map_once(
             self.speed_register,
             self.commanded_register,
             self.run_mode_register,

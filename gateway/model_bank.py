@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from models import augmented
+from models import augmented, signing
 from models.base import ThermalModel
 from models.conditioning import bias_sensitivity
 from models.dataset import AMBIENT_COLUMN
@@ -32,6 +32,25 @@ from models.effect_stream import StreamingAugmented
 from models.store import StoredModel, load_file, probe_inputs
 
 log = logging.getLogger(__name__)
+
+#: ``load_file``'s verdicts in this process, by file version and signing key: a store
+#: shared by many machines (1000 in one configuration) is read and checked once, not
+#: once per machine; a file changed since (or another key) is read again.
+_checked_files: dict[tuple[Any, ...], tuple[ThermalModel, StoredModel]] = {}
+
+
+def load_checked(path: Path) -> tuple[ThermalModel, StoredModel]:
+    """:func:`models.store.load_file`, once per version of ``path`` per process."""
+    stat = path.stat()
+    version = (str(path.resolve()), stat.st_ino, stat.st_mtime_ns, stat.st_size)
+    key = (*version, signing.key_for_store(path.parent))
+    if key not in _checked_files:
+        _checked_files[key] = load_file(path)
+    return _checked_files[key]
+
+
+#: ``BankedModel.bias_sensitivity_um_per_C`` by model object (kept, so its id stays its own).
+_sensitivities: dict[int, tuple[ThermalModel, StoredModel, dict[str, float]]] = {}
 
 
 @dataclass(frozen=True)
@@ -71,8 +90,13 @@ class BankedModel:
         return float(pooled.get("rmse_um", float("inf")))
 
     def bias_sensitivity_um_per_C(self) -> dict[str, float]:
-        """µm per °C of bias on each sensor, from the model itself on its probe rows."""
-        return bias_sensitivity(self.model, probe_inputs(self.document))
+        """µm per °C of bias on each sensor, from the model itself on its probe rows
+        (worked out once per model object: machines sharing a store share them)."""
+        known = _sensitivities.get(id(self.model))
+        if known is None or known[0] is not self.model or known[1] is not self.document:
+            found = bias_sensitivity(self.model, probe_inputs(self.document))
+            known = _sensitivities[id(self.model)] = (self.model, self.document, found)
+        return dict(known[2])
 
 
 @dataclass(frozen=True)
@@ -218,7 +242,7 @@ class ModelBank:
             raise ValueError(f"model store {folder}: no such folder")
         loaded: list[Banked] = []
         for path in sorted(folder.glob("*.json")):
-            model, document = load_file(path)
+            model, document = load_checked(path)
             if callable(getattr(model, "stream", None)):  # its terms carry lag states
                 loaded.append(BankedAugmented.from_plain(model, document))
             else:

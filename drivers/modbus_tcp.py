@@ -36,7 +36,12 @@ The rules a real device needs are kept:
   drops it; a frame with another protocol id than Modbus's 0 means the stream is
   out of step, and the connection is closed;
 * a lost connection fails the group in progress and every later one with
-  ``ConnectionError``; the groups already read keep their registers.
+  ``ConnectionError``; the groups already read keep their registers;
+* exception 06 (slave device busy: the device did not act on the request, and
+  asks to be asked again) is retried after a short back-off, up to
+  ``len(BUSY_BACKOFF_S)`` times per request, within the cycle; the request's
+  timeout starts again at each resend. Counted in ``busy_retries``. A device
+  that is still busy after that fails its group with the exception reply.
 
 Errors are the builtin ones (``ConnectionError``, ``TimeoutError``, ``ValueError``
 for a reply of the wrong length, :class:`ReplyError` for a reply that is not
@@ -66,6 +71,10 @@ READ_FUNCTIONS = {3: ReadHoldingRegistersRequest, 4: ReadInputRegistersRequest}
 _TID_SPAN = 0xFFFF
 #: An MBAP header (transaction, protocol, length, unit) and a function code.
 _MIN_FRAME = 8
+#: Modbus exception 06, slave device busy.
+DEVICE_BUSY = 0x06
+#: Waits before asking a busy device again (50 ms in all: well within a 1 s cycle).
+BUSY_BACKOFF_S = (0.005, 0.015, 0.03)
 
 
 @cache
@@ -130,6 +139,7 @@ class _Chain:
 
     __slots__ = (
         "attempt",
+        "busy",
         "future",
         "group",
         "groups",
@@ -158,6 +168,7 @@ class _Chain:
         self.index = 0
         self.step = groups[0][0]
         self.attempt = 0
+        self.busy = 0  # busy replies to the current step
         self.tid = 0
         self.registers: list[int] = []
 
@@ -178,6 +189,8 @@ class TcpTransactions(asyncio.Protocol):
         self._loop = asyncio.get_running_loop()
         #: The request on the wire has no answer by this loop time.
         self._deadline = 0.0
+        #: Requests sent again after a busy reply (exception 06), since the connection.
+        self.busy_retries = 0
         self._timer: asyncio.TimerHandle | None = None
         self._timer_at = 0.0
 
@@ -282,7 +295,10 @@ class TcpTransactions(asyncio.Protocol):
             return
         current = chain.step
         count = current.count
-        if not count:
+        busy = pdu[0] & 0x80 and pdu[1:2] == bytes((DEVICE_BUSY,))
+        if busy and chain.busy < len(BUSY_BACKOFF_S):
+            self._ask_again(chain)
+        elif not count:
             self._group_done(chain, pdu)
         elif pdu[0] & 0x80:
             self._group_done(chain, ReplyError(pdu))
@@ -297,11 +313,28 @@ class TcpTransactions(asyncio.Protocol):
             if chain.index + 1 < len(group):
                 chain.index += 1
                 chain.step = group[chain.index]
-                chain.attempt = 0
+                chain.attempt = chain.busy = 0
                 self._send(chain)
                 return
             registers, chain.registers = chain.registers, []
             self._group_done(chain, registers)
+
+    def _ask_again(self, chain: _Chain) -> None:
+        """The device is busy: send the same request again after a back-off. Nothing is
+        on the wire meanwhile; the deadline moves past the resend, so the timer waits."""
+        delay_s = BUSY_BACKOFF_S[chain.busy]
+        chain.busy += 1
+        self.busy_retries += 1
+        self._deadline = self._loop.time() + delay_s + chain.timeout_s
+        self._loop.call_later(delay_s, self._resend, chain)
+
+    def _resend(self, chain: _Chain) -> None:
+        if chain is not self._active or self._transport is None:
+            return  # the connection went, or the chain ended, during the back-off
+        if chain.future.done():  # cancelled during the back-off
+            self._next_chain()
+            return
+        self._send(chain)
 
     def _group_done(self, chain: _Chain, outcome: Outcome) -> None:
         """The current group is over: on to the next group, or the chain is done."""
@@ -310,7 +343,7 @@ class TcpTransactions(asyncio.Protocol):
         chain.group += 1
         if chain.group < len(chain.groups):
             chain.index = 0
-            chain.attempt = 0
+            chain.attempt = chain.busy = 0
             chain.step = chain.groups[chain.group][0]
             self._send(chain)
             return

@@ -150,8 +150,15 @@ class ModbusConnection:
         self._name = name
         self._client: AsyncModbusSerialClient | None = None
         self._wire: modbus_tcp.TcpTransactions | None = None
+        self._busy_retries_before = 0  # of connections closed since
         where = f"TCP {tcp[0]}:{tcp[1]}" if tcp is not None else f"serial {serial_port}"
         self.where = f"{name} ({where})" if name else where
+
+    @property
+    def busy_retries(self) -> int:
+        """Requests sent again because the device answered busy (exception 06), TCP."""
+        wire = self._wire
+        return self._busy_retries_before + (wire.busy_retries if wire is not None else 0)
 
     @property
     def connected(self) -> bool:
@@ -208,6 +215,7 @@ class ModbusConnection:
             client.close()
         wire, self._wire = self._wire, None
         if wire is not None:
+            self._busy_retries_before += wire.busy_retries
             wire.close()
 
     async def read_input_registers(self, address: int, count: int, device_id: int) -> list[int]:

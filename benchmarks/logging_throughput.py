@@ -8,7 +8,8 @@ run on this machine:
 - ``sink_append``: the runtime's hot path with InfluxDB configured — appending a
   cycle's points to the disk buffer (batches of one cycle);
 - ``local_store``: the embedded store, one cycle per write;
-- ``influx_direct``: batches of 5000 written straight to InfluxDB 1.8.10;
+- ``influx_direct``: batches of 5000 written straight to the tests' InfluxDB
+  (tests/influx_server.py);
 - ``buffer_replay``: points buffered while the database was down, then drained
   by the forwarder once it is back.
 

@@ -94,7 +94,7 @@ def _gateway_main(index: int, ports: list[int], store: Path, folder: Path, broke
         with cycles.get_lock():
             cycles.value += 1
 
-    faulthandler.dump_traceback_later(stop_after_s + 20, exit=True)  # a stop that hangs
+    faulthandler.dump_traceback_later(stop_after_s + 300, exit=True)  # a stop that hangs
 
     async def main() -> None:
         gateway = Gateway(config, sinks=[count])

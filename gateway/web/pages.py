@@ -132,7 +132,12 @@ class Pages:
             machine,
             hours * 3600.0,
             self.backend.cnc_um_per_unit(machine),
+            max_age_s=self._max_age_s(hours),
         )
+
+    def _max_age_s(self, hours: int) -> float:
+        """A longer window may be older: 15 s for 1 h, 2 min for 8 h, 6 min for 24 h."""
+        return self.renderer.cache_s * hours
 
     async def machine(self, request: web.Request) -> web.Response:
         machine, hours = self._machine(request), self._window_h(request)
@@ -145,7 +150,7 @@ class Pages:
             windows=WINDOWS_H,
             row=self.board.row(machine),
             events=found,
-            stamp=int(time.time() // self.renderer.cache_s),
+            stamp=int(time.time() // self._max_age_s(hours)),
         )
 
     async def machine_plot(self, request: web.Request) -> web.Response:

@@ -150,10 +150,14 @@ class PlotRenderer:
         self._cache: dict[tuple[Any, ...], _Cached] = {}
         self._pending: dict[tuple[Any, ...], asyncio.Future[Any]] = {}
 
-    async def render(self, key: tuple[Any, ...], function: Any, *args: Any) -> Any:
-        """The SVG of ``function(*args)``: cached, shared by concurrent requests."""
+    async def render(
+        self, key: tuple[Any, ...], function: Any, *args: Any, max_age_s: float | None = None
+    ) -> Any:
+        """``function(*args)`` in the worker: cached for ``max_age_s`` (default
+        ``cache_s``), one computation shared by concurrent requests."""
         hit = self._cache.get(key)
-        if hit is not None and time.monotonic() - hit.made_s < self.cache_s:
+        age_s = self.cache_s if max_age_s is None else max_age_s
+        if hit is not None and time.monotonic() - hit.made_s < age_s:
             return hit.svg
         pending = self._pending.get(key)
         if pending is None:

@@ -50,6 +50,7 @@ from tqdm import tqdm
 from models.analysis_render import change_text, p_text
 from models.analysis_result import AnalysisResult, CandidateResult, StepResult, gain_pct
 from models.crossval import fold_labels
+from models.dataset import MeasuredRuns
 from models.effect_terms import EffectFamily, Variant, candidate_families
 from models.features import Prepared
 from models.metrics import Accuracy, accuracy
@@ -645,6 +646,22 @@ def _lag1_autocorrelation(residual: np.ndarray, fold_index: np.ndarray) -> float
     return min(max(rho, 0.0), 0.999)
 
 
+def _refuse_constant_error(data: MeasuredRuns, fit_rows: np.ndarray | None) -> None:
+    """An error column that never changes within a run has no thermal error to explain:
+    every effect's shape gain would be 0/0. Refused with one line instead."""
+    known = np.zeros(len(data.error_um), dtype=bool)
+    known[fit_rows if fit_rows is not None else slice(None)] = True
+    known &= np.isfinite(data.error_um)
+    for _, rows in data.run_slices():
+        values = data.error_um[rows][known[rows]]
+        if values.size > 1 and np.ptp(values) > 0:
+            return
+    raise ValueError(
+        f"{data.source}: column '{data.target}' does not change within any run: there is "
+        "no thermal error to analyse (is it the measured error, see --target?)"
+    )
+
+
 def analyze(
     prepared: Prepared,
     method: str = "mlr",
@@ -656,6 +673,7 @@ def analyze(
 
     ``fit_rows``: the rows whose target is known (e.g. probe rows of a logged history);
     the effect terms still run over every row."""
+    _refuse_constant_error(prepared.data, fit_rows)
     analysis = ResidualAnalysis(prepared, method, sensors, progress, fit_rows)
     steps, accepted = analysis.run()
     first = steps[0]

@@ -2,6 +2,7 @@
 # System packages the tests need, installed only when missing:
 #   socat  (a serial pty pair for Modbus RTU without hardware)
 #   mbpoll (an independent libmodbus-based Modbus master)
+#   chromium, chromium-driver (headless browser tests of the web console)
 #   node-opcua (an independent OPC UA client, pinned in tests/node/package-lock.json)
 #   influxd 2.7.12 (a real time-series server; built once with Go and Rust into .cache/bin)
 #   podman, runc, mmdebstrap (the gateway image is built and run: tests/test_container.py),

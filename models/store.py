@@ -302,23 +302,7 @@ def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
     """Load, validate and self-check one model file (and its signature, with a key for its
     store: :func:`models.signing.key_for_store`)."""
     path = Path(path)
-    try:
-        raw = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise StoreError(f"{path}: no such model file") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise StoreError(f"{path}: not a readable JSON model file ({exc})") from None
-    if not isinstance(raw, dict):
-        raise StoreError(f"{path}: a JSON object was expected at the top level")
-    if raw.get("format") != FORMAT:
-        raise StoreError(
-            f"{path}: not a model file (format '{raw.get('format')}', expected '{FORMAT}')"
-        )
-    if raw.get("format_version") != FORMAT_VERSION:
-        raise StoreError(
-            f"{path}: format_version {raw.get('format_version')!r} is not supported "
-            f"(this software reads version {FORMAT_VERSION})"
-        )
+    raw = _read_model_json(path)
     try:
         document = StoredModel.model_validate(raw)
     except ValidationError as exc:
@@ -352,6 +336,28 @@ def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
             "incompatible version"
         )
     return model, document
+
+
+def _read_model_json(path: Path) -> dict[str, Any]:
+    """The file's JSON object, of this format and a format version read here (StoreError)."""
+    try:
+        raw = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StoreError(f"{path}: no such model file") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StoreError(f"{path}: not a readable JSON model file ({exc})") from None
+    if not isinstance(raw, dict):
+        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    if raw.get("format") != FORMAT:
+        raise StoreError(
+            f"{path}: not a model file (format '{raw.get('format')}', expected '{FORMAT}')"
+        )
+    if raw.get("format_version") != FORMAT_VERSION:
+        raise StoreError(
+            f"{path}: format_version {raw.get('format_version')!r} is not supported "
+            f"(this software reads version {FORMAT_VERSION})"
+        )
+    return raw
 
 
 def probe_inputs(document: StoredModel) -> ModelInputs:

@@ -32,6 +32,11 @@ log = logging.getLogger(__name__)
 
 SAVE_EVERY_S = 60.0
 
+#: Lag-state files whose last save failed, with its errno, in this process. A full
+#: disk fails every machine's save every minute: the first failure of an episode is
+#: logged, the rest only once a save succeeds again.
+_failing: dict[Path, int | None] = {}
+
 
 class EffectStates:
     """One :class:`~models.effect_stream.StreamingAugmented` per augmented model of the bank."""
@@ -128,7 +133,24 @@ class EffectStates:
         try:
             write_json_atomic(self.state_file, payload)
         except OSError as exc:  # compensation goes on; a restart would start the lags again
-            log.warning("%s: cannot save the lag states: %s", self.state_file, exc)
+            self._failed(self.state_file, exc)
+            return
+        if _failing.pop(self.state_file, False) is not False and not _failing:
+            log.info("%s: lag states are saved again", self.state_file)
+
+    @staticmethod
+    def _failed(state_file: Path, exc: OSError) -> None:
+        """Log a failed save only if it starts an episode: no other file (of any machine)
+        is failing the same way already, and this one was not."""
+        episode = exc.errno not in _failing.values() and state_file not in _failing
+        _failing[state_file] = exc.errno
+        if episode:
+            log.warning(
+                "%s: cannot save the lag states: %s (compensation goes on; saves that fail "
+                "the same way are not logged again until one succeeds)",
+                state_file,
+                exc,
+            )
 
     def _restore(self) -> None:
         if self.state_file is None or not self.state_file.exists():

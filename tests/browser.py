@@ -83,24 +83,33 @@ class SensorBreakingProxy:
                 return
             upstream = socket.create_connection(("127.0.0.1", self.upstream_port))
             upstream.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            threading.Thread(target=self._requests, args=(client, upstream), daemon=True).start()
-            threading.Thread(target=self._answers, args=(upstream, client), daemon=True).start()
+            turn = threading.Semaphore(1)  # one request in flight, as on a serial line
+            args = (client, upstream, turn)
+            threading.Thread(target=self._requests, args=args, daemon=True).start()
+            threading.Thread(target=self._answers, args=args, daemon=True).start()
 
     @staticmethod
-    def _requests(client: socket.socket, upstream: socket.socket) -> None:
-        """Pass the requests on one frame at a time, as the client sent them."""
+    def _requests(
+        client: socket.socket, upstream: socket.socket, turn: threading.Semaphore
+    ) -> None:
+        """Pass the requests on one frame at a time, each after the previous answer (the
+        simulator's server reads one frame per packet: two requests in one were lost)."""
         try:
             while True:
                 header = _exactly(client, 7)
                 length = struct.unpack(">H", header[4:6])[0]
-                upstream.sendall(header + _exactly(client, length - 1))
+                frame = header + _exactly(client, length - 1)
+                turn.acquire(timeout=1.0)
+                upstream.sendall(frame)
         except OSError:
             pass
         finally:
             upstream.close()
             client.close()
 
-    def _answers(self, upstream: socket.socket, client: socket.socket) -> None:
+    def _answers(
+        self, client: socket.socket, upstream: socket.socket, turn: threading.Semaphore
+    ) -> None:
         try:
             while True:
                 header = _exactly(upstream, 7)
@@ -109,6 +118,7 @@ class SensorBreakingProxy:
                 if self.broken.is_set() and header[6] == self.device_id:
                     self._break(body)
                 client.sendall(header + bytes(body))
+                turn.release()
         except OSError:
             pass
         finally:

@@ -414,6 +414,24 @@ def simplex_weights(k: int, steps: int = STACK_STEPS) -> np.ndarray:
     return np.array(sorted(rows, reverse=True), dtype=float) / steps
 
 
+def _converged(
+    candidates: Sequence[CandidatePaths], predicted: np.ndarray, rmse: np.ndarray
+) -> tuple[list[CandidatePaths], np.ndarray]:
+    """The candidates whose nested predictions stayed finite, and their columns.
+
+    On a short recording (one run of a few hours, split into blocks) the longest
+    lags are almost straight lines in time and a structure's inner fit can run off
+    to ±1e200: its score is infinite and it could only spoil the stack, so it leaves
+    the choice. With none left there is nothing honest to fit."""
+    kept = np.isfinite(rmse) & np.isfinite(predicted).all(axis=0)
+    if not kept.any():
+        raise ValueError(
+            "lag-ridge: every structure's nested fit diverged on these data; record more "
+            "runs (or longer ones), or fit another method (--method ridge)"
+        )
+    return [c for c, k in zip(candidates, kept, strict=True) if k], predicted[:, kept]
+
+
 @dataclass(frozen=True)
 class Choice:
     """What :func:`choose` picked: the structure (a stack of several when the weights split),
@@ -438,7 +456,10 @@ def choose(candidates: Sequence[CandidatePaths]) -> Choice:
     weights = np.r_[1.0, np.zeros(len(candidates) - 1)]
     if len(candidates) > 1 and len(members) >= 3:
         y = candidates[0].training_target(members)
-        predicted = np.column_stack([c.nested_predictions(members) for c in candidates])
+        with np.errstate(over="ignore", invalid="ignore"):
+            predicted = np.column_stack([c.nested_predictions(members) for c in candidates])
+            rmse = np.sqrt(np.mean((y[:, None] - predicted) ** 2, axis=0))
+        candidates, predicted = _converged(candidates, predicted, rmse)
         for candidate, column in zip(candidates, predicted.T, strict=True):
             scores[candidate.structure.name] = float(np.sqrt(np.mean((y - column) ** 2)))
         grid = simplex_weights(len(candidates))

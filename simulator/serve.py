@@ -23,7 +23,7 @@ from drivers.yaml_loader import KeyPathError, YamlError, first_problem, load_yam
 from simulator.effects import parse_effects
 from simulator.machine import AMBIENT_CHANNEL, SimulatedMachine
 from simulator.params import Ageing, deep_merge, load_params, merged_params
-from simulator.programs import program_by_name
+from simulator.programs import SpeedProgram, program_by_name
 from simulator.servers.modbus_cnc import CncModbusServer
 from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from simulator.servers.opcua_cnc import CncOpcUaServer
@@ -62,6 +62,9 @@ class SimulatorConfig(Strict):
     """
 
     program: str = "iso230-spectrum"
+    #: machine seconds at rest, the spindle stopped, before the programme starts: a thermal
+    #: test zeroes its probe and takes its temperature reference on the cold machine at rest
+    rest_before_s: float = Field(default=0.0, ge=0, allow_inf_nan=False)
     effects: list[str] = Field(default_factory=list)
     seed: int = 0
     speedup: float = Field(default=60.0, gt=0)
@@ -159,6 +162,13 @@ def load_simulator_config(path: Path) -> SimulatorConfig:
     return validate(document, SimulatorConfig, ("simulator",))
 
 
+def with_rest_before(program: SpeedProgram, rest_s: float) -> SpeedProgram:
+    """``program`` opened by ``rest_s`` machine seconds at 0 r/min (unchanged for 0)."""
+    if rest_s <= 0:
+        return program
+    return SpeedProgram(program.name, ((rest_s, 0.0), *program.segments))
+
+
 class SimulatedPlant:
     """The machine and its endpoints, run together on one clock."""
 
@@ -168,7 +178,7 @@ class SimulatedPlant:
         params = load_params(config.machine_overrides, source="simulator.machine")
         self.machine = SimulatedMachine(
             params,
-            program_by_name(config.program),
+            with_rest_before(program_by_name(config.program), config.rest_before_s),
             parse_effects(config.effects),
             seed=config.seed,
             start_s=self.clock.now(),

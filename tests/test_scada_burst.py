@@ -159,7 +159,7 @@ def test_a_session_is_activated_while_another_with_its_certificate_is_being_chec
     CreateSession and its certificate is being checked against the trust list."""
 
     async def main() -> list[str]:
-        identities = await client_identities(tmp_path / "clients", CLIENTS)
+        identities = await client_identities(tmp_path / "clients", 10)
         pki = tmp_path / "pki"
         (pki / TRUSTED_DIR).mkdir(parents=True)
         for _, cert, _ in identities:

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from models.base import ModelInputs
+from models.group_moments import GroupMoments, Moments
 from models.mlr import MlrModel
 
 #: Penalties tried by ridge, on standardised rises (α relative to the row count).
@@ -34,25 +35,31 @@ RIDGE_ALPHAS = tuple(float(a) for a in np.logspace(-4, 2, 25))
 PLS_MAX_COMPONENTS = 8
 #: Blocks of the inner split when the training data hold one run.
 INNER_BLOCKS = 5
+#: Up to this many training runs the nested choice leaves one run out at a time ...
+INNER_GROUPED_ABOVE_RUNS = 10
+#: ... above it, this many folds of consecutive runs (the cost stays bounded per fit).
+INNER_FOLDS = 8
 
 
 def inner_groups(inputs: ModelInputs) -> np.ndarray:
-    """Group label of each row for the nested choice: its run, or a contiguous block."""
+    """Group label of each row for the nested choice: its run (or fold of runs), or a block."""
     n = inputs.n_samples
     if inputs.run_index is not None and np.unique(inputs.run_index).size >= 2:
-        return np.asarray(inputs.run_index)
+        return grouped_runs(np.asarray(inputs.run_index))
     return np.minimum(np.arange(n) * INNER_BLOCKS // max(n, 1), INNER_BLOCKS - 1)
 
 
-def _choose(estimator: Any, grid: dict[str, list[Any]], X: np.ndarray, y: np.ndarray, groups):
-    """The grid value with the lowest leave-one-group-out squared error."""
-    from sklearn.model_selection import GridSearchCV, LeaveOneGroupOut
+def grouped_runs(run_index: np.ndarray) -> np.ndarray:
+    """The run index itself up to ``INNER_GROUPED_ABOVE_RUNS`` runs, else ``INNER_FOLDS`` folds.
 
-    search = GridSearchCV(
-        estimator, grid, cv=LeaveOneGroupOut(), scoring="neg_mean_squared_error", refit=True
-    )
-    search.fit(X, y, groups=groups)
-    return search.best_estimator_, search.best_params_
+    Leave-one-run-out inside every outer fold costs runs × runs fits; with many runs
+    a fold of several consecutive runs left out together is as honest (whole runs
+    held out) and costs ``INNER_FOLDS`` fits per outer fold.
+    """
+    runs, position = np.unique(run_index, return_inverse=True)
+    if runs.size <= INNER_GROUPED_ABOVE_RUNS:
+        return run_index
+    return position * INNER_FOLDS // runs.size
 
 
 class _PenalisedLinear(MlrModel):
@@ -124,30 +131,86 @@ class RidgeModel(_PenalisedLinear):
 
 
 def ridge_penalty(X: np.ndarray, y: np.ndarray, groups: np.ndarray) -> float:
-    """The ``RIDGE_ALPHAS`` value with the lowest leave-one-group-out squared error.
+    """The ``RIDGE_ALPHAS`` value with the lowest pooled leave-one-group-out squared error.
 
-    One SVD per held-out group gives the predictions for every penalty at once
-    (the same solution scikit-learn's ``Ridge`` finds on the standardised rises).
+    Each inner fold is solved from the group moments (:mod:`models.group_moments`):
+    one eigendecomposition of the standardised training scatter gives the solution
+    for every penalty at once (the one scikit-learn's ``Ridge`` finds on
+    ``StandardScaler`` rises), and the held-out group's moments give its squared
+    error, so the choice costs one pass over the rows however many runs there are.
     """
     alphas = np.asarray(RIDGE_ALPHAS)
+    moments = GroupMoments.of(X, y, groups)
     sse = np.zeros(alphas.size)
-    for group in np.unique(groups):
-        test = groups == group
-        train = ~test
-        mean = X[train].mean(axis=0)
-        scale = X[train].std(axis=0)
-        scale[scale == 0] = 1.0
-        Z = (X[train] - mean) / scale
-        y_mean = y[train].mean()
-        U, s, Vt = np.linalg.svd(Z, full_matrices=False)
-        Uy = U.T @ (y[train] - y_mean)
-        Zt = (X[test] - mean) / scale @ Vt.T
-        n = Z.shape[0]
-        for i, alpha in enumerate(alphas):
-            shrink = s / (s**2 + alpha * n)
-            predicted = y_mean + Zt @ (shrink * Uy)
-            sse[i] += float(np.sum((y[test] - predicted) ** 2))
+    for k in range(moments.labels.size):
+        intercepts, coefs = ridge_path(moments.without(k), alphas)
+        sse += moments.group(k).squared_errors(intercepts, coefs)
     return float(alphas[int(np.argmin(sse))])
+
+
+def _scales(moments: Moments, ddof: int) -> np.ndarray:
+    """Column standard deviations; a constant column keeps scale 1 (as scikit-learn does)."""
+    variance = np.diag(moments.xx) / (moments.count - ddof)
+    scale = np.sqrt(np.maximum(variance, 0.0))
+    level = np.maximum(np.abs(moments.mean[:-1]), 1.0)
+    scale[scale <= 1e-10 * level] = 1.0
+    return scale
+
+
+def ridge_path(moments: Moments, alphas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Intercepts (m,) and coefficients (p, m) of ridge on standardised columns, per penalty.
+
+    The penalty is ``alpha × rows`` on the rises scaled by ``StandardScaler`` (ddof 0).
+    """
+    scale = _scales(moments, ddof=0)
+    gram = moments.xx / np.outer(scale, scale)
+    eigenvalues, vectors = np.linalg.eigh(gram)
+    projected = vectors.T @ (moments.xy / scale)
+    denominators = np.maximum(eigenvalues, 0.0)[:, None] + alphas[None, :] * moments.count
+    coefs = (vectors @ (projected[:, None] / denominators)) / scale[:, None]
+    return moments.mean[-1] - moments.mean[:-1] @ coefs, coefs
+
+
+def pls_path(moments: Moments, components: int) -> tuple[np.ndarray, np.ndarray]:
+    """Intercepts (k,) and coefficients (p, k) of PLS1 with 1 … ``components`` components.
+
+    The kernel form of NIPALS (Dayal & MacGregor 1997) on the scatter of the rises
+    scaled as ``PLSRegression(scale=True)`` scales them (ddof 1): with one target the
+    first k components do not depend on how many more are extracted, so one pass
+    gives every component count's solution.
+    """
+    scale = _scales(moments, ddof=1)
+    gram = moments.xx / np.outer(scale, scale)
+    cross = moments.xy / scale
+    rotations = np.zeros((gram.shape[0], components))
+    loadings = np.zeros_like(rotations)
+    y_loadings = np.zeros(components)
+    for a in range(components):
+        weight = cross / np.linalg.norm(cross)
+        rotation = weight - rotations[:, :a] @ (loadings[:, :a].T @ weight)
+        score_ss = float(rotation @ gram @ rotation)
+        loadings[:, a] = gram @ rotation / score_ss
+        y_loadings[a] = float(rotation @ cross) / score_ss
+        cross = cross - loadings[:, a] * y_loadings[a] * score_ss
+        rotations[:, a] = rotation
+    coefs = np.cumsum(rotations * y_loadings, axis=1) / scale[:, None]
+    return moments.mean[-1] - moments.mean[:-1] @ coefs, coefs
+
+
+def pls_components(X: np.ndarray, y: np.ndarray, groups: np.ndarray, top: int) -> int:
+    """The component count (1 … ``top``) with the lowest mean leave-one-group-out MSE.
+
+    The mean over the groups of each group's mean squared error, as scikit-learn's
+    ``GridSearchCV(scoring="neg_mean_squared_error")`` scored it; the first count
+    wins a tie.
+    """
+    moments = GroupMoments.of(X, y, groups)
+    mse = np.zeros(top)
+    for k in range(moments.labels.size):
+        intercepts, coefs = pls_path(moments.without(k), top)
+        held_out = moments.group(k)
+        mse += held_out.squared_errors(intercepts, coefs) / held_out.count
+    return int(np.argmin(mse)) + 1
 
 
 class PlsModel(_PenalisedLinear):
@@ -160,6 +223,5 @@ class PlsModel(_PenalisedLinear):
         from sklearn.cross_decomposition import PLSRegression
 
         top = max(1, min(PLS_MAX_COMPONENTS, X.shape[1]))
-        grid = {"n_components": list(range(1, top + 1))}
-        best, params = _choose(PLSRegression(scale=True), grid, X, y, groups)
-        return best, int(params["n_components"])
+        components = pls_components(X, y, groups, top)
+        return PLSRegression(n_components=components, scale=True).fit(X, y), components

@@ -1,6 +1,6 @@
 """A fleet on one broker: several gateway processes as Sparkplug B edge nodes.
 
-``--gateways`` processes (default 4) each run a whole :class:`gateway.app.Gateway`
+``--gateways`` processes (default 4) each run a whole :class:`gateway.wiring.Gateway`
 over ``--machines`` simulated Modbus TCP machines (default 250, at a 1 s cycle; the
 lean device servers of benchmarks/poll_vs_telegraf.py) and publish to one Mosquitto 2
 on loopback (plain MQTT, QoS 1, no primary host). Measured, with Sparkplug off and
@@ -64,9 +64,10 @@ def start_broker(folder: Path, port: int) -> subprocess.Popen[bytes]:
 
 
 def _gateway_main(index: int, ports: list[int], store: Path, folder: Path, broker_port: int,
-                  sparkplug: bool, cycles: Any, stop_after_s: float) -> None:  # fmt: skip
+                  sparkplug: bool, cycles: Any, started: Any,
+                  stop_after_s: float) -> None:  # fmt: skip
     """One gateway process: its machines, Sparkplug on or off, counting cycles."""
-    from gateway.app import Gateway
+    from gateway.wiring import Gateway
     from gateway.config import GatewayConfig
 
     machines = [
@@ -90,9 +91,15 @@ def _gateway_main(index: int, ports: list[int], store: Path, folder: Path, broke
         }
     config = GatewayConfig.model_validate(document)
 
-    def count(_record: Any) -> None:
+    seen: set[str] = set()
+
+    def count(record: Any) -> None:
         with cycles.get_lock():
             cycles.value += 1
+        if record.machine not in seen:  # its first cycle: one more machine running
+            seen.add(record.machine)
+            with started.get_lock():
+                started.value += 1
 
     faulthandler.dump_traceback_later(stop_after_s + 300, exit=True)  # a stop that hangs
 
@@ -142,8 +149,9 @@ def run_mode(args: argparse.Namespace, devices: Devices, store: Path, folder: Pa
     counter = Counter(port)
     context = multiprocessing.get_context("spawn")
     cycles = context.Value("Q", 0)
+    started = context.Value("Q", 0)  # machines that ran their first cycle
     per = args.machines
-    length = args.warmup_s + args.window_s + (30 if sparkplug else 0) + 10
+    length = args.warmup_s + args.window_s + (90 if sparkplug else 0) + 10
     processes = [
         context.Process(
             target=_gateway_main,
@@ -155,14 +163,20 @@ def run_mode(args: argparse.Namespace, devices: Devices, store: Path, folder: Pa
                 port,
                 sparkplug,
                 cycles,
+                started,
                 length,
             ),
         )
         for i in range(args.gateways)
     ]
+    launched = time.monotonic()
     for process in processes:
         process.start()
-    time.sleep(args.warmup_s)
+    all_started_s = None
+    while time.monotonic() - launched < args.warmup_s:
+        if all_started_s is None and started.value == args.gateways * per:
+            all_started_s = round(time.monotonic() - launched, 1)
+        time.sleep(0.1)
     cpu0 = sum(process_cpu_s(p.pid) for p in processes if p.pid)
     broker_cpu0, (msgs0, _), cycles0, t0 = (
         process_cpu_s(broker.pid),
@@ -177,6 +191,8 @@ def run_mode(args: argparse.Namespace, devices: Devices, store: Path, folder: Pa
     msgs = counter.read()[0] - msgs0
     result: dict[str, Any] = {
         "sparkplug": sparkplug,
+        "all_machines_cycling_after_s": all_started_s,  # None: not all within the warm-up
+        "machines_cycling_at_window_end": started.value,
         "cycles": ran,
         "due_cycles_share": round(ran / (args.gateways * per * elapsed / 1.0), 3),
         "cpu_ms_per_machine_cycle": round(1000 * cpu / max(ran, 1), 3),
@@ -192,7 +208,7 @@ def run_mode(args: argparse.Namespace, devices: Devices, store: Path, folder: Pa
         time.sleep(1.0)
         broker = start_broker(folder, port)
         start = time.monotonic()
-        while counter.read()[1] < expected and time.monotonic() - start < 30:
+        while counter.read()[1] < expected and time.monotonic() - start < 90:
             time.sleep(0.02)
         result["births_seen"] = counter.read()[1]
         result["births_expected"] = expected

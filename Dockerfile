@@ -68,9 +68,9 @@ VOLUME ["/config", "/data"]
 USER gateway
 
 # Healthy while every machine loop has written a heartbeat in the last 30 s
-# (gateway/health.py; state_dir /data/state in the configuration).
+# (gateway/outputs/heartbeat.py; state_dir /data/state in the configuration).
 HEALTHCHECK --interval=15s --timeout=10s --start-period=60s --retries=3 \
-    CMD ["python", "-m", "gateway.health", "--state-dir", "/data/state", "--max-age-s", "30"]
+    CMD ["python", "-m", "gateway.outputs.heartbeat", "--state-dir", "/data/state", "--max-age-s", "30"]
 
 STOPSIGNAL SIGTERM
 ENTRYPOINT ["python", "-m", "gateway"]

@@ -27,9 +27,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gateway import model_bank  # noqa: E402
-from gateway.app import load_bank  # noqa: E402
 from gateway.config import load_config  # noqa: E402
+from gateway.live.bank import model_bank  # noqa: E402
+from gateway.wiring import load_bank  # noqa: E402
 from tests.test_big_config import run_measured, write_config  # noqa: E402
 
 

@@ -1,6 +1,6 @@
 """How fast the command line starts, and what it imports to do so.
 
-The container's health check (``python -m gateway.health``, see the Dockerfile's
+The container's health check (``python -m gateway.outputs.heartbeat``, see the Dockerfile's
 HEALTHCHECK) runs every 15 s and an operator types ``--help``: neither should pay
 for numpy, scipy, pandas, matplotlib, sklearn or the protocol libraries. Each
 command runs as a fresh subprocess ``--repeats`` times; the median wall time and
@@ -35,7 +35,7 @@ COMMANDS = {
     "gateway --help": ["-m", "gateway", "--help"],
     "gateway check-config --help": ["-m", "gateway", "check-config", "--help"],
     "gateway run --help": ["-m", "gateway", "run", "--help"],
-    "gateway.health --help": ["-m", "gateway.health", "--help"],
+    "gateway.outputs.heartbeat --help": ["-m", "gateway.outputs.heartbeat", "--help"],
 }
 
 

@@ -44,10 +44,10 @@ import aiohttp
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gateway.local_store import SCHEMA  # noqa: E402
-from gateway.login_throttle import ThrottlePolicy  # noqa: E402
-from gateway.runtime import CycleRecord  # noqa: E402
-from gateway.scada import ScadaUser  # noqa: E402
+from gateway.live.record import CycleRecord
+from gateway.outputs.local_store import SCHEMA  # noqa: E402
+from gateway.scada.login_throttle import ThrottlePolicy  # noqa: E402
+from gateway.scada.server import ScadaUser  # noqa: E402
 from gateway.web.server import WebConsole, WebSettings  # noqa: E402
 
 SENSORS = [f"T{i}" for i in range(1, 10)]
@@ -61,7 +61,7 @@ def free_port() -> int:
 
 
 class StubGateway:
-    """The parts of :class:`gateway.app.Gateway` the console reads."""
+    """The parts of :class:`gateway.wiring.Gateway` the console reads."""
 
     def __init__(self, machines: list[str], store: Path) -> None:
         comp = SimpleNamespace(unit="mm", sign=1)

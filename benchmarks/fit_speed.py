@@ -25,9 +25,9 @@ from scipy.signal import lfilter
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from models.dataset import load_runs  # noqa: E402
-from models.features import prepare  # noqa: E402
-from models.registry import METHODS, make_model  # noqa: E402
+from models.data.dataset import load_runs  # noqa: E402
+from models.data.features import prepare  # noqa: E402
+from models.estimators.registry import METHODS, make_model  # noqa: E402
 
 N_SENSORS = 16
 

@@ -67,8 +67,8 @@ def _gateway_main(index: int, ports: list[int], store: Path, folder: Path, broke
                   sparkplug: bool, cycles: Any, started: Any,
                   stop_after_s: float) -> None:  # fmt: skip
     """One gateway process: its machines, Sparkplug on or off, counting cycles."""
-    from gateway.wiring import Gateway
     from gateway.config import GatewayConfig
+    from gateway.wiring import Gateway
 
     machines = [
         project_section(store, port, index * 10_000 + i).model_dump(mode="json")

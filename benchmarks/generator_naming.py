@@ -21,9 +21,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from models.analysis import analyze  # noqa: E402
-from models.dataset import load_runs  # noqa: E402
-from models.features import prepare  # noqa: E402
+from models.analysis.search import analyze  # noqa: E402
+from models.data.dataset import load_runs  # noqa: E402
+from models.data.features import prepare  # noqa: E402
 from tests import independent_machine, independent_shaft  # noqa: E402
 
 NETWORK_PROGRAMS = ("const-6000", "staircase", "spectrum", "rest-cycles", "warmup-production")

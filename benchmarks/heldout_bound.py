@@ -36,9 +36,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from models.dataset import load_runs  # noqa: E402
-from models.effect_terms import first_order_lag, hours_since_start  # noqa: E402
-from models.features import prepare  # noqa: E402
+from models.data.dataset import load_runs  # noqa: E402
+from models.data.features import prepare  # noqa: E402
+from models.data.lag_terms import first_order_lag, hours_since_start  # noqa: E402
 
 SENSOR_TAUS_S = (0.0, 300.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)
 SPEED_TAUS_S = (0.0, 300.0, 900.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0)

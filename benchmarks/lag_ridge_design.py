@@ -109,11 +109,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from models.crossval import cross_validate  # noqa: E402
-from models.dataset import load_runs  # noqa: E402
-from models.features import prepare  # noqa: E402
-from models.lag_ridge import LagRidgeModel, candidate_paths  # noqa: E402
-from models.lag_structures import (  # noqa: E402
+from models.data.dataset import load_runs  # noqa: E402
+from models.data.features import prepare  # noqa: E402
+from models.estimators.lag_ridge import LagRidgeModel, candidate_paths  # noqa: E402
+from models.estimators.lag_structures import (  # noqa: E402
     DEFAULT_TAUS_S,
     ELASTIC_NET,
     LASSO,
@@ -124,7 +123,8 @@ from models.lag_structures import (  # noqa: E402
     Structure,
     choose,
 )
-from models.penalised import inner_groups  # noqa: E402
+from models.estimators.ridge_pls import inner_groups  # noqa: E402
+from models.fit.crossval import cross_validate  # noqa: E402
 from tests import independent_machine, independent_shaft  # noqa: E402
 
 FL_THERMAL = ROOT / "data" / "fl_thermal.csv"

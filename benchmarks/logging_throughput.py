@@ -29,10 +29,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gateway.influx_writer import Forwarder, InfluxWriter  # noqa: E402
-from gateway.local_store import LocalStore  # noqa: E402
-from gateway.point_buffer import PointBuffer  # noqa: E402
-from gateway.timeseries import Point, points_from_record  # noqa: E402
+from gateway.outputs.disk_buffer import PointBuffer  # noqa: E402
+from gateway.outputs.influx import Forwarder, InfluxWriter  # noqa: E402
+from gateway.outputs.local_store import LocalStore  # noqa: E402
+from gateway.outputs.points import Point, points_from_record  # noqa: E402
 from tests.influx_server import InfluxServer  # noqa: E402
 from tests.records import written_record  # noqa: E402
 

@@ -48,9 +48,9 @@ from asyncua import Client, ua  # noqa: E402
 from pymodbus.client import AsyncModbusTcpClient  # noqa: E402
 
 from drivers.clock import WallClock  # noqa: E402
-from gateway.app import build_buses, build_cnc, load_bank  # noqa: E402
-from gateway.demo import fit_models, machine_config, write_training_data  # noqa: E402
-from gateway.runtime import MachineLoop  # noqa: E402
+from gateway.demo.compensate import fit_models, machine_config, write_training_data  # noqa: E402
+from gateway.live.loop import MachineLoop  # noqa: E402
+from gateway.wiring import build_buses, build_cnc, load_bank  # noqa: E402
 
 NAMESPACE = "urn:spindle-gateway:simulated-cnc"
 PACE_S = 0.03  # between measured cycles: the simulator publishes every 10 ms meanwhile
@@ -298,7 +298,7 @@ def main() -> None:
     import logging
 
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    logging.getLogger("gateway.runtime").setLevel(logging.CRITICAL)
+    logging.getLogger("gateway.live.loop").setLevel(logging.CRITICAL)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cycles", type=int, default=300)
     parser.add_argument("--cnc", choices=["modbus", "opcua"], default="modbus")

@@ -2,13 +2,13 @@
 
 1. ``per_probe``: :meth:`ResidualMonitor.observe` (both sequential tests, the
    window regression at every probe) and the whole sink per cycle
-   (:class:`gateway.monitor.MonitorSink`: history append, shadow filter, tests),
+   (:class:`gateway.live.proposal_monitor.MonitorSink`: history append, shadow filter, tests),
    on cycles with and without a probe.
 2. ``analysis``: the background analysis of 30 days of logged history at 1 Hz
    (2 592 000 cycles, a probe every 300 s: 8640 probe rows), as the monitor runs
    it: history saved, a separate process started, loaded, analysed. The history
    is the simulated machine with a hidden ``thermal_lag`` run in-process at a
-   15 s cycle (``gateway/demo_effect.py``), brought to 1 Hz by linear
+   15 s cycle (``gateway/demo/monitor_phase.py``), brought to 1 Hz by linear
    interpolation of the temperatures (the speed held, each probe on its own row).
 3. ``cycle_latency``: while that analysis runs, a real compensation loop
    (Modbus TCP transmitters and CNC, the simulator in its own process) cycles
@@ -42,11 +42,11 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import loop_latency  # noqa: E402
 
 from drivers.clock import WallClock  # noqa: E402
-from gateway.demo import fit_models, write_training_data  # noqa: E402
-from gateway.demo_effect import SENSORS, InProcessPlant, programme_days  # noqa: E402
-from gateway.monitor import MonitorSink, run_analysis_job  # noqa: E402
-from models.history_analysis import History  # noqa: E402
-from models.residual_monitor import MonitorParams, ProbeInnovation, ResidualMonitor  # noqa: E402
+from gateway.demo.compensate import fit_models, write_training_data  # noqa: E402
+from gateway.demo.monitor_phase import SENSORS, InProcessPlant, programme_days  # noqa: E402
+from gateway.live.proposal_monitor import MonitorSink, run_analysis_job  # noqa: E402
+from models.analysis.history import History  # noqa: E402
+from models.online.residual_monitor import MonitorParams, ProbeInnovation, ResidualMonitor  # noqa: E402
 from tests.records import written_record  # noqa: E402
 
 PROBE_PERIOD_S = 300.0

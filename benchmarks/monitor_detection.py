@@ -1,5 +1,5 @@
 """How fast the residual monitor proposes a hidden effect, what promotion gains, how often it
-alarms without one: the simulated machine's physics in-process (``gateway/demo_effect.py``).
+alarms without one: the simulated machine's physics in-process (``gateway/demo/monitor_phase.py``).
 
 For each seed: production days with the hidden effect, a probe every 300 s, the demo's
 models (fitted on runs without it), the monitor attached with its defaults. Reported:
@@ -24,10 +24,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from gateway.config import MonitorSection  # noqa: E402
-from gateway.demo import fit_models, write_training_data  # noqa: E402
-from gateway.demo_effect import SENSORS, InProcessPlant, programme_days  # noqa: E402
-from gateway.monitor import MonitorSink  # noqa: E402
-from models.online_correction import CorrectionParams  # noqa: E402
+from gateway.demo.compensate import fit_models, write_training_data  # noqa: E402
+from gateway.demo.monitor_phase import SENSORS, InProcessPlant, programme_days  # noqa: E402
+from gateway.live.proposal_monitor import MonitorSink  # noqa: E402
+from models.online.correction import CorrectionParams  # noqa: E402
 
 DAY_S = 86400.0
 

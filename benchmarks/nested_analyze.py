@@ -41,9 +41,9 @@ def nested_run(data: Path, target: str, workdir: Path) -> tuple[dict, float]:
 def inner_only(data: Path, target: str, held_out: str) -> dict:
     import numpy as np
 
-    from models.dataset import load_runs
-    from models.features import prepare
-    from models.nested_analysis import AUTO_BASES, analyse_bases
+    from models.analysis.nested import AUTO_BASES, analyse_bases
+    from models.data.dataset import load_runs
+    from models.data.features import prepare
 
     prepared = prepare(load_runs(data, target=target)).without_sensor_readings()
     train = np.asarray(prepared.data.run) != held_out

@@ -17,12 +17,13 @@ import json
 import tempfile
 from pathlib import Path
 
-from gateway.demo import write_training_data
-from gateway.plausibility import Plausibility, PlausibilityLimits
-from models.dataset import load_runs
-from models.features import prepare
-from models.mlr import MlrModel
-from models.sensor_relations import fit_relations
+from gateway.demo.compensate import write_training_data
+from gateway.limits import PlausibilityLimits
+from gateway.live.plausibility import Plausibility
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.estimators.mlr import MlrModel
+from models.estimators.sensor_relations import fit_relations
 from simulator.params import load_params
 from simulator.programs import production_program, program_by_name
 from simulator.record import record, write_recording

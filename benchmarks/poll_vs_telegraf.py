@@ -21,7 +21,7 @@ speed block, the macro), at a 1 s interval:
   write-back with read-back) per machine, as ``run`` starts them.
 
 Both gateway sides run with the objects built at start frozen out of the
-garbage collector's passes, as ``Gateway.run`` runs (:mod:`gateway.heap`).
+garbage collector's passes, as ``Gateway.run`` runs (:mod:`gateway.process.gc_tuning`).
 
 The poller under test is pinned to core 0; the devices are served by lean
 server processes (an asyncio protocol answering from a register image, a few
@@ -67,7 +67,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from drivers.cnc import CncError  # noqa: E402
-from gateway.runtime import read_together  # noqa: E402
+from gateway.live.loop import read_together  # noqa: E402
 
 TELEGRAF = ROOT / ".cache" / "bin" / "telegraf"
 POLLER_CORE = 0
@@ -277,7 +277,7 @@ def telegraf_version() -> str:
 
 
 def project_section(store: Path, port: int, index: int):
-    from gateway.demo import machine_config
+    from gateway.demo.compensate import machine_config
 
     section = machine_config(
         store,
@@ -321,8 +321,8 @@ class Stats:
 async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, scheduler) -> None:
     """One machine's poll on the gateway's scheduler: transmitters and speed together, then
     the macro (the reads of a full cycle, without the rest of it)."""
-    from gateway.app import build_buses, build_cnc
-    from gateway.cycle_scheduler import after_cycle
+    from gateway.live.scheduler import after_cycle
+    from gateway.wiring import build_buses, build_cnc
 
     cycle_s = section.cycle_s
     buses, cnc = build_buses(section), build_cnc(section, clock)
@@ -359,10 +359,10 @@ async def _poller_main(args: argparse.Namespace) -> None:
     import logging
 
     from drivers.clock import WallClock
-    from gateway.app import build_buses, build_cnc, load_bank
-    from gateway.cycle_scheduler import CycleScheduler
-    from gateway.heap import frozen_startup_heap
-    from gateway.runtime import MachineLoop
+    from gateway.live.loop import MachineLoop
+    from gateway.live.scheduler import CycleScheduler
+    from gateway.process.gc_tuning import frozen_startup_heap
+    from gateway.wiring import build_buses, build_cnc, load_bank
 
     logging.disable(logging.CRITICAL)  # a benchmark: no log formatting in the measurement
     ports = json.loads(Path(args.ports).read_text())
@@ -645,7 +645,7 @@ def ceiling(runs: list[dict[str, Any]], summary: dict[str, Any]) -> dict[str, An
 
 
 def fit_store(folder: Path) -> Path:
-    from gateway.demo import fit_models, write_training_data
+    from gateway.demo.compensate import fit_models, write_training_data
 
     write_training_data(folder / "training.csv", seed=1)
     fit_models(folder / "training.csv", folder / "models", "benchmark")
@@ -672,7 +672,7 @@ def main() -> None:
     if args.poller:
         raise_priority()
         args.role = args.poller
-        from gateway import event_loop
+        from gateway.process import event_loop
 
         event_loop.run(_poller_main(args), args.event_loop)
         return

@@ -1,7 +1,7 @@
 """What watching for promotions costs a cycle, and what one swap costs.
 
 Every cycle the loop ``stat``s the store's proposals folder and
-``versions/current.json`` (:meth:`gateway.promotion.Promotions.poll`); that must
+``versions/current.json`` (:meth:`gateway.live.bank.promotion.Promotions.poll`); that must
 be negligible next to a 1 s cycle. A swap reads the version, checks the model
 (loads it, bias slopes) and puts it into the bank. The bank here is the demo's
 plain models; the promoted model is the augmented one ``analyze`` makes of
@@ -23,11 +23,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gateway.app import load_bank  # noqa: E402
-from gateway.demo import fit_models, machine_config, write_training_data  # noqa: E402
-from gateway.promotion import Promotions  # noqa: E402
-from models import augmented  # noqa: E402
-from models.proposals import ProposalStore  # noqa: E402
+from gateway.demo.compensate import fit_models, machine_config, write_training_data  # noqa: E402
+from gateway.live.bank.promotion import Promotions  # noqa: E402
+from gateway.wiring import load_bank  # noqa: E402
+from models.analysis import augmented  # noqa: E402
+from models.online.proposals import ProposalStore  # noqa: E402
 from simulator.params import load_params  # noqa: E402
 from simulator.programs import program_by_name  # noqa: E402
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording  # noqa: E402

@@ -38,10 +38,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from models.dataset import load_runs  # noqa: E402
-from models.features import prepare  # noqa: E402
-from models.lag_ridge import lag_terms  # noqa: E402
-from models.lag_structures import (  # noqa: E402
+from models.data.dataset import load_runs  # noqa: E402
+from models.data.features import prepare  # noqa: E402
+from models.estimators.lag_ridge import lag_terms  # noqa: E402
+from models.estimators.lag_structures import (  # noqa: E402
     DEFAULT_SPEED_POWERS,
     DEFAULT_TAUS_S,
     LASSO_PENALTIES,

@@ -1,7 +1,7 @@
 """What this project's OPC UA servers share: engineering units and the server life cycle.
 
 Used by the simulated CNC (``simulator.servers.opcua_cnc``) and the gateway's SCADA
-server (``gateway.scada``), so both encode units the same way and start, fail
+server (``gateway.scada.server``), so both encode units the same way and start, fail
 and stop the same way.
 """
 

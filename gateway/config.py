@@ -28,6 +28,7 @@ import functools
 import os
 import re
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 from urllib.parse import urlsplit
@@ -52,17 +53,17 @@ from drivers.yaml_loader import (
     YamlDocument,
     YamlError,
     first_problem,
+    format_path,
     load_yaml,
 )
 from drivers.yaml_loader import validate as validate_section
-from gateway.compensation import CompensationLimits
-from gateway.event_loop import DEFAULT as DEFAULT_EVENT_LOOP
-from gateway.event_loop import EventLoopName
-from gateway.quality import QualityLimits
-from models.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
-from models.online_correction import CorrectionParams
-from models.regime_rules import RegimeRules, SpeedBand
-from models.residual_monitor import MonitorParams
+from gateway.limits import CompensationLimits, QualityLimits
+from gateway.process.event_loop import DEFAULT as DEFAULT_EVENT_LOOP
+from gateway.process.event_loop import EventLoopName
+from models.fit.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
+from models.online.correction import CorrectionParams
+from models.online.regime_rules import RegimeRules, SpeedBand
+from models.online.residual_monitor import MonitorParams
 
 # The map of the ``*_register`` keys is checked field by field (about 50 ms); a plant of
 # 1000 machines has a handful of distinct ones. A refused map raises, and is not kept.
@@ -70,7 +71,7 @@ _cnc_map_once = functools.lru_cache(maxsize=256)(cnc_map)
 
 if TYPE_CHECKING:  # the plausibility module brings the whole model stack (scipy): not at load
     from drivers.cnc_opcua import OpcUaSecurity
-    from gateway.plausibility import PlausibilityLimits
+    from gateway.limits import PlausibilityLimits
 
 MAX_CLAMP_UM = 1000.0
 """Largest clamp: thermal growth of a spindle is tens of µm; a bigger clamp is a typo."""
@@ -143,7 +144,7 @@ class SensorSection(Strict):
 
 
 class QualitySection(Strict):
-    """Plausibility of the sensors and of the prediction (see gateway/plausibility.py).
+    """Plausibility of the sensors and of the prediction (see gateway/live/plausibility.py).
 
     - ``plausibility_sigma``: a sensor further than this many held-out σ from what
       the other sensors say is held BAD. 5: on unseen simulated programmes (four
@@ -167,7 +168,7 @@ class QualitySection(Strict):
     prediction_noise_um: float = Field(default=1.0, ge=0, allow_inf_nan=False)
 
     def limits(self) -> PlausibilityLimits:
-        from gateway.plausibility import PlausibilityLimits
+        from gateway.limits import PlausibilityLimits
 
         return PlausibilityLimits(
             sigma=self.plausibility_sigma,
@@ -400,7 +401,7 @@ class CompensationSection(Strict):
 
 
 class OnlineCorrectionSection(Strict):
-    """The probe-driven online correction (:mod:`models.online_correction`).
+    """The probe-driven online correction (:mod:`models.online.correction`).
 
     Off by default. When on, every new value of ``compensation.probe_macro``
     updates a Kalman filter on the model's residual; the correction is added to
@@ -426,7 +427,7 @@ class OnlineCorrectionSection(Strict):
 
 
 class MonitorSection(MonitorParams, Strict):
-    """The residual monitor (:mod:`gateway.monitor`, tests in :mod:`models.residual_monitor`).
+    """The residual monitor (:mod:`gateway.live.proposal_monitor`, tests in :mod:`models.online.residual_monitor`).
 
     Off by default. When on, every probe's innovation goes to the sequential
     tests; an alarm starts a background residual analysis of the logged history,
@@ -506,11 +507,11 @@ class ModelsSection(Strict):
     store: Path
     reference: ReferenceSection = ReferenceSection()
     regimes: RegimeSection = RegimeSection()
-    #: stated accuracy of the temperature sensors, ± °C (models.conditioning)
+    #: stated accuracy of the temperature sensors, ± °C (models.fit.conditioning)
     sensor_accuracy_C: float = Field(default=DEFAULT_SENSOR_ACCURACY_C, gt=0, le=10)
     #: a model that one sensor off by its accuracy would move by more is refused, µm
     max_bias_error_um: float = Field(default=DEFAULT_MAX_BIAS_ERROR_UM, gt=0, le=1000)
-    #: promote a new proposal of the residual monitor without an operator (gateway.promotion)
+    #: promote a new proposal of the residual monitor without an operator (gateway.live.bank.promotion)
     auto_promote: bool = False
     #: HMAC key the store's models must be signed with (models.signing); outside the store
     signing_key_file: Path | None = None
@@ -882,7 +883,7 @@ class GatewayConfig(Strict):
     sparkplug: SparkplugSection | None = None
     web: WebSection | None = None
     simulator: dict[str, Any] | None = None  # checked by simulator.serve
-    # The runtime's event loop (gateway/event_loop.py): uvloop, or asyncio's own.
+    # The runtime's event loop (gateway/process/event_loop.py): uvloop, or asyncio's own.
     event_loop: EventLoopName = DEFAULT_EVENT_LOOP
 
     @model_validator(mode="after")
@@ -895,9 +896,7 @@ class GatewayConfig(Strict):
 
     @model_validator(mode="after")
     def _one_setting_per_line(self) -> GatewayConfig:
-        """Buses on one serial port are one RS-485 line (gateway.bus_hubs)."""
-        from gateway.bus_hubs import check_shared_lines
-
+        """Buses on one serial port are one RS-485 line (:func:`check_shared_lines`)."""
         check_shared_lines(self.machines)
         return self
 
@@ -1041,3 +1040,74 @@ def _file_problems(path: Path, loc: Loc) -> list[tuple[Loc, str]]:
     if path.exists() and not os.access(path, os.W_OK):
         return [(loc, f"{path} is not writable")]
     return _folder_problems(path.parent, loc, subject=path)
+
+
+# --------------------------------------------------------------------------- RS-485 lines
+# Which transmitter buses of the configuration are one physical RS-485 line.
+#
+# Which transmitter buses of the configuration are one physical RS-485 line.
+#
+# A line is named by its serial port path: every bus section (of any machine)
+# that gives the same ``rtu.port`` is on that line and reads through one
+# :class:`drivers.bus_hub.BusHub`. No new key is needed, but the sections must
+# agree: one line has one baud rate and one parity, and one device id answers on
+# it once (two sections naming the same id would read the same module, or two
+# modules would answer one request and garble each other's replies). Those are
+# refused by :func:`check_shared_lines`, located on the second section.
+#
+# What may differ is taken at its most patient: the line's request timeout is the
+# longest any of its sections asks, the inter-frame silence the longest of the
+# RTU t3.5 at the line's baud rate and every ``rtu.min_silence_s``.
+#
+# Modbus TCP buses keep one connection each: a TCP server carries concurrent
+# connections and tells replies apart by transaction id, so nothing collides.
+
+Where = tuple[str | int, ...]
+
+
+def rtu_buses(machines: Sequence[MachineSection]) -> dict[str, list[tuple[Where, BusSection]]]:
+    """Bus sections by serial port path, each with its key path in the configuration."""
+    lines: dict[str, list[tuple[Where, BusSection]]] = {}
+    for m, machine in enumerate(machines):
+        for b, bus in enumerate(machine.transmitters):
+            if bus.rtu is not None:
+                lines.setdefault(bus.rtu.port, []).append((("machines", m, "transmitters", b), bus))
+    return lines
+
+
+def check_shared_lines(machines: Sequence[MachineSection]) -> None:
+    """Refuse two line settings or one device id twice on one port (:class:`KeyPathError`)."""
+    for port, buses in rtu_buses(machines).items():
+        first_where, first = buses[0]
+        assert first.rtu is not None
+        settings = {
+            "baudrate": ("baud rate", "{} baud", "at {} baud"),
+            "parity": ("parity", "parity {}", "with parity {}"),
+        }
+        owners: dict[int, Where] = {}
+        for where, bus in buses:
+            assert bus.rtu is not None
+            for key, (what, given, runs) in settings.items():
+                mine, theirs = getattr(bus.rtu, key), getattr(first.rtu, key)
+                if mine != theirs:
+                    raise KeyPathError(
+                        (*where, "rtu", key),
+                        f"{given.format(mine)} given, but port {port} already runs "
+                        f"{runs.format(theirs)} for {_owner(machines, first_where)}; "
+                        f"one RS-485 line has one {what}",
+                    )
+            for d, device in enumerate(bus.devices):
+                owner = owners.get(device.device_id)
+                if owner is not None:
+                    raise KeyPathError(
+                        (*where, "devices", d, "device_id"),
+                        f"device {device.device_id} on port {port} is already read by "
+                        f"{_owner(machines, owner)}; one device id per RS-485 line",
+                    )
+                owners[device.device_id] = (*where, "devices", d)
+
+
+def _owner(machines: Sequence[MachineSection], where: Where) -> str:
+    """``machine 'vmc-1' (machines[0].transmitters[0])`` for a key path below a machine."""
+    machine = machines[int(where[1])]
+    return f"machine '{machine.id}' ({format_path(where)})"

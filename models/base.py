@@ -7,7 +7,7 @@ numbers into plain JSON (``fitted_params``) and back (``from_params``), so the
 model store never needs pickle.
 
 Inputs are a :class:`ModelInputs`: temperature *rises* (°C above the reference
-sample, see :mod:`models.references`) for named sensors, and the spindle speed in
+sample, see :mod:`models.data.references`) for named sensors, and the spindle speed in
 r/min. The target is the thermal error in µm as measured; its reference is the
 model's intercept.
 """
@@ -37,10 +37,10 @@ class ModelInputs:
             that work on whole sequences (grey relational grade); ``None`` means
             one run.
         time_s: (n,) time of each row, s, for methods whose terms remember the
-            history (first-order lags, :mod:`models.lag_ridge`); ``None`` means
+            history (first-order lags, :mod:`models.estimators.lag_ridge`); ``None`` means
             rows without a history (each one taken at a steady state).
         recording: (n,) recording number of each row (lags carry across the runs
-            of one recording, :mod:`models.references`); ``None`` means one.
+            of one recording, :mod:`models.data.references`); ``None`` means one.
     """
 
     rise_C: np.ndarray

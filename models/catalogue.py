@@ -2,8 +2,8 @@
 
 ``--help`` and option parsing need the method names, the reference policies and
 two defaults, but not numpy, scipy or sklearn: those load only inside the
-command that fits. ``models.registry``, ``models.references`` and
-``models.conditioning`` take their values from here, and a test checks that
+command that fits. ``models.estimators.registry``, ``models.data.references`` and
+``models.fit.conditioning`` take their values from here, and a test checks that
 ``METHOD_NAMES`` is exactly the registry's keys.
 """
 
@@ -20,7 +20,7 @@ DEFAULT_METHOD = "lag-ridge"
 #: lag-ridge, 1.24 / 1.15 / 1.88 µm at one probe an hour against the lagged mlr base's
 #: 1.68 / 1.51 / 1.92).
 DEFAULT_REPLAY_BASE = "declared"
-#: Where rises are measured from (see models/references.py).
+#: Where rises are measured from (see models/data/references.py).
 POLICIES = ("auto", "run-start", "recording-start")
 #: A stated accuracy of the transmitters' sensors when none is configured: a
 #: class-A Pt100 is ±(0.15 + 0.002·|T|) °C, a transmitter and its wiring add as much.

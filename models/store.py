@@ -18,8 +18,8 @@ compensating a machine wrongly:
 Optional fields ``error_reference`` and ``sensor_relations`` (absent in files
 saved before they existed, which still load). ``error_reference``: the model's
 error at zero rises and 0 r/min, i.e. the error's reference fitted as the
-model's intercept (:mod:`models.references`). ``sensor_relations``: how the
-training sensors' rises relate to each other (:mod:`models.sensor_relations`),
+model's intercept (:mod:`models.data.references`). ``sensor_relations``: how the
+training sensors' rises relate to each other (:mod:`models.estimators.sensor_relations`),
 for the runtime's plausibility check. Both are covered by the checksum like
 every other field and validated on load.
 
@@ -46,9 +46,9 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from models import signing
 from models.base import ModelInputs, ThermalModel
+from models.estimators.registry import METHODS
+from models.estimators.sensor_relations import SensorRelations
 from models.json_files import write_json_atomic
-from models.registry import METHODS
-from models.sensor_relations import SensorRelations
 from models.training_range import training_range
 
 FORMAT = "spindle-thermal-model"
@@ -97,12 +97,12 @@ class StoredModel(BaseModel):
     software_version: str
     probe: Probe
     sha256: str
-    #: conditioning and bias sensitivity at fit time (:mod:`models.conditioning`);
+    #: conditioning and bias sensitivity at fit time (:mod:`models.fit.conditioning`);
     #: absent in files written before it was recorded.
     conditioning: dict[str, Any] | None = None
     # Optional, so that files saved before it existed still load (see the module docstring).
     sensor_relations: dict[str, Any] | None = None
-    #: the error's reference (:mod:`models.references`): the fitted model's error at zero
+    #: the error's reference (:mod:`models.data.references`): the fitted model's error at zero
     #: rises and 0 r/min (its intercept) and each training recording's own origin; absent
     #: in files written when the error was rebased on each recording's leading readings.
     error_reference: dict[str, Any] | None = None
@@ -177,7 +177,7 @@ def build_document(
 ) -> dict[str, Any]:
     """The JSON document for a fitted model (checksum included).
 
-    ``sensor_relations``: :meth:`models.sensor_relations.SensorRelations.as_document`
+    ``sensor_relations``: :meth:`models.estimators.sensor_relations.SensorRelations.as_document`
     of the training rises, stored for the runtime's plausibility check.
     """
     document: dict[str, Any] = {

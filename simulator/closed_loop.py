@@ -31,7 +31,7 @@ class _TimedRecord(Protocol):
 
 
 class CompensationLoop(Protocol):
-    """What the pairing needs of a loop (``gateway.runtime.MachineLoop`` has it)."""
+    """What the pairing needs of a loop (``gateway.live.loop.MachineLoop`` has it)."""
 
     @property
     def config(self) -> _HasCycle: ...

@@ -36,7 +36,7 @@ def gateway_in_process(*args: str | Path | int) -> subprocess.CompletedProcess[s
     """
     from click.testing import CliRunner
 
-    from gateway.cli import main
+    from gateway.cli.main import main
 
     argv = [str(a) for a in args]
     with contextlib.chdir(ROOT):

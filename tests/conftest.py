@@ -1,7 +1,7 @@
 """Suite-wide test marks, and the event loop every test runs on.
 
 Every ``asyncio.run`` in the tests runs on uvloop, the loop the gateway's commands
-run on by default (gateway/event_loop.py); tests/test_event_loop.py runs the live
+run on by default (gateway/process/event_loop.py); tests/test_event_loop.py runs the live
 loop on asyncio's own loop, the other choice of the config's ``event_loop``.
 
 The end-to-end files below run whole plants (simulator servers, the gateway, a
@@ -17,7 +17,7 @@ import asyncio
 import pytest
 import uvloop
 
-from gateway.event_loop import DEFAULT
+from gateway.process.event_loop import DEFAULT
 from tests import gateway_rig as rig
 from tests import opcua_template
 

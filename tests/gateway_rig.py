@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from drivers.clock import Clock
-from gateway.demo import fit_models, write_training_data
+from gateway.demo.compensate import fit_models, write_training_data
 from simulator.serve import SimulatedPlant, SimulatorConfig
 from tests.ports import free_tcp_port
 

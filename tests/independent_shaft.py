@@ -3,7 +3,7 @@
 Written apart from the project's simulator (``simulator/``) and from the lumped
 network of ``tests/independent_machine.py``, with other physics, numerics,
 sampling and sensor layout, so that the residual analysis and the error's
-reference (``models/references.py``) are checked on data they were not built on.
+reference (``models/data/references.py``) are checked on data they were not built on.
 It writes the measured-run CSV format of the interface contract (§1)::
 
     run,time_s,speed_rpm,T2,T4,T7,T9,T11,T12,ambient_C,error_um

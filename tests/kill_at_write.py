@@ -57,7 +57,7 @@ def kill_at(limit: int, folder: str) -> None:
 
 def run_forked(request: dict[str, Any]) -> int:
     """Run one request in a forked child; its exit code (negative: the signal)."""
-    from gateway.cli import main
+    from gateway.cli.main import main
 
     pid = os.fork()
     if pid == 0:
@@ -80,9 +80,9 @@ def run_forked(request: dict[str, Any]) -> int:
 
 def serve() -> None:
     # Imported once, before the first fork: what the models commands load.
-    import gateway.cli
-    import gateway.models_cli  # noqa: F401
-    import models.proposals  # noqa: F401
+    import gateway.cli.main
+    import gateway.cli.models  # noqa: F401
+    import models.online.proposals  # noqa: F401
 
     for line in sys.stdin:
         code = run_forked(json.loads(line))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
 
 
 def written_record(

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from models.features import Prepared
+from models.data.features import Prepared
 
 
 def streamed(stream: Any, prepared: Prepared, *, speed: bool = True) -> np.ndarray:

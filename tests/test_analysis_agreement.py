@@ -17,15 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models import analysis_render
-from models.analysis_render import p_text
-from models.analysis_result import (
-    P_FLOOR,
-    AnalysisResult,
-    CandidateResult,
-    StepResult,
-)
-from models.metrics import accuracy
+from models.analysis import render as analysis_render
+from models.analysis.format import P_FLOOR, p_text
+from models.analysis.result import AnalysisResult, CandidateResult, StepResult
+from models.fit.metrics import accuracy
 from simulator.params import load_params
 from simulator.programs import load_programs
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
@@ -274,7 +269,6 @@ def test_p_values_never_print_as_zero() -> None:
     assert p_text(3e-17) == "< 1e-16"
     assert p_text(1.234e-5) == "1.23e-05"
     assert p_text(float("nan")) == "—"
-    assert analysis_render.P_FLOOR is P_FLOOR
 
 
 def _result(
@@ -359,7 +353,7 @@ def test_next_step_follows_its_rule() -> None:
 def test_a_run_name_cannot_inject_markup(tmp_path: Path) -> None:
     evil = "<script>alert(1)</script>"
     result = _result({evil: 1.0, "b&c": 1.0, "d": 1.0, "e": 1.0}, "thermal_lag")
-    page = result.to_html()
+    page = analysis_render.html_report(result, ())
     assert "<script>" not in page
     assert "&lt;script&gt;alert(1)&lt;/script&gt;" in page
     assert "b&amp;c" in page

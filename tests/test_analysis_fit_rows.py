@@ -11,9 +11,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from models.analysis import ResidualAnalysis
-from models.dataset import load_runs
-from models.features import prepare
+from models.analysis.search import ResidualAnalysis
+from models.data.dataset import load_runs
+from models.data.features import prepare
 from tests.cli import ROOT
 
 

@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 from matplotlib.image import imread
 
-from gateway.offline.analysis_report import write_report
-from models.analysis_result import AnalysisResult, CandidateResult, StepResult
-from models.metrics import accuracy
+from gateway.offline.report import write_report
+from models.analysis.result import AnalysisResult, CandidateResult, StepResult
+from models.fit.metrics import accuracy
 
 MODEL = "mlr_T1_T3"
 EVIL_REASON = "gain <b>& too small"

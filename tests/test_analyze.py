@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models import augmented
-from models.analysis import Accepted, ResidualAnalysis, _shape_sse, _taken_in_fold, analyze
-from models.dataset import load_runs
-from models.effect_terms import GAP_S, first_order_lag, lag_coefficients
-from models.features import prepare
+from models.analysis import augmented
+from models.analysis.search import Accepted, ResidualAnalysis, _shape_sse, _taken_in_fold, analyze
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.data.lag_terms import GAP_S, first_order_lag, lag_coefficients
 from models.store import StoreError
 from simulator.params import load_params
 from simulator.programs import load_programs

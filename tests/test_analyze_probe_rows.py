@@ -15,11 +15,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.demo_effect import SENSORS, InProcessPlant
-from gateway.monitor import MonitorSink
-from models.effect_terms import GAP_S, first_order_lag
-from models.history_analysis import History, analyse_history
-from models.residual_monitor import MonitorParams
+from gateway.demo.monitor_phase import SENSORS, InProcessPlant
+from gateway.live.proposal_monitor import MonitorSink
+from models.analysis.history import History, analyse_history
+from models.data.lag_terms import GAP_S, first_order_lag
+from models.online.residual_monitor import MonitorParams
 from simulator.programs import production_program
 from tests.cli import gateway_in_process
 from tests.gateway_rig import fit_store

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from models.base import ModelInputs
-from models.dataset import MeasuredRuns, load_runs
-from models.features import prepare
-from models.fitting import fit_and_store
+from models.data.dataset import MeasuredRuns, load_runs
+from models.data.features import prepare
+from models.fit.workflow import fit_and_store
 from models.store import ModelStore, StoreError, build_document
 from tests.cli import gateway, gateway_in_process
 from tests.synthetic import write_runs_csv
@@ -135,7 +135,7 @@ def test_a_model_whose_figures_are_not_finite_is_never_saved(tmp_path: Path) -> 
 
 def test_the_store_refuses_a_non_finite_number_anywhere_in_a_document(tmp_path: Path) -> None:
     prepared = prepare(load_runs(write_runs_csv(tmp_path / "runs.csv", seed=5)))
-    from models.registry import make_model
+    from models.estimators.registry import make_model
 
     model = make_model("mlr").fit(prepared.inputs, prepared.error_um)
     store = ModelStore(tmp_path / "store")
@@ -208,9 +208,9 @@ def test_inputs_stay_what_the_loader_read(tmp_path: Path) -> None:
 
 def test_export_leaves_implausible_logged_values_empty(tmp_path: Path) -> None:
     """A logged 1e308 °C or an infinite probe value never reaches the exported file."""
-    from gateway.local_store import LocalStore
     from gateway.offline.export import export_runs
-    from gateway.timeseries import Point, points_from_record, probe_point
+    from gateway.outputs.local_store import LocalStore
+    from gateway.outputs.points import Point, points_from_record, probe_point
     from tests.test_timeseries import EPOCH_S, make_records, true_error_um
 
     records = make_records("m1", 40)

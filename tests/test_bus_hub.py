@@ -24,9 +24,9 @@ import yaml
 from drivers.bus_hub import BusHub, rtu_silence_s
 from drivers.clock import AcceleratedClock
 from drivers.transmitters import DeviceMap, ModbusConnection, TransmitterBus
-from gateway.app import Gateway
 from gateway.config import load_config
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
+from gateway.wiring import Gateway
 from simulator.link import ChannelReading, FixedLink, MachineSnapshot, RunMode
 from simulator.serve import SimulatedPlant, SimulatorConfig
 from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
@@ -181,8 +181,7 @@ def test_rtu_silence_is_three_and_a_half_characters_or_fixed_above_19200_baud() 
 
 
 def test_buses_on_one_port_get_one_hub_with_the_most_patient_settings(tmp_path: Path) -> None:
-    from gateway.app import build_buses
-    from gateway.bus_hubs import shared_hubs
+    from gateway.wiring import build_buses, shared_hubs
 
     clock = AcceleratedClock(1.0)
     plants = [cnc_plant(clock, 0), cnc_plant(clock, 1)]

@@ -77,8 +77,8 @@ def test_fit_validates_saves_and_reports(tmp_path: Path, method: str) -> None:
 
 
 def uncompensated_rms_um(path: Path) -> float:
-    from models.dataset import load_runs
-    from models.features import prepare
+    from models.data.dataset import load_runs
+    from models.data.features import prepare
 
     error = prepare(load_runs(path)).error_um
     return float(np.sqrt(np.mean(error**2)))

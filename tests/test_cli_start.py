@@ -31,7 +31,7 @@ def heavy_modules_after(code: str) -> list[str]:
     return json.loads(done.stdout.splitlines()[-1])
 
 
-@pytest.mark.parametrize("module", ["gateway", "gateway.cli", "gateway.__main__", "gateway.health"])
+@pytest.mark.parametrize("module", ["gateway", "gateway.cli.main", "gateway.__main__", "gateway.outputs.heartbeat"])
 def test_importing_loads_no_heavy_library(module: str) -> None:
     assert heavy_modules_after(f"import {module}") == []
 
@@ -49,7 +49,7 @@ def test_importing_loads_no_heavy_library(module: str) -> None:
 )
 def test_help_loads_no_heavy_library(args: list[str]) -> None:
     code = (
-        "import sys\nfrom gateway.cli import main\n"
+        "import sys\nfrom gateway.cli.main import main\n"
         f"sys.argv = ['gateway', *{args!r}]\n"
         "try:\n    main()\nexcept SystemExit as stop:\n    assert stop.code == 0, stop.code"
     )
@@ -65,8 +65,10 @@ def test_help_still_lists_the_choices() -> None:
 
 def test_catalogue_matches_the_modules_it_stands_in_for() -> None:
     """The option choices come from the catalogue; the registry must agree with it."""
-    from models import catalogue, conditioning, references
-    from models.registry import METHODS
+    from models import catalogue
+    from models.data import references
+    from models.estimators.registry import METHODS
+    from models.fit import conditioning
 
     assert tuple(sorted(METHODS)) == catalogue.METHOD_NAMES
     assert references.POLICIES is catalogue.POLICIES
@@ -77,11 +79,11 @@ def test_catalogue_matches_the_modules_it_stands_in_for() -> None:
 def test_project_input_errors_are_caught_by_the_cli() -> None:
     """The CLI catches built-in types; every project input error must be one of them."""
     from drivers.yaml_loader import KeyPathError, YamlError
-    from gateway.cli import INPUT_ERRORS
+    from gateway.cli.options import INPUT_ERRORS
     from gateway.config import ConfigError
     from gateway.offline.export import ExportError
-    from models.dataset import DataError
-    from models.regimes import SigmaFileError
+    from models.data.dataset import DataError
+    from models.fit.ranking import SigmaFileError
     from models.store import StoreError
 
     errors = (DataError, StoreError, ConfigError, ExportError, YamlError, KeyPathError)

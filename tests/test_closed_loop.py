@@ -25,9 +25,9 @@ import pytest
 
 from drivers.clock import ManualClock
 from gateway.config import MachineSection, RegimeSection
-from gateway.demo import machine_config, open_loop
-from models import augmented
-from models.effect_stream import StreamingAugmented
+from gateway.demo.compensate import machine_config, open_loop
+from models.analysis import augmented
+from models.online.streaming import StreamingAugmented
 from simulator.closed_loop import ClosedLoop
 from simulator.faults import SensorFault
 from simulator.params import load_params
@@ -89,7 +89,7 @@ async def closed_loop(
     """The plant and the gateway on a manual clock; ``regimes`` replaces the demo's rules,
     ``effects`` are hidden in the plant, ``update`` replaces machine config sections,
     ``opener`` starts the plant and makes the loop (default: the loop alone; a whole
-    :class:`gateway.app.Gateway` for SCADA and the monitor as ``run`` has them)."""
+    :class:`gateway.wiring.Gateway` for SCADA and the monitor as ``run`` has them)."""
     clock = ManualClock()
     with socat_pty_pair(tmp_path) as pty:
         devices = [
@@ -324,7 +324,7 @@ def test_variable_to_constant_switches_model_once(
             await run_for(closed, clock, program.duration_s)
             return closed
 
-    with caplog.at_level(logging.INFO, logger="gateway.runtime"):
+    with caplog.at_level(logging.INFO, logger="gateway.live.loop"):
         closed = asyncio.run(scenario())
     switches = closed.loop.selector.switches
     assert len(switches) == 1, switches

@@ -18,8 +18,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-from gateway.local_store import LocalStore
-from models.dataset import load_runs
+import numpy as np
+
+from gateway.outputs.local_store import LocalStore
+from models.data.dataset import load_runs
 from tests.ports import free_tcp_port
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -105,7 +107,12 @@ def test_the_commissioning_walkthrough_runs_as_written(tmp_path: Path) -> None:
     score = json.loads((tmp_path / "score.json").read_text(encoding="utf-8"))
     assert score["model_id"] == "lag-ridge-error_um-all" and score["refit"] is False
     assert score["pooled"]["n_samples"] == validation.n_samples
-    assert math.isfinite(score["pooled"]["rmse_um"]) and score["pooled"]["rmse_um"] < 5.0
+    assert set(score["per_run"]) == set(validation.run_ids)
+    # On the bench the logged clock is 600× compressed (see the page), so the figure checks
+    # the procedure, not a machine's accuracy: finite, and below the uncompensated error.
+    uncompensated_um = float(np.sqrt(np.mean(np.asarray(validation.error_um) ** 2)))
+    assert math.isfinite(score["pooled"]["rmse_um"])
+    assert score["pooled"]["rmse_um"] < uncompensated_um, (score["pooled"], uncompensated_um)
     assert "no refit" in done.stdout
     # 6. Live: the fitted model compensated the machine (cycles logged under its id).
     with LocalStore(tmp_path / "data" / "points.sqlite", set_aside_damaged=False) as store:

@@ -1,4 +1,4 @@
-"""Tests for gateway.compensation: clamp, slew, deadband, fallback ramp, CNC format."""
+"""Tests for gateway.live.writeback: clamp, slew, deadband, fallback ramp, CNC format."""
 
 from __future__ import annotations
 
@@ -7,12 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from gateway.compensation import (
-    CompensationLimits,
-    CompensationPolicy,
-    Decision,
-    ExternalChange,
-)
+from gateway.limits import CompensationLimits
+from gateway.live.writeback import CompensationPolicy, Decision, ExternalChange
 
 DEFAULT = CompensationLimits()  # ±50 µm, 20 µm/min, deadband 0.5 µm, mm with 4 decimals
 NO_HOLD = CompensationLimits(hold_on_loss_s=0.0)  # no prediction: ramp to zero at once

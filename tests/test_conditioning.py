@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.app import load_bank
 from gateway.config import MachineSection
+from gateway.wiring import load_bank
 from models.base import ModelInputs
-from models.conditioning import assess, bias_sensitivity, condition_number, variance_inflation
-from models.dataset import load_runs
-from models.features import prepare
-from models.fitting import fit_and_store
-from models.registry import make_model
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.estimators.registry import make_model
+from models.fit.conditioning import assess, bias_sensitivity, condition_number, variance_inflation
+from models.fit.workflow import fit_and_store
 from models.store import ModelStore
 from tests.cli import ROOT, gateway_in_process
 

@@ -31,8 +31,8 @@ from typing import Any
 import pytest
 import yaml
 
-from gateway.demo import write_training_data
-from gateway.influx_writer import InfluxReader
+from gateway.demo.compensate import write_training_data
+from gateway.outputs.influx import InfluxReader
 from tests.influx_server import InfluxServer
 from tests.ports import free_tcp_port, wait_for_port
 

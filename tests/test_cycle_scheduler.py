@@ -8,7 +8,7 @@ import asyncio
 import pytest
 
 from drivers.clock import ManualClock, WallClock
-from gateway.cycle_scheduler import (
+from gateway.live.scheduler import (
     DEFAULT_TICK_S,
     LOOPS_PER_SLOT,
     SLOTS,
@@ -143,7 +143,7 @@ def test_loops_started_apart_run_their_cycles_on_one_wake_up() -> None:
     late one waits for the grid time, and an overrun comes back onto the grid."""
     from types import SimpleNamespace
 
-    from gateway.runtime import MachineLoop
+    from gateway.live.loop import MachineLoop
 
     clock = ManualClock(origin_s=0.0)
     stop = asyncio.Event()

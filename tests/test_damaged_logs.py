@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from gateway.local_store import LocalStore
-from gateway.point_buffer import PointBuffer
-from gateway.timeseries import Point
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.local_store import LocalStore
+from gateway.outputs.points import Point
 
 GARBAGE = b"this was a points file until a flash card lost a block\x00\xff" * 100
 

@@ -27,8 +27,8 @@ import pytest
 from influxdb_client import InfluxDBClient
 
 from drivers.clock import AcceleratedClock
-from gateway.app import Gateway
 from gateway.config import GatewayConfig
+from gateway.wiring import Gateway
 from tests import gateway_rig as rig
 from tests.influx_server import InfluxServer
 
@@ -147,7 +147,7 @@ def run_gateway(tmp_path: Path, server: InfluxServer, bucket: str, token: str, s
             }
         )
         gateway = Gateway(config, clock=clock)
-        forwarder = gateway.outputs.forwarder
+        forwarder = gateway.outputs.sinks.forwarder
         assert forwarder is not None
         stop = asyncio.Event()
         started_s = clock.now()

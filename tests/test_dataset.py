@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.dataset import DataError, load_runs
+from models.data.dataset import DataError, load_runs
 
 HEADER = "run,time_s,speed_rpm,T1,T2,ambient_C,error_um,note\n"
 GOOD_ROWS = [

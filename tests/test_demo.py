@@ -6,7 +6,7 @@ import json
 import sqlite3
 from pathlib import Path
 
-from models.dataset import load_runs
+from models.data.dataset import load_runs
 from tests.cli import gateway
 
 

@@ -22,7 +22,7 @@ import pytest
 import yaml
 
 from gateway.config import load_config
-from gateway.health import check, heartbeat_path, write_heartbeat
+from gateway.outputs.heartbeat import check, heartbeat_path, write_heartbeat
 from tests.cli import gateway, gateway_in_process
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -340,7 +340,7 @@ def test_dockerfile_base_user_volumes_and_commands() -> None:
     assert healthcheck_command() == [
         "python",
         "-m",
-        "gateway.health",
+        "gateway.outputs.heartbeat",
         "--state-dir",
         "/data/state",
         "--max-age-s",
@@ -469,7 +469,7 @@ def test_healthcheck_fails_with_no_heartbeat_or_no_state_dir(tmp_path: Path) -> 
 
 def test_health_usage_error_is_unhealthy_not_docker_reserved_status_2(tmp_path: Path) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "gateway.health", "--state-dir", str(tmp_path)],
+        [sys.executable, "-m", "gateway.outputs.heartbeat", "--state-dir", str(tmp_path)],
         cwd=ROOT,
         capture_output=True,
         text=True,

@@ -2,7 +2,7 @@
 
 ``mkdocs build --strict`` fails on a broken link, a page missing from the nav or a nav
 entry without its page; the configuration and CLI references are generated from
-``gateway/config.py`` and ``gateway/cli.py`` by ``docs/hooks/reference.py``.
+``gateway/config.py`` and ``gateway/cli/main.py`` by ``docs/hooks/reference.py``.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import click
 import pytest
 from pydantic import BaseModel
 
-from gateway.cli import main as cli_main
+from gateway.cli.main import main as cli_main
 from gateway.config import GatewayConfig
 from gateway.config_schema import config_schema_text
 

@@ -413,8 +413,8 @@ def test_opcua_over_a_signed_and_encrypted_channel_with_its_own_certificate(
 
 
 def test_the_configured_security_reaches_the_cnc_client(tmp_path: Path) -> None:
-    from gateway.app import build_cnc
     from gateway.config import MachineSection
+    from gateway.wiring import build_cnc
 
     async def body() -> None:
         link = FixedLink(snapshot())

@@ -3,7 +3,7 @@
 Documents come from ``analyze --store`` on the real fl_thermal.csv recording and
 on simulator data with hidden effects; effect kinds the data do not provoke are
 added by hand to real documents (checksum recomputed), and every document is
-streamed row by row and compared with :func:`models.augmented.predict`.
+streamed row by row and compared with :func:`models.analysis.augmented.predict`.
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gateway.effect_state import EffectStates
-from gateway.model_bank import BankedAugmented, ModelBank
-from models import augmented
-from models.dataset import load_runs
-from models.effect_stream import StreamingAugmented
-from models.features import Prepared, prepare
-from models.references import first_rows
+from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.model_bank import BankedAugmented, ModelBank
+from models.analysis import augmented
+from models.data.dataset import load_runs
+from models.data.features import Prepared, prepare
+from models.data.references import first_rows
+from models.online.streaming import StreamingAugmented
 from models.store import StoreError
 from simulator.params import load_params
 from simulator.programs import load_programs

@@ -14,10 +14,10 @@ import pytest
 import uvloop
 
 from drivers.clock import WallClock
-from gateway import event_loop
-from gateway.app import Gateway
 from gateway.config import GatewayConfig
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
+from gateway.process import event_loop
+from gateway.wiring import Gateway
 from tests import gateway_rig as rig
 
 CYCLES = 6

@@ -1,4 +1,4 @@
-"""Logged time series → measured-run CSV (contract §1) that models.dataset.load_runs accepts."""
+"""Logged time series → measured-run CSV (contract §1) that models.data.dataset.load_runs accepts."""
 
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.local_store import LocalStore
+from gateway.live.record import CycleRecord
 from gateway.offline.export import ExportError, export_runs
-from gateway.runtime import CycleRecord
-from gateway.timeseries import points_from_record, probe_point
-from models.dataset import load_runs
+from gateway.outputs.local_store import LocalStore
+from gateway.outputs.points import points_from_record, probe_point
+from models.data.dataset import load_runs
 from tests.test_timeseries import EPOCH_S, make_records, true_error_um
 
 RUN_B_START_S = 5000.0  # a gap of ~4700 cycles after run A: a new run

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.fcm import (
+from models.estimators.parts.fcm import (
     fuzzy_c_means,
     sensor_points,
     update_centers,
@@ -181,7 +181,7 @@ def test_high_dimensional_points_cluster_as_in_full_space() -> None:
     # 6 sensors × 400 samples: FCM runs on their 6-D span coordinates; the
     # memberships must equal plain iterations in the full 400-D space from the
     # same random start (the change of basis is orthonormal).
-    from models.fcm import _iterate
+    from models.estimators.parts.fcm import _iterate
 
     rng = np.random.default_rng(7)
     base = rng.normal(size=(2, 400))

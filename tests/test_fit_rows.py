@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models import augmented
-from models.analysis import ResidualAnalysis, analyze
-from models.dataset import load_runs
-from models.effect_stream import StreamingAugmented
-from models.features import Prepared, prepare
-from models.registry import make_model
+from models.analysis import augmented
+from models.analysis.search import ResidualAnalysis, analyze
+from models.data.dataset import load_runs
+from models.data.features import Prepared, prepare
+from models.estimators.registry import make_model
+from models.online.streaming import StreamingAugmented
 from tests import independent_shaft
 from tests.test_effect_stream import streamed
 

@@ -19,8 +19,7 @@ from sklearn.pipeline import make_pipeline
 from sklearn.preprocessing import StandardScaler
 
 from models.base import ModelInputs
-from models.group_moments import GroupMoments
-from models.penalised import (
+from models.estimators.ridge_pls import (
     INNER_FOLDS,
     INNER_GROUPED_ABOVE_RUNS,
     RIDGE_ALPHAS,
@@ -30,6 +29,7 @@ from models.penalised import (
     ridge_path,
     ridge_penalty,
 )
+from models.group_moments import GroupMoments
 
 RTOL = 1e-9
 

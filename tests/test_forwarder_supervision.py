@@ -19,12 +19,12 @@ from pathlib import Path
 import pytest
 
 from drivers.clock import AcceleratedClock
-from gateway.app import Gateway
 from gateway.config import GatewayConfig
-from gateway.influx_writer import Forwarder, InfluxWriter
-from gateway.point_buffer import PointBuffer
-from gateway.runtime import CycleRecord
-from gateway.timeseries import Point, points_from_record
+from gateway.live.record import CycleRecord
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.influx import Forwarder, InfluxWriter
+from gateway.outputs.points import Point, points_from_record
+from gateway.wiring import Gateway
 from tests import gateway_rig as rig
 from tests.influx_server import InfluxServer
 from tests.test_influx import canonical, read_all
@@ -84,8 +84,8 @@ def test_forwarder_is_supervised_and_loses_nothing_through_an_influxd_kill(
                 }
             )
             gateway = Gateway(config, clock=clock, sinks=[expect])
-            forwarder = gateway.outputs.forwarder
-            buffer = gateway.outputs.buffer
+            forwarder = gateway.outputs.sinks.forwarder
+            buffer = gateway.outputs.sinks.buffer
             assert forwarder is not None and buffer is not None
             stop = asyncio.Event()
             running = asyncio.create_task(gateway.run(stop))
@@ -111,7 +111,7 @@ def test_forwarder_is_supervised_and_loses_nothing_through_an_influxd_kill(
                 restarted = time.monotonic()
                 await wait_until(lambda: len(buffer) < 50, 60, "the backlog sent")
                 figures["catch_up_ms"] = int(1000 * (time.monotonic() - restarted))
-                figures["health_restarts"] = int(gateway.health("m0")["forwarder_restarts"] or 0)
+                figures["health_restarts"] = int(gateway.outputs.heartbeat("m0")["forwarder_restarts"] or 0)
                 figures["running"] = int(forwarder.health()["running"])
             finally:
                 stop.set()

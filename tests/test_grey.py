@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.grey import absolute_degree, absolute_degrees
+from models.estimators.parts.grey_incidence import absolute_degree, absolute_degrees
 
 
 def test_hand_worked_example() -> None:

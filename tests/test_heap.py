@@ -1,10 +1,10 @@
-"""The collector's settings while the gateway runs (gateway.heap)."""
+"""The collector's settings while the gateway runs (gateway.process.gc_tuning)."""
 
 from __future__ import annotations
 
 import gc
 
-from gateway.heap import RUNNING_YOUNG_THRESHOLD, frozen_startup_heap
+from gateway.process.gc_tuning import RUNNING_YOUNG_THRESHOLD, frozen_startup_heap
 
 
 def test_the_running_block_freezes_startup_objects_and_raises_the_young_threshold() -> None:

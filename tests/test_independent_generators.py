@@ -5,7 +5,7 @@ samples, six sensors named T2…T12, runs at rest and at speed, logging gaps,
 clock-of-day time) and ``tests/independent_machine.py`` (4-node lumped network,
 30 s samples, every run opening at speed). Neither is the project's simulator.
 
-The figure of the error's reference (``models/references.py``): with nothing
+The figure of the error's reference (``models/data/references.py``): with nothing
 hidden, the analysis must leave no more error than an ordinary least-squares
 regression, with an intercept, of the error *as measured* on the same rises
 (leave-one-run-out, computed here with numpy), within 5 %. Rebasing the error on
@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models import augmented
-from models.analysis import analyze
-from models.dataset import load_runs
-from models.features import Prepared, prepare
+from models.analysis import augmented
+from models.analysis.search import analyze
+from models.data.dataset import load_runs
+from models.data.features import Prepared, prepare
 from tests import independent_machine, independent_shaft
 from tests.test_effect_stream import TOLERANCE_UM, streamed
 from tests.test_effect_stream import analyzed as analyzed_and_stored

@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.influx_writer import Forwarder, InfluxReader, InfluxWriter
-from gateway.local_store import LocalStore
+from gateway.live.record import CycleRecord
 from gateway.offline.export import export_runs
-from gateway.point_buffer import PointBuffer
-from gateway.runtime import CycleRecord
-from gateway.timeseries import (
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.influx import Forwarder, InfluxReader, InfluxWriter
+from gateway.outputs.local_store import LocalStore
+from gateway.outputs.points import (
     CYCLE_MEASUREMENT,
     PROBE_MEASUREMENT,
     TEMPERATURE_MEASUREMENT,
@@ -32,7 +32,7 @@ from gateway.timeseries import (
     points_from_record,
     probe_point,
 )
-from models.dataset import load_runs
+from models.data.dataset import load_runs
 from tests.influx_server import InfluxServer
 from tests.test_timeseries import EPOCH_S, make_records, true_error_um
 
@@ -337,8 +337,8 @@ def test_export_from_influxdb_matches_the_local_store(
 KILLED_WRITER = """
 import sys
 sys.path.insert(0, {root!r})
-from gateway.point_buffer import PointBuffer
-from gateway.timeseries import points_from_record
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.points import points_from_record
 from tests.test_timeseries import EPOCH_S, make_records
 
 buffer = PointBuffer({path!r}, max_points=1_000_000)

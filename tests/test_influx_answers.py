@@ -16,15 +16,15 @@ from pathlib import Path
 
 import pytest
 
-from gateway.influx_writer import Forwarder, retry_after_s
-from gateway.point_buffer import PointBuffer
-from gateway.timeseries import CYCLE_MEASUREMENT, Point, points_from_record
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.influx import Forwarder, retry_after_s
+from gateway.outputs.points import CYCLE_MEASUREMENT, Point, points_from_record
 from tests.influx_proxy import AnsweringProxy
 from tests.influx_server import InfluxServer
 from tests.test_influx import RecordingWriter, assert_stored_exactly
 from tests.test_timeseries import EPOCH_S, make_records
 
-WRITER_LOG = "gateway.influx_writer"
+WRITER_LOG = "gateway.outputs.influx"
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway.instance_lock import StateDirInUseError, hold_state_dir
+from gateway.process.instance_lock import StateDirInUseError, hold_state_dir
 
 
 def test_a_held_state_dir_is_refused_naming_the_holder_then_free_after(tmp_path: Path) -> None:

@@ -13,15 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.app import load_bank
-from gateway.effect_state import EffectStates
-from gateway.model_bank import BankedAugmented, ModelBank
+from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.model_bank import BankedAugmented, ModelBank
+from gateway.wiring import load_bank
 from models.base import ModelInputs
-from models.dataset import load_runs
-from models.effect_terms import first_order_lag
-from models.features import Prepared, prepare
-from models.fitting import fit_and_store
-from models.lag_ridge import (
+from models.data.dataset import load_runs
+from models.data.features import Prepared, prepare
+from models.data.lag_terms import first_order_lag
+from models.estimators.lag_ridge import (
     GroupGrams,
     LagRidgeModel,
     candidate_paths,
@@ -30,7 +29,7 @@ from models.lag_ridge import (
     term_groups,
     term_names,
 )
-from models.lag_structures import (
+from models.estimators.lag_structures import (
     DEFAULT_SPEED_POWERS,
     DEFAULT_TAUS_S,
     ELASTIC_NET,
@@ -41,6 +40,7 @@ from models.lag_structures import (
     Structure,
     structure_named,
 )
+from models.fit.workflow import fit_and_store
 from models.store import ModelStore, load_file
 from tests.cli import ROOT, gateway_in_process
 from tests.streaming import streamed
@@ -531,8 +531,8 @@ def test_replay_refuses_to_store_a_lag_ridge_base(tmp_path: Path) -> None:
 
 
 def test_analyze_takes_lag_ridge_as_its_base_and_its_result_streams(tmp_path: Path) -> None:
-    from models import augmented
-    from models.effect_stream import StreamingAugmented
+    from models.analysis import augmented
+    from models.online.streaming import StreamingAugmented
 
     out, store = tmp_path / "analysis.json", tmp_path / "store"
     done = gateway_in_process(

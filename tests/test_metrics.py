@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.metrics import accuracy, relative_error
+from models.fit.metrics import accuracy, relative_error
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 

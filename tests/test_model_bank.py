@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from gateway.model_bank import ModelBank
-from models.dataset import load_runs
-from models.features import prepare
-from models.fitting import fit_sensor_fallbacks
+from gateway.live.bank.model_bank import ModelBank
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.fit.workflow import fit_sensor_fallbacks
 from models.store import ModelStore, _checksum
 from tests.cli import gateway_in_process
 from tests.synthetic import write_runs_csv

@@ -23,8 +23,9 @@ from typing import Any
 import pytest
 import yaml
 
-from models import augmented, signing
-from models.proposals import ProposalStore
+from models import signing
+from models.analysis import augmented
+from models.online.proposals import ProposalStore
 from models.store import ModelStore, StoreError, _checksum, load_file
 from tests.cli import gateway, gateway_in_process
 from tests.ports import free_tcp_port, wait_for_port

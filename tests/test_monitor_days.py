@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from gateway.demo_effect import SENSORS, InProcessPlant, programme_days
-from gateway.monitor import MonitorSink
-from models.online_correction import CorrectionParams
-from models.residual_monitor import MonitorParams
+from gateway.demo.monitor_phase import SENSORS, InProcessPlant, programme_days
+from gateway.live.proposal_monitor import MonitorSink
+from models.online.correction import CorrectionParams
+from models.online.residual_monitor import MonitorParams
 from tests.gateway_rig import fit_store
 
 DAY_S = 86400.0

@@ -3,7 +3,7 @@
 The simulated machine hides an effect the fitted models lack: a ``drift`` (1.5 µm/h
 from the programme's start) or a ``thermal_lag`` (80 % of the shaft's growth through
 a 30 min lag); its probe cycle writes the measured error into macro #600 every
-300 s. The gateway runs as ``run`` builds it (:class:`gateway.app.Gateway`: the
+300 s. The gateway runs as ``run`` builds it (:class:`gateway.wiring.Gateway`: the
 loop with its RTU transmitters over a socat pty pair, the CNC over OPC UA, the
 monitor attached, the SCADA server), all on one manual clock. The monitor's
 background process analyses the logged history after an alarm and publishes a
@@ -17,7 +17,7 @@ of the four hours before the promotion.
 Why the bounds differ: a drift is a steady trend in the residual, believed by the
 analysis from a few hours of probes; a lag shows only around speed changes. The
 monitor's tests alarm within the first hours either way, but the residual analysis
-(:mod:`models.analysis`: every training fold's F-test, τ chosen inside each fold)
+(:mod:`models.analysis.search`: every training fold's F-test, τ chosen inside each fold)
 believes the lag only once the history holds some 80–110 probes of heating and
 cooling; the analyses of shorter histories find no effect, and the next alarm
 starts the next one. Measured in-process (tests/test_monitor_days.py's plant,
@@ -42,9 +42,9 @@ import pytest
 from asyncua import Client, ua
 
 from drivers.clock import ManualClock
-from gateway.app import Gateway
 from gateway.config import CompensationSection, GatewayConfig, MachineSection, MonitorSection
-from models.proposals import PROMOTED, ProposalStore
+from gateway.wiring import Gateway
+from models.online.proposals import PROMOTED, ProposalStore
 from simulator.closed_loop import ClosedLoop
 from simulator.programs import production_program
 from simulator.serve import SimulatedPlant

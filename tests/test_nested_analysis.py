@@ -17,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models import augmented
-from models.analysis import Folds, analyze
+from models.analysis import augmented
+from models.analysis.nested import AUTO_BASES, analyse_bases, nested_analysis
+from models.analysis.search import Folds, analyze
 from models.catalogue import METHOD_NAMES
-from models.dataset import load_runs
-from models.features import prepare
-from models.nested_analysis import AUTO_BASES, analyse_bases, nested_analysis
+from models.data.dataset import load_runs
+from models.data.features import prepare
 from tests import independent_shaft
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,8 +12,9 @@ import math
 import numpy as np
 import pytest
 
-from gateway.compensation import CompensationLimits, CompensationPolicy
-from models.online_correction import CorrectionParams, OnlineCorrection
+from gateway.limits import CompensationLimits
+from gateway.live.writeback import CompensationPolicy
+from models.online.correction import CorrectionParams, OnlineCorrection
 
 HOUR_S = 3600.0
 
@@ -303,7 +304,7 @@ def test_the_runtime_gives_a_bias_gain_filter_the_prediction():
     from, and the correction at this cycle's prediction."""
     from types import SimpleNamespace
 
-    from gateway.runtime import MachineLoop
+    from gateway.live.loop import MachineLoop
 
     params = CorrectionParams(
         kind="bias-gain", process_um2_per_h=0.0, gain_process_per_h=0.0, prior_um=0.01,
@@ -441,7 +442,7 @@ def test_config_refuses_a_correction_without_probe_or_with_a_bad_bound(tmp_path)
 
 
 def test_the_correction_is_logged_with_the_cycle():
-    from gateway.timeseries import points_from_record
+    from gateway.outputs.points import points_from_record
     from tests.records import written_record
 
     record = written_record(

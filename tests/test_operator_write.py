@@ -48,7 +48,7 @@ from tests.test_write_path import (
 HANDSHAKE = 501
 STEP_UM = 10.0  # one cycle at the slew limit (20 µm/min, 30 s)
 #: The largest step the policy takes from a value it holds: one cycle's slew plus the
-#: deadband (0.5 µm) and one CNC step (0.1 µm) it may have banked (gateway/compensation.py).
+#: deadband (0.5 µm) and one CNC step (0.1 µm) it may have banked (gateway/live/writeback.py).
 MOVE_ON_UM = STEP_UM + 0.5 + 0.1
 
 
@@ -303,7 +303,7 @@ def test_a_value_beyond_the_clamp_is_warned_and_left_within_it(
             await b.cycles(3)
             return [v for _, v in b.cnc.received[before + 1 :]], b.loop.external_changes
 
-    with caplog.at_level(logging.WARNING, logger="gateway.runtime"):
+    with caplog.at_level(logging.WARNING, logger="gateway.live.loop"):
         written, counted = run(body)
     warned = [r.getMessage() for r in caplog.records if "would never write" in r.getMessage()]
     assert len(warned) == 1, warned

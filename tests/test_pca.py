@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.pca import ConstantVariableError, correlation_pca, n_components_for
+from models.estimators.parts.pca import ConstantVariableError, correlation_pca, n_components_for
 
 # A correlation matrix with chosen eigenvalues: R = Q diag(λ) Qᵀ. Every entry of Q
 # is ±1/2, so diag(R)_i = Σ λ_k / 4 = 1 because Σλ = p = 4.

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from models.base import ModelInputs, NotFittedError
-from models.pca_quadratic import PcaQuadraticModel
+from models.estimators.pca_quadratic import PcaQuadraticModel
 
 SENSORS = ("s0", "s1", "s2", "s3", "s4")
 NOISE_UM = 0.5

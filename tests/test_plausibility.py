@@ -1,4 +1,4 @@
-"""gateway.plausibility: sensors judged against each other, the prediction against a rate bound.
+"""gateway.live.plausibility: sensors judged against each other, the prediction against a rate bound.
 
 Pure numbers on a manual timeline; the protocol-level scenarios are in
 tests/test_plausibility_loop.py.
@@ -12,12 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.model_bank import BankedModel, ModelBank
-from gateway.plausibility import Plausibility, PlausibilityLimits, relations_from_bank
-from gateway.quality import Quality, QualityLimits, QualityMonitor
+from gateway.limits import PlausibilityLimits, QualityLimits
+from gateway.live.bank.model_bank import BankedModel, ModelBank
+from gateway.live.plausibility import Plausibility, relations_from_bank
+from gateway.live.quality import Quality, QualityMonitor
 from models.base import ModelInputs
-from models.mlr import MlrModel
-from models.sensor_relations import SensorRelations, fit_relations
+from models.estimators.mlr import MlrModel
+from models.estimators.sensor_relations import SensorRelations, fit_relations
 from models.store import StoredModel, _checksum, build_document
 
 SENSORS = ("A", "B", "C", "D", "E")

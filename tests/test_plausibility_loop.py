@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 
 from drivers.clock import ManualClock
-from gateway.demo import machine_config, open_loop
-from gateway.runtime import CycleRecord
+from gateway.demo.compensate import machine_config, open_loop
+from gateway.live.record import CycleRecord
 from simulator.closed_loop import ClosedLoop
 from simulator.faults import SensorFault
 from simulator.programs import SpeedProgram, production_program

@@ -29,19 +29,19 @@ from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.clock import ManualClock
-from gateway.app import Gateway, build_buses, build_cnc, load_bank
 from gateway.config import (
     CompensationSection,
     GatewayConfig,
     ModelsSection,
     OnlineCorrectionSection,
 )
-from gateway.demo import machine_config
-from gateway.runtime import MachineLoop
-from gateway.warm_lags import WarmLags
-from models import augmented
-from models.effect_stream import StreamingAugmented
-from models.proposals import PROMOTED, REJECTED, Proposal, ProposalStore
+from gateway.demo.compensate import machine_config
+from gateway.live.bank.warm_lags import WarmLags
+from gateway.live.loop import MachineLoop
+from gateway.wiring import Gateway, build_buses, build_cnc, load_bank
+from models.analysis import augmented
+from models.online.proposals import PROMOTED, REJECTED, Proposal, ProposalStore
+from models.online.streaming import StreamingAugmented
 from simulator.params import load_params
 from simulator.programs import SpeedProgram, program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
@@ -197,7 +197,7 @@ def test_cli_promotion_swaps_in_warm_and_rollback_restores(
             warm_um.append(expected)
             cold_um.append(cold.step(r.time_s, rises, r.speed_rpm))
     # Identical when every input was read every cycle; a cycle that missed one (a serial
-    # timeout) held the whole stream but only that input's warm lag (gateway/warm_lags.py).
+    # timeout) held the whole stream but only that input's warm lag (gateway/live/bank/warm_lags.py).
     needed = StreamingAugmented(lag_document).sensors
     seen = [set(needed) & set(rises_of(r, outcome["reference_C"])) for r in records]
     complete = all(len(got) in (0, len(needed)) for got in seen)
@@ -237,7 +237,7 @@ def test_a_model_the_machine_cannot_run_is_refused_and_the_old_one_stays(
             # Promoted without the machine's check (--store): the loop itself refuses it.
             done = await asyncio.to_thread(gateway, "models", "promote", bad.id, "--store", store)
             assert done.returncode == 0, done.stderr
-            with caplog.at_level(logging.ERROR, logger="gateway.promotion"):
+            with caplog.at_level(logging.ERROR, logger="gateway.live.bank.promotion"):
                 await run_for(closed, clock, 300.0)
             assert {r.model_id for r in closed.trace.records[-10:]} == {model_id}
             assert "needs-t12" not in loop.bank

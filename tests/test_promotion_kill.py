@@ -19,8 +19,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from models import augmented
-from models.proposals import PROMOTED, ModelVersions, ProposalStore
+from models.analysis import augmented
+from models.online.proposals import PROMOTED, ModelVersions, ProposalStore
 from models.store import load_file
 from tests.ports import free_tcp_port, wait_for_port
 from tests.test_run_command import bench_config, read_macro_mm, wait_until

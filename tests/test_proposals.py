@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from models import augmented
-from models.proposals import (
+from models.analysis import augmented
+from models.online.proposals import (
     PROMOTED,
     PROPOSED,
     REJECTED,

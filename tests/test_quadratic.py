@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.quadratic import (
+from models.estimators.parts.quadratic import (
     fit_least_squares,
     n_quadratic_terms,
     quadratic_design,

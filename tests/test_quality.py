@@ -1,4 +1,4 @@
-"""Tests for gateway.quality: per-sensor quality flags with recovery hysteresis."""
+"""Tests for gateway.live.quality: per-sensor quality flags with recovery hysteresis."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from gateway.quality import Quality, QualityLimits, QualityMonitor, SensorCheck
+from gateway.limits import QualityLimits
+from gateway.live.quality import Quality, QualityMonitor, SensorCheck
 
 GOOD = Quality.GOOD
 BAD = Quality.BAD

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.crossval import cross_validate
-from models.dataset import load_runs
-from models.features import prepare
-from models.registry import METHODS, make_model
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.estimators.registry import METHODS, make_model
+from models.fit.crossval import cross_validate
 
 DATA = Path(__file__).resolve().parent.parent / "data" / "fl_thermal.csv"
 CHANNELS = ("ch1_um", "ch3_um", "ch5_um")

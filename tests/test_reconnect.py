@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 
 from drivers.clock import WallClock
-from gateway.app import Gateway
 from gateway.config import GatewayConfig
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
+from gateway.wiring import Gateway
 from tests import gateway_rig as rig
 
 CYCLE_S = 0.5

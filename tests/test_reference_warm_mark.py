@@ -1,4 +1,4 @@
-"""gateway.reference: the saved reference says whether it was taken with the spindle turning."""
+"""gateway.live.reference: the saved reference says whether it was taken with the spindle turning."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway.reference import TemperatureReference
+from gateway.live.reference import TemperatureReference
 
 
 def test_a_reference_taken_turning_is_marked_and_the_mark_survives_a_restart(

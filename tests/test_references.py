@@ -9,16 +9,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.dataset import load_runs
-from models.features import prepare
-from models.fitting import fit_and_store
-from models.references import (
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.data.references import (
     REFERENCE_WINDOW_S,
     ZERO_TOLERANCE_UM,
     plan_references,
     reference_rows,
     rises,
 )
+from models.fit.workflow import fit_and_store
 from models.store import ModelStore, _checksum, load_file
 
 DATA = Path(__file__).resolve().parent.parent / "data"

@@ -1,4 +1,4 @@
-"""Tests for models.regime_rules: speed-regime classification and model selection."""
+"""Tests for models.online.regime_rules: speed-regime classification and model selection."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from models.regime_rules import (
+from models.online.regime_rules import (
     RegimeRules,
     RegimeSelector,
     Selection,

@@ -1,4 +1,4 @@
-"""Tests for models.regimes against paper 002 (Miao et al. 2015), Tables 3–6."""
+"""Tests for models.fit.ranking against paper 002 (Miao et al. 2015), Tables 3–6."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.regimes import (
+from models.fit.ranking import (
     RegimeReport,
     SigmaFileError,
     SigmaRow,

@@ -8,13 +8,13 @@ from types import SimpleNamespace
 import numpy as np
 
 from gateway.config import MachineSection
-from gateway.model_bank import ModelBank
-from gateway.runtime import MachineLoop
-from models import augmented
-from models.dataset import load_runs
-from models.features import prepare
-from models.online_correction import CorrectionParams
-from models.online_replay import choose_filter, probe_rows, replay_run
+from gateway.live.bank.model_bank import ModelBank
+from gateway.live.loop import MachineLoop
+from models.analysis import augmented
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.online.correction import CorrectionParams
+from models.online.replay import choose_filter, probe_rows, replay_run
 from tests.cli import ROOT, gateway, gateway_in_process
 from tests.streaming import streamed
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from models.residual_monitor import (
+from models.online.residual_monitor import (
     MonitorParams,
     ProbeInnovation,
     ResidualMonitor,

@@ -23,11 +23,11 @@ from pymodbus.client import ModbusTcpClient
 
 from drivers.clock import ManualClock
 from gateway.config import GatewayConfig
-from gateway.local_store import LocalStore
-from gateway.outputs import Outputs
-from gateway.point_buffer import PointBuffer
-from gateway.runtime import CycleRecord
-from gateway.timeseries import Point
+from gateway.live.record import CycleRecord
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.local_store import LocalStore
+from gateway.outputs.points import Point
+from gateway.outputs.sinks import Outputs
 from tests import gateway_rig as rig
 from tests.ports import free_tcp_port, wait_for_port
 from tests.records import written_record
@@ -38,7 +38,7 @@ T0_NS = 1_780_000_000 * NS  # an arbitrary Unix time, s → ns
 
 
 def cycle_points(machine: str, second: int, sensors: int = 9) -> list[Point]:
-    """The ten points of one logged cycle (as gateway.timeseries makes them)."""
+    """The ten points of one logged cycle (as gateway.outputs.points makes them)."""
     ns = T0_NS + second * NS
     tags = {"machine": machine, "regime": "variable", "model_id": "mlr-error_um-variable"}
     fields = {"speed_rpm": 4000.0, "predicted_um": 3.25, "applied_um": 3.0, "write_status": "ok"}
@@ -313,7 +313,7 @@ def test_points_carry_the_wall_clock_of_the_cycle_start_through_an_ntp_step(
     clock = ManualClock(origin_s=5000.0)  # the loops' monotonic machine time
     outputs = Outputs(outputs_config(tmp_path), wall_clock=clock)
     wall_ns = [T0_NS]
-    monkeypatch.setattr("gateway.outputs.time.time_ns", lambda: wall_ns[0])
+    monkeypatch.setattr("gateway.outputs.sinks.time.time_ns", lambda: wall_ns[0])
     try:
         clock.advance(0.25)  # the cycle began 0.25 s before its record is logged
         outputs.sink(record_at(5000.0))

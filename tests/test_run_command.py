@@ -12,7 +12,7 @@ from pathlib import Path
 import yaml
 from pymodbus.client import ModbusTcpClient
 
-from models.dataset import load_runs
+from models.data.dataset import load_runs
 from tests import gateway_rig as rig
 from tests.cli import gateway as gateway_cli
 from tests.cli import gateway_in_process

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-from gateway.health import write_heartbeat
-from gateway.reference import TemperatureReference, read_saved_reference
+from gateway.live.reference import TemperatureReference, read_saved_reference
+from gateway.outputs.heartbeat import write_heartbeat
 from models.json_files import write_json_atomic
 
 
@@ -106,7 +106,7 @@ def test_a_full_disk_keeps_the_cold_reference_in_memory_and_saves_it_once_space_
         state = disk / "bench-1-reference.json"
         filler = fill(disk)
         reference = TemperatureReference("first-reading", {}, state)
-        with caplog.at_level(logging.INFO, logger="gateway.reference"):
+        with caplog.at_level(logging.INFO, logger="gateway.live.reference"):
             for cycle in range(5):  # the loop goes on: nothing is raised
                 reference.observe({"T1": 20.5 + cycle, "T2": 21.0})
             assert reference.values_C == {"T1": 20.5, "T2": 21.0} and not state.exists()

@@ -26,8 +26,8 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from gateway.runtime import CycleRecord
-from gateway.scada import (
+from gateway.live.record import CycleRecord
+from gateway.scada.server import (
     CRL_DIR,
     NAMESPACE,
     REJECTED_DIR,
@@ -446,7 +446,7 @@ def test_a_damaged_file_in_trusted_or_crl_does_not_lock_out_the_trusted_clients(
             code, reply = await node_client(server, read, node_pki, user=VIEWER)
             assert code == 0 and reply["results"][0]["value"] == "mlr-high-v3", reply
 
-    with caplog.at_level(logging.WARNING, logger="gateway.scada"):
+    with caplog.at_level(logging.WARNING, logger="gateway.scada.server"):
         run_with_server(scada_settings, check)
     skipped = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
     assert len(skipped) == 3, skipped  # each file named once, not at every session

@@ -21,7 +21,7 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from gateway.scada import TRUSTED_DIR, ScadaServer, ScadaSettings, ScadaUser
+from gateway.scada.server import TRUSTED_DIR, ScadaServer, ScadaSettings, ScadaUser
 from tests.ports import free_tcp_port
 
 CLIENTS = 50

@@ -24,8 +24,8 @@ from cryptography.hazmat.primitives import hashes
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.clock import ManualClock
-from gateway.login_throttle import LoginThrottle, ThrottlePolicy
-from gateway.scada import REJECTED_DIR, TRUSTED_DIR, ScadaServer, ScadaSettings
+from gateway.scada.login_throttle import LoginThrottle, ThrottlePolicy
+from gateway.scada.server import REJECTED_DIR, TRUSTED_DIR, ScadaServer, ScadaSettings
 from tests.test_scada import MACHINE, NODE_DIR, OPERATOR, VIEWER, node_client, settings
 
 POLICY = ThrottlePolicy(max_failures=5, window_s=60.0, lockout_s=30.0, max_lockout_s=120.0)
@@ -93,7 +93,7 @@ def lockout_lines(caplog: pytest.LogCaptureFixture) -> list[str]:
 def test_lockout_refuses_even_the_right_password_then_recovers_and_grows(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="gateway.scada")
+    caplog.set_level(logging.WARNING, logger="gateway.scada.server")
     clock = ManualClock(1000.0)
 
     async def scenario(server: ScadaServer) -> None:
@@ -143,7 +143,7 @@ def test_password_guessing_rate_is_cut_to_the_lockout(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """50 wrong passwords as fast as a client can, then the right one: it is refused."""
-    caplog.set_level(logging.WARNING, logger="gateway.scada")
+    caplog.set_level(logging.WARNING, logger="gateway.scada.server")
     figures: dict[str, float] = {}
 
     async def scenario(server: ScadaServer) -> None:

@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.effect_state import EffectStates
-from gateway.model_bank import BankedAugmented
-from models import augmented
-from models.dataset import AMBIENT_COLUMN, load_runs
-from models.features import Prepared, prepare
-from models.metrics import accuracy
-from models.references import first_rows
+from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.model_bank import BankedAugmented
+from models.analysis import augmented
+from models.data.dataset import AMBIENT_COLUMN, load_runs
+from models.data.features import Prepared, prepare
+from models.data.references import first_rows
+from models.fit.metrics import accuracy
 from models.store import load_file
 from tests.cli import gateway_in_process
 

@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from drivers.clock import ManualClock
-from gateway.demo import machine_config, open_loop
-from gateway.plausibility import WarmStarts
+from gateway.demo.compensate import machine_config, open_loop
+from gateway.live.plausibility import WarmStarts
 from simulator.closed_loop import ClosedLoop
 from simulator.faults import SensorFault
 from simulator.serve import SimulatedPlant, SimulatorConfig
@@ -140,7 +140,7 @@ def test_warm_starts_of_many_machines_are_one_line(caplog: pytest.LogCaptureFixt
             notes.note(f"vmc-{k}")
         await asyncio.sleep(0.4)
 
-    with caplog.at_level(logging.WARNING, logger="gateway.plausibility"):
+    with caplog.at_level(logging.WARNING, logger="gateway.live.plausibility"):
         asyncio.run(start_all())
     lines = [r.getMessage() for r in caplog.records if "spindle turned" in r.getMessage()]
     assert len(lines) == 1, lines

@@ -1,4 +1,4 @@
-"""models.sensor_relations: each sensor's rise from the others', checked on hand-worked data."""
+"""models.estimators.sensor_relations: each sensor's rise from the others', checked on hand-worked data."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from models.sensor_relations import SensorRelations, fit_relations
+from models.estimators.sensor_relations import SensorRelations, fit_relations
 
 # Two sensors, four rows: A = 0, 1, 2, 3 and B = 1, 3, 5, 8 (°C rises).
 # Means 1.5 and 4.25; with covariances divided by n = 4:

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from models.sensor_selection import select_sensors
+from models.estimators.parts.sensor_selection import select_sensors
 
 NAMES = [f"T{i}" for i in range(1, 11)]
 T_MIN = np.arange(0.0, 300.0, 5.0)  # 60 samples, every 5 min

@@ -24,9 +24,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from gateway.point_buffer import PointBuffer
-from models import augmented
-from models.effect_stream import TIME_KEY
+from gateway.outputs.disk_buffer import PointBuffer
+from models.analysis import augmented
+from models.online.streaming import TIME_KEY
 from simulator.params import load_params
 from simulator.programs import program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording

@@ -1,4 +1,4 @@
-"""Tests of models.significance: MANOVA (MATLAB manova1 d / p) and per-sensor ANOVA."""
+"""Tests of models.fit.significance: MANOVA (MATLAB manova1 d / p) and per-sensor ANOVA."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from statsmodels.formula.api import ols
 from statsmodels.multivariate.manova import MANOVA
 from statsmodels.stats.anova import anova_lm
 
-from models.significance import (
+from models.fit.significance import (
     AnovaResult,
     ManovaResult,
     anova_oneway,

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.dataset import load_runs
-from models.references import plan_references
+from models.data.dataset import load_runs
+from models.data.references import plan_references
 from simulator.faults import SensorFault
 from simulator.link import ChannelStatus
 from simulator.machine import SimulatedMachine

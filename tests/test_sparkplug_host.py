@@ -9,15 +9,17 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from drivers.clock import WallClock
-from gateway.app import Gateway
+from drivers.clock import AcceleratedClock, Clock, WallClock
 from gateway.config import GatewayConfig
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
+from gateway.sparkplug.metrics import PROMOTE
+from gateway.wiring import Gateway
 from tests import gateway_rig as rig
 from tests.mqtt_broker import PASSWORD, USER, Broker, mosquitto
 from tests.sparkplug_host import TahuHost
@@ -33,14 +35,19 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def gateway_config(
-    tmp_path: Path, broker: Broker, plants: list[Any], store: Path, commands: dict[str, bool]
+    tmp_path: Path,
+    broker: Broker,
+    plants: list[Any],
+    store: Path,
+    commands: dict[str, bool],
+    cycle_s: float = CYCLE_S,
 ) -> GatewayConfig:
     return GatewayConfig.model_validate(
         {
             "state_dir": str(tmp_path / "state"),
             "logging": {"local_store": str(tmp_path / "points.sqlite")},
             "machines": [
-                rig.machine_entry(m, p, store, cycle_s=CYCLE_S)
+                rig.machine_entry(m, p, store, cycle_s=cycle_s)
                 for m, p in zip(MACHINES, plants, strict=True)
             ],
             "sparkplug": {
@@ -78,22 +85,67 @@ def assert_every_cycle_once_in_order(host: TahuHost, records: list[CycleRecord])
         assert seen[0] == 1 and len(seen) >= ran - 1, (machine, len(seen), ran)
 
 
-def assert_on_time(records: list[CycleRecord]) -> None:
+def assert_on_time(records: list[CycleRecord], restarted: tuple[str, ...] = ()) -> None:
     """Every cycle ran: as many as the run's length allows (5 % for a loaded 2-core host),
-    and no stall longer than a few cycles."""
+    and no stall longer than a few cycles; a ``restarted`` machine's loop was down for
+    its supervisor's back-off (0.5 s + 20 %) once."""
     for machine in MACHINES:
         times = [r.time_s for r in records if r.machine == machine]
-        steps = [b - a for a, b in itertools.pairwise(times)]
-        assert max(steps) < 4 * CYCLE_S, (machine, max(steps))
-        assert len(times) >= 0.95 * ((times[-1] - times[0]) / CYCLE_S + 1), (machine, len(times))
+        steps = sorted(b - a for a, b in itertools.pairwise(times))
+        if machine in restarted:
+            assert steps[-1] < 4 * CYCLE_S + 0.6, (machine, steps[-1])
+            steps.pop()
+        assert steps[-1] < 4 * CYCLE_S, (machine, steps[-1])
+        down_s = 0.6 if machine in restarted else 0.0
+        assert len(times) >= 0.95 * ((times[-1] - times[0] - down_s) / CYCLE_S + 1), (
+            machine,
+            len(times),
+        )
+
+
+async def fail_one_cycle(run: Run, machine: str) -> None:
+    """``machine``'s loop raises once: DDEATH, its supervisor's restart, DBIRTH, data."""
+    loop = run.gateway._loop_of(machine)
+    real_cycle, left = loop.run_cycle, [1]
+
+    async def failing_cycle() -> CycleRecord:
+        if left[0]:
+            left[0] -= 1
+            raise RuntimeError("a fault injected into the cycle")
+        return await real_cycle()
+
+    births = len(run.host.messages("DBIRTH", machine))
+    loop.run_cycle = failing_cycle  # type: ignore[method-assign]
+    await run.host.wait(lambda: len(run.host.messages("DDEATH", machine)) == 1, 10, "DDEATH")
+    dead_at = len(run.host.messages())
+    await run.host.wait(
+        lambda: len(run.host.messages("DBIRTH", machine)) == births + 1, 10, "DBIRTH again"
+    )
+    cycles = len(cycles_of(run.host, machine))
+    await run.host.wait(lambda: len(cycles_of(run.host, machine)) > cycles + 3, 10, "data again")
+    after = [e["kind"] for e in run.host.messages()[dead_at:] if e["device"] == machine]
+    assert after[0] == "DBIRTH", after[:3]  # nothing of the machine between death and birth
+    assert run.gateway.supervisors[machine].restarts == 1
 
 
 class Run:
-    """Broker, host, plants and a running gateway for one scenario."""
+    """Broker, host, plants and a running gateway for one scenario: on wall time, or with
+    ``speedup`` on the simulator's accelerated clock (machine time ``speedup`` × faster,
+    from now, so the points carry Unix-like machine-time stamps)."""
 
-    def __init__(self, tmp_path: Path, store: Path, commands: dict[str, bool]) -> None:
+    def __init__(
+        self,
+        tmp_path: Path,
+        store: Path,
+        commands: dict[str, bool],
+        cycle_s: float = CYCLE_S,
+        speedup: float | None = None,
+    ) -> None:
         self.tmp_path, self.store, self.commands = tmp_path, store, commands
+        self.cycle_s, self.speedup = cycle_s, speedup
         self.records: list[CycleRecord] = []
+        self.late_s: dict[str, list[float]] = {m: [] for m in MACHINES}  # machine time
+        self.due_s: dict[str, list[float]] = {m: [] for m in MACHINES}
 
     async def __aenter__(self) -> Run:
         self.broker_cm = mosquitto(self.tmp_path / "broker")
@@ -101,12 +153,18 @@ class Run:
         self.host = TahuHost(self.broker, GROUP, HOST)
         await self.host.wait(lambda: any(e["event"] == "online" for e in self.host.snapshot()),
                              20, "the host's STATE")  # fmt: skip
-        clock = WallClock()
+        clock: Clock = (
+            WallClock()
+            if self.speedup is None
+            else AcceleratedClock(self.speedup, origin_s=time.time())
+        )
         self.plants = [rig.plant(clock, seed=i, cnc=("modbus",)) for i in range(len(MACHINES))]
         for plant in self.plants:
             await plant.start()
-        config = gateway_config(self.tmp_path, self.broker, self.plants, self.store, self.commands)
-        self.gateway = Gateway(config, clock=clock, sinks=[self.records.append])
+        config = gateway_config(
+            self.tmp_path, self.broker, self.plants, self.store, self.commands, self.cycle_s
+        )
+        self.gateway = Gateway(config, clock=clock, sinks=[self.records.append, self._lateness])
         self.stop = asyncio.Event()
         self.task = asyncio.create_task(self.gateway.run(self.stop))
         return self
@@ -122,6 +180,12 @@ class Run:
             await plant.stop()
         self.host.close()
         self.broker_cm.__exit__(None, None, None)
+
+    def _lateness(self, record: CycleRecord) -> None:
+        """The scheduler's due time of the cycle and how late it started (machine s)."""
+        due_s = self.gateway._loop_of(record.machine).due_s
+        self.due_s[record.machine].append(due_s)
+        self.late_s[record.machine].append(record.time_s - due_s)
 
     def alias(self, device: str, name: str) -> int:
         birth = self.host.messages("DBIRTH", device)[0]
@@ -150,14 +214,38 @@ def sent_count(run: Run) -> int:
     return len([e for e in run.host.snapshot() if e["event"] == "sent"])
 
 
+async def promote_unknown_proposal(
+    run: Run, allowed: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A promote DCMD reaches the gateway's promotion (the SCADA method's rules) only when
+    ``promote_proposal`` is on; there it is refused for an unknown proposal id."""
+    node = run.gateway.sparkplug
+    assert node is not None
+    refused, n = node.commands.refused, sent_count(run)
+    metric = {"name": PROMOTE, "type": "String", "value": "no-such-proposal"}
+    dcmd(run, "m1", metric, 5000, 5)
+    await settle(run, n)
+    assert node.commands.refused == refused + 1
+    said = [r.getMessage() for r in caplog.records if "Promote Proposal" in r.getMessage()]
+    if allowed:
+        assert any("refused by the gateway" in m and "no-such-proposal" in m for m in said), said
+    else:
+        assert any("not allowed by sparkplug.commands" in m for m in said), said
+
+
 @pytest.mark.parametrize("allowed", [True, False])
 def test_tahu_host_decodes_births_data_rebirth_and_commands(
-    tmp_path: Path, store: Path, allowed: bool, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path,
+    store: Path,
+    allowed: bool,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     monkeypatch.setenv("SPB_TEST_PASSWORD", PASSWORD)
 
     async def scenario() -> None:
-        async with Run(tmp_path, store, {"set_compensation": allowed}) as run:
+        commands = {"set_compensation": allowed, "promote_proposal": allowed}
+        async with Run(tmp_path, store, commands) as run:
             host = run.host
             await host.wait(
                 lambda: all(len(cycles_of(host, m)) >= 5 for m in MACHINES), 60, "5 DDATA each"
@@ -211,6 +299,9 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
             assert node is not None
             assert node.commands.refused == refused + 4
             assert run.enabled("m2")  # nothing refused was acted on
+            await promote_unknown_proposal(run, allowed, caplog)
+            if not allowed:  # one parametrization is enough for a loop's restart
+                await fail_one_cycle(run, "m3")
             await run.stop_gateway()
             await host.wait(lambda: len(host.messages("NDEATH")) == 1, 10, "NDEATH at the stop")
             assert {e["device"] for e in host.messages("DDEATH")} == set(MACHINES)
@@ -219,6 +310,7 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
         assert not [e for e in events if e["event"] == "undecodable"]
         assert not [e for e in events if e["event"] == "message" and e["gap"]]
         assert_every_cycle_once_in_order(host, run.records)
-        assert_on_time(run.records)
+        assert_on_time(run.records, restarted=() if allowed else ("m3",))
+        assert len(host.messages("DDEATH", "m3")) == (1 if allowed else 2)  # + the stop's
 
     asyncio.run(scenario())

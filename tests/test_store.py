@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.dataset import load_runs
-from models.features import prepare
-from models.registry import METHODS, make_model
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.estimators.registry import METHODS, make_model
 from models.store import ModelStore, StoreError, _checksum, build_document, load_file
 from tests.synthetic import write_runs_csv
 

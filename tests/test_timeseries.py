@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
-from gateway.local_store import LocalStore
-from gateway.point_buffer import PointBuffer
-from gateway.runtime import CycleRecord
-from gateway.timeseries import (
+from gateway.live.record import CycleRecord
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.local_store import LocalStore
+from gateway.outputs.points import (
     CYCLE_MEASUREMENT,
     PROBE_MEASUREMENT,
     TEMPERATURE_MEASUREMENT,
@@ -209,7 +209,7 @@ def test_buffer_bound_drops_oldest_and_says_so(
     points = [sample_point(i) for i in range(130)]
     buffer.append(points[:80])
     assert buffer.dropped == 0
-    with caplog.at_level(logging.WARNING, logger="gateway.point_buffer"):
+    with caplog.at_level(logging.WARNING, logger="gateway.outputs.disk_buffer"):
         buffer.append(points[80:])
     assert len(buffer) == 100
     assert buffer.dropped == 30

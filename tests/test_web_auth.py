@@ -13,8 +13,8 @@ import pytest
 from pydantic import ValidationError
 
 from gateway.config import WebSection
-from gateway.login_throttle import ThrottlePolicy
-from gateway.scada import ScadaUser
+from gateway.scada.login_throttle import ThrottlePolicy
+from gateway.scada.server import ScadaUser
 from gateway.web.server import WebConsole, WebSettings
 from tests.ports import free_tcp_port
 

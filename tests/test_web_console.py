@@ -23,7 +23,7 @@ import pytest
 import yaml
 from selenium.webdriver.common.by import By
 
-from models.proposals import ProposalStore
+from models.online.proposals import ProposalStore
 from tests import gateway_rig as rig
 from tests.browser import SensorBreakingProxy, chromium, screenshot
 from tests.ports import free_tcp_port, wait_for_port

@@ -26,12 +26,13 @@ from pymodbus.client import AsyncModbusTcpClient
 
 from drivers.clock import ManualClock
 from drivers.register_codec import float32_to_registers
-from gateway.app import build_buses, build_cnc, load_bank
 from gateway.config import ConfigError, MachineSection, load_config
-from gateway.runtime import CycleRecord, MachineLoop
-from models.dataset import load_runs
-from models.features import prepare
-from models.registry import make_model
+from gateway.live.loop import MachineLoop
+from gateway.live.record import CycleRecord
+from gateway.wiring import build_buses, build_cnc, load_bank
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.estimators.registry import make_model
 from models.store import ModelStore, build_document
 from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
 from simulator.servers.modbus_cnc import CncModbusServer, macro_register
@@ -371,7 +372,7 @@ def test_macro_cleared_at_the_cnc_is_detected_counted_once_and_ramped_from(
             worst = assert_slew_as_received(b.cnc.received[before + 1 :], (cleared_s, 0.0))
             return b, worst, before
 
-    with caplog.at_level(logging.WARNING, logger="gateway.runtime"):
+    with caplog.at_level(logging.WARNING, logger="gateway.live.loop"):
         b, worst, before = run(body)
     logged = [r for r in caplog.records if "external change" in r.getMessage()]
     assert len(logged) == 1, [r.getMessage() for r in logged]
@@ -606,7 +607,7 @@ def test_a_spindle_turning_in_reverse_counts_by_its_magnitude(
             )
             return [*forward, *await b.cycles(3)]
 
-    with caplog.at_level(logging.INFO, logger="gateway.runtime"):
+    with caplog.at_level(logging.INFO, logger="gateway.live.loop"):
         records = run(body)
     assert [r.speed_rpm for r in records] == [4000.0] * 5
     noted = [r.getMessage() for r in caplog.records if "negative spindle speed" in r.getMessage()]

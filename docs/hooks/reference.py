@@ -1,7 +1,7 @@
 """MkDocs hook: reference pages generated from the code at build time.
 
 The configuration reference comes from the pydantic schema in ``gateway/config.py``
-and the CLI reference from the click command tree in ``gateway/cli.py``, so neither
+and the CLI reference from the click command tree in ``gateway/cli/main.py``, so neither
 can drift from the code. The edge-box walkthrough is ``deploy/README.md`` itself
 (kept beside the compose files it describes), published as a manual page.
 """
@@ -250,12 +250,12 @@ def walk_commands(cmd: click.Command, ctx: click.Context, depth: int) -> list[st
 
 
 def cli_page() -> str:
-    from gateway.cli import main
+    from gateway.cli.main import main
 
     head = [
         "# CLI reference",
         "",
-        "Generated from the click command tree in `gateway/cli.py` when the manual is",
+        "Generated from the click command tree in `gateway/cli/main.py` when the manual is",
         "built. Run every command from the repository root as",
         "`.venv/bin/python -m gateway …`; `--help` on any command prints the same text.",
         "",

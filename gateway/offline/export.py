@@ -2,8 +2,8 @@
 
 Reads the ``spindle_cycle``, ``spindle_temperature`` and ``spindle_probe`` points
 of one machine from a :class:`PointSource` — the embedded
-:class:`~gateway.local_store.LocalStore` or InfluxDB through
-:class:`~gateway.influx_writer.InfluxReader` (Flux) — and writes::
+:class:`~gateway.outputs.local_store.LocalStore` or InfluxDB through
+:class:`~gateway.outputs.influx.InfluxReader` (Flux) — and writes::
 
     run,time_s,speed_rpm,T1,…,Tn,[ambient_C],error_um
 
@@ -23,11 +23,11 @@ of one machine from a :class:`PointSource` — the embedded
 * a row with a missing temperature or speed keeps an empty cell; ``load_runs``
   skips such rows and says how many, and the result counts them too;
 * a logged value that is not plausible for its unit (NaN, infinite, or outside
-  the ranges of :mod:`models.plausibility`, e.g. 1e308 °C) is left empty too,
+  the ranges of :mod:`models.data.unit_ranges`, e.g. 1e308 °C) is left empty too,
   and counted (:attr:`ExportResult.implausible_values`), so the file always
   passes ``load_runs`` and no absurd number reaches a fit.
 
-The file passes :func:`models.dataset.load_runs`.
+The file passes :func:`models.data.dataset.load_runs`.
 """
 
 from __future__ import annotations
@@ -42,9 +42,9 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from gateway.influx_writer import InfluxReader
-from gateway.local_store import LocalStore
-from gateway.timeseries import (
+from gateway.outputs.influx import InfluxReader
+from gateway.outputs.local_store import LocalStore
+from gateway.outputs.points import (
     CYCLE_MEASUREMENT,
     NS_PER_S,
     PROBE_MEASUREMENT,
@@ -52,9 +52,9 @@ from gateway.timeseries import (
     Point,
     to_time_ns,
 )
-from models.dataset import ambient_sensor_of
+from models.data.dataset import ambient_sensor_of
+from models.data.unit_ranges import DISPLACEMENT_UM, SPEED_RPM, TEMPERATURE_C
 from models.json_files import atomic_text
-from models.plausibility import DISPLACEMENT_UM, SPEED_RPM, TEMPERATURE_C
 
 SENSOR_PATTERN = re.compile(r"^T(\d+)$")
 
@@ -94,7 +94,7 @@ def export_runs(
     """Write the measured-run CSV of ``machine`` for machine time ``start_s ≤ t < stop_s``.
 
     ``start_s``/``stop_s`` are machine seconds (``None``: unbounded); ``epoch_s``
-    must be the one the points were made with (:func:`gateway.timeseries.to_time_ns`).
+    must be the one the points were made with (:func:`gateway.outputs.points.to_time_ns`).
     """
     out_csv = Path(out_csv)
     start_ns = None if start_s is None else to_time_ns(start_s, epoch_s)

@@ -8,11 +8,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from models import augmented
-from models.dataset import load_runs
-from models.features import Prepared, prepare
-from models.metrics import accuracy
-from models.online_replay import (
+from models.analysis import augmented
+from models.data.dataset import load_runs
+from models.data.features import Prepared, prepare
+from models.fit.metrics import accuracy
+from models.online.replay import (
     DEFAULT_KINDS,
     filter_choice,
     fit_for_store,
@@ -56,7 +56,7 @@ def run_replay(
     """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6.
 
     ``filter_kinds``: the kinds the nested choice may pick; none given means
-    ``DEFAULT_KINDS`` (models/online_replay.py)."""
+    ``DEFAULT_KINDS`` (models/online/replay.py)."""
     filter_kinds = tuple(filter_kinds) or DEFAULT_KINDS
     if store_dir is not None and method == "lag-ridge":  # refused before the long replay
         raise ValueError(

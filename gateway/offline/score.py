@@ -5,14 +5,14 @@ the March model to the April file without refitting anything and reports its
 error per run and pooled. It predicts the way the running gateway does:
 
 - the model is loaded and checked by the store's own loaders (format, checksum,
-  signature, probe rows) and banked as :mod:`gateway.model_bank` banks it: a plain
+  signature, probe rows) and banked as :mod:`gateway.live.bank.model_bank` banks it: a plain
   model predicts each row from that row's rises; a model whose terms remember the
   history (``lag-ridge``, an ``analyze --store`` result) is stepped sample by sample
   through the same stream the live loop steps, its lag states carried warm across
   the runs of one continuous recording and started afresh at each new recording
   (a cold start, where a gateway takes its temperature reference);
 - rises and the error are taken by the reference rules the model was fitted with
-  (its stored ``reference`` policy, :mod:`models.references`), so a figure here is
+  (its stored ``reference`` policy, :mod:`models.data.references`), so a figure here is
   comparable with the held-out figure ``fit`` or ``analyze`` stored;
 - inputs that leave what the model was fitted on (a rise beyond any training
   rise, a speed the training never reached: :mod:`models.training_range`) are named,
@@ -29,13 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from gateway.model_bank import Banked, BankedAugmented, BankedModel
-from models import augmented
+from gateway.live.bank.model_bank import Banked, BankedAugmented, BankedModel
+from models.analysis import augmented
 from models.base import ModelInputs
-from models.dataset import AMBIENT_COLUMN, load_runs
-from models.features import Prepared, prepare
-from models.metrics import accuracy
-from models.references import first_rows
+from models.data.dataset import AMBIENT_COLUMN, load_runs
+from models.data.features import Prepared, prepare
+from models.data.references import first_rows
+from models.fit.metrics import accuracy
 from models.store import FORMAT as PLAIN_FORMAT
 from models.store import ModelStore, StoreError, load_file
 from models.training_range import Excursion, outside

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from models.crossval import Validation
-from models.regimes import SigmaRow, sigma_matrix
+from models.fit.crossval import Validation
+from models.fit.ranking import SigmaRow, sigma_matrix
 
 
 def render(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:

@@ -7,7 +7,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from gateway.config import GatewayConfig
-from gateway.point_buffer import PointBuffer
+from gateway.outputs.disk_buffer import PointBuffer
 from gateway.sparkplug.commands import Actions, Allowed, CommandHandler
 from gateway.sparkplug.metrics import health_counters
 from gateway.sparkplug.mqtt import MqttSettings

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
 from gateway.sparkplug.payload import BOOLEAN, DOUBLE, STRING, UINT64, MetricSpec, Value
 
 BD_SEQ = "bdSeq"

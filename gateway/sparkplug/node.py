@@ -18,6 +18,7 @@ every DBIRTH on the same session with the same bdSeq.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import random
@@ -27,20 +28,21 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gateway.point_buffer import PointBuffer
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.points import Point
 from gateway.sparkplug import topics
 from gateway.sparkplug.commands import CommandHandler
 from gateway.sparkplug.metrics import BD_SEQ, NODE_METRICS, REBIRTH, changed, device_specs, snapshot
 from gateway.sparkplug.mqtt import MqttLink, MqttSettings
 from gateway.sparkplug.payload import Value, encode
-from gateway.timeseries import Point
 
 log = logging.getLogger(__name__)
 
 MEASUREMENT = "sparkplug"
 BATCH = 200  # points published before waiting for their acknowledgements
 ACK_TIMEOUT_S = 10.0
+FINAL_DRAIN_S = 1.5  # at a stop; the gateway gives the node 3 s in all
 
 
 @dataclass(frozen=True)
@@ -176,13 +178,36 @@ class EdgeNode:
                 self._on_message(*message)
 
     async def _say_goodbye(self, link: MqttLink) -> None:
-        """DDEATH for every machine born, then NDEATH, as the loops stop."""
+        """The points still buffered (within ``FINAL_DRAIN_S``), then DDEATH for every
+        machine born and alive, then NDEATH, as the loops stop: the last cycles of a
+        run reach the host now, not at the next start."""
         if self.born:
-            for machine in self.specs:
-                data = encode((), {}, seq=self._next_seq(), timestamp_ms=_now_ms())
-                link.publish(self._topic("DDEATH", machine), data)
+            with contextlib.suppress(ConnectionError, TimeoutError):
+                await asyncio.wait_for(self._drain_all(link), FINAL_DRAIN_S)
+            for machine in list(self.sent):
+                self._device_death(link, machine)
         link.publish(self._topic("NDEATH"), self.death_payload())
         await link.flush(1.0)
+
+    async def _drain_all(self, link: MqttLink) -> None:
+        while await self._drain(link):
+            pass
+
+    def _device_death(self, link: MqttLink, machine: str) -> None:
+        data = encode((), {}, seq=self._next_seq(), timestamp_ms=_now_ms())
+        link.publish(self._topic("DDEATH", machine), data)
+        self.sent.pop(machine, None)  # its next point gives a DBIRTH first
+
+    def machine_stopped(self, machine: str) -> None:
+        """A machine's loop stopped (it raised; its supervisor restarts it): DDEATH now,
+        when it is born, and no DBIRTH for it until its loop runs a cycle again."""
+        self.latest.pop(machine, None)
+        link = self.link
+        if link is None or not self.born or machine not in self.sent:
+            self.sent.pop(machine, None)
+            return
+        self._device_death(link, machine)
+        log.warning("Sparkplug: DDEATH of %s (its loop stopped)", machine)
 
     # -- births --------------------------------------------------------------------------
     def births(self) -> None:

@@ -1,8 +1,8 @@
 """Who is using the console: login against the SCADA accounts, sessions, CSRF, origin.
 
-* Accounts and roles are the SCADA server's (:class:`gateway.scada.ScadaUser`):
+* Accounts and roles are the SCADA server's (:class:`gateway.scada.server.ScadaUser`):
   viewers read, operators may also promote, reject and roll back models.
-* Password guesses are throttled by :class:`gateway.login_throttle.LoginThrottle`,
+* Password guesses are throttled by :class:`gateway.scada.login_throttle.LoginThrottle`,
   keyed on the remote address and the user name, exactly as the SCADA server does.
 * A login gives a random session id in a cookie (HttpOnly, SameSite=Strict, Secure
   under TLS); sessions live in memory and end at ``session_s`` or a restart.
@@ -24,8 +24,8 @@ from urllib.parse import urlsplit
 
 from aiohttp import web
 
-from gateway.login_throttle import Key, LoginThrottle, ThrottlePolicy
-from gateway.scada import ScadaUser
+from gateway.scada.login_throttle import Key, LoginThrottle, ThrottlePolicy
+from gateway.scada.server import ScadaUser
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """What the console needs from the running gateway, in one place.
 
 The console reads the machines' live state and changes models only through the
-gateway's own methods (:meth:`gateway.app.Gateway.promote` and ``rollback``, the
+gateway's own methods (:meth:`gateway.wiring.Gateway.promote` and ``rollback``, the
 SCADA methods' path, and the proposal store's ``reject``, the one ``models
 reject`` calls), so a promotion from the browser is checked exactly like one
 from SCADA or the command line.

@@ -18,7 +18,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from gateway.runtime import CycleRecord
+from gateway.live.record import CycleRecord
 
 #: ``machine id → extra facts`` the gateway adds to a row (health counters, loop state).
 Facts = Callable[[str], Mapping[str, Any]]

@@ -3,7 +3,7 @@
 The local store is read with SQLite's own JSON functions on a read-only
 connection (a day of 1 Hz data is about a million temperature rows: parsing each
 row's JSON in Python would take seconds); InfluxDB is read through
-:class:`gateway.influx_writer.InfluxReader`, as ``export`` does.
+:class:`gateway.outputs.influx.InfluxReader`, as ``export`` does.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.timeseries import (
+from gateway.outputs.points import (
     CYCLE_MEASUREMENT,
     NS_PER_S,
     PROBE_MEASUREMENT,
@@ -82,7 +82,7 @@ def _local_rows(path: Path, machine: str, start_ns: int, stop_ns: int) -> dict[s
 
 
 def _influx_rows(spec: SourceSpec, machine: str, start_ns: int, stop_ns: int) -> dict[str, list]:
-    from gateway.influx_writer import InfluxReader
+    from gateway.outputs.influx import InfluxReader
 
     _, url, token, org, bucket, timeout_s = spec
     reader = InfluxReader(url, token, org, bucket, timeout_s)

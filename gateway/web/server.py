@@ -19,9 +19,9 @@ from typing import Any
 
 from aiohttp import web
 
-from gateway.login_throttle import ThrottlePolicy
-from gateway.runtime import CycleRecord
-from gateway.scada import ScadaUser
+from gateway.live.record import CycleRecord
+from gateway.scada.login_throttle import ThrottlePolicy
+from gateway.scada.server import ScadaUser
 from gateway.web.auth import SESSION, Auth
 from gateway.web.backend import Backend, GatewayLike
 from gateway.web.live import LiveBoard

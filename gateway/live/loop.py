@@ -1,0 +1,694 @@
+"""The per-machine compensation loop: read, check, select, predict, write safely.
+
+Once per ``cycle_s`` of machine time:
+
+1. read every transmitter bus and the spindle speed, concurrently; a silent
+   device or a dead link becomes missing values and a health record, never an
+   exception through the loop;
+2. flag each sensor's quality (range, rate, stuck, stale, transmitter fault,
+   and plausibility against the other sensors, :mod:`gateway.live.plausibility`);
+3. classify the speed regime (with hysteresis) and take its model from the bank,
+   or a fallback fitted without a bad sensor, or none;
+4. predict the error rise (µm) from the temperature rises above the cold reference;
+   every augmented model (lag terms, :mod:`gateway.live.bank.effect_lags`) is advanced
+   with this cycle's rises and speed whether it is selected or not, so a model
+   switched in mid-shift has a warm state;
+5. read what the CNC macro holds (a value the gateway did not write is an
+   external change: logged, counted, and the policy moves on from it), let the
+   compensation policy decide the value (clamp, slew, deadband; with no
+   prediction it holds, then ramps to zero), write it to the CNC macro, read it
+   back, and only then count it as applied; then bump the handshake counter.
+
+Nothing is written before the loop has read what the CNC macro holds, in the
+same cycle, so the slew limit starts from the value the machine really applies.
+Every cycle ends as a :class:`CycleRecord` handed to the sinks (logging, SCADA,
+tests).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from collections.abc import Awaitable, Callable, Mapping, Sequence
+from pathlib import Path
+from typing import TypeVar
+
+import numpy as np
+
+from drivers.clock import Clock
+from drivers.cnc import CncClient, CncError
+from drivers.transmitters import ChannelResult, TransmitterBus
+from gateway.config import MachineSection
+from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
+from gateway.live.bank.promotion import Promotions
+from gateway.live.bank.warm_lags import WarmLags
+from gateway.live.plausibility import Plausibility
+from gateway.live.quality import Quality, QualityMonitor
+from gateway.live.record import CycleRecord, Sink, sink_name
+from gateway.live.reference import TemperatureReference
+from gateway.live.scheduler import CycleScheduler, after_cycle
+from gateway.live.writeback import CompensationPolicy, Decision
+from models.base import ModelInputs
+from models.data.dataset import ambient_sensor_of
+from models.online.correction import CorrectionParams, OnlineCorrection
+from models.online.regime_rules import RegimeSelector
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+S = TypeVar("S")
+
+
+#: Wall seconds a cycle in progress may take to finish once a stop is requested.
+STOP_GRACE_S = 0.5
+
+
+class MachineLoop:
+    def __init__(
+        self,
+        config: MachineSection,
+        clock: Clock,
+        buses: Sequence[TransmitterBus],
+        cnc: CncClient,
+        bank: ModelBank,
+        state_dir: Path | None = None,
+        sinks: Sequence[Sink] = (),
+    ) -> None:
+        self.config = config
+        self.clock = clock
+        self.buses = list(buses)
+        self.cnc = cnc
+        self.bank = bank
+        self.sinks = list(sinks)
+        self.sensors = config.sensor_names
+        self.plausibility = Plausibility.for_machine(
+            config.id, bank, self.sensors, config.quality.limits()
+        )
+        self.quality = QualityMonitor(self.sensors, config.quality_limits(), self.plausibility)
+        self.selector = RegimeSelector(config.models.regimes.rules())
+        reference = config.models.reference
+        state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
+        self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
+        effect_file = None if state_dir is None else state_dir / f"{config.id}-effect-state.json"
+        #: The promoted set of the store, swapped into the bank between cycles.
+        self.promotions = Promotions(config, running=True)
+        self.promotions.load(bank)
+        warm = WarmLags(self.sensors, ambient_sensor_of(self.sensors))
+        self.effects = EffectStates(bank.augmented(), effect_file, warm=warm)
+        self.policy: CompensationPolicy | None = None
+        self.compensation_enabled = config.compensation.enabled
+        self.handshake = 0
+        self.failed_writes = 0
+        self.external_changes = 0
+        self.cycles = 0
+        #: Link errors reported, summed over cycles (one per failing source per cycle).
+        self.link_errors = 0
+        #: Failures per sink (by name); a failing sink never stops the cycle.
+        self.sink_failures: dict[str, int] = {}
+        self._failing_sinks: set[str] = set()
+        self._last_probe_um: float | None = None
+        online = config.online_correction
+        self.online = OnlineCorrection(online.params()) if online.enabled else None
+        self._probe_basis: tuple[float, float] | None = None  # (predicted, applied) µm, last cycle
+        self._link_down: set[str] = set()
+        self._reverse_noted = False  # a negative (reverse) spindle speed was logged once
+        self._external_note = ""  # this cycle's external change, for the write status
+        #: The handshake count last written and answered (None: none, or unknown).
+        self._handshake_written: float | None = None
+        #: Machine time the cycle in progress (or the last one) was due at.
+        self.due_s = 0.0
+
+    # --- one cycle ----------------------------------------------------------------------
+    async def run_cycle(self) -> CycleRecord:
+        self._swap_promoted()
+        now = self.clock.now()
+        results, speed_rpm, errors = await self._read_inputs(now)
+        self.link_errors += len(errors)
+        readings = {
+            name: (results[name].value_C, results[name].status) if name in results else (None, None)
+            for name in self.sensors
+        }
+        checks = self.quality.check(now, readings, self.reference.values_C)
+        good = {n for n, c in checks.items() if c.quality is Quality.GOOD}
+        good_values = {n: readings[n][0] for n in good if readings[n][0] is not None}
+        self.reference.observe(good_values, speed_rpm)
+        self.plausibility.reference_turning = self.reference.taken_turning
+        augmented_um = self.effects.advance(
+            now, self.reference.available_rises_C(good_values), speed_rpm
+        )
+
+        selection = self.selector.update(now, speed_rpm) if speed_rpm is not None else None
+        if selection is not None and selection.switched:
+            log.info(
+                "%s: regime %s → model %s (%s)",
+                self.config.id,
+                selection.regime,
+                selection.model_id,
+                selection.reason,
+            )
+        banked = self.bank.usable(selection.model_id if selection else None, good)
+        predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
+        rises = self.reference.available_rises_C(good_values)
+        suspect = self.plausibility.check_prediction(now, banked, rises, speed_rpm)
+        if suspect is not None:  # moved faster than heat can: not used; predict without it
+            checks[suspect.sensor] = self.quality.mark_implausible(suspect.sensor, suspect.reason)
+            good.discard(suspect.sensor)
+            good_values.pop(suspect.sensor, None)
+            banked = self.bank.usable(selection.model_id if selection else None, good)
+            predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
+        self.plausibility.accept(now, self.reference.available_rises_C(good_values), speed_rpm)
+
+        record = CycleRecord(
+            machine=self.config.id,
+            time_s=now,
+            temperatures_C={n: readings[n][0] for n in self.sensors},
+            quality={n: c.quality.value for n, c in checks.items()},
+            quality_reasons={n: c.reason for n, c in checks.items() if c.reason},
+            speed_rpm=speed_rpm,
+            regime=selection.regime if selection else None,
+            model_id=banked.model_id if banked else None,
+            predicted_um=predicted,
+            target_um=None,
+            applied_um=None,
+            written_cnc=None,
+            write_status="",
+            link_errors=errors,
+        )
+        corrected = self._corrected(now, banked, predicted, record)
+        await self._compensate(now, corrected, record)
+        await self._read_probe(record)
+        self._online_update(now, predicted, record)
+        self.cycles += 1
+        self._deliver(record)
+        return record
+
+    def _swap_promoted(self) -> None:
+        """Between cycles: take a newly promoted (or rolled back) set into the bank.
+
+        A store that cannot be read is logged and the models in use stay; a cycle
+        never fails for it.
+        """
+        try:
+            outcome = self.promotions.poll(self.bank)
+        except Exception:
+            log.exception(
+                "%s: checking the promoted models failed; the models in use stay", self.config.id
+            )
+            return
+        if outcome is None or not outcome.changed:
+            return
+        self.effects.set_models(self.bank.augmented())
+        if self.online is not None:
+            # The filter estimated the residual of the model that served until now; the
+            # promoted model may well explain it (that is why it was proposed).
+            self.online = OnlineCorrection(self.online.params)
+            self._probe_basis = None
+            log.info("%s: online correction restarts with the new models", self.config.id)
+
+    def _deliver(self, record: CycleRecord) -> None:
+        """Hand the record to every sink; a sink that raises is counted and logged, and
+        neither stops the cycle nor keeps the other sinks from their record.
+
+        The traceback is logged once when a sink starts failing, and one line when it
+        works again, so a full disk does not flood the log every cycle.
+        """
+        for sink in self.sinks:
+            name = sink_name(sink)
+            try:
+                sink(record)
+            except Exception:
+                self.sink_failures[name] = self.sink_failures.get(name, 0) + 1
+                if name not in self._failing_sinks:
+                    self._failing_sinks.add(name)
+                    log.exception(
+                        "%s: sink %s failed; the cycle goes on without it", self.config.id, name
+                    )
+                continue
+            if name in self._failing_sinks:
+                self._failing_sinks.discard(name)
+                log.info(
+                    "%s: sink %s works again (%d failure(s) so far)",
+                    self.config.id,
+                    name,
+                    self.sink_failures[name],
+                )
+
+    async def _read_inputs(
+        self, now: float
+    ) -> tuple[dict[str, ChannelResult], float | None, list[str]]:
+        bus_reads = [bus.read_all(now) for bus in self.buses]
+        outcomes = await read_together(bus_reads, self.cnc.read_speed())
+        results: dict[str, ChannelResult] = {}
+        failures: dict[str, str] = {}  # source → what failed
+        for bus_config, outcome in zip(self.config.transmitters, outcomes[:-1], strict=True):
+            if isinstance(outcome, BaseException):
+                failures[f"bus {bus_config.name}"] = str(outcome)
+                continue
+            results.update(outcome)
+            failures.update({f"sensor {r.sensor}": r.error for r in outcome.values() if r.error})
+        speed = outcomes[-1]
+        speed_rpm = None
+        if isinstance(speed, BaseException):
+            failures["CNC"] = str(speed)
+        elif math.isfinite(speed.actual_rpm):
+            # A control that signs the speed by direction (M04, reverse) heats the bearings
+            # as M03 does: the models, the regime rules and the log take its magnitude.
+            speed_rpm = abs(float(speed.actual_rpm))
+            if speed.actual_rpm < 0 and not self._reverse_noted:
+                log.info(
+                    "%s: the CNC reports a negative spindle speed (%g r/min, turning in "
+                    "reverse); its magnitude is used",
+                    self.config.id,
+                    speed.actual_rpm,
+                )
+                self._reverse_noted = True
+        else:
+            failures["CNC"] = f"spindle speed is not a number ({speed.actual_rpm})"
+        self._log_link_changes(failures)
+        return results, speed_rpm, [f"{source}: {error}" for source, error in failures.items()]
+
+    def _log_link_changes(self, failures: dict[str, str]) -> None:
+        """Log a source's failure once when it starts and once when it clears, not every cycle."""
+        for source in sorted(failures.keys() - self._link_down):
+            log.error("%s: %s: %s", self.config.id, source, failures[source])
+        for source in sorted(self._link_down - failures.keys()):
+            log.info("%s: %s: recovered", self.config.id, source)
+        self._link_down = set(failures)
+
+    def _predict(
+        self,
+        banked: Banked | None,
+        good_values: dict[str, float],
+        speed_rpm: float | None,
+        augmented_um: Mapping[str, float | None],
+    ) -> float | None:
+        if banked is None:
+            return None
+        if isinstance(banked, BankedAugmented):
+            return augmented_um[banked.model_id]  # stepped with this cycle's inputs above
+        sensors = tuple(banked.model.sensors_used_)
+        rises = self.reference.rises_C(good_values, sensors)
+        if rises is None or (banked.model.uses_speed and speed_rpm is None):
+            return None
+        inputs = ModelInputs(
+            rise_C=np.array([rises]),
+            sensors=sensors,
+            speed_rpm=np.array([speed_rpm if speed_rpm is not None else 0.0]),
+        )
+        value = float(banked.model.predict(inputs)[0])
+        return value if math.isfinite(value) else None
+
+    # --- the write path -----------------------------------------------------------------
+    async def _compensate(self, now: float, predicted: float | None, record: CycleRecord) -> None:
+        """Read the macro, decide, write, read back: one macro read before any write.
+
+        Times given to the policy are taken at the CNC (after the read, right before
+        the write, after the read-back), not at the cycle start, so the slew limit
+        holds between writes as the CNC receives them, however late a slow
+        transmitter or link made a write.
+        """
+        comp = self.config.compensation
+        held, read_error = await self._read_held(comp.macro)
+        if self.policy is None:
+            if held is None:
+                record.write_status = f"waiting for the CNC: {read_error}"
+                return
+            self._start_policy(held)
+        elif held is not None:
+            self._observe_cnc(held, record)
+        policy = self.policy
+        assert policy is not None
+        record.applied_um = policy.applied_um
+        if not self.compensation_enabled and comp.on_disable == "hold":
+            policy.hold(self.clock.now())
+            held_text = "unknown" if held is None else f"{policy.applied_um:.1f} µm"
+            record.write_status = self._status(f"disabled: #{comp.macro} held at {held_text}")
+            return
+        write_s = self.clock.now()
+        decision = policy.decide(write_s, predicted, enabled=self.compensation_enabled)
+        record.target_um = decision.target_um
+        if not decision.write:
+            record.write_status = self._status(f"no write: {decision.reason}")
+            return
+        if held is None:  # what the CNC holds is unknown: never write blind
+            self._write_failed(write_s, f"not written: {read_error}", record)
+            return
+        await self._write(decision, record)
+
+    async def _write(self, decision: Decision, record: CycleRecord) -> None:
+        """Write the decided value unless the CNC's macro (read again right before) or the
+        handshake token changed since the cycle's read; read it back, confirm, handshake."""
+        comp = self.config.compensation
+        policy = self.policy
+        assert policy is not None
+        if not await self._handshake_is_ours(record):
+            return
+        try:
+            guarded = await self.cnc.write_macro_if(
+                comp.macro, decision.value_cnc, policy.holds_applied
+            )
+            if not guarded.written:  # changed since the cycle's read: the CNC's value stays
+                self._observe_cnc((self.clock.now(), guarded.held), record)
+                record.write_status = self._status(
+                    f"not written: #{comp.macro} changed at the CNC just before the write"
+                )
+                return
+            read_back = await self.cnc.read_macro(comp.macro)
+        except CncError as exc:
+            self._write_failed(self.clock.now(), f"write failed: {exc}", record)
+            return
+        confirmed_s = self.clock.now()
+        if not policy.same_on_cnc(read_back, decision.value_cnc):
+            self._write_failed(
+                confirmed_s,
+                f"read-back mismatch: wrote {decision.value_cnc}, CNC holds {read_back}",
+                record,
+            )
+            if math.isfinite(read_back):  # the CNC holds something else: that is the truth
+                self._observe_cnc((confirmed_s, read_back), record)
+                record.write_status = self._status(record.write_status)
+            return
+        policy.confirm(confirmed_s, policy.from_cnc(read_back))
+        record.applied_um = policy.applied_um
+        record.written_cnc = decision.value_cnc
+        record.write_status = self._status(f"ok: {decision.reason}")
+        await self._bump_handshake(record)
+
+    async def _bump_handshake(self, record: CycleRecord) -> None:
+        """After a confirmed write: the next handshake count, remembered as the token."""
+        macro = self.config.compensation.handshake_macro
+        if macro is None:
+            return
+        self.handshake += 1
+        self._handshake_written = None  # unknown until the write is answered
+        try:
+            await self.cnc.write_macro(macro, float(self.handshake))
+        except CncError as exc:
+            record.write_status += f"; handshake failed: {exc}"
+            return
+        self._handshake_written = float(self.handshake)
+
+    async def _handshake_is_ours(self, record: CycleRecord) -> bool:
+        """The handshake macro as an ownership token: before writing again, it must
+        still hold the count the gateway wrote last. Anything else (an operator or a
+        CNC programme reset it) is an external change: this cycle writes nothing, and
+        the next one moves on from what the CNC holds and writes a new count. With no
+        count written yet (start, a failed handshake write) there is no token to check.
+        """
+        macro = self.config.compensation.handshake_macro
+        ours = self._handshake_written
+        if macro is None or ours is None:
+            return True
+        try:
+            value = await self.cnc.read_macro(macro)
+        except CncError as exc:
+            self._write_failed(self.clock.now(), f"not written: {exc}", record)
+            return False
+        if value == ours:
+            return True
+        self._handshake_written = None
+        self.external_changes += 1
+        note = f"external change: handshake macro #{macro} holds {value}, the gateway wrote {ours}"
+        self._external_note = "; ".join(filter(None, [self._external_note, note]))
+        log.warning(
+            "%s: %s; #%d is not written this cycle (external changes: %d)",
+            self.config.id,
+            note,
+            self.config.compensation.macro,
+            self.external_changes,
+        )
+        record.write_status = self._status("not written: the handshake is not the gateway's")
+        return False
+
+    def _status(self, text: str) -> str:
+        """``text``, prefixed with this cycle's external change if there was one."""
+        prefix, self._external_note = self._external_note, ""
+        return f"{prefix}; {text}" if prefix else text
+
+    async def _read_held(self, macro: int) -> tuple[tuple[float, float] | None, str]:
+        """(time read, value) of what the CNC macro holds, or None and why not."""
+        try:
+            value = await self.cnc.read_macro(macro)
+        except CncError as exc:
+            return None, f"CNC macro #{macro} not read: {exc}"
+        return (self.clock.now(), value), ""
+
+    def _observe_cnc(self, held: tuple[float, float], record: CycleRecord) -> None:
+        """Compare what the CNC holds with what the gateway applied; log a change once."""
+        assert self.policy is not None
+        read_s, value = held
+        change = self.policy.observe(read_s, value)
+        record.applied_um = self.policy.applied_um
+        if change is None:
+            return
+        self.external_changes += 1
+        note = (
+            f"external change: CNC macro #{self.config.compensation.macro} holds {value} "
+            f"({change.held_um:.1f} µm), the gateway had applied {change.believed_um:.1f} µm"
+        )
+        self._external_note = note
+        self._warn_never_written(value)
+        log.warning(
+            "%s: %s; compensation moves on from the CNC's value at the slew limit "
+            "(external changes: %d)",
+            self.config.id,
+            note,
+            self.external_changes,
+        )
+
+    def _warn_never_written(self, value: float) -> bool:
+        """Say so when the CNC holds a value the gateway would never write (beyond the
+        clamp, infinite): a typo at the control (1.0 typed in mm where µm was meant) or
+        a corrupted variable. The compensation moves from it within the clamp."""
+        assert self.policy is not None
+        why = self.policy.never_written(value)
+        if why is None:
+            return False
+        log.warning(
+            "%s: CNC macro #%d holds %r (%s): a value the gateway would never write; "
+            "compensation moves from it back within the clamp",
+            self.config.id,
+            self.config.compensation.macro,
+            value,
+            why,
+        )
+        return True
+
+    async def _read_probe(self, record: CycleRecord) -> None:
+        """The CNC's probe macro (µm): a new value is a measurement of the real error."""
+        macro = self.config.compensation.probe_macro
+        if macro is None:
+            return
+        try:
+            value = await self.cnc.read_macro(macro)
+        except CncError:
+            return  # the CNC link failure is already recorded for this cycle
+        if math.isfinite(value) and value != self._last_probe_um:
+            self._last_probe_um = value
+            record.probe_error_um = value
+
+    def _corrected(
+        self, now: float, banked: Banked | None, predicted: float | None, record: CycleRecord
+    ) -> float | None:
+        """The prediction plus the online correction (bounded, decayed in silence).
+
+        No prediction stays no prediction: the policy's hold-and-ramp path takes over.
+        A model that stores its own online-correction noise model (``replay --store``)
+        brings it along; the config's limits (bound, decay) always hold.
+        """
+        if self.online is None or predicted is None:
+            return predicted
+        params = self._online_params(banked)
+        if params.kind != self.online.params.kind:
+            log.info("%s: online correction restarts as %s", self.config.id, params.kind)
+            self.online = OnlineCorrection(params)
+        self.online.params = params
+        record.correction_um = float(self.online.correction_at(now, predicted_um=predicted)[0])
+        return predicted + record.correction_um
+
+    def _online_params(self, banked: Banked | None) -> CorrectionParams:
+        limits = self.config.online_correction.params()
+        document = banked.document if isinstance(banked, BankedAugmented) else None
+        stored = (document or {}).get("online_correction") or {}
+        return limits.with_noise_of(stored.get("params", {}))
+
+    def _online_update(self, now: float, predicted: float | None, record: CycleRecord) -> None:
+        """A new probe value updates the filter with the model's residual then (contracts §7):
+        probe + compensation applied then − prediction then. The probe was measured since the
+        last cycle, so "then" is the last cycle's prediction and applied value."""
+        if self.online is None:
+            return
+        basis = self._probe_basis
+        applied = record.applied_um
+        self._probe_basis = None if predicted is None or applied is None else (predicted, applied)
+        if record.probe_error_um is None or basis is None:
+            return
+        residual_um = record.probe_error_um + basis[1] - basis[0]
+        outcome = self.online.update(now, residual_um, predicted_um=basis[0])
+        record.probe_refused = not outcome.accepted
+        if not outcome.accepted:
+            log.warning(
+                "%s: probe %.2f µm refused by the online correction (%s; refused so far: %d)",
+                self.config.id,
+                record.probe_error_um,
+                outcome.reason,
+                self.online.refused,
+            )
+
+    def _start_policy(self, held: tuple[float, float]) -> None:
+        """The policy starts from what the CNC applies now (a vacant macro: 0)."""
+        _, value = held
+        limits = self.config.compensation.limits()
+        probe = CompensationPolicy(limits)
+        start_um = probe.from_cnc(value) if math.isfinite(value) else 0.0
+        self.policy = CompensationPolicy(limits, start_um=start_um)
+        if self._warn_never_written(value):
+            self.external_changes += 1
+        log.info(
+            "%s: CNC macro #%d holds %s; compensation starts from %.2f µm",
+            self.config.id,
+            self.config.compensation.macro,
+            value,
+            start_um,
+        )
+
+    def _write_failed(self, now: float, reason: str, record: CycleRecord) -> None:
+        assert self.policy is not None
+        self.policy.reject(now, reason)
+        self.failed_writes += 1
+        record.applied_um = self.policy.applied_um
+        record.write_status = self._status(reason)
+        log.warning("%s: %s (failed writes: %d)", self.config.id, reason, self.failed_writes)
+
+    # --- running ------------------------------------------------------------------------
+    async def run(
+        self,
+        stop: asyncio.Event | None = None,
+        cycles: int | None = None,
+        scheduler: CycleScheduler | None = None,
+        phase_s: float = 0.0,
+    ) -> None:
+        """Cycle every ``cycle_s`` of machine time until ``stop`` is set or ``cycles`` ran.
+
+        With a ``scheduler`` (the gateway's, shared by every machine) the loop waits on
+        its one timer, and its cycles are due on the scheduler's grid for ``phase_s``
+        (:meth:`CycleScheduler.next_due_s`), so the machines' polls are spread over the
+        cycle and each slot's loops poll together; without one it sleeps on its own
+        and starts at once. An overrun starts the next cycle at once, without catching
+        up in a burst; the cycles after it are back on the grid.
+
+        ``stop`` cuts the wait between cycles short, so a stop request is served at
+        once whatever ``cycle_s`` is. A cycle in progress gets ``STOP_GRACE_S`` (wall)
+        to finish its write and read-back; then it is cancelled. Nothing is lost by
+        that: the policy moves its applied value only on a confirmed read-back, and
+        the next start reads what the macro holds before it writes.
+        """
+        stop = stop or asyncio.Event()
+        cycle_s = self.config.cycle_s
+        if scheduler is not None:
+            next_due = grid_due = scheduler.next_due_s(phase_s, cycle_s)
+        else:
+            next_due = grid_due = self.clock.now() + phase_s
+        done = 0
+        guard = _StopGuard(stop, self.config.id)
+        try:
+            while not stop.is_set() and (cycles is None or done < cycles):
+                if scheduler is not None:
+                    await scheduler.wait_until(next_due, stop)
+                    if stop.is_set():
+                        return
+                self.due_s = next_due
+                if not await guard.cycle(self.run_cycle):
+                    return
+                done += 1
+                now = self.clock.now()
+                next_due, grid_due = after_cycle(grid_due, cycle_s, now)
+                if next_due <= now:  # an overrun: at once
+                    await asyncio.sleep(0)
+                elif scheduler is None:
+                    await self.clock.sleep(next_due - now, stop)
+        finally:
+            guard.close()
+
+    async def close(self) -> None:
+        self.effects.save()
+        for bus in self.buses:
+            await bus.close()
+        await self.cnc.close()
+
+
+async def read_together(
+    bus_reads: Sequence[Awaitable[T]], speed_read: Awaitable[S]
+) -> list[T | S | BaseException]:
+    """Await the reads concurrently, as ``gather(..., return_exceptions=True)`` does.
+
+    The speed read runs in the calling task and only the bus reads get tasks of
+    their own: one task fewer per machine and cycle than ``gather`` (which also
+    adds a gathering future and its callbacks). Outcomes come in the order given,
+    the speed last; an ``Exception`` is returned in its place, a cancellation
+    cancels every read and propagates.
+    """
+    tasks = [asyncio.ensure_future(read) for read in bus_reads]
+    try:
+        try:
+            speed: S | BaseException = await speed_read
+        except Exception as exc:
+            speed = exc
+        outcomes: list[T | S | BaseException] = []
+        for task in tasks:
+            try:
+                outcomes.append(await task)
+            except Exception as exc:
+                outcomes.append(exc)
+    finally:
+        for task in tasks:
+            task.cancel()  # a no-op on the finished ones
+    outcomes.append(speed)
+    return outcomes
+
+
+class _StopGuard:
+    """Gives a cycle in progress ``STOP_GRACE_S`` after a stop request, then cancels it.
+
+    One watcher task per run of a loop instead of two futures per cycle: the cycle
+    runs in the loop's own task, and the watcher cancels that task only while it is
+    inside a cycle; :meth:`cycle` turns that one cancellation into "stopped".
+    """
+
+    def __init__(self, stop: asyncio.Event, machine: str) -> None:
+        task = asyncio.current_task()
+        assert task is not None, "a machine loop runs in a task"
+        self._task = task
+        self._machine = machine
+        self._in_cycle = False
+        self._cancelled = False
+        self._watcher = asyncio.create_task(self._watch(stop))
+
+    async def _watch(self, stop: asyncio.Event) -> None:
+        await stop.wait()
+        if not self._in_cycle:
+            return  # between cycles: the loop sees the stop itself
+        await asyncio.sleep(STOP_GRACE_S)
+        if self._in_cycle:
+            log.warning("%s: stop requested; cancelling the cycle in progress", self._machine)
+            self._cancelled = True
+            self._task.cancel()
+
+    async def cycle(self, run_cycle: Callable[[], Awaitable[CycleRecord]]) -> bool:
+        """Run one cycle; False when the stop's grace ran out and it was cancelled."""
+        self._in_cycle = True
+        try:
+            await run_cycle()  # an exception of the cycle goes to the supervisor
+        except asyncio.CancelledError:
+            if self._cancelled:
+                self._task.uncancel()
+                return False
+            raise
+        finally:
+            self._in_cycle = False
+        return True
+
+    def close(self) -> None:
+        self._watcher.cancel()

@@ -1,0 +1,285 @@
+"""The embedded time-series store: points in one SQLite file, no server needed.
+
+The default destination of the gateway's time series when no InfluxDB is
+configured, and a source for :func:`gateway.offline.export.export_runs`. It keeps
+InfluxDB's identity rule: a point is identified by measurement, tags and time, so
+writing the same point again stores it once (its fields are merged, a field
+written again takes the new value, as InfluxDB does).
+
+The store is bounded (:mod:`gateway.outputs.sqlite_bounds`): by age, points older than
+``retention_s`` are deleted by :meth:`LocalStore.enforce_retention` (the gateway
+calls it every ``logging.retention_interval_s``); by size, the file never grows past
+``max_bytes`` — a write that meets the cap first deletes the oldest points. A
+write that fails because the disk is full is dropped and counted
+(:attr:`LocalStore.dropped`), logged once when it starts and once when writes
+succeed again, and never raised: compensation does not depend on its log.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import sqlite3
+import threading
+import time
+from collections.abc import Iterable
+from pathlib import Path
+
+from gateway.outputs.points import Point
+from gateway.outputs.sqlite_bounds import (
+    at_cap,
+    bounded_write,
+    cap_size,
+    is_out_of_space,
+    used_bytes,
+)
+from gateway.outputs.sqlite_open import open_database
+
+log = logging.getLogger(__name__)
+
+DELETE_CHUNK_ROWS = 5000  # rows per DELETE: keeps one retention step short (ms)
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS points (
+    measurement TEXT NOT NULL,
+    machine TEXT NOT NULL,
+    tags TEXT NOT NULL,
+    time_ns INTEGER NOT NULL,
+    fields TEXT NOT NULL,
+    PRIMARY KEY (measurement, machine, tags, time_ns)
+);
+CREATE INDEX IF NOT EXISTS points_by_machine_time ON points (measurement, machine, time_ns);
+CREATE INDEX IF NOT EXISTS points_by_time ON points (time_ns);
+"""
+
+
+def _tags_text(tags: dict[str, str]) -> str:
+    return json.dumps(dict(sorted(tags.items())), separators=(",", ":"), ensure_ascii=False)
+
+
+class LocalStore:
+    """SQLite (WAL) table of points, indexed on (measurement, machine, time_ns).
+
+    Args:
+        path: the database file (created with its folder when missing).
+        synchronous: SQLite ``synchronous`` level.
+        max_bytes: the largest the file may grow (None: unbounded); at the cap the
+            oldest points make room for the newest.
+        retention_s: the oldest point :meth:`enforce_retention` keeps, s (None: all).
+        set_aside_damaged: a file SQLite cannot read is renamed aside and a new one
+            started (the gateway); False refuses it with a ``ValueError`` (``export``).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        synchronous: str = "NORMAL",
+        max_bytes: int | None = None,
+        retention_s: float | None = None,
+        set_aside_damaged: bool = True,
+    ) -> None:
+        if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
+            raise ValueError(f"unknown SQLite synchronous level {synchronous!r}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.max_bytes = max_bytes
+        self.retention_s = retention_s
+        self.dropped = 0  # points not stored because the disk was full
+        self.expired = 0  # points deleted for age
+        self.evicted = 0  # points deleted to stay within max_bytes
+        self._failing = False
+        self._lock = threading.Lock()
+
+        def prepare(db: sqlite3.Connection) -> None:
+            db.execute("PRAGMA journal_mode=WAL")
+            db.execute(f"PRAGMA synchronous={synchronous.upper()}")
+            db.executescript(SCHEMA)
+
+        # A file SQLite cannot read is kept aside and a new one started (gateway.outputs.sqlite_open).
+        self._db, self.set_aside_as = open_database(self.path, prepare, set_aside_damaged)
+        if max_bytes is not None:
+            cap_size(self._db, max_bytes)
+
+    def write(self, points: Iterable[Point]) -> bool:
+        """Store points (one transaction); a point already stored has its fields merged.
+
+        Returns False when the points could not be stored (disk full): they are
+        counted in :attr:`dropped` and logged, nothing is raised.
+        """
+        rows = [
+            (
+                p.measurement,
+                p.tags.get("machine", ""),
+                _tags_text(p.tags),
+                p.time_ns,
+                json.dumps(p.fields, separators=(",", ":"), ensure_ascii=False),
+            )
+            for p in points
+        ]
+        if not rows:
+            return True
+        with self._lock:
+            # At the file's own cap, the oldest points make room; a full disk is waited
+            # out (the pages freed are reused once space returns).
+            kept = bounded_write(
+                lambda: self._insert(rows),
+                lambda: (
+                    self.max_bytes is not None
+                    and at_cap(self._db, self.max_bytes)
+                    and self._evict_oldest()
+                ),
+                lambda exc: self._lost(len(rows), exc),
+            )
+            if kept and self._failing:
+                self._failing = False
+                log.warning(
+                    "local store %s writable again; %d point(s) dropped in all",
+                    self.path,
+                    self.dropped,
+                )
+            return kept
+
+    def _insert(self, rows: list[tuple[str, str, str, int, str]]) -> None:
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._db.executemany(
+                "INSERT INTO points (measurement, machine, tags, time_ns, fields) "
+                "VALUES (?, ?, ?, ?, ?) "
+                "ON CONFLICT (measurement, machine, tags, time_ns) "
+                "DO UPDATE SET fields = json_patch(fields, excluded.fields)",
+                rows,
+            )
+            self._db.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):
+                self._db.execute("ROLLBACK")
+            raise
+
+    def _lost(self, n: int, exc: sqlite3.Error) -> None:
+        self.dropped += n
+        if not self._failing:
+            self._failing = True
+            log.error(
+                "local store %s cannot store points (%s): dropping and counting them "
+                "until it can again",
+                self.path,
+                exc,
+            )
+
+    def _evict_oldest(self) -> int:
+        """Delete the oldest chunk of points (lock held); how many went."""
+        try:
+            removed = self._db.execute(
+                "DELETE FROM points WHERE rowid IN "
+                "(SELECT rowid FROM points ORDER BY time_ns LIMIT ?)",
+                (DELETE_CHUNK_ROWS,),
+            ).rowcount
+        except sqlite3.Error as exc:
+            if not is_out_of_space(exc):
+                raise
+            return 0
+        self.evicted += removed
+        return removed
+
+    def query(
+        self,
+        measurement: str,
+        machine: str | None = None,
+        start_ns: int | None = None,
+        stop_ns: int | None = None,
+    ) -> list[Point]:
+        """Points of ``measurement`` (of ``machine``), ``start_ns ≤ time < stop_ns``, by time."""
+        sql = "SELECT tags, fields, time_ns FROM points WHERE measurement = ?"
+        args: list[object] = [measurement]
+        if machine is not None:
+            sql += " AND machine = ?"
+            args.append(machine)
+        if start_ns is not None:
+            sql += " AND time_ns >= ?"
+            args.append(int(start_ns))
+        if stop_ns is not None:
+            sql += " AND time_ns < ?"
+            args.append(int(stop_ns))
+        sql += " ORDER BY time_ns, tags"
+        with self._lock:
+            rows = self._db.execute(sql, args).fetchall()
+        return [
+            Point(measurement, json.loads(tags), json.loads(fields), time_ns)
+            for tags, fields, time_ns in rows
+        ]
+
+    def machines(self) -> list[str]:
+        with self._lock:
+            rows = self._db.execute("SELECT DISTINCT machine FROM points ORDER BY machine")
+            return [machine for (machine,) in rows.fetchall() if machine]
+
+    def delete_before(self, time_ns: int, limit: int | None = None) -> int:
+        """Remove points older than ``time_ns`` (retention), at most ``limit``; return how many."""
+        with self._lock:
+            return self._delete_before(time_ns, limit)
+
+    def _delete_before(self, time_ns: int, limit: int | None) -> int:
+        if limit is None:
+            sql, args = "DELETE FROM points WHERE time_ns < ?", (time_ns,)
+        else:
+            sql = (
+                "DELETE FROM points WHERE rowid IN (SELECT rowid FROM points "
+                "WHERE time_ns < ? ORDER BY time_ns LIMIT ?)"
+            )
+            args = (time_ns, limit)
+        return self._db.execute(sql, args).rowcount
+
+    def enforce_retention(self, now_ns: int | None = None, budget_s: float = 0.2) -> int:
+        """Delete points past ``retention_s``, then the oldest while over ``max_bytes``.
+
+        Works in chunks for at most about ``budget_s`` (it runs between compensation
+        cycles); what is left is taken on the next call. Returns the points deleted.
+        A full disk makes it do nothing (and nothing is raised).
+        """
+        now_ns = time.time_ns() if now_ns is None else now_ns
+        deadline = time.monotonic() + budget_s
+        deleted = 0
+        with self._lock:
+            try:
+                if self.retention_s is not None:
+                    cutoff = now_ns - round(self.retention_s * 1e9)
+                    while time.monotonic() < deadline:
+                        n = self._delete_before(cutoff, DELETE_CHUNK_ROWS)
+                        self.expired += n
+                        deleted += n
+                        if n < DELETE_CHUNK_ROWS:
+                            break
+                if self.max_bytes is not None:
+                    target = 0.98 * self.max_bytes
+                    while used_bytes(self._db) > target and time.monotonic() < deadline:
+                        n = self._evict_oldest()
+                        deleted += n
+                        if n == 0:
+                            break
+            except sqlite3.Error as exc:
+                if not is_out_of_space(exc):
+                    raise
+                log.warning("local store %s: retention step failed (%s)", self.path, exc)
+        if deleted:
+            log.info("local store %s: retention deleted %d old point(s)", self.path, deleted)
+        return deleted
+
+    def used_bytes(self) -> int:
+        """Bytes of the file in use (the quantity ``max_bytes`` bounds)."""
+        with self._lock:
+            return used_bytes(self._db)
+
+    def __len__(self) -> int:
+        with self._lock:
+            return self._db.execute("SELECT COUNT(*) FROM points").fetchone()[0]
+
+    def close(self) -> None:
+        with self._lock:
+            self._db.close()
+
+    def __enter__(self) -> LocalStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

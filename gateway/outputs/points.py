@@ -1,0 +1,148 @@
+"""Time-series points from compensation cycles (the :class:`Point` type).
+
+Every :class:`~gateway.live.loop.CycleRecord` becomes:
+
+* one ``spindle_cycle`` point — tags ``machine`` (+ ``regime``, ``model_id`` when
+  known); fields ``speed_rpm``, ``predicted_um``, ``target_um``, ``applied_um``,
+  ``written_cnc`` (the value written to the CNC macro, in the CNC's unit),
+  ``write_status`` (text) and ``link_errors`` (how many sources failed);
+* one ``spindle_temperature`` point per sensor — tags ``machine``, ``sensor``,
+  ``quality``; field ``value_C``.
+
+A measured thermal error (a probe or dial-gauge reading) is a ``spindle_probe``
+point with field ``error_um`` (:func:`probe_point`).
+
+Units are part of the field names (µm, °C, r/min). A value the cycle did not have
+(``None``) or that is not a finite number is omitted, never written as 0: a
+temperature point without a value is not written at all. Float fields are always
+written as floats, so a whole number never turns a float field into an integer
+one (InfluxDB refuses a field whose type changes).
+
+Timestamps: ``time_ns = round((epoch_s + time_s) × 1e9)``, where ``time_s`` is the
+machine clock of the record and ``epoch_s`` the real time (Unix seconds) that
+machine time 0 stands for. Two points are the same point when measurement, tags
+and ``time_ns`` agree (InfluxDB's identity), which is what makes re-sending safe.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+from gateway.live.record import CycleRecord
+
+CYCLE_MEASUREMENT = "spindle_cycle"
+TEMPERATURE_MEASUREMENT = "spindle_temperature"
+PROBE_MEASUREMENT = "spindle_probe"
+
+FieldValue = float | int | str | bool
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True)
+class Point:
+    """One time-series point: what InfluxDB stores as measurement, tags, fields, time."""
+
+    measurement: str
+    tags: dict[str, str]
+    fields: dict[str, FieldValue]
+    time_ns: int
+
+    @property
+    def machine(self) -> str | None:
+        return self.tags.get("machine")
+
+    @property
+    def time_s(self) -> float:
+        """Unix seconds (subtract the ``epoch_s`` used to make the point for machine time)."""
+        return self.time_ns / NS_PER_S
+
+    def series_key(self) -> tuple[str, tuple[tuple[str, str], ...]]:
+        """Measurement and sorted tags: with ``time_ns``, the identity of the point."""
+        return self.measurement, tuple(sorted(self.tags.items()))
+
+    def to_json(self) -> dict:
+        return {"m": self.measurement, "t": self.tags, "f": self.fields, "ns": self.time_ns}
+
+    @classmethod
+    def from_json(cls, data: Mapping) -> Point:
+        return cls(
+            measurement=str(data["m"]),
+            tags={str(k): str(v) for k, v in data["t"].items()},
+            fields=dict(data["f"]),
+            time_ns=int(data["ns"]),
+        )
+
+
+def to_time_ns(time_s: float, epoch_s: float = 0.0) -> int:
+    """Nanoseconds since the Unix epoch of machine time ``time_s``."""
+    return round((epoch_s + time_s) * NS_PER_S)
+
+
+def _float(value: float | None) -> float | None:
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _floats(**values: float | None) -> dict[str, FieldValue]:
+    return {k: v for k, v in ((k, _float(v)) for k, v in values.items()) if v is not None}
+
+
+def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]:
+    """The points of one cycle: its ``spindle_cycle`` point, then one per measured sensor."""
+    time_ns = to_time_ns(record.time_s, epoch_s)
+    tags = {"machine": record.machine}
+    if record.regime:
+        tags["regime"] = record.regime
+    if record.model_id:
+        tags["model_id"] = record.model_id
+    fields = _floats(
+        speed_rpm=record.speed_rpm,
+        predicted_um=record.predicted_um,
+        target_um=record.target_um,
+        applied_um=record.applied_um,
+        written_cnc=record.written_cnc,
+        correction_um=record.correction_um,
+    )
+    fields["write_status"] = record.write_status
+    fields["link_errors"] = len(record.link_errors)
+    points = [Point(CYCLE_MEASUREMENT, tags, fields, time_ns)]
+    for sensor, value in record.temperatures_C.items():
+        value_C = _float(value)
+        if value_C is None:
+            continue
+        sensor_tags = {
+            "machine": record.machine,
+            "sensor": sensor,
+            "quality": record.quality.get(sensor, "unknown"),
+        }
+        points.append(Point(TEMPERATURE_MEASUREMENT, sensor_tags, {"value_C": value_C}, time_ns))
+    return points
+
+
+def probe_point(machine: str, time_s: float, error_um: float, epoch_s: float = 0.0) -> Point:
+    """A measured thermal error (µm) of ``machine`` at machine time ``time_s``."""
+    value = _float(error_um)
+    if value is None:
+        raise ValueError(f"error_um must be a finite number, got {error_um!r}")
+    return Point(
+        PROBE_MEASUREMENT, {"machine": machine}, {"error_um": value}, to_time_ns(time_s, epoch_s)
+    )
+
+
+def record_sink(
+    write: Callable[[list[Point]], object], epoch_s: float = 0.0
+) -> Callable[[CycleRecord], None]:
+    """A :data:`gateway.live.loop.Sink` that turns each record into points and hands them on.
+
+    ``write`` is e.g. :meth:`gateway.outputs.disk_buffer.PointBuffer.append` (store and
+    forward to InfluxDB) or :meth:`gateway.outputs.local_store.LocalStore.write` (embedded).
+    """
+
+    def sink(record: CycleRecord) -> None:
+        write(points_from_record(record, epoch_s))
+
+    return sink

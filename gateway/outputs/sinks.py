@@ -1,0 +1,197 @@
+"""Where each cycle's record goes besides the loop: the time-series log and the heartbeat.
+
+- Logging: with an InfluxDB configured, points are appended to a disk buffer and
+  a forwarder task moves them to the database in order (store-and-forward);
+  without one, they go to the embedded local store. Either way the runtime's
+  sink only does a local disk append, so a slow or absent database never slows
+  the compensation loop.
+- Probe measurements of the real error, when the CNC publishes them, are logged
+  as their own points.
+- A heartbeat file per machine, which the container's health check reads, with
+  the machine's health counters when a ``health`` provider is given.
+
+The two are separate sinks (:meth:`Outputs.log_points`, :meth:`Outputs.beat`):
+a log write that fails (a full disk under the local store) is counted by the
+loop and does not keep the heartbeat, and the failure count in it, from being
+written.
+- Retention: every ``logging.retention_interval_s`` the store (or buffer) deletes
+  what is past its age or over its size (gateway/outputs/local_store.py, point_buffer.py).
+- Timestamps: in the plant (``clock`` given, running on wall time) points carry
+  ``time.time_ns()`` of the cycle's start, so an NTP correction of the system
+  clock is followed; the loops keep scheduling on the monotonic clock.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from drivers.clock import Clock
+from gateway.config import GatewayConfig
+from gateway.live.record import CycleRecord
+from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.heartbeat import write_heartbeat
+from gateway.outputs.influx import Forwarder, InfluxWriter
+from gateway.outputs.local_store import LocalStore
+from gateway.outputs.points import Point, points_from_record, probe_point
+
+log = logging.getLogger(__name__)
+
+#: Wall seconds a stopping gateway waits for the forwarder to empty the buffer.
+FLUSH_TIMEOUT_S = 0.3
+
+
+HealthProvider = Callable[[str], Mapping[str, Any]]
+
+
+SECONDS_PER_DAY = 86_400.0
+BYTES_PER_MB = 1_000_000
+
+
+class Outputs:
+    def __init__(
+        self,
+        config: GatewayConfig,
+        health: HealthProvider | None = None,
+        wall_clock: Clock | None = None,
+    ) -> None:
+        self.config = config
+        self.health = health
+        self.wall_clock = wall_clock
+        section = config.logging
+        self.forwarder: Forwarder | None = None
+        self.buffer: PointBuffer | None = None
+        self.store: LocalStore | None = None
+        if section.influxdb is not None:
+            influx = section.influxdb
+            section.buffer_path.parent.mkdir(parents=True, exist_ok=True)
+            self.buffer = PointBuffer(
+                section.buffer_path,
+                section.buffer_max_points,
+                max_bytes=round(section.buffer_max_mb * BYTES_PER_MB),
+                retention_s=section.buffer_retention_days * SECONDS_PER_DAY,
+            )
+            writer = InfluxWriter(
+                influx.url_value(),
+                influx.token(),
+                influx.org_value(),
+                influx.bucket_value(),
+                influx.timeout_s,
+            )
+            self.forwarder = Forwarder(self.buffer, writer)
+        else:
+            section.local_store.parent.mkdir(parents=True, exist_ok=True)
+            self.store = LocalStore(
+                section.local_store,
+                max_bytes=round(section.local_store_max_mb * BYTES_PER_MB),
+                retention_s=section.local_store_retention_days * SECONDS_PER_DAY,
+            )
+        self.state_dir = Path(config.state_dir)
+        self._cycles: dict[str, int] = {}
+        self._next_retention = time.monotonic()
+        self._heartbeat_failing = False
+
+    def enforce_retention(self, now_ns: int | None = None) -> int:
+        """Delete what is past its age or over its size; the points deleted.
+
+        ``now_ns`` is the time the ages count from, in the points' own time base (the
+        newest point's stamp: wall time in the plant, machine time in a simulation).
+        """
+        self._next_retention = time.monotonic() + self.config.logging.retention_interval_s
+        if self.buffer is not None:
+            return self.buffer.enforce_retention(now_ns)
+        assert self.store is not None
+        return self.store.enforce_retention(now_ns)
+
+    def _stamped(self, points: list[Point], record: CycleRecord) -> list[Point]:
+        if self.wall_clock is None:
+            return points
+        elapsed_ns = round((self.wall_clock.now() - record.time_s) * 1e9)
+        time_ns = time.time_ns() - elapsed_ns
+        return [dataclasses.replace(p, time_ns=time_ns) for p in points]
+
+    def _write(self, points: list[Point]) -> None:
+        if self.buffer is not None:
+            self.buffer.append(points)
+        else:
+            assert self.store is not None
+            self.store.write(points)
+
+    def sink(self, record: CycleRecord) -> None:
+        """The runtime sink: log the record (and any probe value), beat the heart."""
+        try:
+            self.log_points(record)
+        finally:
+            self.beat(record)
+
+    def log_points(self, record: CycleRecord) -> None:
+        """Log the record's points (and any probe value) to the buffer or the local store."""
+        points = points_from_record(record)
+        if record.probe_error_um is not None:
+            points.append(probe_point(record.machine, record.time_s, record.probe_error_um))
+        points = self._stamped(points, record)
+        self._write(points)
+        if time.monotonic() >= self._next_retention:
+            self.enforce_retention(points[0].time_ns)
+
+    def beat(self, record: CycleRecord) -> None:
+        """Write the machine's heartbeat, with its health counters when known."""
+        self._cycles[record.machine] = self._cycles.get(record.machine, 0) + 1
+        try:
+            write_heartbeat(
+                self.state_dir,
+                record.machine,
+                record.time_s,
+                cycles=self._cycles[record.machine],
+                health=None if self.health is None else self.health(record.machine),
+            )
+        except OSError as exc:  # a full disk: the health check will say so, the loop goes on
+            if not self._heartbeat_failing:
+                log.error("cannot write the heartbeat in %s: %s", self.state_dir, exc)
+            self._heartbeat_failing = True
+        else:
+            self._heartbeat_failing = False
+
+    def forwarder_health(self) -> dict[str, Any]:
+        """Backlog, dropped points and restarts of the store-and-forward path (zeros
+        with the local store, which has no backlog)."""
+        if self.forwarder is None:
+            return {
+                "forwarder_backlog": 0,
+                "dropped_points": 0,
+                "rejected_points": 0,
+                "forwarder_restarts": 0,
+            }
+        health = self.forwarder.health()
+        return {
+            "forwarder_backlog": int(health["buffered"]),
+            "dropped_points": int(health["dropped"]),  # the buffer was full: oldest dropped
+            "rejected_points": int(health["rejected"]),  # InfluxDB refused them as invalid
+            "forwarder_restarts": int(health["restarts"]),
+            "forwarder_connected": bool(health["connected"]),
+        }
+
+    def start(self) -> None:
+        if self.forwarder is not None:
+            self.forwarder.start()
+
+    async def stop(self, flush_timeout_s: float = FLUSH_TIMEOUT_S) -> None:
+        """Give the forwarder ``flush_timeout_s`` to empty the buffer, then stop it.
+
+        Short on purpose: a stop must be quick (SIGTERM), and whatever is not sent
+        stays in the on-disk buffer (committed at every append) for the next start.
+        """
+        if self.forwarder is not None:
+            if self.forwarder.health()["connected"]:  # down: the points wait on disk anyway
+                with contextlib.suppress(RuntimeError):  # a forwarder that is not running
+                    await self.forwarder.flush(timeout=flush_timeout_s)
+            await self.forwarder.stop()
+        if self.buffer is not None:
+            self.buffer.close()
+        if self.store is not None:
+            self.store.close()

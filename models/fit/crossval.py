@@ -1,0 +1,109 @@
+"""Validation on data the fit did not see.
+
+- Leave-one-run-out: for each run, fit on every other run and predict it.
+  Runs are the natural unit (an experiment, a shift, a heating–cooling cycle):
+  neighbouring samples of one run are strongly correlated, so any split inside a
+  run would flatter the model.
+- One run only: the run is cut into ``BLOCKS`` (5) contiguous blocks and each
+  block is predicted by a model fitted on the other four (a blocked split).
+- Cross-evaluation (paper 002 §5): one model per run, evaluated on every run,
+  giving the σ matrix that regime ranking works on.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from models.base import ThermalModel
+from models.data.features import Prepared
+from models.fit.metrics import Accuracy, accuracy
+from models.fit.ranking import SigmaRow
+
+BLOCKS = 5
+ModelFactory = Callable[[], ThermalModel]
+
+
+@dataclass(frozen=True)
+class Validation:
+    """Held-out predictions and their accuracy, per fold and pooled."""
+
+    scheme: str
+    folds: tuple[str, ...]
+    per_fold: dict[str, Accuracy]
+    pooled: Accuracy
+    predicted_um: np.ndarray  # (n,) held-out prediction of every row
+
+    def as_dict(self) -> dict[str, object]:
+        return {
+            "scheme": self.scheme,
+            "pooled": self.pooled.as_dict(),
+            "per_fold": {name: acc.as_dict() for name, acc in self.per_fold.items()},
+        }
+
+
+def fold_labels(prepared: Prepared) -> tuple[str, np.ndarray]:
+    """(scheme, label of each row): its run, or its block when there is one run."""
+    runs = prepared.data.run
+    if len(prepared.data.run_ids) >= 2:
+        return "leave-one-run-out", runs  # the run ids themselves: no string copy per row
+    n = prepared.data.n_samples
+    if n < BLOCKS * 2:
+        raise ValueError(
+            f"one run of {n} samples is too short for a blocked split into {BLOCKS} blocks"
+        )
+    block = np.minimum(np.arange(n) * BLOCKS // n, BLOCKS - 1)
+    labels = np.array([f"{runs[0]}#block{b + 1}" for b in block], dtype=object)
+    return f"leave-one-block-out ({BLOCKS} contiguous blocks of the single run)", labels
+
+
+def cross_validate(factory: ModelFactory, prepared: Prepared, progress: bool = False) -> Validation:
+    scheme, labels = fold_labels(prepared)
+    folds = tuple(dict.fromkeys(labels))
+    predicted = np.empty(prepared.data.n_samples)
+    per_fold: dict[str, Accuracy] = {}
+    for fold in tqdm(folds, desc="held-out folds", disable=not progress, leave=False):
+        test = labels == fold
+        model = factory().fit_rows(prepared.inputs, prepared.error_um, ~test)
+        predicted[test] = model.predict_rows(prepared.inputs, test)
+        per_fold[fold] = accuracy(prepared.error_um[test], predicted[test])
+    return Validation(
+        scheme=scheme,
+        folds=folds,
+        per_fold=per_fold,
+        pooled=accuracy(prepared.error_um, predicted),
+        predicted_um=predicted,
+    )
+
+
+def cross_evaluate(
+    factory: ModelFactory,
+    prepared: Prepared,
+    regime_of_run: dict[str, str],
+    progress: bool = False,
+) -> tuple[dict[str, ThermalModel], list[SigmaRow]]:
+    """One model per run (named after the run), σ of each on every run."""
+    runs = prepared.data.run_ids
+    masks = {run: prepared.data.run == run for run in runs}
+    models: dict[str, ThermalModel] = {}
+    rows: list[SigmaRow] = []
+    for model_run in tqdm(runs, desc="per-run models", disable=not progress, leave=False):
+        train = masks[model_run]
+        model = factory().fit(prepared.inputs.take(train), prepared.error_um[train])
+        models[model_run] = model
+        for data_run in runs:
+            test = masks[data_run]
+            acc = accuracy(prepared.error_um[test], model.predict(prepared.inputs.take(test)))
+            rows.append(
+                SigmaRow(
+                    model=model_run,
+                    model_regime=regime_of_run[model_run],
+                    data=data_run,
+                    data_regime=regime_of_run[data_run],
+                    sigma_um=acc.sigma_um,
+                )
+            )
+    return models, rows

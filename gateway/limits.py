@@ -43,6 +43,11 @@ class CompensationLimits:
     hold_on_loss_s: float = 60.0
 
     def __post_init__(self) -> None:
+        self._check_format()
+        self._check_magnitudes()
+
+    def _check_format(self) -> None:
+        """The CNC side: unit, sign convention and decimals of the macro variable."""
         if self.unit not in UM_PER_UNIT:
             raise ValueError(f"CompensationLimits.unit must be 'mm' or 'um', got {self.unit!r}")
         if self.sign not in (1, -1) or isinstance(self.sign, bool):
@@ -51,6 +56,9 @@ class CompensationLimits:
             raise ValueError(f"CompensationLimits.decimals must be an int, got {self.decimals!r}")
         if not 0 <= self.decimals <= 9:
             raise ValueError(f"CompensationLimits.decimals must be in 0..9, got {self.decimals}")
+
+    def _check_magnitudes(self) -> None:
+        """The owner's limits: clamp, slew, deadband, fallback ramp and hold time."""
         if not (math.isfinite(self.clamp_um) and self.clamp_um > 0):
             raise ValueError(
                 f"CompensationLimits.clamp_um must be > 0 (0 would forbid any compensation), "

@@ -72,8 +72,6 @@ class Quality(StrEnum):
     BAD = "bad"
 
 
-
-
 @dataclass(frozen=True)
 class SensorCheck:
     """The verdict on one sensor for one cycle; ``reason`` is None when GOOD."""
@@ -153,15 +151,7 @@ class QualityMonitor:
         ``reference_C``: the machine's cold reference; with it (and a plausibility
         check) the sensors are also judged against each other, by their rises.
         """
-        unknown = [s for s in readings if s not in self._states]
-        if unknown:
-            raise ValueError(f"readings for unknown sensors {unknown}")
-        if self._last_now_s is not None and now_s <= self._last_now_s:
-            raise ValueError(f"now_s must increase: {now_s} after {self._last_now_s}")
-        if self._start_s is None:
-            self._start_s = now_s
-        self._last_now_s = now_s
-
+        self._advance(now_s, readings)
         # First the per-sensor checks that need no other sensor, then "stuck",
         # which needs every sensor's history up to this cycle.
         plausible: dict[str, float] = {}
@@ -188,16 +178,40 @@ class QualityMonitor:
         for name, result in results.items():
             self._states[name].last_check = result
         if self.plausibility is not None and reference_C is not None:
-            rises = {
-                name: plausible[name] - reference_C[name]
-                for name, result in results.items()
-                if result.quality is Quality.GOOD and name in plausible and name in reference_C
-            }
-            held = self.plausibility.judge(now_s, rises)
-            for name, reason in held.items():
-                if results[name].quality is Quality.GOOD:
-                    results[name] = SensorCheck(name, Quality.BAD, reason)
+            self._hold_implausible(now_s, results, plausible, reference_C)
         return {name: results[name] for name in self._states}
+
+    def _advance(
+        self, now_s: float, readings: Mapping[str, tuple[float | None, int | None]]
+    ) -> None:
+        """Refuse readings of unknown sensors and a clock that does not move forward."""
+        unknown = [s for s in readings if s not in self._states]
+        if unknown:
+            raise ValueError(f"readings for unknown sensors {unknown}")
+        if self._last_now_s is not None and now_s <= self._last_now_s:
+            raise ValueError(f"now_s must increase: {now_s} after {self._last_now_s}")
+        if self._start_s is None:
+            self._start_s = now_s
+        self._last_now_s = now_s
+
+    def _hold_implausible(
+        self,
+        now_s: float,
+        results: dict[str, SensorCheck],
+        plausible: Mapping[str, float],
+        reference_C: Mapping[str, float],
+    ) -> None:
+        """Turn GOOD verdicts BAD where the sensors' rises, judged together, hold them."""
+        assert self.plausibility is not None
+        rises = {
+            name: plausible[name] - reference_C[name]
+            for name, result in results.items()
+            if result.quality is Quality.GOOD and name in plausible and name in reference_C
+        }
+        held = self.plausibility.judge(now_s, rises)
+        for name, reason in held.items():
+            if results[name].quality is Quality.GOOD:
+                results[name] = SensorCheck(name, Quality.BAD, reason)
 
     def mark_implausible(self, sensor: str, reason: str) -> SensorCheck:
         """The verdict for a sensor the loop's prediction rate bound has just held."""

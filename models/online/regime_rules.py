@@ -99,24 +99,8 @@ class RegimeRules:
         if not (math.isfinite(self.min_dwell_s) and self.min_dwell_s >= 0):
             raise ValueError(f"RegimeRules.min_dwell_s must be >= 0, got {self.min_dwell_s}")
         bands = tuple(self.bands)
-        for band in bands:
-            if not band.name or "/" in band.name:
-                raise ValueError(f"RegimeRules.bands: invalid band name {band.name!r}")
-            if not band.min_rpm < band.max_rpm:
-                raise ValueError(
-                    f"RegimeRules.bands: band {band.name!r} needs min_rpm < max_rpm, "
-                    f"got [{band.min_rpm}, {band.max_rpm})"
-                )
+        _check_bands(bands)
         names = [b.name for b in bands]
-        if len(set(names)) != len(names):
-            raise ValueError(f"RegimeRules.bands: duplicate band names in {names}")
-        ordered = sorted(bands, key=lambda b: b.min_rpm)
-        for low, high in pairwise(ordered):
-            if high.min_rpm < low.max_rpm:
-                raise ValueError(
-                    f"RegimeRules.bands: {low.name!r} [{low.min_rpm}, {low.max_rpm}) overlaps "
-                    f"{high.name!r} [{high.min_rpm}, {high.max_rpm})"
-                )
         known = {VARIABLE, CONSTANT} | {f"{CONSTANT}/{n}" for n in names}
         unknown = sorted(set(self.models) - known)
         if unknown:
@@ -132,6 +116,28 @@ class RegimeRules:
             return self.models[regime]
         parent = regime.split("/", 1)[0]
         return self.models.get(parent, self.fallback_model)
+
+
+def _check_bands(bands: tuple[SpeedBand, ...]) -> None:
+    """Each band named and non-empty, names unique, no two bands overlapping."""
+    for band in bands:
+        if not band.name or "/" in band.name:
+            raise ValueError(f"RegimeRules.bands: invalid band name {band.name!r}")
+        if not band.min_rpm < band.max_rpm:
+            raise ValueError(
+                f"RegimeRules.bands: band {band.name!r} needs min_rpm < max_rpm, "
+                f"got [{band.min_rpm}, {band.max_rpm})"
+            )
+    names = [b.name for b in bands]
+    if len(set(names)) != len(names):
+        raise ValueError(f"RegimeRules.bands: duplicate band names in {names}")
+    ordered = sorted(bands, key=lambda b: b.min_rpm)
+    for low, high in pairwise(ordered):
+        if high.min_rpm < low.max_rpm:
+            raise ValueError(
+                f"RegimeRules.bands: {low.name!r} [{low.min_rpm}, {low.max_rpm}) overlaps "
+                f"{high.name!r} [{high.min_rpm}, {high.max_rpm})"
+            )
 
 
 def classify(history: Sequence[tuple[float, float]], now_s: float, rules: RegimeRules) -> str:

@@ -38,7 +38,7 @@ INNER_BLOCKS = 5
 #: Up to this many training runs the nested choice leaves one run out at a time ...
 INNER_GROUPED_ABOVE_RUNS = 10
 #: ... above it, this many folds of consecutive runs (the cost stays bounded per fit).
-INNER_FOLDS = 8
+INNER_FOLDS = 5
 
 
 def inner_groups(inputs: ModelInputs) -> np.ndarray:

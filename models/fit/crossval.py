@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -60,16 +61,20 @@ def fold_labels(prepared: Prepared) -> tuple[str, np.ndarray]:
     return f"leave-one-block-out ({BLOCKS} contiguous blocks of the single run)", labels
 
 
+#: From this many folds on, the folds are fitted in parallel processes (one per core).
+PARALLEL_FROM_FOLDS = 12
+
+
 def cross_validate(factory: ModelFactory, prepared: Prepared, progress: bool = False) -> Validation:
     scheme, labels = fold_labels(prepared)
     folds = tuple(dict.fromkeys(labels))
     predicted = np.empty(prepared.data.n_samples)
     per_fold: dict[str, Accuracy] = {}
-    for fold in tqdm(folds, desc="held-out folds", disable=not progress, leave=False):
+    held_out = _held_out(factory, prepared, labels, folds, progress)
+    for fold, values in zip(folds, held_out, strict=True):
         test = labels == fold
-        model = factory().fit_rows(prepared.inputs, prepared.error_um, ~test)
-        predicted[test] = model.predict_rows(prepared.inputs, test)
-        per_fold[fold] = accuracy(prepared.error_um[test], predicted[test])
+        predicted[test] = values
+        per_fold[fold] = accuracy(prepared.error_um[test], values)
     return Validation(
         scheme=scheme,
         folds=folds,
@@ -77,6 +82,37 @@ def cross_validate(factory: ModelFactory, prepared: Prepared, progress: bool = F
         pooled=accuracy(prepared.error_um, predicted),
         predicted_um=predicted,
     )
+
+
+def _held_out(
+    factory: ModelFactory, prepared: Prepared, labels: np.ndarray, folds: tuple, progress: bool
+) -> list[np.ndarray]:
+    """Each fold's rows predicted by a model fitted on the other folds, in fold order.
+
+    Folds are independent, so with many of them (a plant's months of runs) they are
+    fitted in worker processes, one per core, each held to one BLAS thread; the
+    predictions are the same as fitted one after another.
+    """
+    workers = min(os.cpu_count() or 1, len(folds))
+    if len(folds) < PARALLEL_FROM_FOLDS or workers < 2:
+        iterator = tqdm(folds, desc="held-out folds", disable=not progress, leave=False)
+        return [_fold(factory, prepared, labels == fold) for fold in iterator]
+    from joblib import Parallel, delayed
+
+    jobs = (delayed(_fold_one_thread)(factory, prepared, labels == fold) for fold in folds)
+    return list(Parallel(n_jobs=workers)(jobs))
+
+
+def _fold(factory: ModelFactory, prepared: Prepared, test: np.ndarray) -> np.ndarray:
+    model = factory().fit_rows(prepared.inputs, prepared.error_um, ~test)
+    return model.predict_rows(prepared.inputs, test)
+
+
+def _fold_one_thread(factory: ModelFactory, prepared: Prepared, test: np.ndarray) -> np.ndarray:
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(1):
+        return _fold(factory, prepared, test)
 
 
 def cross_evaluate(

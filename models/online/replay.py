@@ -63,6 +63,7 @@ from models.data.features import Prepared
 from models.data.lag_terms import first_order_lag
 from models.estimators.lag_ridge import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, lag_terms
 from models.estimators.registry import make_model
+from models.estimators.ridge_pls import grouped_runs
 from models.fit.metrics import accuracy
 from models.online.correction import CorrectionParams, OnlineCorrection
 
@@ -202,8 +203,9 @@ class LaggedFeatures:
         interval_s: float,
         lag_ridge_terms: bool = False,
     ):
-        """``lag_ridge_terms``: the terms of ``models.estimators.lag_ridge`` (sensors and speed powers with
-        their lags at its ten τ, one set) and its grid, instead of two τ sets of sensor lags."""
+        """``lag_ridge_terms``: the terms of ``models.estimators.lag_ridge`` (sensors and speed
+        powers with their lags at its ten τ, one set) and its grid, instead of two τ sets of
+        sensor lags."""
         self.prepared = prepared
         data = prepared.data
         rises = prepared.inputs.columns(tuple(sensors))
@@ -364,6 +366,84 @@ def choose_filter(
 
 # Hundreds of small solves: one BLAS thread is faster than several fighting for cores.
 @threadpool_limits.wrap(limits=1)
+class _ReplayBase:
+    """The replay's base model: its prediction on every row, fitted on a set of runs.
+
+    Kept apart from the replay loop so each of the three bases (lagged, declared,
+    augmented) is one small branch and the lagged features are built once per set
+    of sensors used.
+    """
+
+    def __init__(
+        self,
+        prepared: Prepared,
+        base: str,
+        method: str,
+        sensors: Sequence[str] | None,
+        document: dict[str, Any] | None,
+        defaults: CorrectionParams,
+        interval_s: float,
+    ) -> None:
+        self.prepared, self.base, self.method, self.sensors = prepared, base, method, sensors
+        self.defaults, self.interval_s = defaults, interval_s
+        data = prepared.data
+        self.slices = dict(data.run_slices())
+        self.masks = {r: data.run == r for r in data.run_ids}
+        self._lagged: dict[tuple[str, ...], LaggedFeatures] = {}  # by the sensors a model uses
+        self.design = stored_design(document, prepared) if base == "augmented" else None
+        self.grams = {}
+        if self.design is not None:
+            y = prepared.error_um
+            for r, rows in self.slices.items():
+                self.grams[r] = (
+                    self.design[rows].T @ self.design[rows],
+                    self.design[rows].T @ y[rows],
+                )
+
+    def features(self, train_runs: list[str]) -> LaggedFeatures:
+        train = np.any([self.masks[r] for r in train_runs], axis=0)
+        used = _used_sensors(self.prepared, self.method, self.sensors, train)
+        if used not in self._lagged:
+            self._lagged[used] = LaggedFeatures(
+                self.prepared, used, self.interval_s, self.method == "lag-ridge"
+            )
+        return self._lagged[used]
+
+    def fitted(self, train_runs: list[str]) -> tuple[np.ndarray, dict[str, Any]]:
+        """Base prediction on every row from ``train_runs``, and what was chosen."""
+        if self.base == "declared":
+            train = np.any([self.masks[r] for r in train_runs], axis=0)
+            return _declared_prediction(self.prepared, self.method, self.sensors, train), {}
+        if self.design is not None:  # least squares from the runs' Gram sums
+            g = sum(self.grams[r][0] for r in train_runs)
+            c = sum(self.grams[r][1] for r in train_runs)
+            beta, *_ = np.linalg.lstsq(g, c, rcond=1e-12)
+            return self.design @ beta, {}
+        features = self.features(train_runs)
+        return _choose_lagged(features, train_runs, self.defaults, self.interval_s)
+
+    def inner_residual(self, train_runs: list[str], chosen: dict[str, Any]) -> np.ndarray:
+        """Residual of every training run predicted without it (or without its fold of runs).
+
+        Up to ``INNER_GROUPED_ABOVE_RUNS`` training runs each run is left out alone;
+        above, ``INNER_FOLDS`` folds of consecutive runs, so a replay over many runs
+        costs a bounded number of base fits per held-out run.
+        """
+        y = self.prepared.error_um
+        features = self.features(train_runs) if self.base == "lagged" else None
+        residual = np.empty(y.size)
+        folds = grouped_runs(np.arange(len(train_runs)))
+        for fold in np.unique(folds):
+            left_out = [r for r, f in zip(train_runs, folds, strict=True) if f == fold]
+            rest = [r for r in train_runs if r not in left_out]
+            predicted, _ = (
+                _fit_lagged(features, chosen, rest) if features is not None else self.fitted(rest)
+            )
+            for run in left_out:
+                residual[self.slices[run]] = y[self.slices[run]] - predicted[self.slices[run]]
+        return residual
+
+
 def replay_interval(
     prepared: Prepared,
     interval_min: float,
@@ -379,74 +459,41 @@ def replay_interval(
         raise ValueError(f"unknown base {base!r}; expected one of {BASES}")
     defaults = defaults or CorrectionParams()
     interval_s = 60.0 * interval_min
-    data = prepared.data
-    runs = list(data.run_ids)
+    runs = list(prepared.data.run_ids)
     if len(runs) < 3:
         raise ValueError(f"replay needs at least 3 runs for nested validation, found {len(runs)}")
-    slices = dict(data.run_slices())
-    masks = {r: data.run == r for r in runs}
-    y = prepared.error_um
-    lagged: dict[tuple[str, ...], LaggedFeatures] = {}  # by the sensors a fold's model uses
-
-    def lagged_features(train_runs: list[str]) -> LaggedFeatures:
-        train = np.any([masks[r] for r in train_runs], axis=0)
-        used = _used_sensors(prepared, method, sensors, train)
-        if used not in lagged:
-            lagged[used] = LaggedFeatures(prepared, used, interval_s, method == "lag-ridge")
-        return lagged[used]
-
-    design = stored_design(document, prepared) if base == "augmented" else None
-    grams = (
-        {
-            r: (design[slices[r]].T @ design[slices[r]], design[slices[r]].T @ y[slices[r]])
-            for r in runs
-        }
-        if design is not None
-        else {}
-    )
-
-    def fitted(train_runs: list[str]) -> tuple[np.ndarray, dict[str, Any]]:
-        """Base prediction on every row from ``train_runs``, and what was chosen."""
-        train = np.any([masks[r] for r in train_runs], axis=0)
-        if base == "declared":
-            return _declared_prediction(prepared, method, sensors, train), {}
-        if base == "augmented":
-            assert design is not None  # least squares from the runs' Gram sums
-            g = sum(grams[r][0] for r in train_runs)
-            c = sum(grams[r][1] for r in train_runs)
-            beta, *_ = np.linalg.lstsq(g, c, rcond=1e-12)
-            return design @ beta, {}
-        return _choose_lagged(lagged_features(train_runs), train_runs, defaults, interval_s)
-
+    model = _ReplayBase(prepared, base, method, sensors, document, defaults, interval_s)
     result_runs: list[RunReplay] = []
-    base_residual = np.empty(y.size)
+    base_residual = np.empty(prepared.error_um.size)
     choices: dict[str, dict[str, Any]] = {}
     for held in runs:
         train_runs = [r for r in runs if r != held]
-        predicted, chosen = fitted(train_runs)
-        features = lagged_features(train_runs) if base == "lagged" else None
-        inner_residual = np.empty(y.size)
-        for inner in train_runs:
-            inner_pred, _ = (
-                _fit_lagged(features, chosen, [r for r in train_runs if r != inner])
-                if features is not None
-                else fitted([r for r in train_runs if r != inner])
-            )
-            inner_residual[slices[inner]] = y[slices[inner]] - inner_pred[slices[inner]]
+        predicted, chosen = model.fitted(train_runs)
+        inner_residual = model.inner_residual(train_runs, chosen)
         params = choose_filter(prepared, inner_residual, train_runs, interval_s, defaults, kinds)
-        rows = slices[held]
-        residual = y[rows] - predicted[rows]
-        base_residual[rows] = residual
-        applied, probe_at, correction = replay_run(
-            params, data.time_s[rows], residual, interval_s, predicted[rows]
-        )
-        at_probe = np.zeros(residual.size, dtype=bool)
-        at_probe[probe_at] = True
-        result_runs.append(
-            RunReplay(held, residual - applied, at_probe, int(probe_at.size), correction.refused)
-        )
+        rows = model.slices[held]
+        base_residual[rows] = prepared.error_um[rows] - predicted[rows]
+        result_runs.append(_replay_held(prepared, held, rows, params, predicted, interval_s))
         choices[held] = chosen | {"filter": filter_choice(params)}
     return IntervalResult(interval_min, result_runs, base_residual, choices)
+
+
+def _replay_held(
+    prepared: Prepared,
+    held: str,
+    rows: slice,
+    params: CorrectionParams,
+    predicted: np.ndarray,
+    interval_s: float,
+) -> RunReplay:
+    """The held-out run replayed causally through the chosen filter."""
+    residual = prepared.error_um[rows] - predicted[rows]
+    applied, probe_at, correction = replay_run(
+        params, prepared.data.time_s[rows], residual, interval_s, predicted[rows]
+    )
+    at_probe = np.zeros(residual.size, dtype=bool)
+    at_probe[probe_at] = True
+    return RunReplay(held, residual - applied, at_probe, int(probe_at.size), correction.refused)
 
 
 def filter_choice(params: CorrectionParams) -> dict[str, Any]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -468,105 +469,151 @@ def random_prediction(rng: np.random.Generator, level_um: float) -> float | None
     return level_um + float(rng.normal(0.0, 0.3))
 
 
+@dataclass
+class PolicyRun:
+    """What the property test knows of the CNC between decisions."""
+
+    limits: CompensationLimits
+    now: float
+    applied_since: float | None = None  # when the applied value was last set (confirm, observe)
+    confirmed: tuple[float, float] | None = None  # (time, value) of the last value set
+    previous_decision_s: float = 0.0
+    last_usable_s: float | None = None
+    writes: int = 0
+    externals: int = 0
+
+    @property
+    def max_rate(self) -> float:
+        return max(self.limits.slew_um_per_min, self.limits.ramp_um_per_min)
+
+
+def read_back(policy: CompensationPolicy, run: PolicyRun, rng, external_rate: float) -> None:
+    """The macro is read before every decision; now and then someone else wrote it."""
+    limits = run.limits
+    believed_um = policy.applied_um
+    if rng.random() < external_rate:
+        held_cnc = policy.to_cnc(float(rng.uniform(-1.2, 1.2) * limits.clamp_um))
+    else:
+        held_cnc = policy.to_cnc(believed_um)
+    change = policy.observe(run.now, held_cnc)
+    if policy.same_on_cnc(held_cnc, policy.to_cnc(believed_um)):
+        assert change is None and policy.applied_um == believed_um
+    else:
+        assert change is not None and change.believed_um == believed_um
+        assert policy.applied_um == change.held_um == policy.from_cnc(held_cnc)
+        run.externals += 1
+        run.applied_since, run.confirmed = run.now, (run.now, change.held_um)
+    assert policy.external_changes == run.externals
+
+
+def assert_decision_format(policy: CompensationPolicy, decision) -> None:
+    """Never outside the clamp, before or after the CNC's rounding; written in its format."""
+    limits = policy.limits
+    assert abs(decision.target_um) <= limits.clamp_um + 1e-9
+    assert abs(policy.from_cnc(decision.value_cnc)) <= limits.clamp_um + 1e-9
+    # What is written is the target in the CNC's unit, sign and precision.
+    assert decision.value_cnc == policy.to_cnc(decision.target_um)
+    assert decision.value_cnc == round(decision.value_cnc, limits.decimals)
+    assert decision.target_um == policy.from_cnc(decision.value_cnc)
+
+
+def assert_deadband_and_slew(run: PolicyRun, decision, applied_before: float) -> None:
+    """Deadband: write exactly when the change is worth it (or nothing is confirmed
+    yet); a ramp to zero writes its final 0 however small. Slew: from the last applied
+    value, and never more than one cycle past the deadband; rounding never carries a
+    step past its budget."""
+    limits = run.limits
+    first = run.confirmed is None
+    change_um = abs(decision.target_um - applied_before)
+    zeroing = "ramping to zero" in decision.reason and decision.target_um == 0.0
+    worth = change_um >= limits.deadband_um or zeroing
+    assert decision.write == (first or (change_um > 0 and worth))
+    if not first and abs(applied_before) <= limits.clamp_um + 1e-9:
+        assert run.applied_since is not None
+        banked = run.max_rate * (run.now - run.applied_since) / 60.0
+        per_cycle = run.max_rate * (run.now - run.previous_decision_s) / 60.0
+        assert change_um <= min(banked, limits.deadband_um + limits.step_um + per_cycle) + 1e-9
+
+
+def assert_loss_handling(
+    run: PolicyRun, decision, applied_before: float, usable: bool, enabled: bool
+) -> None:
+    """No prediction or switched off: never away from zero; within the hold, no move."""
+    limits = run.limits
+    if not usable or not enabled:
+        assert decision.target_um * applied_before >= 0.0
+        assert abs(decision.target_um) <= abs(applied_before) + limits.step_um / 2 + 1e-9
+    if enabled and not usable:
+        assert "no prediction" in decision.reason
+        assert run.last_usable_s is not None
+        holding = run.now - run.last_usable_s < limits.hold_on_loss_s
+        assert ("holding" in decision.reason) == holding
+        inside_clamp = abs(applied_before) <= limits.clamp_um + 1e-9
+        if holding and run.confirmed is not None and inside_clamp:
+            assert decision.target_um == applied_before
+    if not enabled:
+        assert "compensation disabled" in decision.reason
+
+
+def write_outcome(
+    policy: CompensationPolicy, run: PolicyRun, rng, decision, applied_before: float, fail: float
+) -> None:
+    """The write fails at random or is confirmed; consecutive applied values keep the slew."""
+    now = run.now
+    if rng.random() < fail:
+        policy.reject(now, "random failure")
+        assert policy.applied_um == applied_before  # a failed write never moves it
+        return
+    value = policy.from_cnc(decision.value_cnc)
+    policy.confirm(now, value)
+    if run.confirmed is not None and abs(run.confirmed[1]) <= run.limits.clamp_um + 1e-9:
+        # Consecutive applied values: |Δ| <= slew · (t2 - t1) / 60.
+        t1, v1 = run.confirmed
+        assert abs(value - v1) <= run.max_rate * (now - t1) / 60.0 + 1e-9
+    run.applied_since, run.confirmed = now, (now, value)
+    run.writes += 1
+
+
 @pytest.mark.parametrize("seed", range(20))
 def test_guarantees_hold_for_random_predictions_failures_and_external_changes(seed):
     rng = np.random.default_rng(seed)
     limits = random_limits(rng)
-    step = limits.step_um
-    max_rate = max(limits.slew_um_per_min, limits.ramp_um_per_min)
     start_um = float(rng.uniform(-limits.clamp_um, limits.clamp_um))
     policy = CompensationPolicy(limits, start_um=start_um)
     failure_rate = float(rng.uniform(0.0, 0.5))
     external_rate = float(rng.uniform(0.0, 0.05))
 
-    now = float(rng.uniform(0, 1e6))
-    applied_since: float | None = None  # when the applied value was last set (confirm, observe)
-    confirmed: tuple[float, float] | None = None  # (time, value) of the last value set
-    previous_decision_s = now
-    last_usable_s: float | None = None
+    run = PolicyRun(limits, now=float(rng.uniform(0, 1e6)))
+    run.previous_decision_s = run.now
     level_um = 0.0
-    writes = externals = 0
     for _ in range(2000):
-        now += float(rng.choice([rng.uniform(0.1, 5.0), rng.uniform(5.0, 900.0)], p=[0.95, 0.05]))
+        run.now += float(
+            rng.choice([rng.uniform(0.1, 5.0), rng.uniform(5.0, 900.0)], p=[0.95, 0.05])
+        )
         if rng.random() < 0.02:
             level_um = float(rng.uniform(-1.5, 1.5) * limits.clamp_um)  # model switch, outage
-
-        # The macro is read before every decision; now and then someone else wrote it.
-        believed_um = policy.applied_um
-        if rng.random() < external_rate:
-            held_cnc = policy.to_cnc(float(rng.uniform(-1.2, 1.2) * limits.clamp_um))
-        else:
-            held_cnc = policy.to_cnc(believed_um)
-        change = policy.observe(now, held_cnc)
-        if policy.same_on_cnc(held_cnc, policy.to_cnc(believed_um)):
-            assert change is None and policy.applied_um == believed_um
-        else:
-            assert change is not None and change.believed_um == believed_um
-            assert policy.applied_um == change.held_um == policy.from_cnc(held_cnc)
-            externals += 1
-            applied_since, confirmed = now, (now, change.held_um)
-        assert policy.external_changes == externals
-        now += float(rng.uniform(0.0, 2.0))  # the write comes a little after the read
+        read_back(policy, run, rng, external_rate)
+        run.now += float(rng.uniform(0.0, 2.0))  # the write comes a little after the read
 
         predicted = random_prediction(rng, level_um)
         enabled = rng.random() > 0.05
         usable = predicted is not None and math.isfinite(predicted)
-        if usable or last_usable_s is None:
-            last_usable_s = now
+        if usable or run.last_usable_s is None:
+            run.last_usable_s = run.now
         applied_before = policy.applied_um
-        decision = policy.decide(now, predicted, enabled=enabled)
-        first = confirmed is None
-        inside_clamp = abs(applied_before) <= limits.clamp_um + 1e-9
-
-        # Never outside the clamp, before or after the CNC's rounding.
-        assert abs(decision.target_um) <= limits.clamp_um + 1e-9
-        assert abs(policy.from_cnc(decision.value_cnc)) <= limits.clamp_um + 1e-9
-        # What is written is the target in the CNC's unit, sign and precision.
-        assert decision.value_cnc == policy.to_cnc(decision.target_um)
-        assert decision.value_cnc == round(decision.value_cnc, limits.decimals)
-        assert decision.target_um == policy.from_cnc(decision.value_cnc)
-        # Deadband: write exactly when the change is worth it (or nothing is confirmed
-        # yet); a ramp to zero writes its final 0 however small.
-        change_um = abs(decision.target_um - applied_before)
-        zeroing = "ramping to zero" in decision.reason and decision.target_um == 0.0
-        worth = change_um >= limits.deadband_um or zeroing
-        assert decision.write == (first or (change_um > 0 and worth))
-        # Slew: from the last applied value, and never more than one cycle past the
-        # deadband; rounding never carries a step past its budget.
-        if not first and inside_clamp:
-            assert applied_since is not None
-            banked = max_rate * (now - applied_since) / 60.0
-            per_cycle = max_rate * (now - previous_decision_s) / 60.0
-            assert change_um <= min(banked, limits.deadband_um + step + per_cycle) + 1e-9
-        # No prediction or switched off: never away from zero; within the hold, no move.
-        if not usable or not enabled:
-            assert decision.target_um * applied_before >= 0.0
-            assert abs(decision.target_um) <= abs(applied_before) + step / 2 + 1e-9
-        if enabled and not usable:
-            assert "no prediction" in decision.reason
-            holding = now - last_usable_s < limits.hold_on_loss_s
-            assert ("holding" in decision.reason) == holding
-            if holding and not first and inside_clamp:
-                assert decision.target_um == applied_before
-        if not enabled:
-            assert "compensation disabled" in decision.reason
-        previous_decision_s = now
+        decision = policy.decide(run.now, predicted, enabled=enabled)
+        assert_decision_format(policy, decision)
+        assert_deadband_and_slew(run, decision, applied_before)
+        assert_loss_handling(run, decision, applied_before, usable, enabled)
+        run.previous_decision_s = run.now
 
         if decision.write:
-            if rng.random() < failure_rate:
-                policy.reject(now, "random failure")
-                assert policy.applied_um == applied_before  # a failed write never moves it
-            else:
-                value = policy.from_cnc(decision.value_cnc)
-                policy.confirm(now, value)
-                if confirmed is not None and abs(confirmed[1]) <= limits.clamp_um + 1e-9:
-                    # Consecutive applied values: |Δ| <= slew · (t2 - t1) / 60.
-                    t1, v1 = confirmed
-                    assert abs(value - v1) <= max_rate * (now - t1) / 60.0 + 1e-9
-                applied_since, confirmed = now, (now, value)
-                writes += 1
-        assert abs(policy.applied_um) <= limits.clamp_um + 1e-9 or confirmed is None or externals
-    assert writes > 20
+            write_outcome(policy, run, rng, decision, applied_before, failure_rate)
+        confirmed = run.confirmed
+        assert (
+            abs(policy.applied_um) <= limits.clamp_um + 1e-9 or confirmed is None or run.externals
+        )
+    assert run.writes > 20
     assert policy.failed_writes >= 0
 
 

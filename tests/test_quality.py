@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -330,6 +331,58 @@ def test_bad_samples_break_a_constant_run():
 # --- property-style: the flag never trusts what it must not ------------------------------
 
 
+def random_reading(rng: np.random.Generator, true_C: float) -> tuple[float | None, int | None]:
+    """A reading of a sensor at ``true_C``: mostly right, sometimes wild, faulty or missed."""
+    roll = rng.random()
+    if roll < 0.05:
+        return (float(rng.uniform(-100, 900)), 0)  # wild value
+    if roll < 0.08:
+        return (float(rng.choice([math.nan, math.inf])), 0)
+    if roll < 0.12:
+        return (true_C, int(rng.integers(1, 4)))  # fault
+    if roll < 0.25:
+        return (None, None)  # missed
+    return (true_C, 0)
+
+
+@dataclass
+class SensorTrack:
+    """What the property test remembers of one sensor between cycles."""
+
+    streak: int = 0  # consecutive passing checks with a value
+    last_good_s: float | None = None
+    previous: SensorCheck | None = None
+
+
+def assert_verdict_sound(
+    monitor: QualityMonitor,
+    limits: QualityLimits,
+    now: float,
+    reading: tuple[float | None, int | None],
+    check: SensorCheck,
+    track: SensorTrack,
+) -> None:
+    """One sensor's verdict of one cycle is consistent with its reading and its history."""
+    value, status = reading
+    assert (check.reason is None) == (check.quality is GOOD)
+    if value is None and status in (None, 0):
+        if track.last_good_s is not None and now - track.last_good_s <= limits.stale_s:
+            assert check == track.previous
+        if check.reason and check.reason.startswith("stale"):
+            track.streak = 0
+        return
+    passing = check.quality is GOOD or check.reason.startswith("recovering")
+    track.streak = track.streak + 1 if passing else 0
+    if check.quality is GOOD:
+        assert status == 0
+        assert limits.min_C <= value <= limits.max_C
+        was_good = track.previous is not None and track.previous.quality is GOOD
+        assert was_good or track.streak >= limits.recover_cycles
+    if passing:
+        assert monitor.last_good(check.sensor) == value
+        track.last_good_s = now
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_random_readings_never_yield_an_implausible_good(seed):
     rng = np.random.default_rng(seed)
@@ -343,50 +396,20 @@ def test_random_readings_never_yield_an_implausible_good(seed):
     sensors = ["T1", "T2", "T3"]
     monitor = QualityMonitor(sensors, limits)
     true_C = {s: 25.0 for s in sensors}
-    streak = dict.fromkeys(sensors, 0)  # consecutive passing checks with a value
-    last_good_s: dict[str, float | None] = dict.fromkeys(sensors)
-    previous: dict[str, SensorCheck | None] = dict.fromkeys(sensors)
+    tracks = {s: SensorTrack() for s in sensors}
     now = 0.0
     for _ in range(3000):
         now += float(rng.uniform(0.2, 3.0))
         readings = {}
         for s in sensors:
             true_C[s] += float(rng.normal(0.0, 0.05))
-            roll = rng.random()
-            if roll < 0.05:
-                readings[s] = (float(rng.uniform(-100, 900)), 0)  # wild value
-            elif roll < 0.08:
-                readings[s] = (float(rng.choice([math.nan, math.inf])), 0)
-            elif roll < 0.12:
-                readings[s] = (true_C[s], int(rng.integers(1, 4)))  # fault
-            elif roll < 0.25:
-                readings[s] = (None, None)  # missed
-            else:
-                readings[s] = (true_C[s], 0)
+            readings[s] = random_reading(rng, true_C[s])
         checks = monitor.check(now, readings)
         for s in sensors:
-            value, status = readings[s]
-            check = checks[s]
-            assert check.sensor == s
-            assert (check.reason is None) == (check.quality is GOOD)
-            if value is None and status in (None, 0):
-                if last_good_s[s] is not None and now - last_good_s[s] <= limits.stale_s:
-                    assert check == previous[s]
-                if check.reason and check.reason.startswith("stale"):
-                    streak[s] = 0
-                continue
-            passing = check.quality is GOOD or check.reason.startswith("recovering")
-            streak[s] = streak[s] + 1 if passing else 0
-            if check.quality is GOOD:
-                assert status == 0
-                assert limits.min_C <= value <= limits.max_C
-                was_good = previous[s] is not None and previous[s].quality is GOOD
-                assert was_good or streak[s] >= limits.recover_cycles
-            if passing:
-                assert monitor.last_good(s) == value
-                last_good_s[s] = now
+            assert checks[s].sensor == s
+            assert_verdict_sound(monitor, limits, now, readings[s], checks[s], tracks[s])
         for s in sensors:
-            previous[s] = checks[s]
+            tracks[s].previous = checks[s]
             good = monitor.last_good(s)
             assert good is None or (math.isfinite(good) and -20.0 <= good <= 120.0)
 

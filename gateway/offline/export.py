@@ -106,107 +106,161 @@ def export_runs(
     cycles = read(CYCLE_MEASUREMENT)
     temperatures = read(TEMPERATURE_MEASUREMENT)
     probes = read(PROBE_MEASUREMENT)
-
-    implausible = 0
-
-    def plausible(value: float, low: float, high: float) -> bool:
-        nonlocal implausible
-        if low <= value <= high:  # False for NaN
-            return True
-        implausible += 1
-        return False
-
-    speed: dict[int, float] = {}
-    for point in cycles:
-        value = point.fields.get("speed_rpm")
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            continue
-        if plausible(float(value), SPEED_RPM.low, SPEED_RPM.high):
-            speed[point.time_ns] = float(value)
-    readings: dict[int, dict[str, float | None]] = {}
-    sensors: set[str] = set()
-    for point in temperatures:
-        sensor = point.tags.get("sensor")
-        value = point.fields.get("value_C")
-        if sensor is None or not isinstance(value, int | float) or isinstance(value, bool):
-            continue
-        sensors.add(sensor)
-        good = point.tags.get("quality", "good") == "good"
-        keep = plausible(float(value), TEMPERATURE_C.low, TEMPERATURE_C.high)
-        readings.setdefault(point.time_ns, {})[sensor] = (
-            float(value) if keep and (good or not good_only) else None
-        )
-
+    check = _Plausible()
+    speed = _speeds(cycles, check)
+    readings, sensors = _readings(temperatures, check, good_only)
     times = sorted({p.time_ns for p in cycles} | set(readings))
     if not times:
         raise ExportError(f"no cycles of machine '{machine}' in the time window")
     cycle_ns = _cycle_ns(times, cycle_s)
     run_of = _runs(times, cycle_ns, gap_factor, machine)
-
-    error: dict[int, float] = {}  # row index → probe value
-    for point in sorted(probes, key=lambda p: p.time_ns):
-        value = point.fields.get("error_um")
-        if not isinstance(value, int | float) or isinstance(value, bool):
-            continue
-        if not plausible(float(value), DISPLACEMENT_UM.low, DISPLACEMENT_UM.high):
-            continue
-        row = bisect.bisect_right(times, point.time_ns) - 1
-        if row >= 0 and point.time_ns - times[row] < cycle_ns:
-            error[row] = float(value)  # the last probe of the cycle wins
-
-    t_sensors = sorted((s for s in sensors if SENSOR_PATTERN.match(s)), key=_sensor_number)
-    ambient = ambient_sensor_of(sensors)
-    exported = [*t_sensors, *([ambient] if ambient else [])]
-    ignored = tuple(sorted(sensors - set(exported)))
-    # A column with no value in any exported row would make every row unusable.
-    exported = [
-        s for s in exported if any(readings.get(times[r], {}).get(s) is not None for r in error)
-    ]
-    t_columns = [s for s in exported if s != ambient]
-    columns = (
-        "run",
-        "time_s",
-        "speed_rpm",
-        *t_columns,
-        *(["ambient_C"] if ambient in exported else []),
-        "error_um",
-    )
-
+    error = _probe_rows(probes, times, cycle_ns, check)
+    layout = _Layout.of(sensors, readings, times, error)
     if not error:
         raise ExportError(
             f"none of the {len(times)} cycle(s) of machine '{machine}' in the time window "
             "has a probe (spindle_probe error_um) value"
         )
-    incomplete = 0
-    with atomic_text(out_csv) as handle:  # a full disk leaves no half file behind
-        writer = csv.writer(handle)
-        writer.writerow(columns)
-        for row, time_ns in enumerate(times):
-            if row not in error:
-                continue
-            values = readings.get(time_ns, {})
-            cells = [speed.get(time_ns), *(values.get(s) for s in exported)]
-            if any(cell is None for cell in cells):
-                incomplete += 1
-            writer.writerow(
-                [
-                    run_of[row],
-                    _number(round(time_ns / NS_PER_S - epoch_s, 6)),
-                    *(_number(cell) for cell in cells),
-                    _number(error[row]),
-                ]
-            )
+    rows = []
+    for row in sorted(error):
+        time_ns = times[row]
+        values = readings.get(time_ns, {})
+        cells = [speed.get(time_ns), *(values.get(s) for s in layout.exported)]
+        rows.append((run_of[row], round(time_ns / NS_PER_S - epoch_s, 6), cells, error[row]))
+    incomplete = _write_csv(out_csv, layout.columns, rows)
     return ExportResult(
         path=out_csv,
-        columns=columns,
+        columns=layout.columns,
         runs=tuple(dict.fromkeys(run_of[r] for r in sorted(error))),
         rows=len(error),
         rows_without_probe=len(times) - len(error),
         rows_incomplete=incomplete,
         cycle_s=cycle_ns / NS_PER_S,
-        ignored_sensors=ignored,
-        implausible_values=implausible,
+        ignored_sensors=layout.ignored,
+        implausible_values=check.implausible,
     )
+
+
+class _Plausible:
+    """Judges logged values against their unit's range and counts those that fail."""
+
+    def __init__(self) -> None:
+        self.implausible = 0
+
+    def __call__(self, value: float, low: float, high: float) -> bool:
+        if low <= value <= high:  # False for NaN
+            return True
+        self.implausible += 1
+        return False
+
+
+def _number_field(point: Point, name: str) -> float | None:
+    """The point's numeric field ``name`` (a bool or a string is no number), or None."""
+    value = point.fields.get(name)
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return None
+    return float(value)
+
+
+def _speeds(cycles: list[Point], check: _Plausible) -> dict[int, float]:
+    """time_ns → plausible spindle speed (r/min) of the cycle points."""
+    speed: dict[int, float] = {}
+    for point in cycles:
+        value = _number_field(point, "speed_rpm")
+        if value is not None and check(value, SPEED_RPM.low, SPEED_RPM.high):
+            speed[point.time_ns] = value
+    return speed
+
+
+def _readings(
+    temperatures: list[Point], check: _Plausible, good_only: bool
+) -> tuple[dict[int, dict[str, float | None]], set[str]]:
+    """time_ns → sensor → °C (None where implausible or, with ``good_only``, not good),
+    and every sensor seen."""
+    readings: dict[int, dict[str, float | None]] = {}
+    sensors: set[str] = set()
+    for point in temperatures:
+        sensor = point.tags.get("sensor")
+        value = _number_field(point, "value_C")
+        if sensor is None or value is None:
+            continue
+        sensors.add(sensor)
+        good = point.tags.get("quality", "good") == "good"
+        keep = check(value, TEMPERATURE_C.low, TEMPERATURE_C.high)
+        readings.setdefault(point.time_ns, {})[sensor] = (
+            value if keep and (good or not good_only) else None
+        )
+    return readings, sensors
+
+
+def _probe_rows(
+    probes: list[Point], times: list[int], cycle_ns: int, check: _Plausible
+) -> dict[int, float]:
+    """Row index → the probe value measured within that row's cycle (the last one wins)."""
+    error: dict[int, float] = {}
+    for point in sorted(probes, key=lambda p: p.time_ns):
+        value = _number_field(point, "error_um")
+        if value is None or not check(value, DISPLACEMENT_UM.low, DISPLACEMENT_UM.high):
+            continue
+        row = bisect.bisect_right(times, point.time_ns) - 1
+        if row >= 0 and point.time_ns - times[row] < cycle_ns:
+            error[row] = value
+    return error
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Which sensors become columns, in which order, and which are left out."""
+
+    exported: list[str]
+    columns: tuple[str, ...]
+    ignored: tuple[str, ...]
+
+    @classmethod
+    def of(
+        cls,
+        sensors: set[str],
+        readings: dict[int, dict[str, float | None]],
+        times: list[int],
+        error: dict[int, float],
+    ) -> _Layout:
+        t_sensors = sorted((s for s in sensors if SENSOR_PATTERN.match(s)), key=_sensor_number)
+        ambient = ambient_sensor_of(sensors)
+        exported = [*t_sensors, *([ambient] if ambient else [])]
+        ignored = tuple(sorted(sensors - set(exported)))
+        # A column with no value in any exported row would make every row unusable.
+        exported = [
+            s for s in exported if any(readings.get(times[r], {}).get(s) is not None for r in error)
+        ]
+        t_columns = [s for s in exported if s != ambient]
+        columns = (
+            "run",
+            "time_s",
+            "speed_rpm",
+            *t_columns,
+            *(["ambient_C"] if ambient in exported else []),
+            "error_um",
+        )
+        return cls(exported, columns, ignored)
+
+
+def _write_csv(
+    out_csv: Path,
+    columns: tuple[str, ...],
+    rows: list[tuple[str, float, list[float | None], float]],
+) -> int:
+    """Write the rows (run, time_s, cells, error_um); the number with an empty cell."""
+    incomplete = 0
+    with atomic_text(out_csv) as handle:  # a full disk leaves no half file behind
+        writer = csv.writer(handle)
+        writer.writerow(columns)
+        for run, time_s, cells, error_um in rows:
+            if any(cell is None for cell in cells):
+                incomplete += 1
+            writer.writerow(
+                [run, _number(time_s), *(_number(cell) for cell in cells), _number(error_um)]
+            )
+    return incomplete
 
 
 def _number(value: float | None) -> str:

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from models.analysis import augmented
-from models.data.dataset import load_runs
+from models.data.dataset import MeasuredRuns, load_runs
 from models.data.features import Prepared, prepare
 from models.fit.metrics import accuracy
 from models.online.replay import (
@@ -38,6 +38,12 @@ BASE_DESCRIPTIONS = {
         "every coefficient refitted without the held-out run"
     ),
 }
+
+#: Said when the augmented model was analysed on the file being replayed.
+SAME_FILE_NOTE = (
+    "note: the augmented model's effects were chosen on this file, held-out runs "
+    "included; only its coefficients are refitted without each held-out run"
+)
 
 
 def run_replay(
@@ -69,18 +75,7 @@ def run_replay(
         document = augmented.load(augmented_file)
         method = document["base"]["method"]
         base = "augmented"
-    data = load_runs(data_csv, target=target, sensors=sensors)
-    for skipped in data.skipped:
-        say(f"note: {skipped.describe()}")
-    longest_min = max(
-        (data.time_s[part][-1] - data.time_s[part][0]) / 60.0 for _, part in data.run_slices()
-    )
-    for interval in intervals_min:
-        if interval > longest_min:
-            raise ValueError(
-                f"--probe-interval-min {interval:g}: no probe would be taken, the longest run "
-                f"of {data_csv.name} lasts {longest_min:.0f} min"
-            )
+    data = _load_replayable(data_csv, target, sensors, intervals_min, say)
     prepared = prepare(data, sensors)
     described = "lagged lag-ridge" if base == "lagged" and method == "lag-ridge" else base
     say(
@@ -88,10 +83,7 @@ def run_replay(
         f"model {method}; base: {BASE_DESCRIPTIONS[described]}"
     )
     if document is not None and Path(document["provenance"]["source_file"]).name == data_csv.name:
-        say(
-            "note: the augmented model's effects were chosen on this file, held-out runs "
-            "included; only its coefficients are refitted without each held-out run"
-        )
+        say(SAME_FILE_NOTE)
     offline = offline_accuracy(prepared, method, sensors)
     online = [
         replay_interval(
@@ -106,6 +98,63 @@ def run_replay(
         for m in intervals_min
     ]
     rows = [r.as_dict() for r in online]
+    _say_table(method, offline, rows, say)
+    stored = None
+    if store_dir is not None:
+        if base != "lagged":
+            raise ValueError(
+                "--store saves the lagged base; it cannot be combined with --base "
+                "declared or --augmented"
+            )
+        store_args = (method, sensors, offline, store_dir, version, say, filter_kinds)
+        stored = store_lagged(prepared, intervals_min[0], *store_args)
+    elapsed = time.perf_counter() - started
+    say(f"leave-one-run-out, causal; {elapsed:.1f} s")
+    return {
+        "target": target,
+        "model": method,
+        "validation": "leave-one-run-out",
+        "base": {"kind": base, "description": BASE_DESCRIPTIONS[described]},
+        "augmented_model": None if document is None else document["model_id"],
+        "offline": offline,
+        "online": rows,
+        "filter_kinds_offered": list(filter_kinds),
+        "reference": prepared.plan.describe(),
+        "stored_model": stored,
+        "elapsed_s": round(elapsed, 2),
+    }
+
+
+def _load_replayable(
+    data_csv: Path,
+    target: str,
+    sensors: Sequence[str] | None,
+    intervals_min: Sequence[float],
+    say: Callable[[str], None],
+) -> MeasuredRuns:
+    """The runs of DATA_CSV, refused when no interval would take a single probe."""
+    data = load_runs(data_csv, target=target, sensors=sensors)
+    for skipped in data.skipped:
+        say(f"note: {skipped.describe()}")
+    longest_min = max(
+        (data.time_s[part][-1] - data.time_s[part][0]) / 60.0 for _, part in data.run_slices()
+    )
+    for interval in intervals_min:
+        if interval > longest_min:
+            raise ValueError(
+                f"--probe-interval-min {interval:g}: no probe would be taken, the longest run "
+                f"of {data_csv.name} lasts {longest_min:.0f} min"
+            )
+    return data
+
+
+def _say_table(
+    method: str,
+    offline: dict[str, Any],
+    rows: list[dict[str, Any]],
+    say: Callable[[str], None],
+) -> None:
+    """The accuracy table (offline, then one line per interval) and each run's choice."""
     say(
         f"{'probe every':>12} {'RMSE µm':>8} {'between µm':>10} {'max µm':>8} "
         f"{'probes':>6} {'refused':>7}"
@@ -124,39 +173,6 @@ def run_replay(
         say(f"chosen without the held-out run, probe every {row['probe_interval_min']:g} min:")
         for run, figures in row["per_run"].items():
             say(f"  {run:<14} {figures['rmse_um']:6.2f} µm  {describe_choice(figures['chosen'])}")
-    stored = None
-    if store_dir is not None:
-        if base != "lagged":
-            raise ValueError(
-                "--store saves the lagged base; it cannot be combined with --base "
-                "declared or --augmented"
-            )
-        stored = store_lagged(
-            prepared,
-            intervals_min[0],
-            method,
-            sensors,
-            offline,
-            store_dir,
-            version,
-            say,
-            filter_kinds,
-        )
-    elapsed = time.perf_counter() - started
-    say(f"leave-one-run-out, causal; {elapsed:.1f} s")
-    return {
-        "target": target,
-        "model": method,
-        "validation": "leave-one-run-out",
-        "base": {"kind": base, "description": BASE_DESCRIPTIONS[described]},
-        "augmented_model": None if document is None else document["model_id"],
-        "offline": offline,
-        "online": rows,
-        "filter_kinds_offered": list(filter_kinds),
-        "reference": prepared.plan.describe(),
-        "stored_model": stored,
-        "elapsed_s": round(elapsed, 2),
-    }
 
 
 def store_lagged(

@@ -14,7 +14,9 @@ import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-PROTO = HERE / "sparkplug_b.proto"
+#: The specification's file as published upstream, beside its licence (not edited here).
+VENDOR = HERE / "vendor"
+PROTO = VENDOR / "sparkplug_b.proto"
 GENERATED = HERE / "sparkplug_b_pb2.py"
 
 
@@ -23,7 +25,9 @@ def generate() -> str:
     from grpc_tools import protoc  # dev dependency: only needed to regenerate
 
     with tempfile.TemporaryDirectory() as out:
-        status = protoc.main(["protoc", f"--proto_path={HERE}", f"--python_out={out}", str(PROTO)])
+        status = protoc.main(
+            ["protoc", f"--proto_path={VENDOR}", f"--python_out={out}", str(PROTO)]
+        )
         if status != 0:
             raise RuntimeError(f"protoc failed on {PROTO} (status {status})")
         return (Path(out) / "sparkplug_b_pb2.py").read_text(encoding="utf-8")

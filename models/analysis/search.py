@@ -53,6 +53,7 @@ from models.data.dataset import MeasuredRuns
 from models.data.features import Prepared
 from models.data.lag_terms import EffectFamily, Variant, candidate_families
 from models.estimators.registry import make_model
+from models.estimators.ridge_pls import grouped_runs
 from models.fit.crossval import fold_labels
 from models.fit.metrics import Accuracy, accuracy
 
@@ -442,16 +443,22 @@ class ResidualAnalysis:
             groups.setdefault(key, []).append(f)
         designs: dict[tuple, FixedDesign] = {}
         last_built: dict[tuple, tuple[int, np.ndarray]] = {}
-        for key, folds_in_group in groups.items():
-            fixed = designs[key] = self._fixed_design(key[0], accepted, key[1:])
-            fixed_gram = self._grams(fixed, fixed)
-            fixed_cross = self._grams(fixed, self.y)
-            for vi, variant in enumerate(variants):
-                last_built.pop(key, None)  # one variant's terms in memory at a time
-                extra = self._extra(variant)
+        # Each fold group's fixed products first, then each variant's terms made once for
+        # every group (a base refitted per fold has one group per run: making the lags
+        # per group and variant cost runs × rows).
+        built: dict[tuple[int, int], np.ndarray] = {}  # accepted effects' terms, made once
+        fixed_products = {}
+        for key in groups:
+            fixed = designs[key] = self._fixed_design(key[0], accepted, key[1:], built)
+            fixed_products[key] = (self._grams(fixed, fixed), self._grams(fixed, self.y))
+        yy = self._yy
+        for vi, variant in enumerate(variants):
+            last_built.clear()  # one variant's terms in memory at a time
+            extra = self._extra(variant)
+            for key, folds_in_group in groups.items():
+                fixed = designs[key]
                 n_columns, n_added = fixed.width + extra.shape[1], extra.shape[1]
-                gram, cross = self._joined(fixed, extra, fixed_gram, fixed_cross)
-                yy = self._yy
+                gram, cross = self._joined(fixed, extra, *fixed_products[key])
                 for f in folds_in_group:
                     beta = betas[vi, f] = _solve(gram, cross, exclude=[f])
                     heldout[vi, f] = _sse(gram[f], cross[f], yy[f], beta)
@@ -459,15 +466,9 @@ class ResidualAnalysis:
                         gram.sum(0) - gram[f], cross.sum(0) - cross[f], yy.sum() - yy[f], beta
                     )
                     if n_variants > 1:
-                        inner[vi, f] = sum(
-                            _shape_sse(
-                                gram[s], cross[s], yy[s], _solve(gram, cross, exclude=[f, s])
-                            )
-                            for s in range(k)
-                            if s != f
-                        )
+                        inner[vi, f] = _inner_shape_sse(gram, cross, yy, f)
                 last_built[key] = (vi, extra)
-                del extra
+            del extra
         if family is not None:
             for f, vi in _taken_in_fold(family, accepted, k):
                 inner[vi, f] = np.inf  # that fold already has this time constant in
@@ -507,10 +508,22 @@ class ResidualAnalysis:
         return (self.base.group_of(fold), *(a.per_fold[fold] for a in accepted))
 
     def _fixed_design(
-        self, base_group: int, accepted: list[Accepted], choices: Sequence[int]
+        self,
+        base_group: int,
+        accepted: list[Accepted],
+        choices: Sequence[int],
+        built: dict[tuple[int, int], np.ndarray] | None = None,
     ) -> FixedDesign:
-        """Intercept, the model's own terms and the accepted effects (each fold's variant)."""
-        blocks = [a.family.variants[v].build() for a, v in zip(accepted, choices, strict=True)]
+        """Intercept, the model's own terms and the accepted effects (each fold's variant).
+
+        ``built`` keeps each (accepted effect, variant)'s terms for the designs of the
+        other fold groups, so they are made once and shared."""
+        built = {} if built is None else built
+        blocks = []
+        for i, (a, v) in enumerate(zip(accepted, choices, strict=True)):
+            if (i, v) not in built:
+                built[i, v] = a.family.variants[v].build()
+            blocks.append(built[i, v])
         return FixedDesign(self.base.design(base_group), blocks)
 
     def _extra(self, variant: Variant | None) -> np.ndarray:
@@ -591,6 +604,21 @@ def _shape_sse(gram: np.ndarray, cross: np.ndarray, yy: float, beta: np.ndarray)
     so ``gram[0]`` holds the column sums and ``cross[0]`` the sum of y)."""
     mean_residual = (cross[0] - gram[0] @ beta) / gram[0, 0]
     return max(_sse(gram, cross, yy, beta) - gram[0, 0] * mean_residual**2, 0.0)
+
+
+def _inner_shape_sse(gram: np.ndarray, cross: np.ndarray, yy: np.ndarray, fold: int) -> float:
+    """Shape SSE of every fold but ``fold``, each predicted without itself and ``fold``.
+
+    Up to ``INNER_GROUPED_ABOVE_RUNS`` other folds each is left out alone; above,
+    ``INNER_FOLDS`` groups of consecutive folds are (runs² solves would not scale)."""
+    others = np.array([s for s in range(gram.shape[0]) if s != fold])
+    groups = grouped_runs(others)
+    total = 0.0
+    for group in np.unique(groups):
+        left_out = [int(s) for s in others[groups == group]]
+        beta = _solve(gram, cross, exclude=[fold, *left_out])
+        total += sum(_shape_sse(gram[s], cross[s], yy[s], beta) for s in left_out)
+    return total
 
 
 def _length(part: slice | np.ndarray) -> int:

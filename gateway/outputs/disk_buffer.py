@@ -15,7 +15,7 @@ outage — and that is never silent: the count is logged at WARNING and added to
 Row ids increase for ever (SQLite ``AUTOINCREMENT``), so a ``remove_through`` for
 a batch taken earlier can never remove points appended later.
 
-Besides ``max_points`` the buffer is bounded on disk (:mod:`gateway.outputs.sqlite_bounds`):
+Besides ``max_points`` the buffer is one bounded SQLite ring (:mod:`gateway.outputs.sqlite_ring`):
 the file never grows past ``max_bytes`` (an append that meets the cap drops the
 oldest points first), and :meth:`PointBuffer.enforce_retention` drops points older
 than ``retention_s``. Every point lost either way is counted in ``dropped``. When
@@ -25,24 +25,16 @@ starts and once when appends succeed again, and never raised into the loop.
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import json
 import logging
 import sqlite3
-import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
 
 from gateway.outputs.points import Point
-from gateway.outputs.sqlite_bounds import (
-    at_cap,
-    bounded_write,
-    cap_size,
-    is_out_of_space,
-    used_bytes,
-)
-from gateway.outputs.sqlite_open import open_database
+from gateway.outputs.sqlite_ring import SqliteRing, is_out_of_space
 
 log = logging.getLogger(__name__)
 
@@ -83,33 +75,33 @@ class PointBuffer:
     ):
         if max_points < 1:
             raise ValueError(f"max_points must be at least 1, got {max_points}")
-        if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
-            raise ValueError(f"unknown SQLite synchronous level {synchronous!r}")
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         self.max_points = max_points
         self.max_bytes = max_bytes
         self.retention_s = retention_s
-        self._failing = False
         self._unrecorded = 0  # dropped while the file could not be written
         self._removed_through = 0  # sent points whose removal the full disk refused …
         self._hidden = 0  # … and how many they are
-        self._lock = threading.Lock()
         counted: dict[str, int] = {}
 
-        def prepare(db: sqlite3.Connection) -> None:
-            db.execute("PRAGMA journal_mode=WAL")
-            db.execute(f"PRAGMA synchronous={synchronous.upper()}")
-            db.executescript(SCHEMA)
+        def inspect(db: sqlite3.Connection) -> None:
             counted["points"] = db.execute("SELECT COUNT(*) FROM points").fetchone()[0]
             dropped = db.execute("SELECT value FROM meta WHERE key='dropped'").fetchone()
             counted["dropped"] = dropped[0]
 
-        # A file SQLite cannot read is kept aside and a new one started (gateway.outputs.sqlite_open).
-        self._db, self.set_aside_as = open_database(self.path, prepare)
+        self._ring = SqliteRing(
+            path,
+            SCHEMA,
+            label="point buffer",
+            cannot="cannot keep points",
+            synchronous=synchronous,
+            max_bytes=max_bytes,
+            inspect=inspect,
+        )
+        self.path = self._ring.path
+        self.set_aside_as = self._ring.set_aside_as
+        self._db = self._ring.db
+        self._lock = self._ring.lock
         self._count, self._dropped = counted["points"], counted["dropped"]
-        if max_bytes is not None:
-            cap_size(self._db, max_bytes)
         if self._count > max_points:  # reopened with a smaller bound
             with self._lock:
                 self._drop_oldest(self._count - max_points)
@@ -124,45 +116,22 @@ class PointBuffer:
         rows = [(json.dumps(p.to_json(), separators=(",", ":")),) for p in points]
         if not rows:
             return True
-        with self._lock:
-            kept = bounded_write(
-                lambda: self._append(rows),
-                lambda: (
-                    self.max_bytes is not None
-                    and at_cap(self._db, self.max_bytes)
-                    and self._make_room()
-                ),
-                lambda exc: self._lost(len(rows), exc),
-            )
-            if kept and self._failing:
-                self._failing = False
-                log.warning(
-                    "point buffer %s writable again; %d point(s) dropped in all",
-                    self.path,
-                    self._dropped,
-                )
-            return kept
+        return self._ring.write(
+            lambda: self._append(rows), self._make_room, self._count_lost, len(rows)
+        )
 
     def _append(self, rows: list[tuple[str]]) -> None:
         skipped = max(0, len(rows) - self.max_points)
         if skipped:  # more new points than the buffer holds: keep the newest
             rows = rows[skipped:]
         overflow = self._count + len(rows) - self.max_points
-        self._db.execute("BEGIN IMMEDIATE")
-        try:
+        with self._ring.transaction() as db:
             removed = self._delete_oldest(overflow) if overflow > 0 else 0
-            self._db.executemany("INSERT INTO points (point) VALUES (?)", rows)
+            db.executemany("INSERT INTO points (point) VALUES (?)", rows)
             lost = removed + skipped
             recorded = lost + self._unrecorded
             if recorded:
-                self._db.execute(
-                    "UPDATE meta SET value = value + ? WHERE key='dropped'", (recorded,)
-                )
-            self._db.execute("COMMIT")
-        except BaseException:
-            with contextlib.suppress(sqlite3.Error):
-                self._db.execute("ROLLBACK")
-            raise
+                db.execute("UPDATE meta SET value = value + ? WHERE key='dropped'", (recorded,))
         self._unrecorded = 0
         self._count += len(rows) - removed
         if lost:
@@ -176,26 +145,15 @@ class PointBuffer:
                 self._dropped,
             )
 
-    def _lost(self, n: int, exc: sqlite3.Error) -> None:
+    def _count_lost(self, n: int) -> int:
+        """Count ``n`` points the full disk refused (written to the file's count later)."""
         self._dropped += n
         self._unrecorded += n
-        if not self._failing:
-            self._failing = True
-            log.error(
-                "point buffer %s cannot keep points (%s): dropping and counting them "
-                "until it can again",
-                self.path,
-                exc,
-            )
+        return self._dropped
 
     def _make_room(self) -> int:
         """Drop the oldest chunk at the size cap (lock held, counted); how many went."""
-        try:
-            return self._drop_oldest(min(DELETE_CHUNK_ROWS, self._count), reason="at its size cap")
-        except sqlite3.Error as exc:
-            if not is_out_of_space(exc):
-                raise
-            return 0
+        return self._drop_oldest(min(DELETE_CHUNK_ROWS, self._count), reason="at its size cap")
 
     def _delete_oldest(self, n: int) -> int:
         cursor = self._db.execute(
@@ -206,15 +164,9 @@ class PointBuffer:
     def _drop_oldest(self, n: int, reason: str = "") -> int:
         if n <= 0:
             return 0
-        self._db.execute("BEGIN IMMEDIATE")
-        try:
+        with self._ring.transaction() as db:
             removed = self._delete_oldest(n)
-            self._db.execute("UPDATE meta SET value = value + ? WHERE key='dropped'", (removed,))
-            self._db.execute("COMMIT")
-        except BaseException:
-            with contextlib.suppress(sqlite3.Error):
-                self._db.execute("ROLLBACK")
-            raise
+            db.execute("UPDATE meta SET value = value + ? WHERE key='dropped'", (removed,))
         self._count -= removed
         self._dropped += removed
         log.warning(
@@ -234,44 +186,33 @@ class PointBuffer:
         (counted in :attr:`dropped`). A full disk makes it do nothing.
         """
         now_ns = time.time_ns() if now_ns is None else now_ns
-        deadline = time.monotonic() + budget_s
-        dropped = 0
-        with self._lock:
-            try:
-                if self.retention_s is not None:
-                    cutoff = now_ns - round(self.retention_s * 1e9)
-                    while time.monotonic() < deadline:
-                        head = self._db.execute(
-                            "SELECT id, json_extract(point, '$.ns') FROM points "
-                            "ORDER BY id LIMIT ?",
-                            (DELETE_CHUNK_ROWS,),
-                        ).fetchall()
-                        old = 0
-                        for _, ns in head:
-                            if ns >= cutoff:
-                                break
-                            old += 1
-                        n = self._drop_oldest(old, reason="retention (age)")
-                        dropped += n
-                        if old < len(head) or not head:
-                            break
-                if self.max_bytes is not None:
-                    target = 0.98 * self.max_bytes
-                    while used_bytes(self._db) > target and time.monotonic() < deadline:
-                        n = self._drop_oldest(min(DELETE_CHUNK_ROWS, self._count), "over size")
-                        dropped += n
-                        if n == 0:
-                            break
-            except sqlite3.Error as exc:
-                if not is_out_of_space(exc):
-                    raise
-                log.warning("point buffer %s: retention step failed (%s)", self.path, exc)
-        return dropped
+        expire = None
+        if self.retention_s is not None:
+            expire = functools.partial(self._expire_chunk, now_ns - round(self.retention_s * 1e9))
+        return self._ring.enforce(
+            expire,
+            lambda: self._drop_oldest(min(DELETE_CHUNK_ROWS, self._count), "over size"),
+            budget_s,
+        )
+
+    def _expire_chunk(self, cutoff_ns: int) -> tuple[int, bool]:
+        """Drop the head's points older than ``cutoff_ns`` (one chunk): how many, and
+        whether more may be."""
+        head = self._db.execute(
+            "SELECT id, json_extract(point, '$.ns') FROM points ORDER BY id LIMIT ?",
+            (DELETE_CHUNK_ROWS,),
+        ).fetchall()
+        old = 0
+        for _, ns in head:
+            if ns >= cutoff_ns:
+                break
+            old += 1
+        n = self._drop_oldest(old, reason="retention (age)")
+        return n, bool(head) and old == len(head)
 
     def used_bytes(self) -> int:
         """Bytes of the file in use (the quantity ``max_bytes`` bounds)."""
-        with self._lock:
-            return used_bytes(self._db)
+        return self._ring.used_bytes()
 
     # --- reading ------------------------------------------------------------------------
     def peek(self, n: int) -> list[tuple[int, Point]]:
@@ -318,8 +259,7 @@ class PointBuffer:
         return self._dropped
 
     def close(self) -> None:
-        with self._lock:
-            self._db.close()
+        self._ring.close()
 
     def __enter__(self) -> PointBuffer:
         return self

@@ -6,7 +6,7 @@ InfluxDB's identity rule: a point is identified by measurement, tags and time, s
 writing the same point again stores it once (its fields are merged, a field
 written again takes the new value, as InfluxDB does).
 
-The store is bounded (:mod:`gateway.outputs.sqlite_bounds`): by age, points older than
+The store is one bounded SQLite ring (:mod:`gateway.outputs.sqlite_ring`): by age, points older than
 ``retention_s`` are deleted by :meth:`LocalStore.enforce_retention` (the gateway
 calls it every ``logging.retention_interval_s``); by size, the file never grows past
 ``max_bytes`` — a write that meets the cap first deletes the oldest points. A
@@ -17,24 +17,15 @@ succeed again, and never raised: compensation does not depend on its log.
 
 from __future__ import annotations
 
-import contextlib
+import functools
 import json
 import logging
-import sqlite3
-import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
 
 from gateway.outputs.points import Point
-from gateway.outputs.sqlite_bounds import (
-    at_cap,
-    bounded_write,
-    cap_size,
-    is_out_of_space,
-    used_bytes,
-)
-from gateway.outputs.sqlite_open import open_database
+from gateway.outputs.sqlite_ring import SqliteRing
 
 log = logging.getLogger(__name__)
 
@@ -79,33 +70,32 @@ class LocalStore:
         retention_s: float | None = None,
         set_aside_damaged: bool = True,
     ) -> None:
-        if synchronous.upper() not in {"OFF", "NORMAL", "FULL", "EXTRA"}:
-            raise ValueError(f"unknown SQLite synchronous level {synchronous!r}")
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._ring = SqliteRing(
+            path,
+            SCHEMA,
+            label="local store",
+            cannot="cannot store points",
+            synchronous=synchronous,
+            max_bytes=max_bytes,
+            set_aside_damaged=set_aside_damaged,
+        )
+        self.path = self._ring.path
+        self.set_aside_as = self._ring.set_aside_as
         self.max_bytes = max_bytes
         self.retention_s = retention_s
         self.dropped = 0  # points not stored because the disk was full
         self.expired = 0  # points deleted for age
         self.evicted = 0  # points deleted to stay within max_bytes
-        self._failing = False
-        self._lock = threading.Lock()
-
-        def prepare(db: sqlite3.Connection) -> None:
-            db.execute("PRAGMA journal_mode=WAL")
-            db.execute(f"PRAGMA synchronous={synchronous.upper()}")
-            db.executescript(SCHEMA)
-
-        # A file SQLite cannot read is kept aside and a new one started (gateway.outputs.sqlite_open).
-        self._db, self.set_aside_as = open_database(self.path, prepare, set_aside_damaged)
-        if max_bytes is not None:
-            cap_size(self._db, max_bytes)
+        self._db = self._ring.db
+        self._lock = self._ring.lock
 
     def write(self, points: Iterable[Point]) -> bool:
         """Store points (one transaction); a point already stored has its fields merged.
 
         Returns False when the points could not be stored (disk full): they are
-        counted in :attr:`dropped` and logged, nothing is raised.
+        counted in :attr:`dropped` and logged, nothing is raised. At the file's own
+        cap the oldest points make room; a full disk is waited out (the pages freed
+        are reused once space returns).
         """
         rows = [
             (
@@ -119,66 +109,30 @@ class LocalStore:
         ]
         if not rows:
             return True
-        with self._lock:
-            # At the file's own cap, the oldest points make room; a full disk is waited
-            # out (the pages freed are reused once space returns).
-            kept = bounded_write(
-                lambda: self._insert(rows),
-                lambda: (
-                    self.max_bytes is not None
-                    and at_cap(self._db, self.max_bytes)
-                    and self._evict_oldest()
-                ),
-                lambda exc: self._lost(len(rows), exc),
-            )
-            if kept and self._failing:
-                self._failing = False
-                log.warning(
-                    "local store %s writable again; %d point(s) dropped in all",
-                    self.path,
-                    self.dropped,
-                )
-            return kept
+        return self._ring.write(
+            lambda: self._insert(rows), self._evict_oldest, self._count_dropped, len(rows)
+        )
+
+    def _count_dropped(self, n: int) -> int:
+        self.dropped += n
+        return self.dropped
 
     def _insert(self, rows: list[tuple[str, str, str, int, str]]) -> None:
-        self._db.execute("BEGIN IMMEDIATE")
-        try:
-            self._db.executemany(
+        with self._ring.transaction() as db:
+            db.executemany(
                 "INSERT INTO points (measurement, machine, tags, time_ns, fields) "
                 "VALUES (?, ?, ?, ?, ?) "
                 "ON CONFLICT (measurement, machine, tags, time_ns) "
                 "DO UPDATE SET fields = json_patch(fields, excluded.fields)",
                 rows,
             )
-            self._db.execute("COMMIT")
-        except BaseException:
-            with contextlib.suppress(sqlite3.Error):
-                self._db.execute("ROLLBACK")
-            raise
-
-    def _lost(self, n: int, exc: sqlite3.Error) -> None:
-        self.dropped += n
-        if not self._failing:
-            self._failing = True
-            log.error(
-                "local store %s cannot store points (%s): dropping and counting them "
-                "until it can again",
-                self.path,
-                exc,
-            )
 
     def _evict_oldest(self) -> int:
         """Delete the oldest chunk of points (lock held); how many went."""
-        try:
-            removed = self._db.execute(
-                "DELETE FROM points WHERE rowid IN "
-                "(SELECT rowid FROM points ORDER BY time_ns LIMIT ?)",
-                (DELETE_CHUNK_ROWS,),
-            ).rowcount
-        except sqlite3.Error as exc:
-            if not is_out_of_space(exc):
-                raise
-            return 0
+        removed = self._db.execute(
+            "DELETE FROM points WHERE rowid IN (SELECT rowid FROM points ORDER BY time_ns LIMIT ?)",
+            (DELETE_CHUNK_ROWS,),
+        ).rowcount
         self.evicted += removed
         return removed
 
@@ -238,45 +192,33 @@ class LocalStore:
         A full disk makes it do nothing (and nothing is raised).
         """
         now_ns = time.time_ns() if now_ns is None else now_ns
-        deadline = time.monotonic() + budget_s
-        deleted = 0
-        with self._lock:
-            try:
-                if self.retention_s is not None:
-                    cutoff = now_ns - round(self.retention_s * 1e9)
-                    while time.monotonic() < deadline:
-                        n = self._delete_before(cutoff, DELETE_CHUNK_ROWS)
-                        self.expired += n
-                        deleted += n
-                        if n < DELETE_CHUNK_ROWS:
-                            break
-                if self.max_bytes is not None:
-                    target = 0.98 * self.max_bytes
-                    while used_bytes(self._db) > target and time.monotonic() < deadline:
-                        n = self._evict_oldest()
-                        deleted += n
-                        if n == 0:
-                            break
-            except sqlite3.Error as exc:
-                if not is_out_of_space(exc):
-                    raise
-                log.warning("local store %s: retention step failed (%s)", self.path, exc)
+        expire = None
+        if self.retention_s is not None:
+            cutoff = now_ns - round(self.retention_s * 1e9)
+            expire = functools.partial(self._expire_chunk, cutoff)
+        deleted = self._ring.enforce(
+            expire, lambda: self._ring.make_room(self._evict_oldest), budget_s
+        )
         if deleted:
             log.info("local store %s: retention deleted %d old point(s)", self.path, deleted)
         return deleted
 
+    def _expire_chunk(self, cutoff_ns: int) -> tuple[int, bool]:
+        """Delete a chunk of points older than ``cutoff_ns``: how many, and whether more may be."""
+        n = self._delete_before(cutoff_ns, DELETE_CHUNK_ROWS)
+        self.expired += n
+        return n, n >= DELETE_CHUNK_ROWS
+
     def used_bytes(self) -> int:
         """Bytes of the file in use (the quantity ``max_bytes`` bounds)."""
-        with self._lock:
-            return used_bytes(self._db)
+        return self._ring.used_bytes()
 
     def __len__(self) -> int:
         with self._lock:
             return self._db.execute("SELECT COUNT(*) FROM points").fetchone()[0]
 
     def close(self) -> None:
-        with self._lock:
-            self._db.close()
+        self._ring.close()
 
     def __enter__(self) -> LocalStore:
         return self

@@ -147,7 +147,7 @@ def run_gateway(tmp_path: Path, server: InfluxServer, bucket: str, token: str, s
             }
         )
         gateway = Gateway(config, clock=clock)
-        forwarder = gateway.outputs.sinks.forwarder
+        forwarder = gateway.outputs.forwarder
         assert forwarder is not None
         stop = asyncio.Event()
         started_s = clock.now()

@@ -84,8 +84,8 @@ def test_forwarder_is_supervised_and_loses_nothing_through_an_influxd_kill(
                 }
             )
             gateway = Gateway(config, clock=clock, sinks=[expect])
-            forwarder = gateway.outputs.sinks.forwarder
-            buffer = gateway.outputs.sinks.buffer
+            forwarder = gateway.outputs.forwarder
+            buffer = gateway.outputs.buffer
             assert forwarder is not None and buffer is not None
             stop = asyncio.Event()
             running = asyncio.create_task(gateway.run(stop))
@@ -111,7 +111,7 @@ def test_forwarder_is_supervised_and_loses_nothing_through_an_influxd_kill(
                 restarted = time.monotonic()
                 await wait_until(lambda: len(buffer) < 50, 60, "the backlog sent")
                 figures["catch_up_ms"] = int(1000 * (time.monotonic() - restarted))
-                figures["health_restarts"] = int(gateway.outputs.heartbeat("m0")["forwarder_restarts"] or 0)
+                figures["health_restarts"] = int(gateway.health("m0")["forwarder_restarts"] or 0)
                 figures["running"] = int(forwarder.health()["running"])
             finally:
                 stop.set()

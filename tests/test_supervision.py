@@ -137,7 +137,7 @@ def test_a_failing_sink_and_a_failing_loop_leave_the_other_machines_cycling(
                 loop.config.id: loop.cycles - before[loop.config.id] for loop in gateway.loops
             }
             await wait_until(lambda: m0.cycles > before["m0"] + 3, 30, "m0 cycles on")
-            figures["health"] = gateway.outputs.heartbeat("m0")
+            figures["health"] = gateway.health("m0")
             await asyncio.sleep(0.3)  # a few more cycles, so every heartbeat is fresh
         finally:
             stop.set()
@@ -230,11 +230,11 @@ def test_health_is_published_over_scada_and_in_the_heartbeat(tmp_path: Path, sto
             await plants[1].take_down("cnc_modbus")  # link errors on m1
             await wait_until(lambda: m1.link_errors >= 5, 30, "link errors")
             await plants[1].bring_up("cnc_modbus")
-            assert gateway.scada.server is not None
+            assert gateway.scada is not None
             values = await read_health_over_opcua(
-                gateway.scada.server.endpoint, tmp_path, pki, "victor", "view-secret-7", "m1"
+                gateway.scada.endpoint, tmp_path, pki, "victor", "view-secret-7", "m1"
             )
-            expected = gateway.outputs.heartbeat("m1")
+            expected = gateway.health("m1")
         finally:
             stop.set()
             await asyncio.wait_for(running, 10)

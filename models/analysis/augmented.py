@@ -23,13 +23,12 @@ import hashlib
 import json
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from models import signing
 from models.analysis.result import AnalysisResult
-from models.analysis.search import Accepted, ResidualAnalysis
 from models.base import ThermalModel
 from models.data.features import Prepared
 from models.data.lag_terms import candidate_families
@@ -37,6 +36,9 @@ from models.estimators.registry import METHODS, make_model
 from models.json_files import write_json_atomic
 from models.store import StoreError, data_fingerprint, refuse_non_finite, safe_model_id
 from models.training_range import training_range
+
+if TYPE_CHECKING:  # the search (and scipy.stats, 2 s to import) only where an analysis runs
+    from models.analysis.search import Accepted, ResidualAnalysis
 
 FORMAT = "thermal-gateway-augmented-model"
 #: 2: a ridge or PLS base is one term, its penalised prediction (see :func:`stored_base`).

@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 
 from models.analysis import augmented
-from models.analysis.search import analyze
 from models.data.dataset import MeasuredRuns
 from models.data.features import prepare
 from models.data.lag_terms import GAP_S
@@ -176,6 +175,10 @@ def analyse_history(
     None: as logged). Returns ``{"effect": "none", …}`` when nothing is believed,
     else the proposal's content with ``"document"``, the augmented model.
     """
+    # Here, not at the top: the search brings scipy.stats (2 s to import), which the
+    # gateway's start (this module is the monitor's) should not wait for.
+    from models.analysis.search import analyze
+
     usable = history.complete() if step_s is None else history.on_grid(step_s)
     probes = int(usable.probe_rows.sum())
     data = usable.as_runs()

@@ -51,7 +51,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from models.data.dataset import AMBIENT_COLUMN, group_bounds
 from models.data.features import Prepared
@@ -147,6 +146,10 @@ def first_order_lag(
     ``scipy.signal.lfilter`` (fast on million-row files); others step sample by
     sample with their own Δt.
     """
+    # Here, not at the top: scipy.signal (with scipy.stats) takes 2 s to import, and
+    # loading a stored model (check-config, the start of run) never filters a recording.
+    from scipy.signal import lfilter
+
     u = np.asarray(values, dtype=float)
     squeeze = u.ndim == 1
     u2 = u[:, None] if squeeze else u

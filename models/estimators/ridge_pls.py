@@ -13,9 +13,11 @@ the rises are nearly collinear (they always are on one spindle):
 
 The penalty (or the number of components) is chosen inside ``fit`` by nested
 validation on the training data alone: leave-one-run-out over the runs it is
-given (contiguous blocks when it is given one run), lowest pooled held-out
-squared error. The validation around ``fit`` therefore never sees the held-out
-run when the choice is made.
+given (contiguous blocks when it is given one run; above 10 runs, 5 folds of
+consecutive runs), lowest pooled held-out squared error. The validation around
+``fit`` therefore never sees the held-out run when the choice is made. Every
+inner fold is solved from per-run moments (:mod:`models.group_moments`), so the
+choice costs one pass over the rows however many runs there are.
 """
 
 from __future__ import annotations

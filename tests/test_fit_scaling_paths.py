@@ -145,3 +145,33 @@ def test_inner_groups_above_the_threshold_are_folds_of_whole_runs():
     assert np.unique(labels).size == INNER_FOLDS
     for run in np.unique(inputs.run_index):
         assert np.unique(labels[inputs.run_index == run]).size == 1  # a run is never split
+
+
+def test_parallel_held_out_folds_equal_serial(tmp_path, monkeypatch):
+    """From PARALLEL_FROM_FOLDS folds on, worker processes fit the folds: same predictions."""
+    import pandas as pd
+
+    from models.data.dataset import load_runs
+    from models.data.features import prepare
+    from models.estimators.registry import make_model
+    from models.fit import crossval
+
+    runs = crossval.PARALLEL_FROM_FOLDS
+    X, y, groups = recording(runs, rows_per_run=60, sensors=6, seed=3)
+    frame = pd.DataFrame(X - 20.0, columns=[f"T{i + 1}" for i in range(X.shape[1])])
+    frame.insert(0, "speed_rpm", 3000.0)
+    frame.insert(0, "time_s", np.tile(np.arange(60) * 40.0, runs))
+    frame.insert(0, "run", [f"r{g:02d}" for g in groups])
+    frame["error_um"] = y
+    path = tmp_path / "runs.csv"
+    frame.to_csv(path, index=False)
+    prepared = prepare(load_runs(path, target="error_um"))
+
+    def factory():
+        return make_model("ridge")
+
+    parallel = crossval.cross_validate(factory, prepared)
+    monkeypatch.setattr(crossval, "PARALLEL_FROM_FOLDS", runs + 1)
+    serial = crossval.cross_validate(factory, prepared)
+    assert parallel.folds == serial.folds and len(parallel.folds) == runs
+    np.testing.assert_allclose(parallel.predicted_um, serial.predicted_um, rtol=RTOL, atol=1e-12)

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 from urllib.parse import urlsplit
 
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from drivers.schema import (
     Bus,
@@ -427,7 +427,8 @@ class OnlineCorrectionSection(Strict):
 
 
 class MonitorSection(MonitorParams, Strict):
-    """The residual monitor (:mod:`gateway.live.proposal_monitor`, tests in :mod:`models.online.residual_monitor`).
+    """The residual monitor (:mod:`gateway.live.proposal_monitor`; its tests in
+    :mod:`models.online.residual_monitor`).
 
     Off by default. When on, every probe's innovation goes to the sequential
     tests; an alarm starts a background residual analysis of the logged history,
@@ -511,7 +512,8 @@ class ModelsSection(Strict):
     sensor_accuracy_C: float = Field(default=DEFAULT_SENSOR_ACCURACY_C, gt=0, le=10)
     #: a model that one sensor off by its accuracy would move by more is refused, µm
     max_bias_error_um: float = Field(default=DEFAULT_MAX_BIAS_ERROR_UM, gt=0, le=1000)
-    #: promote a new proposal of the residual monitor without an operator (gateway.live.bank.promotion)
+    #: promote a new proposal of the residual monitor without an operator
+    #: (gateway.live.bank.promotion)
     auto_promote: bool = False
     #: HMAC key the store's models must be signed with (models.signing); outside the store
     signing_key_file: Path | None = None
@@ -538,7 +540,7 @@ class MachineSection(Strict):
     online_correction: OnlineCorrectionSection = OnlineCorrectionSection()
     monitor: MonitorSection = MonitorSection()
     models: ModelsSection
-    quality: QualitySection = QualitySection()
+    plausibility: QualitySection = QualitySection()
 
     @model_validator(mode="after")
     def _sensor_names(self) -> MachineSection:
@@ -877,6 +879,8 @@ class SparkplugSection(Credentials):
 
 class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
+    #: One line per old key name the file still uses (file, line, the new name).
+    _deprecations: list[str] = PrivateAttr(default_factory=list)
     state_dir: Path = Path(".cache/state")
     logging: LoggingSection = LoggingSection()
     scada: ScadaSection | None = None
@@ -885,6 +889,11 @@ class GatewayConfig(Strict):
     simulator: dict[str, Any] | None = None  # checked by simulator.serve
     # The runtime's event loop (gateway/process/event_loop.py): uvloop, or asyncio's own.
     event_loop: EventLoopName = DEFAULT_EVENT_LOOP
+
+    @property
+    def deprecations(self) -> list[str]:
+        """Old key names the file used, one located line each (empty for a current file)."""
+        return list(self._deprecations)
 
     @model_validator(mode="after")
     def _unique_ids(self) -> GatewayConfig:
@@ -939,7 +948,9 @@ def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
                 f"{document.path}:1: {kind} at the top level; a mapping with a 'machines' "
                 "list was expected"
             )
+        deprecations = rename_old_keys(document)
         config = validate_section(document, GatewayConfig)
+        config._deprecations = deprecations
         if config.simulator is not None:
             from simulator.serve import SimulatorConfig
 
@@ -949,6 +960,40 @@ def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
     except YamlError as exc:
         raise ConfigError(str(exc)) from None
     return config
+
+
+#: Machine keys renamed, old name → new name; the old name is read as the new one.
+RENAMED_MACHINE_KEYS = {"quality": "plausibility"}
+
+
+def rename_old_keys(document: YamlDocument) -> list[str]:
+    """Read a machine's old key names as the new ones (in ``document``, lines kept).
+
+    ``machines[].quality`` configured cross-sensor plausibility while the range,
+    rate and stuck limits sit under ``sensors.<name>``; it is ``plausibility`` now.
+    A file with the old name still loads; the one line returned names the file, the
+    line of its first use and the new name. Both names in one machine are refused.
+    """
+    machines = document.data.get("machines") if isinstance(document.data, dict) else None
+    notes: list[str] = []
+    for old, new in RENAMED_MACHINE_KEYS.items():
+        used = [i for i, m in enumerate(machines or []) if isinstance(m, dict) and old in m]
+        for i in used:
+            if new in machines[i]:
+                raise document.error(
+                    ("machines", i, old), f"both '{old}' and '{new}' given; keep '{new}' only"
+                )
+            machines[i][new] = machines[i].pop(old)
+            for loc, line in list(document.lines.items()):
+                if loc[:3] == ("machines", i, old):
+                    document.lines[("machines", i, new, *loc[3:])] = line
+        if used:
+            others = f" (and {len(used) - 1} more machine(s))" if len(used) > 1 else ""
+            notes.append(
+                f"{document.locate(('machines', used[0], old))}: deprecated key name{others}; "
+                f"rename it to '{new}' (machines[].{new}), same settings"
+            )
+    return notes
 
 
 def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:

@@ -163,3 +163,31 @@ def test_the_shipped_config_has_a_valid_simulator_section() -> None:
     assert config.cnc.opcua is not None and config.transmitters.tcp is not None
     raw = yaml.safe_load((ROOT / "config.yaml").read_text())
     assert "machines" in raw
+
+
+def test_the_old_key_quality_still_configures_plausibility_with_one_deprecation_line(
+    tmp_path: Path, store: Path
+) -> None:
+    old = GOOD + "    quality: {plausibility_sigma: 6}\n"
+    path = write_config(tmp_path, store, old)
+    line = old.splitlines().index("    quality: {plausibility_sigma: 6}") + 1
+    config = load_config(path)
+    assert config.machines[0].plausibility.limits().sigma == 6.0
+    notice = (
+        f"{path}:{line}: machines[0].quality: deprecated key name; rename it to "
+        "'plausibility' (machines[].plausibility), same settings"
+    )
+    assert config.deprecations == [notice]
+    result = gateway_in_process("check-config", "--config", path)
+    assert result.returncode == 0, result.stderr
+    assert [ln for ln in result.stderr.splitlines() if "deprecated" in ln] == [f"warning: {notice}"]
+    # A bad value under the old name is still located on its line.
+    path.write_text(path.read_text().replace("plausibility_sigma: 6", "plausibility_sigma: 0"))
+    assert refusal(path).startswith(f"{path}:{line}: machines[0].plausibility.plausibility_sigma")
+
+
+def test_the_new_key_plausibility_loads_without_a_deprecation(tmp_path: Path, store: Path) -> None:
+    path = write_config(tmp_path, store, GOOD + "    plausibility: {plausibility_sigma: 6}\n")
+    config = load_config(path)
+    assert config.machines[0].plausibility.limits().sigma == 6.0
+    assert config.deprecations == []

@@ -1,4 +1,5 @@
-"""gateway.live.plausibility: sensors judged against each other, the prediction against a rate bound.
+"""gateway.live.plausibility: sensors judged against each other, the prediction against a
+rate bound.
 
 Pure numbers on a manual timeline; the protocol-level scenarios are in
 tests/test_plausibility_loop.py.
@@ -211,7 +212,7 @@ machines:
     cnc:
       modbus: {host: 127.0.0.1, port: 5021}
     models: {store: models}
-    quality:
+    plausibility:
       plausibility_sigma: SIGMA
       max_prediction_rate_um_per_s: 0.2
 """
@@ -222,7 +223,7 @@ def test_config_keys_reach_the_limits(tmp_path: Path) -> None:
 
     path = tmp_path / "config.yaml"
     path.write_text(CONFIG.replace("SIGMA", "6"), encoding="utf-8")
-    limits = load_config(path).machines[0].quality.limits()
+    limits = load_config(path).machines[0].plausibility.limits()
     assert limits == PlausibilityLimits(sigma=6.0, max_prediction_rate_um_per_s=0.2)
 
 
@@ -233,7 +234,7 @@ def test_a_bad_threshold_is_refused_with_its_line(tmp_path: Path, value: str) ->
     path = tmp_path / "config.yaml"
     path.write_text(CONFIG.replace("SIGMA", value), encoding="utf-8")
     with pytest.raises(
-        ConfigError, match=r"config.yaml:12: machines\[0\].quality.plausibility_sigma"
+        ConfigError, match=r"config.yaml:12: machines\[0\].plausibility.plausibility_sigma"
     ):
         load_config(path)
 

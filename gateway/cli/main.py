@@ -386,6 +386,8 @@ def check_config(config_path: Path, connect: bool) -> None:
 
     quiet_protocol_libraries()
     config = load_config(config_path, check_host=True)
+    for line in config.deprecations:
+        click.echo(f"warning: {line}", err=True)
     # The runtime (protocol clients, the model stack) only once the file is known good:
     # a bad file is refused in well under a second.
     from gateway.wiring import check_connections, load_bank
@@ -429,12 +431,15 @@ def promotion_summary(machine) -> str:
 def run(config_path: Path, log_level: str) -> None:
     """Run the compensation loop for every machine in the configuration."""
     import gc
+    import logging
 
     from gateway.config import load_config
     from gateway.process.instance_lock import StateDirInUseError, hold_state_dir
 
     setup_logging(log_level)
     config = load_config(config_path, check_host=True)
+    for line in config.deprecations:
+        logging.getLogger("gateway.config").warning("%s", line)
     try:
         with hold_state_dir(Path(config.state_dir)):
             serve_config(config)

@@ -84,7 +84,7 @@ class MachineLoop:
         self.sinks = list(sinks)
         self.sensors = config.sensor_names
         self.plausibility = Plausibility.for_machine(
-            config.id, bank, self.sensors, config.quality.limits()
+            config.id, bank, self.sensors, config.plausibility.limits()
         )
         self.quality = QualityMonitor(self.sensors, config.quality_limits(), self.plausibility)
         self.selector = RegimeSelector(config.models.regimes.rules())

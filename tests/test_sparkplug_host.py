@@ -41,11 +41,12 @@ def gateway_config(
     store: Path,
     commands: dict[str, bool],
     cycle_s: float = CYCLE_S,
+    state_dir: Path | None = None,
 ) -> GatewayConfig:
     return GatewayConfig.model_validate(
         {
-            "state_dir": str(tmp_path / "state"),
-            "logging": {"local_store": str(tmp_path / "points.sqlite")},
+            "state_dir": str(state_dir or tmp_path / "state"),
+            "logging": {"local_store": str((state_dir or tmp_path) / "points.sqlite")},
             "machines": [
                 rig.machine_entry(m, p, store, cycle_s=cycle_s)
                 for m, p in zip(MACHINES, plants, strict=True)
@@ -60,7 +61,7 @@ def gateway_config(
                 "ca_file": str(broker.ca_file),
                 "startup_delay_max_s": 0.5,
                 "reconnect_max_s": 2.0,
-                "buffer_path": str(tmp_path / "state" / "spb.sqlite"),
+                "buffer_path": str(tmp_path / "spb.sqlite"),
                 "commands": commands,
             },
         }
@@ -140,9 +141,10 @@ class Run:
         commands: dict[str, bool],
         cycle_s: float = CYCLE_S,
         speedup: float | None = None,
+        state_dir: Path | None = None,
     ) -> None:
         self.tmp_path, self.store, self.commands = tmp_path, store, commands
-        self.cycle_s, self.speedup = cycle_s, speedup
+        self.cycle_s, self.speedup, self.state_dir = cycle_s, speedup, state_dir
         self.records: list[CycleRecord] = []
         self.late_s: dict[str, list[float]] = {m: [] for m in MACHINES}  # machine time
         self.due_s: dict[str, list[float]] = {m: [] for m in MACHINES}
@@ -162,7 +164,13 @@ class Run:
         for plant in self.plants:
             await plant.start()
         config = gateway_config(
-            self.tmp_path, self.broker, self.plants, self.store, self.commands, self.cycle_s
+            self.tmp_path,
+            self.broker,
+            self.plants,
+            self.store,
+            self.commands,
+            self.cycle_s,
+            self.state_dir,
         )
         self.gateway = Gateway(config, clock=clock, sinks=[self.records.append, self._lateness])
         self.stop = asyncio.Event()

@@ -41,6 +41,10 @@ log = logging.getLogger(__name__)
 
 MEASUREMENT = "sparkplug"
 BATCH = 200  # points published before waiting for their acknowledgements
+# Points encoded and published between two yields to the event loop: a backlog of
+# historical snapshots (0.96 kB each) held the machine loops up to 0.8 s per batch of
+# 200 on a loaded 2-core box.
+YIELD_EVERY = 10
 ACK_TIMEOUT_S = 10.0
 FINAL_DRAIN_S = 1.5  # at a stop; the gateway gives the node 3 s in all
 
@@ -243,7 +247,11 @@ class EdgeNode:
         batch = self.buffer.peek(BATCH)
         if not batch:
             return False
-        infos = [self._publish_point(link, point) for _, point in batch]
+        infos = []
+        for i, (_, point) in enumerate(batch):
+            if i and i % YIELD_EVERY == 0:  # a backlog must not hold up the machine loops
+                await asyncio.sleep(0)
+            infos.append(self._publish_point(link, point))
         if not await link.acknowledged([i for i in infos if i is not None], ACK_TIMEOUT_S):
             raise ConnectionError(f"no acknowledgement from {link.url}")
         self.buffer.remove_through(batch[-1][0])

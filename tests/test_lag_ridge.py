@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.lag_state import EffectStates
 from gateway.live.bank.model_bank import BankedAugmented, ModelBank
 from gateway.wiring import load_bank
 from models.base import ModelInputs
@@ -478,7 +478,7 @@ def test_fl_thermal_ch5_held_out_with_the_structure_chosen_on_the_training_cycle
 def test_replay_fl_thermal_ch5_on_lag_ridge_a_probe_every_hour(tmp_path: Path) -> None:
     out = tmp_path / "replay.json"
     done = gateway_in_process(
-        "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge",
+        "replay", FL_THERMAL, "--target", "ch5_um", "--model", "lag-ridge", "--base", "lagged",
         "--probe-interval-min", "60", "--json", out,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr

@@ -14,8 +14,9 @@ so ``--help`` and the container's health check start in a fraction of a second
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 
@@ -37,9 +38,12 @@ from models.catalogue import (
     POLICIES,
 )
 
+T = TypeVar("T")
+
 if TYPE_CHECKING:
     from gateway.config import GatewayConfig
     from simulator.serve import SimulatedPlant
+
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="gateway")
@@ -99,78 +103,43 @@ def fit(
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
+    data, sensor_list = _load_reported(data_csv, target, sensors)
+    # The fitting stack (scipy, scikit-learn) only once the file is known good.
+    from gateway.offline.fit import FitRequest, run_fit
+
+    request = _request(
+        FitRequest,
+        (data_csv, method, target, sensor_list, reference, progress),
+        store_dir=store_dir,
+        per_run=per_run,
+        regime_column=regime_column,
+        sensor_accuracy_C=sensor_accuracy_C,
+        max_bias_error_um=max_bias_error_um,
+    )
+    write_json(json_out, run_fit(data, request, click.echo, _warn))
+
+
+def _warn(text: str) -> None:
+    click.echo(text, err=True)
+
+
+def _load_reported(
+    data_csv: Path, target: str, sensors: str | None, sparse_target: bool = False
+) -> tuple[Any, list[str] | None]:
+    """The runs of DATA_CSV (skipped rows and notes said on stderr) and the --sensors list."""
     from models.data.dataset import load_runs
 
     sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list)
-    # The fitting stack (scipy, scikit-learn) only once the file is known good.
-    from gateway.offline.tables import accuracy_table, sigma_matrix_table
-    from models.data.features import prepare
-    from models.fit.ranking import format_report
-    from models.fit.workflow import fit_and_store
-    from models.store import ModelStore
-
+    data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=sparse_target)
     report_skipped(data)
-    prepared = prepare(data, sensor_list, reference).without_sensor_readings()
-    data = prepared.data  # the readings of the sensors are let go: their rises are kept
-    show_progress = sys.stderr.isatty() if progress is None else progress
+    return data, sensor_list
 
-    recordings = prepared.plan.recording_runs
-    click.echo(
-        f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, target {target} (µm), "
-        f"sensors {','.join(prepared.inputs.sensors)} (°C)"
-    )
-    click.echo(
-        f"references ({reference}): {len(recordings)} recording(s); rises are taken from the "
-        "leading at-rest samples of each recording: " + " | ".join(" ".join(r) for r in recordings)
-    )
-    click.echo(prepared.plan.error_line())
-    outcome = fit_and_store(
-        prepared,
-        method,
-        ModelStore(store_dir),
-        sensors=sensor_list,
-        per_run=per_run,
-        regime_column=regime_column,
-        progress=show_progress,
-        software_version=__version__,
-        sensor_accuracy_C=sensor_accuracy_C,
-    )
-    for group, validation in outcome.validations.items():
-        click.echo(f"\n{method} [{group}] — {validation.scheme}")
-        click.echo(accuracy_table(validation))
-    if outcome.sigma_rows:
-        click.echo("\nσ (µm) of each run's model (rows) on each run (columns):")
-        click.echo(sigma_matrix_table(outcome.sigma_rows))
-    if outcome.ranking is not None:
-        click.echo("\n" + format_report(outcome.ranking))
-    for model_id, text in outcome.summaries.items():
-        click.echo(f"\n{model_id}: {text}")
-    for model_id, conditioning in outcome.conditioning.items():
-        click.echo(f"\n{model_id} {conditioning.table()}")
-        if conditioning.worst_single_um > max_bias_error_um:
-            click.echo(
-                f"warning: {model_id}: a bias of ±{sensor_accuracy_C:g} °C on "
-                f"{conditioning.worst_sensor} moves the compensation by "
-                f"{conditioning.worst_single_um:.1f} µm (limit {max_bias_error_um:g} µm): "
-                "the inputs are collinear; try --method ridge or pls, or fewer --sensors",
-                err=True,
-            )
-    for model_id, path in outcome.saved.items():
-        click.echo(f"saved {model_id} → {path}")
-    write_json(
-        json_out,
-        {
-            "method": method,
-            "target": target,
-            "reference": prepared.plan.describe(),
-            "validations": {g: v.as_dict() for g, v in outcome.validations.items()},
-            "sigma": [row.__dict__ for row in outcome.sigma_rows],
-            "ranking": outcome.ranking.as_json() if outcome.ranking else None,
-            "saved": {k: str(v) for k, v in outcome.saved.items()},
-            "conditioning": {k: c.as_dict() for k, c in outcome.conditioning.items()},
-        },
-    )
+
+def _request(make: Callable[..., T], common: tuple[Any, ...], **options: Any) -> T:
+    """An offline command's request: the options every such command has (DATA_CSV,
+    method, target, sensors, reference, progress: its first fields) and its own ``options``."""
+    *named, progress = common
+    return make(*named, sys.stderr.isatty() if progress is None else progress, **options)
 
 
 @main.command()
@@ -210,12 +179,9 @@ def significance(
     json_out: Path | None,
 ) -> None:
     """Does spindle speed change the temperatures? MANOVA + per-sensor ANOVA (paper 000)."""
-    from models.data.dataset import load_runs
     from models.fit.significance import anova_oneway, format_table, manova_oneway, speed_groups
 
-    sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list)
-    report_skipped(data)
+    data, sensor_list = _load_reported(data_csv, target, sensors)
     groups = speed_groups(data.speed_rpm, band_rpm)
     values = data.temperatures(sensor_list)
     names = sensor_list or list(data.sensors)
@@ -680,82 +646,23 @@ def analyze(
     progress: bool | None,
 ) -> None:
     """Fit the model, trace its held-out residual to the effect it lacks, add it, compare."""
-    from dataclasses import replace
-
-    import numpy as np
-
-    from models.data.dataset import load_runs
-
-    sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=probe_rows)
+    data, sensor_list = _load_reported(data_csv, target, sensors, sparse_target=probe_rows)
     # The analysis stack (scipy, scikit-learn) only once the file is known good.
-    from models.analysis import augmented
-    from models.analysis.render import text_report
-    from models.analysis.search import analyze as run_analysis
-    from models.data.features import prepare
-    from models.store import data_fingerprint
+    from gateway.offline.analyze import AnalyzeRequest, TooFewProbeRowsError, run_analyze
 
-    report_skipped(data)
-    prepared = prepare(data, sensor_list, reference).without_sensor_readings()
-    fit_rows = None
-    if probe_rows:  # a probe measures the error itself: the target is used as measured
-        prepared = replace(prepared, error_um=np.asarray(data.error_um, dtype=float))
-        fit_rows = np.isfinite(prepared.error_um)
-        if int(fit_rows.sum()) < 10:
-            raise click.UsageError(
-                f"{data_csv}: --probe-rows: {int(fit_rows.sum())} rows with a {target} value; "
-                "expected at least 10"
-            )
-    data = prepared.data  # the readings of the sensors are let go: their rises are kept
-    show_progress = sys.stderr.isatty() if progress is None else progress
-    known = "" if fit_rows is None else f" ({int(fit_rows.sum())} with {target})"
-    click.echo(
-        f"{data_csv.name}: {data.n_samples} rows{known}, {len(data.run_ids)} runs, "
-        f"{len(prepared.plan.recording_runs)} recording(s), target {target} (µm), "
-        f"model {method} on {','.join(prepared.inputs.sensors)} (°C)"
-    )
-    from models.analysis.nested import AUTO_BASES, analyse_bases, nested_analysis
-
-    methods = AUTO_BASES if method == "auto" else (method,)
-    base_choice = None
-    if method == "auto":
-        method, analyses = analyse_bases(prepared, methods, sensor_list, fit_rows)
-        kept = analyses[method]
-        result, accepted, analysis = kept.result, kept.accepted, kept.analysis
-        base_choice = {
-            "models": list(methods),
-            "heldout_rmse_um": {m: round(a.heldout_rmse_um, 4) for m, a in analyses.items()},
-            "kept": method,
-            "note": "the kept model's figures are optimistic by this choice",
-        }
-    else:
-        result, accepted, analysis = run_analysis(
-            prepared, method, sensor_list, show_progress, fit_rows=fit_rows
-        )
-    outer = (
-        nested_analysis(prepared, methods, sensor_list, fit_rows, show_progress) if nested else None
-    )
-    result = replace(
-        result,
-        data_fingerprint=data_fingerprint(prepared.inputs, prepared.error_um),
-        skipped_rows="; ".join(s.describe() for s in data.skipped) or None,
+    request = _request(
+        AnalyzeRequest,
+        (data_csv, method, target, sensor_list, reference, progress),
+        store_dir=store_dir,
+        report_dir=report_dir,
         tolerance_um=tolerance_um,
-        base_choice=base_choice,
-        nested=outer,
+        probe_rows=probe_rows,
+        nested=nested,
     )
-    click.echo(text_report(result))
-    if store_dir is not None:
-        model_id = f"{method}-{target}-" + ("-".join(result.effects) or "none")
-        document = augmented.build_augmented_document(
-            analysis, accepted, result, model_id, __version__
-        )
-        path = augmented.save(document, store_dir)
-        result = replace(result, stored_model={"model_id": document["model_id"], "path": str(path)})
-        click.echo(f"saved {document['model_id']} → {path}")
-    if report_dir is not None:
-        from gateway.offline.report import write_report
-
-        click.echo(f"wrote {write_report(result, report_dir)}")
+    try:
+        result = run_analyze(data, request, click.echo)
+    except TooFewProbeRowsError as exc:
+        raise click.UsageError(str(exc)) from None
     write_json(json_out, result.as_dict())
 
 

@@ -1,0 +1,118 @@
+"""The ``fit`` command's work: prepare the runs, fit, validate, save, report (§3).
+
+The command (:mod:`gateway.cli.main`) parses the options and loads the file; this
+module imports the fitting stack (scipy, scikit-learn), so the command imports it
+only once the file is known good.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from gateway import __version__
+from gateway.offline.tables import accuracy_table, sigma_matrix_table
+from models.data.dataset import MeasuredRuns
+from models.data.features import Prepared, prepare
+from models.fit.ranking import format_report
+from models.fit.workflow import FitOutcome, fit_and_store
+from models.store import ModelStore
+
+
+@dataclass(frozen=True)
+class FitRequest:
+    """What the ``fit`` command was asked (its options, parsed)."""
+
+    data_csv: Path
+    method: str
+    target: str
+    sensors: list[str] | None
+    reference: str
+    progress: bool
+    store_dir: Path
+    per_run: bool
+    regime_column: str | None
+    sensor_accuracy_C: float
+    max_bias_error_um: float
+
+
+def run_fit(
+    data: MeasuredRuns,
+    request: FitRequest,
+    say: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> dict[str, Any]:
+    """Fit ``request.method`` on ``data``, save it to the store, print the validation;
+    return the command's JSON."""
+    prepared = prepare(data, request.sensors, request.reference).without_sensor_readings()
+    _say_inputs(prepared, request, say)
+    outcome = fit_and_store(
+        prepared,
+        request.method,
+        ModelStore(request.store_dir),
+        sensors=request.sensors,
+        per_run=request.per_run,
+        regime_column=request.regime_column,
+        progress=request.progress,
+        software_version=__version__,
+        sensor_accuracy_C=request.sensor_accuracy_C,
+    )
+    _say_outcome(outcome, request, say, warn)
+    return {
+        "method": request.method,
+        "target": request.target,
+        "reference": prepared.plan.describe(),
+        "validations": {g: v.as_dict() for g, v in outcome.validations.items()},
+        "sigma": [row.__dict__ for row in outcome.sigma_rows],
+        "ranking": outcome.ranking.as_json() if outcome.ranking else None,
+        "saved": {k: str(v) for k, v in outcome.saved.items()},
+        "conditioning": {k: c.as_dict() for k, c in outcome.conditioning.items()},
+    }
+
+
+def _say_inputs(prepared: Prepared, request: FitRequest, say: Callable[[str], None]) -> None:
+    """The rows, runs and sensors fitted, and where the rises are taken from."""
+    data = prepared.data  # the readings of the sensors are let go: their rises are kept
+    recordings = prepared.plan.recording_runs
+    say(
+        f"{request.data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, "
+        f"target {request.target} (µm), sensors {','.join(prepared.inputs.sensors)} (°C)"
+    )
+    say(
+        f"references ({request.reference}): {len(recordings)} recording(s); rises are taken "
+        "from the leading at-rest samples of each recording: "
+        + " | ".join(" ".join(r) for r in recordings)
+    )
+    say(prepared.plan.error_line())
+
+
+def _say_outcome(
+    outcome: FitOutcome,
+    request: FitRequest,
+    say: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> None:
+    """Validation tables, the ranking, each model's summary and conditioning, what was saved."""
+    for group, validation in outcome.validations.items():
+        say(f"\n{request.method} [{group}] — {validation.scheme}")
+        say(accuracy_table(validation))
+    if outcome.sigma_rows:
+        say("\nσ (µm) of each run's model (rows) on each run (columns):")
+        say(sigma_matrix_table(outcome.sigma_rows))
+    if outcome.ranking is not None:
+        say("\n" + format_report(outcome.ranking))
+    for model_id, text in outcome.summaries.items():
+        say(f"\n{model_id}: {text}")
+    for model_id, conditioning in outcome.conditioning.items():
+        say(f"\n{model_id} {conditioning.table()}")
+        if conditioning.worst_single_um > request.max_bias_error_um:
+            warn(
+                f"warning: {model_id}: a bias of ±{request.sensor_accuracy_C:g} °C on "
+                f"{conditioning.worst_sensor} moves the compensation by "
+                f"{conditioning.worst_single_um:.1f} µm (limit {request.max_bias_error_um:g} µm): "
+                "the inputs are collinear; try --method ridge or pls, or fewer --sensors"
+            )
+    for model_id, path in outcome.saved.items():
+        say(f"saved {model_id} → {path}")

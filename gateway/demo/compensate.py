@@ -155,10 +155,7 @@ async def demo(
     say(f"1/{steps} recording six training runs on the simulated machine → {training}")
     write_training_data(training, seed)
     say(f"2/{steps} fitting models (per regime, all runs, one without each sensor) → {store_dir}")
-    for path in store_dir.glob("*.json"):
-        path.unlink()
-    for folder in ("augmented", "proposals", "versions"):  # a fresh store every run
-        shutil.rmtree(store_dir / folder, ignore_errors=True)
+    _clear_store(store_dir)
     models = fit_models(training, store_dir, version)
     main_models = ", ".join(m for m in models if "without" not in m)
     say(f"    {len(models)} models: {main_models}, and one without each sensor")
@@ -168,6 +165,52 @@ async def demo(
 
     clock = AcceleratedClock(speedup)
     unseen = program_by_name(program)
+    plant = _demo_plant(program, seed, effect, speedup, clock)
+    machine = _demo_machine(plant, store_dir, cycle_s, effect)
+    hours = unseen.duration_s / 3600.0
+    with_what = "" if effect is None else ", the promoted model and the online correction"
+    say(
+        f"{3 if effect is None else 4}/{steps} compensating programme '{program}' (not in the "
+        f"training data{with_what}, {hours:.1f} h of machine time at ×{speedup:g}: about "
+        f"{unseen.duration_s / speedup:.0f} s)"
+    )
+    closed = await _compensate(plant, machine, clock, workdir, unseen.duration_s)
+    result = closed.trace.summary()
+    result.update(
+        {
+            "program": program,
+            "machine_hours": hours,
+            "models": models,
+            "regime_switches": [list(s) for s in closed.loop.selector.switches],
+            "failed_writes": closed.loop.failed_writes,
+            "models_used": sorted({r.model_id for r in closed.trace.records if r.model_id}),
+        }
+    )
+    write_trace(workdir / "trace.csv", closed.trace)
+    _say_errors(result, workdir, f"{4 if effect is None else 5}/{steps}", say)
+    if effect is None:
+        monitor_result = run_monitor_phase(store_dir, None, seed, version, say, 5, steps)
+    assert monitor_result is not None
+    result["monitor"] = monitor_result
+    for key in ("without_probes", "online_correction", "after_promotion"):
+        if key in monitor_result:
+            result[f"{key}_peak_um"] = monitor_result[key]["peak_um"]
+            result[f"{key}_rmse_um"] = monitor_result[key]["rmse_um"]
+    return result
+
+
+def _clear_store(store_dir: Path) -> None:
+    """A fresh model store every run: no model, proposal or version of an earlier demo."""
+    for path in store_dir.glob("*.json"):
+        path.unlink()
+    for folder in ("augmented", "proposals", "versions"):
+        shutil.rmtree(store_dir / folder, ignore_errors=True)
+
+
+def _demo_plant(
+    program: str, seed: int, effect: str | None, speedup: float, clock: AcceleratedClock
+) -> SimulatedPlant:
+    """The simulated machine the demo compensates: transmitters on Modbus TCP, CNC on OPC UA."""
     plant = SimulatedPlant(
         SimulatorConfig.model_validate(
             {
@@ -191,6 +234,14 @@ async def demo(
         clock=clock,
     )
     assert plant.tcp_transmitters is not None and plant.cnc_opcua is not None
+    return plant
+
+
+def _demo_machine(
+    plant: SimulatedPlant, store_dir: Path, cycle_s: float, effect: str | None
+) -> MachineSection:
+    """The gateway's configuration of that machine, over its protocols."""
+    assert plant.tcp_transmitters is not None and plant.cnc_opcua is not None
     host, port = plant.tcp_transmitters.address
     machine = machine_config(
         store_dir,
@@ -207,20 +258,25 @@ async def demo(
         cnc={"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 2.0}},
         cycle_s=cycle_s,
     )
-    if effect is not None:  # the probe cycle and the online correction on, as in production
-        machine = machine.model_copy(
-            update={
-                "compensation": machine.compensation.model_copy(update={"probe_macro": 600}),
-                "online_correction": OnlineCorrectionSection(enabled=True),
-            }
-        )
-    hours = unseen.duration_s / 3600.0
-    with_what = "" if effect is None else ", the promoted model and the online correction"
-    say(
-        f"{3 if effect is None else 4}/{steps} compensating programme '{program}' (not in the "
-        f"training data{with_what}, {hours:.1f} h of machine time at ×{speedup:g}: about "
-        f"{unseen.duration_s / speedup:.0f} s)"
+    if effect is None:
+        return machine
+    # The probe cycle and the online correction on, as in production.
+    return machine.model_copy(
+        update={
+            "compensation": machine.compensation.model_copy(update={"probe_macro": 600}),
+            "online_correction": OnlineCorrectionSection(enabled=True),
+        }
     )
+
+
+async def _compensate(
+    plant: SimulatedPlant,
+    machine: MachineSection,
+    clock: AcceleratedClock,
+    workdir: Path,
+    duration_s: float,
+) -> ClosedLoop[MachineLoop]:
+    """Run the programme under compensation, logged as ``run`` logs, to its end."""
     # As on a real machine: the gateway is up and has its cold reference before the
     # operator presses cycle start (starting the servers takes minutes of machine time).
     plant.machine.schedule_program(float("inf"))
@@ -236,24 +292,17 @@ async def demo(
     try:
         await closed.loop.run_cycle()
         plant.machine.schedule_program(plant.machine.time_s + machine.cycle_s)
-        await closed.run_until(plant.machine.program_start_s + unseen.duration_s)
+        await closed.run_until(plant.machine.program_start_s + duration_s)
     finally:
         await closed.loop.close()
         await plant.stop()
         await outputs.stop()
-    result = closed.trace.summary()
-    result.update(
-        {
-            "program": program,
-            "machine_hours": hours,
-            "models": models,
-            "regime_switches": [list(s) for s in closed.loop.selector.switches],
-            "failed_writes": closed.loop.failed_writes,
-            "models_used": sorted({r.model_id for r in closed.trace.records if r.model_id}),
-        }
-    )
-    write_trace(workdir / "trace.csv", closed.trace)
-    say(f"{4 if effect is None else 5}/{steps} thermal error at the tool (µm), over the protocols:")
+    return closed
+
+
+def _say_errors(result: dict[str, Any], workdir: Path, step: str, say: Any) -> None:
+    """The thermal error at the tool with and without compensation, and where it is logged."""
+    say(f"{step} thermal error at the tool (µm), over the protocols:")
     for label, key in (
         ("without compensation", "uncompensated"),
         ("with compensation", "compensated"),
@@ -263,15 +312,6 @@ async def demo(
     say(f"    peak reduced by {result['reduction_pct']:.1f} % over {result['cycles']} cycles")
     say(f"    per-cycle trace: {workdir / 'trace.csv'}")
     say(f"    every cycle logged to the local store {workdir / 'points.sqlite'}")
-    if effect is None:
-        monitor_result = run_monitor_phase(store_dir, None, seed, version, say, 5, steps)
-    assert monitor_result is not None
-    result["monitor"] = monitor_result
-    for key in ("without_probes", "online_correction", "after_promotion"):
-        if key in monitor_result:
-            result[f"{key}_peak_um"] = monitor_result[key]["peak_um"]
-            result[f"{key}_rmse_um"] = monitor_result[key]["rmse_um"]
-    return result
 
 
 def run_monitor_phase(

@@ -350,6 +350,39 @@ class _Table:
     notes: tuple[str, ...]
 
 
+@dataclass
+class _Filling:
+    """The arrays a read fills chunk by chunk (allocated once for every row of the file)."""
+
+    numbers: dict[str, np.ndarray]
+    run_code: np.ndarray
+    lines: np.ndarray
+    text_parts: dict[str, list[np.ndarray]]
+    run_ids: dict[str, int] = field(default_factory=dict)
+    filled: int = 0
+    skipped_count: int = 0
+    skipped_first: list[int] = field(default_factory=list)
+
+    @classmethod
+    def empty(cls, n: int, typed: Iterable[str], text: Iterable[str]) -> _Filling:
+        return cls(
+            numbers={name: np.empty(n) for name in typed},
+            run_code=np.empty(n, dtype=np.int32),
+            lines=np.empty(n, dtype=np.int32),
+            text_parts={name: [] for name in text},
+        )
+
+
+@dataclass(frozen=True)
+class _Part:
+    """One chunk of the file on its way into the arrays: the kept rows and where they go."""
+
+    chunk: pd.DataFrame
+    keep: slice | np.ndarray  # the chunk's rows kept
+    lines: np.ndarray  # their line numbers in the file
+    rows: slice  # where they go in the arrays
+
+
 class _UnparsedCellError(Exception):
     """The typed read met a cell its float parser refused (located by a second pass)."""
 
@@ -416,111 +449,134 @@ class _ColumnReader:
             raise _UnparsedCellError(str(exc)) from None
 
     def _read(self) -> _Table:
-        n = self.capacity
-        numbers = {name: np.empty(n) for name in self.typed}
-        run_code = np.empty(n, dtype=np.int32)
-        lines = np.empty(n, dtype=np.int32)
-        run_ids: dict[str, int] = {}
-        text_parts: dict[str, list[np.ndarray]] = {name: [] for name in self.text}
-        optional = [name for name in self.typed if name not in self.needed]
+        fill = _Filling.empty(self.capacity, self.typed, self.text)
         dtypes: dict[str, Any] = {RUN_COLUMN: "category"}
         dtypes |= {name: np.float64 for name in self.typed}
         dtypes |= {name: str for name in self.text}
-        skipped_count, skipped_first = 0, []
-        filled, next_line = 0, HEADER_LINE + 1
+        next_line = HEADER_LINE + 1
         for chunk in self._chunks(dtypes):
             m = len(chunk)
-            if filled + m > n:
+            if fill.filled + m > self.capacity:
                 raise DataError(self.path, None, None, "not a readable CSV file (rows miscounted)")
             chunk_lines = np.arange(next_line, next_line + m, dtype=np.int32)
             next_line += m
-            dense = [name for name in self.needed if name not in self.sparse]
-            empty = chunk[[RUN_COLUMN, *dense]].isna().to_numpy().any(axis=1)
-            keep: slice | np.ndarray = slice(None)
-            if empty.any():
-                skipped_count += int(empty.sum())
-                skipped_first += [int(x) for x in chunk_lines[empty][: 5 - len(skipped_first)]]
-                keep = ~empty
+            keep = self._rows_to_keep(chunk, chunk_lines, fill)
             kept_lines = chunk_lines[keep]
-            k = kept_lines.size
-            rows = slice(filled, filled + k)
-            worst: tuple[int, str, float] | None = None
-            for name in self.needed:
-                values = chunk[name].to_numpy(dtype=np.float64)[keep]
-                if name == SPEED_COLUMN:
-                    values = self._speed_magnitude(values, kept_lines)
-                bad = first_implausible(values, bounds_of(name))
-                if bad is not None and name in self.sparse:
-                    present = np.flatnonzero(~np.isnan(values))
-                    found = first_implausible(values[present], bounds_of(name))
-                    bad = None if found is None else int(present[found])
-                if bad is not None and (worst is None or bad < worst[0]):
-                    worst = (bad, name, float(values[bad]))
-                numbers[name][rows] = values
-            if worst is not None:
-                bad, name, value = worst
-                raise DataError(
-                    self.path, int(kept_lines[bad]), name, why_implausible(value, bounds_of(name))
-                )
-            for name in optional:
-                if name in self.notes:
-                    continue
-                values = chunk[name].to_numpy(dtype=np.float64)[keep]
-                bad = first_implausible(values, bounds_of(name))
-                if bad is not None:
-                    self.notes[name] = _set_aside(name, int(kept_lines[bad]), float(values[bad]))
-                numbers[name][rows] = values
-            runs = chunk[RUN_COLUMN].array
-            code_of = np.array(
-                [run_ids.setdefault(str(c).strip(), len(run_ids)) for c in runs.categories],
-                dtype=np.int32,
-            )
-            run_code[rows] = code_of[np.asarray(runs.codes)[keep]]
-            for name in self.text:
-                text_parts[name].append(chunk[name].fillna("").to_numpy(dtype=object)[keep])
-            lines[rows] = kept_lines
-            filled += k
+            rows = slice(fill.filled, fill.filled + kept_lines.size)
+            part = _Part(chunk, keep, kept_lines, rows)
+            self._store_needed(part, fill.numbers)
+            self._store_optional(part, fill.numbers)
+            self._store_runs_and_text(part, fill)
+            del part
+            fill.lines[rows] = kept_lines
+            fill.filled += kept_lines.size
             del chunk
-        if filled == 0:
+        if fill.filled == 0:
             raise DataError(
                 self.path,
-                skipped_first[0] if skipped_first else HEADER_LINE + 1,
+                fill.skipped_first[0] if fill.skipped_first else HEADER_LINE + 1,
                 None,
-                "every data row has an empty needed cell" if skipped_count else "no data rows",
+                "every data row has an empty needed cell" if fill.skipped_count else "no data rows",
             )
-        for array in (run_code, lines, *numbers.values()):
-            array.resize(filled, refcheck=False)
-        skipped: tuple[SkippedRows, ...] = ()
-        if skipped_count:
-            columns = ", ".join([RUN_COLUMN, *self.needed])
-            skipped = (
-                SkippedRows(
-                    count=skipped_count,
-                    reason=f"an empty cell in a needed column ({columns})",
-                    first_lines=tuple(skipped_first),
-                ),
+        for array in (fill.run_code, fill.lines, *fill.numbers.values()):
+            array.resize(fill.filled, refcheck=False)
+        numeric, labels = self._typed_columns(fill)
+        return _Table(
+            run=np.array(list(fill.run_ids), dtype=object)[fill.run_code],
+            run_code=fill.run_code,
+            numeric=numeric,
+            labels=labels,
+            lines=fill.lines,
+            skipped=self._skipped(fill),
+            notes=tuple(self.notes.values()),
+        )
+
+    def _rows_to_keep(
+        self, chunk: pd.DataFrame, chunk_lines: np.ndarray, fill: _Filling
+    ) -> slice | np.ndarray:
+        """The chunk's rows with every needed cell filled; the others are counted."""
+        dense = [name for name in self.needed if name not in self.sparse]
+        empty = chunk[[RUN_COLUMN, *dense]].isna().to_numpy().any(axis=1)
+        if not empty.any():
+            return slice(None)
+        fill.skipped_count += int(empty.sum())
+        fill.skipped_first += [int(x) for x in chunk_lines[empty][: 5 - len(fill.skipped_first)]]
+        return ~empty
+
+    def _store_needed(self, part: _Part, numbers: dict[str, np.ndarray]) -> None:
+        """Copy the needed columns; the first implausible value (by line) is an error."""
+        worst: tuple[int, str, float] | None = None
+        for name in self.needed:
+            values = part.chunk[name].to_numpy(dtype=np.float64)[part.keep]
+            if name == SPEED_COLUMN:
+                values = self._speed_magnitude(values, part.lines)
+            bad = first_implausible(values, bounds_of(name))
+            if bad is not None and name in self.sparse:
+                present = np.flatnonzero(~np.isnan(values))
+                found = first_implausible(values[present], bounds_of(name))
+                bad = None if found is None else int(present[found])
+            if bad is not None and (worst is None or bad < worst[0]):
+                worst = (bad, name, float(values[bad]))
+            numbers[name][part.rows] = values
+        if worst is not None:
+            bad, name, value = worst
+            raise DataError(
+                self.path, int(part.lines[bad]), name, why_implausible(value, bounds_of(name))
             )
+
+    def _store_optional(self, part: _Part, numbers: dict[str, np.ndarray]) -> None:
+        """Copy the optional columns; one with an implausible value is set aside (a note)."""
+        for name in self.typed:
+            if name in self.needed or name in self.notes:
+                continue
+            values = part.chunk[name].to_numpy(dtype=np.float64)[part.keep]
+            bad = first_implausible(values, bounds_of(name))
+            if bad is not None:
+                self.notes[name] = _set_aside(name, int(part.lines[bad]), float(values[bad]))
+            numbers[name][part.rows] = values
+
+    def _store_runs_and_text(self, part: _Part, fill: _Filling) -> None:
+        """Each kept row's run as a code (runs numbered in order of appearance), and the
+        text columns' cells."""
+        runs = part.chunk[RUN_COLUMN].array
+        code_of = np.array(
+            [fill.run_ids.setdefault(str(c).strip(), len(fill.run_ids)) for c in runs.categories],
+            dtype=np.int32,
+        )
+        fill.run_code[part.rows] = code_of[np.asarray(runs.codes)[part.keep]]
+        for name in self.text:
+            fill.text_parts[name].append(
+                part.chunk[name].fillna("").to_numpy(dtype=object)[part.keep]
+            )
+
+    def _skipped(self, fill: _Filling) -> tuple[SkippedRows, ...]:
+        if not fill.skipped_count:
+            return ()
+        columns = ", ".join([RUN_COLUMN, *self.needed])
+        return (
+            SkippedRows(
+                count=fill.skipped_count,
+                reason=f"an empty cell in a needed column ({columns})",
+                first_lines=tuple(fill.skipped_first),
+            ),
+        )
+
+    def _typed_columns(self, fill: _Filling) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+        """Numeric columns (a text column whose every cell is a plausible number counts),
+        and label columns."""
         numeric: dict[str, np.ndarray] = {}
         labels: dict[str, np.ndarray] = {}
         for name in self.names:
-            if name in numbers and name not in self.notes:
-                numeric[name] = numbers[name]
-            elif name in text_parts:
-                cells = np.concatenate(text_parts.pop(name))
+            if name in fill.numbers and name not in self.notes:
+                numeric[name] = fill.numbers[name]
+            elif name in fill.text_parts:
+                cells = np.concatenate(fill.text_parts.pop(name))
                 converted = pd.to_numeric(pd.Series(cells), errors="coerce").to_numpy(float)
                 if first_implausible(converted, bounds_of(name)) is None:
                     numeric[name] = converted
                 else:
                     labels[name] = cells
-        return _Table(
-            run=np.array(list(run_ids), dtype=object)[run_code],
-            run_code=run_code,
-            numeric=numeric,
-            labels=labels,
-            lines=lines,
-            skipped=skipped,
-            notes=tuple(self.notes.values()),
-        )
+        return numeric, labels
 
     def _speed_magnitude(self, values: np.ndarray, lines: np.ndarray) -> np.ndarray:
         """A control that signs the speed by direction (M04, reverse) heats the bearings as

@@ -212,7 +212,7 @@ def relations_from_bank(bank: ModelBank, sensors: Iterable[str]) -> SensorRelati
     for model_id, banked in bank.models.items():
         if not isinstance(banked, BankedModel):
             continue
-        relations = banked.document.relations()
+        relations = banked.relations()  # one per stored document, shared by machines
         if relations is None:
             continue
         covered = sum(1 for s in relations.sensors if s in machine)

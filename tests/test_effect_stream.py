@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.lag_state import EffectStates
 from gateway.live.bank.model_bank import BankedAugmented, ModelBank
 from models.analysis import augmented
 from models.data.dataset import load_runs

@@ -13,8 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from gateway.live.bank.effect_lags import EffectStates
-from gateway.live.bank.warm_lags import WarmLags
+from gateway.live.bank.lag_state import EffectStates, WarmLags
 from tests.test_retention import fill, small_disk
 
 MACHINES = 20
@@ -37,7 +36,7 @@ def test_a_full_disk_gives_one_lag_state_warning_per_episode(
             for i in range(MACHINES)
         ]
         filler = fill(disk)
-        with caplog.at_level(logging.INFO, logger="gateway.live.bank.effect_lags"):
+        with caplog.at_level(logging.INFO, logger="gateway.live.bank.lag_state"):
             minutes(machines, 0.0, 10)
             failed = [r for r in caplog.records if "cannot save the lag states" in r.message]
             assert len(failed) == 1, [r.message for r in failed][:5]

@@ -36,7 +36,7 @@ from gateway.config import (
     OnlineCorrectionSection,
 )
 from gateway.demo.compensate import machine_config
-from gateway.live.bank.warm_lags import WarmLags
+from gateway.live.bank.lag_state import WarmLags
 from gateway.live.loop import MachineLoop
 from gateway.wiring import Gateway, build_buses, build_cnc, load_bank
 from models.analysis import augmented
@@ -197,7 +197,8 @@ def test_cli_promotion_swaps_in_warm_and_rollback_restores(
             warm_um.append(expected)
             cold_um.append(cold.step(r.time_s, rises, r.speed_rpm))
     # Identical when every input was read every cycle; a cycle that missed one (a serial
-    # timeout) held the whole stream but only that input's warm lag (gateway/live/bank/warm_lags.py).
+    # timeout) held the whole stream but only that input's warm lag
+    # (gateway/live/bank/lag_state.py).
     needed = StreamingAugmented(lag_document).sensors
     seen = [set(needed) & set(rises_of(r, outcome["reference_C"])) for r in records]
     complete = all(len(got) in (0, len(needed)) for got in seen)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.lag_state import EffectStates
 from gateway.live.bank.model_bank import BankedAugmented
 from models.analysis import augmented
 from models.data.dataset import AMBIENT_COLUMN, load_runs

@@ -10,7 +10,7 @@ Once per ``cycle_s`` of machine time:
 3. classify the speed regime (with hysteresis) and take its model from the bank,
    or a fallback fitted without a bad sensor, or none;
 4. predict the error rise (µm) from the temperature rises above the cold reference;
-   every augmented model (lag terms, :mod:`gateway.live.bank.effect_lags`) is advanced
+   every augmented model (lag terms, :mod:`gateway.live.bank.lag_state`) is advanced
    with this cycle's rises and speed whether it is selected or not, so a model
    switched in mid-shift has a warm state;
 5. read what the CNC macro holds (a value the gateway did not write is an
@@ -40,10 +40,9 @@ from drivers.clock import Clock
 from drivers.cnc import CncClient, CncError
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.config import MachineSection
-from gateway.live.bank.effect_lags import EffectStates
+from gateway.live.bank.lag_state import EffectStates, WarmLags
 from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.live.bank.promotion import Promotions
-from gateway.live.bank.warm_lags import WarmLags
 from gateway.live.plausibility import Plausibility
 from gateway.live.quality import Quality, QualityMonitor
 from gateway.live.record import CycleRecord, Sink, sink_name

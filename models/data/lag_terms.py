@@ -40,7 +40,8 @@ the samples either side (first-order hold), the expected path of a change that
 fell at an unknown moment in the gap, and the lag is the exact response to it.
 :func:`lag_coefficients` gives both steps to the batch filter, and
 :func:`lag_step`, its one-sample form, to every stream (:mod:`models.online.streaming`,
-:mod:`models.estimators.lag_ridge`, ``gateway/live/bank/warm_lags.py``), so they agree across gaps too.
+:mod:`models.estimators.lag_ridge`, ``gateway/live/bank/lag_state.py``), so they agree
+across gaps too.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ A promoted model must pass the checks a model passes at start:
 
 A model that fails is refused with a logged reason and counted; whatever served
 in its place before keeps serving. A swap is logged and counted. The new model's
-lag states are taken warm (:mod:`gateway.live.bank.warm_lags`), and its prediction goes
+lag states are taken warm (:mod:`gateway.live.bank.lag_state`), and its prediction goes
 through the same online correction, clamp and slew limit as any other, so the
 compensation moves to it no faster than the slew allows.
 

@@ -1,4 +1,5 @@
-"""Logged time series → measured-run CSV (contract §1) that models.data.dataset.load_runs accepts."""
+"""Logged time series → the measured-run CSV of contract §1, which
+models.data.dataset.load_runs accepts."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""gateway.live.reference: the saved reference says whether it was taken with the spindle turning."""
+"""gateway.live.reference: the saved reference says whether it was taken with the spindle
+turning."""
 
 from __future__ import annotations
 

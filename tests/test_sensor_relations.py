@@ -1,4 +1,5 @@
-"""models.estimators.sensor_relations: each sensor's rise from the others', checked on hand-worked data."""
+"""models.estimators.sensor_relations: each sensor's rise from the others', checked on
+hand-worked data."""
 
 from __future__ import annotations
 

@@ -4,7 +4,8 @@ Each machine loop runs under its own :class:`gateway.process.supervision.Supervi
 loop that raises is logged, restarted after a back-off and counted
 (``loop_restarts``), while the other machines keep cycling. A sink that raises
 is counted by the loop and never stops a cycle. :meth:`Gateway.health` gathers
-every counter of a machine (and the forwarder's) for SCADA and the heartbeat.
+every counter of a machine (and the forwarder's) once, with
+:mod:`gateway.outputs.health`, for SCADA, the heartbeat, the console and Sparkplug.
 """
 
 from __future__ import annotations
@@ -32,11 +33,12 @@ from gateway.live.loop import MachineLoop
 from gateway.live.proposal_monitor import MonitorSink, build_monitor
 from gateway.live.record import CycleRecord, Sink
 from gateway.live.scheduler import CycleScheduler
+from gateway.outputs.health import Health, machine_health, scalar_counters
 from gateway.outputs.sinks import Outputs
 from gateway.process.gc_tuning import frozen_startup_heap
 from gateway.process.supervision import Supervised
 from gateway.scada.login_throttle import ThrottlePolicy
-from gateway.scada.server import ScadaServer, ScadaSettings, ScadaUser, health_of
+from gateway.scada.server import ScadaServer, ScadaSettings, ScadaUser
 from gateway.web.server import WebConsole, build_web
 from models.data.dataset import ambient_sensor_of
 
@@ -215,17 +217,12 @@ class Gateway:
         if self.web is not None:
             self.web.record(record)
 
-    def health(self, machine_id: str) -> dict[str, int | bool | str | dict[str, int] | None]:
-        """Every health counter of one machine, plus the gateway-wide forwarder's."""
-        loop = self._loop_of(machine_id)
-        supervisor = self.supervisors[machine_id]
-        return {
-            **health_of(loop),
-            "sink_failures_by_sink": dict(loop.sink_failures),
-            "loop_restarts": supervisor.restarts,
-            "last_loop_error": supervisor.last_error,
-            **self.outputs.forwarder_health(),
-        }
+    def health(self, machine_id: str) -> Health:
+        """Every health counter of one machine, plus the gateway-wide forwarder's: what the
+        SCADA server, the heartbeat, the console and the Sparkplug node all read."""
+        return machine_health(
+            self._loop_of(machine_id), self.supervisors[machine_id], self.outputs.forwarder
+        )
 
     def _build_scada(self) -> ScadaServer | None:
         section = self.config.scada
@@ -312,7 +309,7 @@ class Gateway:
     def _publish_to_scada(self, record: CycleRecord) -> None:
         assert self.scada is not None
         health = self.health(record.machine)
-        self.scada.publish_soon(record, {k: v for k, v in health.items() if _scalar(v)})
+        self.scada.publish_soon(record, scalar_counters(health))
         promotions = self._loop_of(record.machine).promotions
         shown = self._proposals_shown.get(record.machine)
         if shown != (promotions.proposals_revision, promotions.version):
@@ -390,10 +387,6 @@ def _cycles_of(loop: MachineLoop) -> Callable[[], int]:
     return lambda: loop.cycles
 
 
-def _scalar(value: object) -> bool:
-    return isinstance(value, int | float | str | bool)
-
-
 async def check_connections(config: GatewayConfig) -> list[str]:
     """Try every machine's CNC and transmitters once; the problems found, in words."""
     problems = []
@@ -418,7 +411,8 @@ async def check_connections(config: GatewayConfig) -> list[str]:
 
 
 def shared_hubs(machines: Sequence[MachineSection]) -> dict[str, BusHub]:
-    """One hub per serial port of the configuration (checked by :func:`gateway.config.check_shared_lines`)."""
+    """One hub per serial port of the configuration (checked by
+    :func:`gateway.config.check_shared_lines`)."""
     hubs = {}
     for port, buses in rtu_buses(machines).items():
         rtus = [bus.rtu for _, bus in buses if bus.rtu is not None]

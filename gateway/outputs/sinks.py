@@ -157,25 +157,6 @@ class Outputs:
         else:
             self._heartbeat_failing = False
 
-    def forwarder_health(self) -> dict[str, Any]:
-        """Backlog, dropped points and restarts of the store-and-forward path (zeros
-        with the local store, which has no backlog)."""
-        if self.forwarder is None:
-            return {
-                "forwarder_backlog": 0,
-                "dropped_points": 0,
-                "rejected_points": 0,
-                "forwarder_restarts": 0,
-            }
-        health = self.forwarder.health()
-        return {
-            "forwarder_backlog": int(health["buffered"]),
-            "dropped_points": int(health["dropped"]),  # the buffer was full: oldest dropped
-            "rejected_points": int(health["rejected"]),  # InfluxDB refused them as invalid
-            "forwarder_restarts": int(health["restarts"]),
-            "forwarder_connected": bool(health["connected"]),
-        }
-
     def start(self) -> None:
         if self.forwarder is not None:
             self.forwarder.start()

@@ -130,21 +130,6 @@ class ScadaSettings:
             raise ValueError(f"user names must be unique, got {names}")
 
 
-def health_of(loop: Any) -> dict[str, int | bool]:
-    """The ``health`` mapping for :meth:`ScadaServer.publish` from a ``MachineLoop``
-    (the gateway adds ``loop_restarts`` and the forwarder's counters)."""
-    return {
-        "failed_writes": int(loop.failed_writes),
-        "external_changes": int(getattr(loop, "external_changes", 0)),
-        "link_errors_total": int(getattr(loop, "link_errors", 0)),
-        "sink_failures": int(sum(getattr(loop, "sink_failures", {}).values())),
-        "cycles": int(loop.cycles),
-        "compensation_enabled": bool(loop.compensation_enabled),
-        "model_swaps": int(getattr(getattr(loop, "promotions", None), "swaps", 0)),
-        "model_swaps_refused": int(getattr(getattr(loop, "promotions", None), "refused", 0)),
-    }
-
-
 #: ``health`` keys published as UInt32 counters under ``Machines/<id>/Health``.
 HEALTH_COUNTERS = {
     "failed_writes": ("Health.FailedWrites", "CNC writes that failed"),
@@ -569,7 +554,7 @@ class ScadaServer(ServerLifecycle):
 
         ``health`` keys: the counters of :data:`HEALTH_COUNTERS` and
         ``compensation_enabled`` (the loop's current switch state); see
-        :func:`health_of`. Missing keys leave their nodes as they are.
+        :func:`gateway.outputs.health.machine_health`. Missing keys leave their nodes as they are.
         """
         server = self._require_started()
         machine = record.machine

@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from gateway.live.record import CycleRecord
+from gateway.outputs.health import integer_counters
 from gateway.sparkplug.payload import BOOLEAN, DOUBLE, STRING, UINT64, MetricSpec, Value
 
 BD_SEQ = "bdSeq"
@@ -56,12 +57,9 @@ def device_specs(
 
 
 def health_counters(health: Mapping[str, Any]) -> dict[str, int]:
-    """The integer counters of a machine's health (flags, texts and nested maps left out)."""
-    return {
-        key: int(value)
-        for key, value in sorted(health.items())
-        if isinstance(value, int) and not isinstance(value, bool)
-    }
+    """The integer counters of a machine's health (:func:`gateway.outputs.health.integer_counters`),
+    by name."""
+    return dict(sorted(integer_counters(health).items()))
 
 
 def snapshot(record: CycleRecord, health: Mapping[str, Any]) -> dict[str, Value]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
+from gateway.outputs.health import integer_counters
 from gateway.web.series import SourceSpec
 
 
@@ -50,12 +51,9 @@ class Backend:
             state = "compensation off"
         else:
             state = "compensating"
-        counters = {
-            k: v for k, v in health.items() if isinstance(v, int) and not isinstance(v, bool)
-        }
         return {
             "state": state,
-            "health": counters,
+            "health": integer_counters(health),
             "models_version": loop.promotions.version,
             "cnc_unit": loop.config.compensation.unit,
         }

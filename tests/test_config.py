@@ -191,3 +191,20 @@ def test_the_new_key_plausibility_loads_without_a_deprecation(tmp_path: Path, st
     config = load_config(path)
     assert config.machines[0].plausibility.limits().sigma == 6.0
     assert config.deprecations == []
+
+
+def test_run_logs_the_deprecation_line_of_the_old_key(tmp_path: Path, store: Path) -> None:
+    """``run`` logs the same line as ``check-config``; the state folder is held by this
+    test, so the run stops right after reading its configuration."""
+    from gateway.process.instance_lock import hold_state_dir
+
+    state_dir = tmp_path / "state"
+    old = f"state_dir: {state_dir}\n" + GOOD + "    quality: {plausibility_sigma: 6}\n"
+    path = write_config(tmp_path, store, old)
+    line = old.splitlines().index("    quality: {plausibility_sigma: 6}") + 1
+    with hold_state_dir(state_dir):
+        result = gateway("run", "--config", path, timeout_s=60)
+    assert result.returncode != 0 and "another gateway" in result.stderr, result.stderr
+    logged = [ln for ln in result.stderr.splitlines() if "deprecated key name" in ln]
+    assert len(logged) == 1, result.stderr
+    assert f"{path}:{line}: machines[0].quality" in logged[0] and "'plausibility'" in logged[0]

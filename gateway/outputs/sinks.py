@@ -15,7 +15,8 @@ a log write that fails (a full disk under the local store) is counted by the
 loop and does not keep the heartbeat, and the failure count in it, from being
 written.
 - Retention: every ``logging.retention_interval_s`` the store (or buffer) deletes
-  what is past its age or over its size (gateway/outputs/local_store.py, point_buffer.py).
+  what is past its age or over its size (gateway/outputs/local_store.py, disk_buffer.py,
+  both one bounded SQLite ring: sqlite_ring.py).
 - Timestamps: in the plant (``clock`` given, running on wall time) points carry
   ``time.time_ns()`` of the cycle's start, so an NTP correction of the system
   clock is followed; the loops keep scheduling on the monotonic clock.

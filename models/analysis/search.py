@@ -437,10 +437,7 @@ class ResidualAnalysis:
         train = np.zeros((n_variants, k))
         betas: dict[tuple[int, int], np.ndarray] = {}  # (variant, fold) → coefficients
         n_columns = n_added = 0
-        groups: dict[tuple, list[int]] = {}
-        for f in range(k):
-            key = self._fold_design(f, accepted)
-            groups.setdefault(key, []).append(f)
+        groups = self._fold_groups(accepted)
         designs: dict[tuple, FixedDesign] = {}
         last_built: dict[tuple, tuple[int, np.ndarray]] = {}
         # Each fold group's fixed products first, then each variant's terms made once for
@@ -473,24 +470,7 @@ class ResidualAnalysis:
             for f, vi in _taken_in_fold(family, accepted, k):
                 inner[vi, f] = np.inf  # that fold already has this time constant in
         chosen = [int(np.argmin(inner[:, f])) if n_variants > 1 else 0 for f in range(k)]
-        # Held-out predictions of the chosen variants only (a variant's terms are made
-        # again if another one was made after it): never one row set per variant.
-        result = np.zeros(self.y.size)  # rows outside every fold stay 0
-        for key, folds_in_group in groups.items():
-            fixed = designs[key]
-            for vi in sorted({chosen[f] for f in folds_in_group}):
-                built_vi, extra = last_built.pop(key, (None, None))
-                if built_vi != vi:
-                    del extra
-                    extra = self._extra(variants[vi])
-                for f in folds_in_group:
-                    if chosen[f] != vi:
-                        continue
-                    part, beta = self.folds.parts[f], betas[vi, f]
-                    predicted = fixed.rows(part) @ beta[: fixed.width]
-                    predicted += extra[part] @ beta[fixed.width :]
-                    result[self.folds.rows[f]] = predicted
-                del extra
+        result = self._chosen_predictions(groups, designs, last_built, variants, chosen, betas)
         del last_built
         return Evaluation(
             predicted_um=result,
@@ -501,6 +481,40 @@ class ResidualAnalysis:
             n_columns=n_columns,
             n_added=n_added,
         )
+
+    def _fold_groups(self, accepted: list[Accepted]) -> dict[tuple, list[int]]:
+        """The folds by design key: folds in one group share one design matrix."""
+        groups: dict[tuple, list[int]] = {}
+        for f in range(self.folds.count):
+            groups.setdefault(self._fold_design(f, accepted), []).append(f)
+        return groups
+
+    def _chosen_predictions(
+        self,
+        groups: dict[tuple, list[int]],
+        designs: dict[tuple, FixedDesign],
+        last_built: dict[tuple, tuple[int, np.ndarray]],
+        variants: tuple[Variant | None, ...],
+        chosen: list[int],
+        betas: dict[tuple[int, int], np.ndarray],
+    ) -> np.ndarray:
+        """Held-out predictions of the chosen variants only (a variant's terms are made
+        again if another one was made after it): never one row set per variant."""
+        result = np.zeros(self.y.size)  # rows outside every fold stay 0
+        for key, folds_in_group in groups.items():
+            fixed = designs[key]
+            for vi in sorted({chosen[f] for f in folds_in_group}):
+                built_vi, extra = last_built.pop(key, (None, None))
+                if built_vi != vi:
+                    del extra
+                    extra = self._extra(variants[vi])
+                for f in (f for f in folds_in_group if chosen[f] == vi):
+                    part, beta = self.folds.parts[f], betas[vi, f]
+                    predicted = fixed.rows(part) @ beta[: fixed.width]
+                    predicted += extra[part] @ beta[fixed.width :]
+                    result[self.folds.rows[f]] = predicted
+                del extra
+        return result
 
     def _fold_design(self, fold: int, accepted: list[Accepted]) -> tuple[int, ...]:
         """What fixes a fold's design: its base-model group and each accepted effect's variant

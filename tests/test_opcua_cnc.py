@@ -20,9 +20,9 @@ from asyncua import Client, ua
 
 from simulator.link import FixedLink, MachineSnapshot, RunMode
 from simulator.servers.opcua_cnc import CncOpcUaServer
+from tests.node_process import NODE_DIR, run_node
 
 NAMESPACE = "urn:spindle-gateway:simulated-cnc"
-NODE_DIR = Path(__file__).parent / "node"
 NODE_CLIENT = NODE_DIR / "opcua_client.mjs"
 
 
@@ -275,26 +275,10 @@ def test_start_fails_cleanly_when_the_port_is_taken() -> None:
 
 async def run_node_client(endpoint: str, operations: list[dict], pki: Path) -> dict:
     assert shutil.which("node"), "Node.js is needed for the node-opcua tests"
-    assert (NODE_DIR / "node_modules" / "node-opcua-client").is_dir(), (
-        "tests/node/node_modules is missing: run scripts/setup-system.sh (npm ci in tests/node)"
+    returncode, out, err = await run_node(
+        str(NODE_CLIENT), endpoint, json.dumps(operations), "--pki", str(pki)
     )
-    proc = await asyncio.create_subprocess_exec(
-        "node",
-        str(NODE_CLIENT),
-        endpoint,
-        json.dumps(operations),
-        "--pki",
-        str(pki),
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    try:
-        out, err = await asyncio.wait_for(proc.communicate(), timeout=30)
-    except TimeoutError:
-        proc.kill()
-        await proc.wait()
-        raise
-    assert proc.returncode == 0, err.decode(errors="replace")
+    assert returncode == 0, err.decode(errors="replace")
     return json.loads(out)
 
 
@@ -329,24 +313,10 @@ def test_node_opcua_reads_and_writes_a_macro(tmp_path: Path) -> None:
 
 
 def test_node_opcua_client_fails_on_no_server(tmp_path: Path) -> None:
-    async def scenario() -> tuple[int | None, bytes, bytes]:
-        proc = await asyncio.create_subprocess_exec(
-            "node",
-            str(NODE_CLIENT),
-            f"opc.tcp://127.0.0.1:{free_port()}/cnc",
-            "[]",
-            "--pki",
-            str(tmp_path / "pki"),
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
-        )
-        out, err = await asyncio.wait_for(proc.communicate(), timeout=30)
-        return proc.returncode, out, err
-
-    assert (NODE_DIR / "node_modules" / "node-opcua-client").is_dir(), (
-        "tests/node/node_modules is missing: run scripts/setup-system.sh (npm ci in tests/node)"
+    endpoint = f"opc.tcp://127.0.0.1:{free_port()}/cnc"
+    returncode, out, err = asyncio.run(
+        run_node(str(NODE_CLIENT), endpoint, "[]", "--pki", str(tmp_path / "pki"))
     )
-    returncode, out, err = asyncio.run(scenario())
     assert returncode == 1
     assert out == b""
     assert b"cannot connect" in err

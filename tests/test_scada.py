@@ -15,7 +15,6 @@ import asyncio
 import dataclasses
 import json
 import logging
-import os
 import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -23,7 +22,6 @@ from pathlib import Path
 import pytest
 from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
-from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gateway.live.record import CycleRecord
@@ -38,9 +36,16 @@ from gateway.scada.server import (
     ScadaSettings,
     ScadaUser,
 )
+from tests.node_process import NODE_DIR, run_node
 from tests.ports import free_tcp_port
+from tests.ua_session import (
+    activate,
+    create_session,
+    open_channel,
+    password_token,
+    sign_and_encrypt,
+)
 
-NODE_DIR = Path(__file__).parent / "node"
 NODE_CLIENT = NODE_DIR / "scada_client.mjs"
 MACHINE = "vmc-1"
 
@@ -110,22 +115,10 @@ async def node_client(
             "--password",
             user.password if password is None else password,
         ]
-    proc = await asyncio.create_subprocess_exec(
-        "node",
-        *args,
-        cwd=NODE_DIR,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-    )
-    try:
-        out, err = await asyncio.wait_for(proc.communicate(), timeout=30)
-    except TimeoutError:
-        proc.kill()
-        await proc.wait()
-        raise
+    returncode, out, err = await run_node(*args)
     lines = out.decode().strip().splitlines()
-    assert lines, f"no output (exit {proc.returncode}): {err.decode()[-2000:]}"
-    return proc.returncode or 0, json.loads(lines[-1])
+    assert lines, f"no output (exit {returncode}): {err.decode()[-2000:]}"
+    return returncode, json.loads(lines[-1])
 
 
 def statuses(reply: dict) -> list[str]:
@@ -177,49 +170,13 @@ async def raw_activate(
             [ExtendedKeyUsageOID.CLIENT_AUTH],
             {},
         )
-        await client.set_security(
-            SecurityPolicyBasic256Sha256,
-            str(cert),
-            str(key),
-            mode=ua.MessageSecurityMode.SignAndEncrypt,
-        )
-    await client.connect_socket()
+        await sign_and_encrypt(client, cert, key)
     try:
-        await client.send_hello()
-        await client.open_secure_channel()
-        session = ua.CreateSessionParameters(
-            ClientDescription=ua.ApplicationDescription(
-                ApplicationUri=client.application_uri, ApplicationType=ua.ApplicationType.Client
-            ),
-            EndpointUrl=endpoint,
-            SessionName="probe",
-            ClientNonce=os.urandom(32),
-            ClientCertificate=client.security_policy.host_certificate,
-            RequestedSessionTimeout=60_000,
-        )
-        created = await client.uaclient.create_session(session)
-        params = ua.ActivateSessionParameters()
-        params.UserIdentityToken = token
-        if cert_dir is not None:
-            policy = client.security_policy
-            params.ClientSignature.Algorithm = policy.AsymmetricSignatureURI
-            params.ClientSignature.Signature = policy.asymmetric_cryptography.signature(
-                created.ServerCertificate + created.ServerNonce
-            )
-        try:
-            await client.uaclient.activate_session(params)
-        except ua.UaStatusCodeError as err:
-            return ua.StatusCode(err.code).name
-        return "Good"
+        await open_channel(client)
+        created = await create_session(client, endpoint, "probe")
+        return await activate(client, created, token, signed=cert_dir is not None)
     finally:
         client.disconnect_socket()
-
-
-def password_token(user: ScadaUser) -> ua.UserNameIdentityToken:
-    """A user-name token with the password in clear (as over a SignAndEncrypt channel)."""
-    return ua.UserNameIdentityToken(
-        PolicyId="username", UserName=user.username, Password=user.password.encode()
-    )
 
 
 # -- tests ---------------------------------------------------------------------------

@@ -12,17 +12,22 @@ still working on.
 from __future__ import annotations
 
 import asyncio
-import os
 import shutil
 from pathlib import Path
 
 from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
-from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from gateway.scada.server import TRUSTED_DIR, ScadaServer, ScadaSettings, ScadaUser
 from tests.ports import free_tcp_port
+from tests.ua_session import (
+    activate,
+    create_session,
+    open_channel,
+    password_token,
+    sign_and_encrypt,
+)
 
 CLIENTS = 50
 SPREAD_S = 1.0
@@ -53,12 +58,7 @@ async def read_speed(endpoint: str, uri: str, cert: Path, key: Path, delay_s: fl
     client.application_uri = uri
     client.set_user(VIEWER.username)
     client.set_password(VIEWER.password)
-    await client.set_security(
-        SecurityPolicyBasic256Sha256,
-        str(cert),
-        str(key),
-        mode=ua.MessageSecurityMode.SignAndEncrypt,
-    )
+    await sign_and_encrypt(client, cert, key)
     try:
         async with client:
             ns = await client.get_namespace_index("urn:spindle-gateway:scada")
@@ -69,18 +69,25 @@ async def read_speed(endpoint: str, uri: str, cert: Path, key: Path, delay_s: fl
     return "Good"
 
 
+async def server_trusting(
+    tmp_path: Path, count: int
+) -> tuple[list[tuple[str, Path, Path]], ScadaServer]:
+    """``count`` client identities, and a SCADA server (not started) trusting every one."""
+    identities = await client_identities(tmp_path / "clients", count)
+    pki = tmp_path / "pki"
+    (pki / TRUSTED_DIR).mkdir(parents=True)
+    for _, cert, _ in identities:
+        shutil.copy(cert, pki / TRUSTED_DIR / cert.name)
+    settings = ScadaSettings(port=free_tcp_port(), pki_dir=pki, users=(VIEWER,))
+    return identities, ScadaServer(settings, [MACHINE], lambda machine, enabled: None)
+
+
 def burst(tmp_path: Path, distinct: int) -> list[str]:
     """Start a server trusting ``CLIENTS`` certificates; connect ``CLIENTS`` stations at
     once, using the first ``distinct`` of them."""
 
     async def main() -> list[str]:
-        identities = await client_identities(tmp_path / "clients", CLIENTS)
-        pki = tmp_path / "pki"
-        (pki / TRUSTED_DIR).mkdir(parents=True)
-        for _, cert, _ in identities:
-            shutil.copy(cert, pki / TRUSTED_DIR / cert.name)
-        settings = ScadaSettings(port=free_tcp_port(), pki_dir=pki, users=(VIEWER,))
-        server = ScadaServer(settings, [MACHINE], lambda machine, enabled: None)
+        identities, server = await server_trusting(tmp_path, CLIENTS)
         async with server:
             # Within a second, as stations do after a SCADA restart or a network outage.
             stations = [(*identities[i % distinct], i * SPREAD_S / CLIENTS) for i in range(CLIENTS)]
@@ -103,52 +110,13 @@ def test_fifty_stations_sharing_one_certificate_are_all_admitted(tmp_path: Path)
     assert results.count("Good") == CLIENTS, sorted(set(results))
 
 
-async def open_channel(endpoint: str, uri: str, cert: Path, key: Path) -> Client:
+async def station_channel(endpoint: str, uri: str, cert: Path, key: Path) -> Client:
     """A client with its secure channel open and no session yet (protocol level)."""
     client = Client(endpoint, timeout=30)
     client.application_uri = uri
-    await client.set_security(
-        SecurityPolicyBasic256Sha256,
-        str(cert),
-        str(key),
-        mode=ua.MessageSecurityMode.SignAndEncrypt,
-    )
-    await client.connect_socket()
-    await client.send_hello()
-    await client.open_secure_channel()
+    await sign_and_encrypt(client, cert, key)
+    await open_channel(client)
     return client
-
-
-async def create_session(client: Client, endpoint: str) -> ua.CreateSessionResult:
-    params = ua.CreateSessionParameters(
-        ClientDescription=ua.ApplicationDescription(
-            ApplicationUri=client.application_uri, ApplicationType=ua.ApplicationType.Client
-        ),
-        EndpointUrl=endpoint,
-        SessionName="station",
-        ClientNonce=os.urandom(32),
-        ClientCertificate=client.security_policy.host_certificate,
-        RequestedSessionTimeout=60_000,
-    )
-    return await client.uaclient.create_session(params)
-
-
-async def activate(client: Client, created: ua.CreateSessionResult) -> str:
-    """ActivateSession with the viewer's password; the status name."""
-    params = ua.ActivateSessionParameters()
-    params.UserIdentityToken = ua.UserNameIdentityToken(
-        PolicyId="username", UserName=VIEWER.username, Password=VIEWER.password.encode()
-    )
-    policy = client.security_policy
-    params.ClientSignature.Algorithm = policy.AsymmetricSignatureURI
-    params.ClientSignature.Signature = policy.asymmetric_cryptography.signature(
-        created.ServerCertificate + created.ServerNonce
-    )
-    try:
-        await client.uaclient.activate_session(params)
-    except ua.UaStatusCodeError as err:
-        return ua.StatusCode(err.code).name
-    return "Good"
 
 
 def test_a_session_is_activated_while_another_with_its_certificate_is_being_checked(
@@ -159,24 +127,18 @@ def test_a_session_is_activated_while_another_with_its_certificate_is_being_chec
     CreateSession and its certificate is being checked against the trust list."""
 
     async def main() -> list[str]:
-        identities = await client_identities(tmp_path / "clients", 10)
-        pki = tmp_path / "pki"
-        (pki / TRUSTED_DIR).mkdir(parents=True)
-        for _, cert, _ in identities:
-            shutil.copy(cert, pki / TRUSTED_DIR / cert.name)
-        settings = ScadaSettings(port=free_tcp_port(), pki_dir=pki, users=(VIEWER,))
-        server = ScadaServer(settings, [MACHINE], lambda machine, enabled: None)
+        identities, server = await server_trusting(tmp_path, 10)
         statuses = []
         async with server:
             for _ in range(5):
-                first = await open_channel(server.endpoint, *identities[0])
-                second = await open_channel(server.endpoint, *identities[0])
+                first = await station_channel(server.endpoint, *identities[0])
+                second = await station_channel(server.endpoint, *identities[0])
                 try:
                     created = await create_session(first, server.endpoint)
                     checking = asyncio.ensure_future(create_session(second, server.endpoint))
                     await asyncio.sleep(0)  # B's CreateSession is on the wire first
-                    statuses.append(await activate(first, created))
-                    statuses.append(await activate(second, await checking))
+                    statuses.append(await activate(first, created, password_token(VIEWER)))
+                    statuses.append(await activate(second, await checking, password_token(VIEWER)))
                 finally:
                     first.disconnect_socket()
                     second.disconnect_socket()

@@ -18,7 +18,6 @@ from pathlib import Path
 import pytest
 from asyncua import Client, ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
-from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes
 from cryptography.x509.oid import ExtendedKeyUsageOID
@@ -27,6 +26,7 @@ from drivers.clock import ManualClock
 from gateway.scada.login_throttle import LoginThrottle, ThrottlePolicy
 from gateway.scada.server import REJECTED_DIR, TRUSTED_DIR, ScadaServer, ScadaSettings
 from tests.test_scada import MACHINE, NODE_DIR, OPERATOR, VIEWER, node_client, settings
+from tests.ua_session import sign_and_encrypt
 
 POLICY = ThrottlePolicy(max_failures=5, window_s=60.0, lockout_s=30.0, max_lockout_s=120.0)
 
@@ -70,12 +70,7 @@ async def client_certificate(folder: Path) -> tuple[Path, Path]:
 async def login(server: ScadaServer, cert: tuple[Path, Path], username: str, password: str) -> str:
     """Connect with asyncua's client over SignAndEncrypt; the session's status name."""
     client = Client(server.endpoint, timeout=10)
-    await client.set_security(
-        SecurityPolicyBasic256Sha256,
-        str(cert[0]),
-        str(cert[1]),
-        mode=ua.MessageSecurityMode.SignAndEncrypt,
-    )
+    await sign_and_encrypt(client, cert[0], cert[1])
     client.set_user(username)
     client.set_password(password)
     try:

@@ -9,6 +9,7 @@ just enough physics for the maths to have something true to find.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -86,3 +87,23 @@ def write_runs_csv(path: Path, **kwargs) -> Path:
         lines.append(",".join([row[0], *(f"{v:.6g}" for v in row[1:])]))
     path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
+
+
+def stored_document(prepared, model, model_id: str, **changes: Any) -> dict[str, Any]:
+    """The store document of ``model`` fitted on every run of ``prepared`` (regime "all",
+    validated leave-one-run-out); ``changes`` replace arguments of ``build_document``."""
+    from models.store import build_document
+
+    arguments: dict[str, Any] = {
+        "model_id": model_id,
+        "inputs": prepared.inputs,
+        "error_um": prepared.error_um,
+        "target": "error_um",
+        "source_file": prepared.data.source,
+        "runs": list(prepared.data.run_ids),
+        "reference": prepared.plan.describe(),
+        "regime": "all",
+        "validation": {"scheme": "leave-one-run-out"},
+        "software_version": "test",
+    }
+    return build_document(model, **(arguments | changes))

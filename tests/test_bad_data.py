@@ -7,6 +7,7 @@ path given). The folder is walked, so a new case is a new pair of files.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import shutil
@@ -16,12 +17,12 @@ import numpy as np
 import pytest
 
 from models.base import ModelInputs
-from models.data.dataset import MeasuredRuns, load_runs
+from models.data.dataset import load_runs
 from models.data.features import prepare
 from models.fit.workflow import fit_and_store
-from models.store import ModelStore, StoreError, build_document
+from models.store import ModelStore, StoreError
 from tests.cli import gateway, gateway_in_process
-from tests.synthetic import write_runs_csv
+from tests.synthetic import stored_document, write_runs_csv
 
 CASES = Path(__file__).resolve().parent / "cases" / "data"
 CASE_NAMES = sorted(p.stem for p in CASES.glob("*.csv"))
@@ -109,17 +110,7 @@ def _huge_prepared(tmp_path: Path):
     numeric = dict(data.numeric)
     numeric["T1"] = data.numeric["T1"].copy()
     numeric["T1"][len(numeric["T1"]) // 2] = 1e308  # as the file held
-    data = MeasuredRuns(
-        source=data.source,
-        run=data.run,
-        time_s=data.time_s,
-        speed_rpm=data.speed_rpm,
-        sensors=data.sensors,
-        target=data.target,
-        numeric=numeric,
-        lines=data.lines,
-    )
-    return prepare(data)
+    return prepare(dataclasses.replace(data, numeric=numeric))
 
 
 def test_a_model_whose_figures_are_not_finite_is_never_saved(tmp_path: Path) -> None:
@@ -141,19 +132,7 @@ def test_the_store_refuses_a_non_finite_number_anywhere_in_a_document(tmp_path: 
     store = ModelStore(tmp_path / "store")
 
     def document(validation: dict) -> dict:
-        return build_document(
-            model,
-            model_id="m",
-            inputs=prepared.inputs,
-            error_um=prepared.error_um,
-            target="error_um",
-            source_file="runs.csv",
-            runs=list(prepared.data.run_ids),
-            reference=prepared.plan.describe(),
-            regime="all",
-            validation=validation,
-            software_version="test",
-        )
+        return stored_document(prepared, model, "m", source_file="runs.csv", validation=validation)
 
     for bad, where in (
         ({"pooled": {"rmse_um": math.inf}}, "validation.pooled.rmse_um is inf"),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import re
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -104,16 +105,22 @@ def test_run_refuses_what_check_config_refuses_with_the_same_line() -> None:
     assert result.stderr.splitlines() == [expected]
 
 
+def refused(load: Callable[[Path], object], path: Path, text: str, message: str) -> None:
+    """``text`` written to ``path`` is refused by ``load`` with the message ``path:message``
+    (a regular expression: line, field, what was expected)."""
+    path.write_text(text, encoding="utf-8")
+    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:{message}"):
+        load(path)
+
+
 def test_programmes_file_is_read_by_the_same_loader(tmp_path: Path) -> None:
     from simulator.programs import load_programs
 
     path = tmp_path / "programs.yaml"
-    path.write_text("programs:\n  warm: [[[10, 2000]]]\n  warm: [[[20, 4000]]]\n", encoding="utf-8")
-    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: programs.warm: key given"):
-        load_programs(path)
-    path.write_text("programs:\n  warm: [[[10, 2000]]]\n  cold: [[[-5, 0]]]\n", encoding="utf-8")
-    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: programs.cold: .*positive"):
-        load_programs(path)
+    twice = "programs:\n  warm: [[[10, 2000]]]\n  warm: [[[20, 4000]]]\n"
+    refused(load_programs, path, twice, "3: programs.warm: key given")
+    negative = "programs:\n  warm: [[[10, 2000]]]\n  cold: [[[-5, 0]]]\n"
+    refused(load_programs, path, negative, "3: programs.cold: .*positive")
     assert set(load_programs()) >= {"iso230-spectrum", "const4000"}
 
 
@@ -121,11 +128,10 @@ def test_machine_parameters_file_is_read_by_the_same_loader(tmp_path: Path) -> N
     from simulator.params import load_params_file
 
     path = tmp_path / "params.yaml"
-    path.write_text("sensor_noise_C: 0.05\nsensors:\n  T1: {lag_s: .inf}\n", encoding="utf-8")
-    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: sensors.T1.lag_s: .inf is"):
-        load_params_file(path)
-    path.write_text("sensors:\n  T1:\n    lag_s: -1\n", encoding="utf-8")
-    with pytest.raises(YamlError, match=rf"^{re.escape(str(path))}:3: sensors.T1.lag_s: Input"):
-        load_params_file(path)
+    infinite = "sensor_noise_C: 0.05\nsensors:\n  T1: {lag_s: .inf}\n"
+    refused(load_params_file, path, infinite, "3: sensors.T1.lag_s: .inf is")
+    refused(
+        load_params_file, path, "sensors:\n  T1:\n    lag_s: -1\n", "3: sensors.T1.lag_s: Input"
+    )
     path.write_text("sensor_noise_C: 0.05\n", encoding="utf-8")
     assert load_params_file(path).sensor_noise_C == 0.05

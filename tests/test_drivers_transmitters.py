@@ -9,7 +9,6 @@ goes away and comes back on the same port.
 from __future__ import annotations
 
 import asyncio
-import math
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -19,30 +18,21 @@ import pytest
 
 from drivers.link_health import Backoff, LinkHealth
 from drivers.transmitters import ChannelResult, DeviceMap, TransmitterBus, decode_channels
-from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
+from simulator.link import FixedLink, RunMode
 from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from tests.ports import free_tcp_port
 from tests.serial_pty import socat_pty_pair
+from tests.test_modbus_servers import machine as reference_machine
 
 T = TypeVar("T")
 HOST = "127.0.0.1"
 TIMEOUT_S = 0.3
 SILENT_ID = 3
 
-SNAPSHOT = MachineSnapshot(
-    time_s=0.0,
-    channels={
-        "T1": ChannelReading(23.5),
-        "T2": ChannelReading(-5.2),
-        "T3": ChannelReading(math.nan, ChannelStatus.OPEN_CIRCUIT),
-        "T4": ChannelReading(30.0, ChannelStatus.SHORT_CIRCUIT),
-        "T5": ChannelReading(4000.0),  # beyond int16 counts: clamped, status 3
-        "T9": ChannelReading(31.25),  # 312.5 counts: ties away from zero → 31.3
-        "ambient": ChannelReading(20.0),
-    },
-    actual_speed_rpm=0.0,
-    commanded_speed_rpm=0.0,
-    run_mode=RunMode.STOP,
+#: The reference machine of the server tests, at rest: its channels are what is read here
+#: (T5 beyond int16 counts: clamped, status 3; T9 312.5 counts: ties away from zero → 31.3).
+SNAPSHOT = reference_machine(
+    actual_speed_rpm=0.0, commanded_speed_rpm=0.0, run_mode=RunMode.STOP, macros={}
 )
 SERVED = [
     TransmitterDevice(1, ["T1", "T2", "T3", "T4", "T5"]),

@@ -11,8 +11,8 @@ import pytest
 from models.data.dataset import load_runs
 from models.data.features import prepare
 from models.estimators.registry import METHODS, make_model
-from models.store import ModelStore, StoreError, _checksum, build_document, load_file
-from tests.synthetic import write_runs_csv
+from models.store import ModelStore, StoreError, _checksum, load_file
+from tests.synthetic import stored_document, write_runs_csv
 
 
 @pytest.fixture(scope="module")
@@ -23,19 +23,7 @@ def prepared(tmp_path_factory: pytest.TempPathFactory):
 
 def save_fitted(prepared, store: ModelStore, method: str) -> tuple[object, dict, Path]:
     model = make_model(method).fit(prepared.inputs, prepared.error_um)
-    document = build_document(
-        model,
-        model_id=f"{method}-error_um-all",
-        inputs=prepared.inputs,
-        error_um=prepared.error_um,
-        target="error_um",
-        source_file=prepared.data.source,
-        runs=list(prepared.data.run_ids),
-        reference=prepared.plan.describe(),
-        regime="all",
-        validation={"scheme": "leave-one-run-out"},
-        software_version="test",
-    )
+    document = stored_document(prepared, model, f"{method}-error_um-all")
     return model, document, store.save(document)
 
 

@@ -33,13 +33,13 @@ from gateway.wiring import build_buses, build_cnc, load_bank
 from models.data.dataset import load_runs
 from models.data.features import prepare
 from models.estimators.registry import make_model
-from models.store import ModelStore, build_document
+from models.store import ModelStore
 from simulator.link import ChannelReading, ChannelStatus, FixedLink, MachineSnapshot, RunMode
 from simulator.servers.modbus_cnc import CncModbusServer, macro_register
 from simulator.servers.modbus_transmitters import TransmitterDevice, TransmitterServer
 from simulator.servers.opcua_cnc import CncOpcUaServer
 from tests.ports import free_tcp_port
-from tests.synthetic import write_runs_csv
+from tests.synthetic import stored_document, write_runs_csv
 
 T = TypeVar("T")
 HOST = "127.0.0.1"
@@ -69,19 +69,7 @@ def model_store(folder: Path) -> Path:
     """A store in ``folder`` with one MLR model on all seven sensors."""
     prepared = prepare(load_runs(write_runs_csv(folder / "runs.csv")))
     model = make_model("mlr").fit(prepared.inputs, prepared.error_um)
-    document = build_document(
-        model,
-        model_id="mlr-error_um-all",
-        inputs=prepared.inputs,
-        error_um=prepared.error_um,
-        target="error_um",
-        source_file=prepared.data.source,
-        runs=list(prepared.data.run_ids),
-        reference=prepared.plan.describe(),
-        regime="all",
-        validation={"scheme": "leave-one-run-out"},
-        software_version="test",
-    )
+    document = stored_document(prepared, model, "mlr-error_um-all")
     ModelStore(folder / "models").save(document)
     return folder / "models"
 

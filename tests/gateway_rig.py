@@ -27,6 +27,33 @@ DEVICES = [
 SENSORS = [f"T{i}" for i in range(1, 10)]
 
 
+def gateway_devices() -> list[dict[str, Any]]:
+    """The gateway's view of :data:`DEVICES`: the ambient channel is not read."""
+    return [dict(DEVICES[0]), {"device_id": 2, "channels": ["T9", None]}]
+
+
+def tcp_bus(host: str, port: int, **options: Any) -> dict[str, Any]:
+    """The ``transmitters[]`` entry of a plant's Modbus TCP bus (``options``: timeout_s …)."""
+    return {
+        "name": "bus1",
+        "tcp": {"host": host, "port": port},
+        **options,
+        "devices": gateway_devices(),
+    }
+
+
+def demo_models(store: Path) -> dict[str, Any]:
+    """The ``models`` section serving the demo's fit in ``store``: the variable-speed
+    model, and the pooled one for every other regime."""
+    return {
+        "store": str(store),
+        "regimes": {
+            "models": {"variable": "mlr-error_um-variable"},
+            "fallback_model": "mlr-error_um-all",
+        },
+    }
+
+
 #: The folder holding the one fit of this test run (see :func:`share_fits_in`).
 _fitted: list[Path] = []
 
@@ -104,14 +131,8 @@ def machine_entry(
     if transmitters is None:
         served_tcp = served.config.transmitters.tcp
         assert served_tcp is not None
-        transmitters = [
-            {
-                "name": "bus1",
-                "tcp": {"host": "127.0.0.1", "port": served_tcp.port},
-                "timeout_s": 0.5,  # wall time, generous for a loaded machine
-                "devices": [DEVICES[0], {"device_id": 2, "channels": ["T9", None]}],
-            }
-        ]
+        # timeout_s: wall time, generous for a loaded machine.
+        transmitters = [tcp_bus("127.0.0.1", served_tcp.port, timeout_s=0.5)]
     if cnc == "opcua":
         assert served.cnc_opcua is not None
         link: dict[str, Any] = {"opcua": {"endpoint": served.cnc_opcua.endpoint, "timeout_s": 1.0}}
@@ -126,11 +147,5 @@ def machine_entry(
         "sensors": {name: {"max_rate_C_per_s": 50.0, "stale_s": stale_s} for name in SENSORS},
         "cnc": link,
         "compensation": {"slew_um_per_min": 2000.0},
-        "models": {
-            "store": str(store),
-            "regimes": {
-                "models": {"variable": "mlr-error_um-variable"},
-                "fallback_model": "mlr-error_um-all",
-            },
-        },
+        "models": demo_models(store),
     }

@@ -35,6 +35,7 @@ from gateway.demo.compensate import write_training_data
 from gateway.outputs.influx import InfluxReader
 from tests.influx_server import InfluxServer
 from tests.ports import free_tcp_port, wait_for_port
+from tests.served_bench import gateway_process
 
 ROOT = Path(__file__).resolve().parent.parent
 PODMAN = [str(ROOT / "scripts/podman.sh")]
@@ -153,13 +154,7 @@ def bench(tmp_path: Path) -> Iterator[dict[str, Any]]:
     bus_port, cnc_port = free_tcp_port(), free_tcp_port()
     sim_path = tmp_path / "simulator.yaml"
     sim_path.write_text(yaml.safe_dump(simulator_config(bus_port, cnc_port)), encoding="utf-8")
-    simulator = subprocess.Popen(
-        [sys.executable, "-m", "gateway", "simulate", "--config", str(sim_path)],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    simulator = gateway_process("simulate", "--config", sim_path)
     try:
         with InfluxServer(tmp_path / "influxdb") as influx:
             wait_for_port(cnc_port)

@@ -14,9 +14,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +24,13 @@ from models import signing
 from models.analysis import augmented
 from models.online.proposals import ProposalStore
 from models.store import ModelStore, StoreError, _checksum, load_file
+from tests import served_bench as bench
 from tests.cli import gateway, gateway_in_process
-from tests.ports import free_tcp_port, wait_for_port
+from tests.ports import free_tcp_port
+from tests.served_bench import read_macro_mm, wait_until
 from tests.test_promotion_kill import MACHINE, offset_model
-from tests.test_run_command import bench_config, read_macro_mm, wait_until
+from tests.test_run_command import bench_config
 
-ROOT = Path(__file__).resolve().parent.parent
 FALLBACK = "mlr-error_um-all.json"  # the model bench-1 runs on its constant program
 
 
@@ -164,20 +162,7 @@ def test_a_forged_promotion_is_refused_and_the_running_gateway_keeps_its_models(
     proposal_file.write_text(json.dumps(raw))
 
     log_path = tmp_path / "run.log"
-    quiet: dict[str, Any] = {"cwd": ROOT, "stdout": subprocess.DEVNULL, "text": True}
-    simulator = subprocess.Popen(
-        [sys.executable, "-m", "gateway", "simulate", "--config", str(config)], **quiet
-    )
-    running = None
-    try:
-        wait_for_port(cnc)
-        with open(log_path, "w") as log:
-            running = subprocess.Popen(
-                [sys.executable, "-m", "gateway", "run", "--config", str(config)],
-                stderr=log,
-                **quiet,
-            )
-        assert wait_until(lambda: "CNC macro #500 holds" in log_path.read_text(), 90)
+    with bench.bench_running(config, cnc, log_path) as running:
         refused = gateway("models", "promote", bad, "--config", config, timeout_s=120)
         assert refused.returncode == 2
         assert f"{proposal_file}, its model: the model's signature does not match" in (
@@ -202,12 +187,6 @@ def test_a_forged_promotion_is_refused_and_the_running_gateway_keeps_its_models(
         values = [read_macro_mm(cnc) for _ in range(10)]
         assert running.poll() is None
         assert all(abs(v) <= 0.050 for v in values)
-    finally:
-        if running is not None and running.poll() is None:
-            running.send_signal(signal.SIGTERM)
-            running.wait(timeout=30)
-        simulator.send_signal(signal.SIGINT)
-        simulator.wait(timeout=30)
 
 
 def test_documents_of_a_newer_format_version_are_refused_naming_the_file(

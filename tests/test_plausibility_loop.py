@@ -13,13 +13,16 @@ noise and differ by the fault alone.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from drivers.clock import ManualClock
+from gateway.config import MachineSection
 from gateway.demo.compensate import machine_config, open_loop
 from gateway.live.record import CycleRecord
 from simulator.closed_loop import ClosedLoop
@@ -51,6 +54,39 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return rig.fit_store(tmp_path_factory.mktemp("plausibility"))
 
 
+def stepped_plant(clock: ManualClock, cnc: str = "modbus", seed: int = 5) -> SimulatedPlant:
+    """A simulated machine that publishes only when a cycle steps it; its CNC over ``cnc``."""
+    return SimulatedPlant(
+        SimulatorConfig.model_validate(
+            {
+                "seed": seed,
+                "publish_period_s": 1e6,
+                "transmitters": {"tcp": {"port": free_tcp_port(), "devices": rig.DEVICES}},
+                "cnc": {cnc: {"port": free_tcp_port()}},
+            }
+        ),
+        clock=clock,
+    )
+
+
+def stepped_machine(store: Path, plant: SimulatedPlant, cnc: str = "modbus") -> MachineSection:
+    """The gateway's configuration of ``plant``: a cycle every CYCLE_S, the models of ``store``."""
+    assert plant.tcp_transmitters is not None
+    host, port = plant.tcp_transmitters.address
+    if cnc == "opcua":
+        assert plant.cnc_opcua is not None
+        link = {"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 1.0}}
+    else:
+        assert plant.cnc_modbus is not None
+        link = {"modbus": {"host": "127.0.0.1", "port": plant.cnc_modbus.address[1]}}
+    return machine_config(
+        store,
+        transmitters=[rig.tcp_bus(host, port, timeout_s=0.5)],
+        cnc=link,
+        cycle_s=CYCLE_S,
+    )
+
+
 async def run_machine(
     store: Path,
     program: SpeedProgram,
@@ -64,46 +100,12 @@ async def run_machine(
     ``fault.start_s`` and ``end_s`` count from cycle start.
     """
     clock = ManualClock()
-    devices = [
-        {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
-        {"device_id": 2, "channels": ["T9", "ambient"]},
-    ]
-    plant = SimulatedPlant(
-        SimulatorConfig.model_validate(
-            {
-                "seed": seed,
-                "publish_period_s": 1e6,  # publish only when a cycle steps the machine
-                "transmitters": {"tcp": {"port": free_tcp_port(), "devices": devices}},
-                "cnc": {cnc: {"port": free_tcp_port()}},
-            }
-        ),
-        clock=clock,
-    )
+    plant = stepped_plant(clock, cnc, seed)
     plant.machine.program = program
     plant.machine.schedule_program(math.inf)
-    assert plant.tcp_transmitters is not None
-    host, port = plant.tcp_transmitters.address
-    if cnc == "opcua":
-        assert plant.cnc_opcua is not None
-        link = {"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 1.0}}
-    else:
-        assert plant.cnc_modbus is not None
-        link = {"modbus": {"host": "127.0.0.1", "port": plant.cnc_modbus.address[1]}}
-    machine = machine_config(
-        store,
-        transmitters=[
-            {
-                "name": "bus1",
-                "tcp": {"host": host, "port": port},
-                "timeout_s": 0.5,
-                "devices": [devices[0], {"device_id": 2, "channels": ["T9", None]}],
-            }
-        ],
-        cnc=link,
-        cycle_s=CYCLE_S,
-    )
+    machine = stepped_machine(store, plant, cnc)
     closed = await open_loop(plant, machine, clock)
-    try:
+    async with closing(closed, plant):
         await closed.loop.run_cycle()  # the cold reference, before cycle start
         start_s = plant.machine.time_s + CYCLE_S
         plant.machine.schedule_program(start_s)
@@ -112,12 +114,24 @@ async def run_machine(
             fault.end_s = None if fault.end_s is None else fault.end_s + start_s
             plant.machine.add_fault(fault)
         closed.start_s = start_s  # type: ignore[attr-defined]
-        for _ in range(int(seconds // CYCLE_S)):
-            await closed.step(clock)
+        await step_for(closed, clock, seconds)
+    return closed
+
+
+@contextlib.asynccontextmanager
+async def closing(closed: ClosedLoop, plant: SimulatedPlant) -> AsyncIterator[None]:
+    """The loop and then the plant closed when the block ends, however it ends."""
+    try:
+        yield
     finally:
         await closed.loop.close()
         await plant.stop()
-    return closed
+
+
+async def step_for(closed: ClosedLoop, clock: ManualClock, seconds: float) -> None:
+    """One cycle every CYCLE_S for ``seconds`` of machine time."""
+    for _ in range(int(seconds // CYCLE_S)):
+        await closed.step(clock)
 
 
 def implausible(record: CycleRecord, sensor: str) -> bool:

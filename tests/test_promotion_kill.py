@@ -22,10 +22,11 @@ from typing import Any
 from models.analysis import augmented
 from models.online.proposals import PROMOTED, ModelVersions, ProposalStore
 from models.store import load_file
-from tests.ports import free_tcp_port, wait_for_port
-from tests.test_run_command import bench_config, read_macro_mm, wait_until
+from tests import served_bench as bench
+from tests.ports import free_tcp_port
+from tests.served_bench import ROOT, read_macro_mm, wait_until
+from tests.test_run_command import bench_config
 
-ROOT = Path(__file__).resolve().parent.parent
 MACHINE = "bench-1"
 STEPS = 14  # kill points per command (the changes a promote or rollback makes: 8 to 12)
 
@@ -137,67 +138,52 @@ def test_promote_and_rollback_killed_at_every_step_leave_one_consistent_store(
     (store / "versions" / ".9.json.x1.tmp").write_text("{")
     (store / "proposals" / ".P0001.json.x2.tmp").write_text("{")
     log_path = tmp_path / "run.log"
-    pipes: dict[str, Any] = {"cwd": ROOT, "stdout": subprocess.DEVNULL, "text": True}
-    simulator = subprocess.Popen(
-        [sys.executable, "-m", "gateway", "simulate", "--config", str(config)], **pipes
-    )
-    gateway = None
     try:
-        wait_for_port(cnc)
-        with open(log_path, "w") as log:
-            gateway = subprocess.Popen(
-                [sys.executable, "-m", "gateway", "run", "--config", str(config)],
-                stderr=log,
-                **pipes,
+        with bench.bench_running(config, cnc, log_path) as gateway:
+            assert not list(store.rglob("*.tmp")), "run left a temporary file behind at start"
+            assert "model store recovered" in log_path.read_text()
+
+            kills = 0
+            outcomes: list[tuple[int, str, int]] = []
+            for step in range(1, STEPS + 1):
+                for action in ("promote", "rollback"):
+                    if action == "rollback" and ModelVersions(store).current().previous is None:
+                        # the promote before was killed ahead of its commit: one to roll back
+                        code, output = commands.run(10**6, store, *next_command(store, "promote"))
+                        assert code == 0, output
+                    code, output = commands.run(step, store, *next_command(store, action))
+                    outcomes.append((step, action, code))
+                    if code == -signal.SIGKILL:
+                        kills += 1
+                    else:  # fewer changes than the step
+                        assert code == 0, output
+                    assert_consistent(store)
+            assert kills >= 20, outcomes
+            print(f"{kills} of {len(outcomes)} commands killed: {outcomes}")
+
+            promoted = subprocess.run(
+                [sys.executable, "-m", "gateway", *next_command(store, "promote")],
+                cwd=ROOT,
+                capture_output=True,
+                text=True,
+                timeout=120,
             )
-        assert wait_until(lambda: "CNC macro #500 holds" in log_path.read_text(), 90)
-        assert not list(store.rglob("*.tmp")), "run left a temporary file behind at start"
-        assert "model store recovered" in log_path.read_text()
-
-        kills = 0
-        outcomes: list[tuple[int, str, int]] = []
-        for step in range(1, STEPS + 1):
-            for action in ("promote", "rollback"):
-                if action == "rollback" and ModelVersions(store).current().previous is None:
-                    # the promote before was killed ahead of its commit: one to roll back
-                    code, output = commands.run(10**6, store, *next_command(store, "promote"))
-                    assert code == 0, output
-                code, output = commands.run(step, store, *next_command(store, action))
-                outcomes.append((step, action, code))
-                if code == -signal.SIGKILL:
-                    kills += 1
-                else:  # fewer changes than the step
-                    assert code == 0, output
-                assert_consistent(store)
-        assert kills >= 20, outcomes
-        print(f"{kills} of {len(outcomes)} commands killed: {outcomes}")
-
-        promoted = subprocess.run(
-            [sys.executable, "-m", "gateway", *next_command(store, "promote")],
-            cwd=ROOT,
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
-        assert promoted.returncode == 0, promoted.stderr
-        number = assert_consistent(store)
-        assert not list(store.rglob("*.tmp"))
-        numbered = [int(p.stem) for p in (store / "versions").glob("*.json") if p.stem.isdigit()]
-        assert max(numbered) == number  # no version file that was never in force
-        for path in (store / "proposals").glob("P*.json"):  # the files agree too
-            raw = json.loads(path.read_text())
-            assert raw["status"] == ProposalStore(store).get(path.stem).status, path
-        # The running gateway takes the version in force, and stays within its clamp.
-        expected = f"models version {number} in force (promote)"
-        assert wait_until(lambda: expected in log_path.read_text(), 60), log_path.read_text()
-        assert gateway.poll() is None
-        assert abs(read_macro_mm(cnc)) <= 0.050
-        assert "Traceback" not in log_path.read_text()
-        assert "refused" not in log_path.read_text()
+            assert promoted.returncode == 0, promoted.stderr
+            number = assert_consistent(store)
+            assert not list(store.rglob("*.tmp"))
+            numbered = [
+                int(p.stem) for p in (store / "versions").glob("*.json") if p.stem.isdigit()
+            ]
+            assert max(numbered) == number  # no version file that was never in force
+            for path in (store / "proposals").glob("P*.json"):  # the files agree too
+                raw = json.loads(path.read_text())
+                assert raw["status"] == ProposalStore(store).get(path.stem).status, path
+            # The running gateway takes the version in force, and stays within its clamp.
+            expected = f"models version {number} in force (promote)"
+            assert wait_until(lambda: expected in log_path.read_text(), 60), log_path.read_text()
+            assert gateway.poll() is None
+            assert abs(read_macro_mm(cnc)) <= 0.050
+            assert "Traceback" not in log_path.read_text()
+            assert "refused" not in log_path.read_text()
     finally:
         commands.close()
-        if gateway is not None and gateway.poll() is None:
-            gateway.send_signal(signal.SIGTERM)
-            gateway.wait(timeout=30)
-        simulator.send_signal(signal.SIGINT)
-        simulator.wait(timeout=30)

@@ -8,7 +8,6 @@ with a filler file until the kernel answers ENOSPC, then freed again.
 from __future__ import annotations
 
 import contextlib
-import itertools
 import logging
 import signal
 import subprocess
@@ -18,8 +17,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import yaml
-from pymodbus.client import ModbusTcpClient
 
 from drivers.clock import ManualClock
 from gateway.config import GatewayConfig
@@ -29,10 +26,11 @@ from gateway.outputs.local_store import LocalStore
 from gateway.outputs.points import Point
 from gateway.outputs.sinks import Outputs
 from tests import gateway_rig as rig
-from tests.ports import free_tcp_port, wait_for_port
+from tests import served_bench as bench
+from tests.ports import free_tcp_port
 from tests.records import written_record
+from tests.served_bench import read_macro_mm, rises
 
-ROOT = Path(__file__).resolve().parent.parent
 NS = 1_000_000_000
 T0_NS = 1_780_000_000 * NS  # an arbitrary Unix time, s → ns
 
@@ -177,106 +175,50 @@ def test_full_disk_drops_and_counts_then_recovers(
         assert empty.dropped == 0
 
 
-def read_macro_mm(port: int, number: int = 500) -> float:
-    client = ModbusTcpClient("127.0.0.1", port=port, timeout=2)
-    assert client.connect()
-    try:
-        rr = client.read_holding_registers(1000 + 2 * (number - 500), count=2, device_id=1)
-        assert not rr.isError(), rr
-        return float(
-            client.convert_from_registers(rr.registers, client.DATATYPE.FLOAT32, word_order="big")
-        )
-    finally:
-        client.close()
-
-
-def rises(values: list[float]) -> int:
-    return sum(b > a for a, b in itertools.pairwise(values))
-
-
 def test_gateway_compensates_on_with_a_full_disk_and_logs_again_after(tmp_path: Path) -> None:
-    rig.fit_store(tmp_path)
     bus, cnc = free_tcp_port(), free_tcp_port()
-    devices = [
-        {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
-        {"device_id": 2, "channels": ["T9", "ambient"]},
-    ]
+    config = bench.bench_config(rig.fit_store(tmp_path), bus, cnc, speedup=120)
     with small_disk(tmp_path / "data") as data:
-        config = {
-            "state_dir": str(data / "state"),
-            "logging": {"local_store": str(data / "points.sqlite")},
-            "simulator": {
-                "program": "const8000",
-                "speedup": 120,
-                "transmitters": {"tcp": {"port": bus, "devices": devices}},
-                "cnc": {"modbus": {"port": cnc}},
-            },
-            "machines": [
-                {
-                    "id": "bench-1",
-                    "cycle_s": 0.2,
-                    "transmitters": [
-                        {
-                            "name": "bus1",
-                            "tcp": {"host": "127.0.0.1", "port": bus},
-                            "devices": [devices[0], {"device_id": 2, "channels": ["T9", None]}],
-                        }
-                    ],
-                    "sensors": {f"T{i}": {"max_rate_C_per_s": 50.0} for i in range(1, 10)},
-                    # The simulator runs ×120: its growth is 120 times faster in wall time.
-                    "quality": {"max_prediction_rate_um_per_s": 120 * 0.1},
-                    "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
-                    "compensation": {"slew_um_per_min": 2000.0},
-                    "models": {
-                        "store": str(tmp_path / "models"),
-                        "regimes": {
-                            "models": {"variable": "mlr-error_um-variable"},
-                            "fallback_model": "mlr-error_um-all",
-                        },
-                    },
-                }
-            ],
-        }
-        path = tmp_path / "config.yaml"
-        path.write_text(yaml.safe_dump(config), encoding="utf-8")
-        command = [sys.executable, "-m", "gateway"]
-        pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
-        simulator = subprocess.Popen([*command, "simulate", "--config", str(path)], **pipes)
-        gateway = None
-        try:
-            wait_for_port(cnc)
-            gateway = subprocess.Popen([*command, "run", "--config", str(path)], **pipes)
-
-            def macro_rises(within_s: float) -> list[float]:
-                """#500 read every 0.5 s until it has risen twice (compensation at work)."""
-                values = [read_macro_mm(cnc)]
-                deadline = time.monotonic() + within_s
-                while time.monotonic() < deadline and rises(values) < 2:
-                    time.sleep(0.5)
-                    values.append(read_macro_mm(cnc))
-                return values
-
-            before = macro_rises(40)
-            assert rises(before) >= 2, before
-            filler = fill(data)
-            time.sleep(3)  # the WAL fills what was left; from here on points are dropped
-            during = macro_rises(30)
-            assert rises(during) >= 2, during
-            assert gateway.poll() is None, "the gateway must keep running on a full disk"
-            filler.unlink()
-            time.sleep(3)
-            gateway.send_signal(signal.SIGTERM)
-            _, err = gateway.communicate(timeout=30)
-            assert gateway.returncode == 0, err[-3000:]
-        finally:
-            if gateway is not None and gateway.poll() is None:
-                gateway.kill()
-            simulator.send_signal(signal.SIGINT)
-            simulator.communicate(timeout=30)
+        config["state_dir"] = str(data / "state")
+        config["logging"] = {"local_store": str(data / "points.sqlite")}
+        path = bench.write_config(config, tmp_path / "config.yaml")
+        with bench.simulator_serving(path, cnc):
+            gateway = bench.gateway_process("run", "--config", path)
+            try:
+                err = compensates_through_a_full_disk(data, cnc, gateway)
+            finally:
+                bench.kill_if_running(gateway)
         assert "cannot store points" in err, err[-3000:]
         assert "writable again" in err and "dropped in all" in err, err[-3000:]
         with LocalStore(data / "points.sqlite") as store:
             assert len(store.query("spindle_cycle", "bench-1")) > 0
+
+
+def macro_rises(cnc: int, within_s: float) -> list[float]:
+    """#500 read every 0.5 s until it has risen twice (compensation at work)."""
+    values = [read_macro_mm(cnc)]
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline and rises(values) < 2:
+        time.sleep(0.5)
+        values.append(read_macro_mm(cnc))
+    return values
+
+
+def compensates_through_a_full_disk(data: Path, cnc: int, gateway: subprocess.Popen[str]) -> str:
+    """#500 rises before, while and after ``data`` is full; the gateway's stderr at its stop."""
+    before = macro_rises(cnc, 40)
+    assert rises(before) >= 2, before
+    filler = fill(data)
+    time.sleep(3)  # the WAL fills what was left; from here on points are dropped
+    during = macro_rises(cnc, 30)
+    assert rises(during) >= 2, during
+    assert gateway.poll() is None, "the gateway must keep running on a full disk"
+    filler.unlink()
+    time.sleep(3)
+    gateway.send_signal(signal.SIGTERM)
+    _, err = gateway.communicate(timeout=30)
+    assert gateway.returncode == 0, err[-3000:]
+    return err
 
 
 # --- the gateway's outputs: wall-clock stamps and retention actually run -------------------

@@ -15,14 +15,21 @@ from pathlib import Path
 import pytest
 
 from drivers.clock import ManualClock
-from gateway.demo.compensate import machine_config, open_loop
+from gateway.demo.compensate import open_loop
 from gateway.live.plausibility import WarmStarts
 from simulator.closed_loop import ClosedLoop
 from simulator.faults import SensorFault
-from simulator.serve import SimulatedPlant, SimulatorConfig
 from tests import gateway_rig as rig
-from tests.ports import free_tcp_port
-from tests.test_plausibility_loop import BUSY_PROGRAM, CYCLE_S, FAULT_AT_S, run_machine
+from tests.test_plausibility_loop import (
+    BUSY_PROGRAM,
+    CYCLE_S,
+    FAULT_AT_S,
+    closing,
+    run_machine,
+    step_for,
+    stepped_machine,
+    stepped_plant,
+)
 
 CYCLES = 150  # after the fault starts
 AVAILABILITY = 0.95  # share of those cycles with a prediction, at least
@@ -66,52 +73,20 @@ async def run_warm_start(
     """The machine turns for ``warm_s`` before the gateway's first cycle (a new state
     folder: the reference is taken warm); ``fault`` times count from that first cycle."""
     clock = ManualClock()
-    devices = [
-        {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
-        {"device_id": 2, "channels": ["T9", "ambient"]},
-    ]
-    plant = SimulatedPlant(
-        SimulatorConfig.model_validate(
-            {
-                "seed": 5,
-                "publish_period_s": 1e6,
-                "transmitters": {"tcp": {"port": free_tcp_port(), "devices": devices}},
-                "cnc": {"modbus": {"port": free_tcp_port()}},
-            }
-        ),
-        clock=clock,
-    )
+    plant = stepped_plant(clock)
     plant.machine.program = BUSY_PROGRAM
     plant.machine.schedule_program(0.0)
-    assert plant.tcp_transmitters is not None and plant.cnc_modbus is not None
-    host, port = plant.tcp_transmitters.address
-    machine = machine_config(
-        store,
-        transmitters=[
-            {
-                "name": "bus1",
-                "tcp": {"host": host, "port": port},
-                "timeout_s": 0.5,
-                "devices": [devices[0], {"device_id": 2, "channels": ["T9", None]}],
-            }
-        ],
-        cnc={"modbus": {"host": "127.0.0.1", "port": plant.cnc_modbus.address[1]}},
-        cycle_s=CYCLE_S,
-    )
+    machine = stepped_machine(store, plant)
     clock.advance(warm_s)
     closed = await open_loop(plant, machine, clock)
-    try:
+    async with closing(closed, plant):
         await plant.update()
         await closed.loop.run_cycle()
         closed.start_s = plant.machine.time_s  # type: ignore[attr-defined]
         if fault is not None:
             fault.start_s += plant.machine.time_s
             plant.machine.add_fault(fault)
-        for _ in range(int(seconds // CYCLE_S)):
-            await closed.step(clock)
-    finally:
-        await closed.loop.close()
-        await plant.stop()
+        await step_for(closed, clock, seconds)
     return closed
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -31,10 +30,10 @@ from simulator.params import load_params
 from simulator.programs import program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record, write_recording
 from tests import gateway_rig as rig
+from tests import served_bench as bench
 from tests.cli import gateway_in_process
-from tests.ports import free_tcp_port, wait_for_port
+from tests.ports import free_tcp_port
 
-ROOT = Path(__file__).resolve().parent.parent
 CYCLE_S = 300.0
 STOP_LIMIT_S = 1.0
 
@@ -74,46 +73,12 @@ def write_config(tmp_path: Path, store: Path, cycle_s: float) -> tuple[Path, int
             "pki_dir": str(tmp_path / "pki"),
             "users": [{"username": "victor", "password_file": str(password_file)}],
         },
-        "simulator": {
-            "program": "const8000",
-            "speedup": 1,
-            "transmitters": {"tcp": {"port": bus, "devices": rig.DEVICES}},
-            "cnc": {"modbus": {"port": cnc}},
-        },
-        "machines": [
-            {
-                "id": "bench-1",
-                "cycle_s": cycle_s,
-                "transmitters": [
-                    {
-                        "name": "bus1",
-                        "tcp": {"host": "127.0.0.1", "port": bus},
-                        "devices": [rig.DEVICES[0], {"device_id": 2, "channels": ["T9", None]}],
-                    }
-                ],
-                "sensors": {name: {"stale_s": 2 * CYCLE_S} for name in rig.SENSORS},
-                "cnc": {"modbus": {"host": "127.0.0.1", "port": cnc}},
-                "models": {
-                    "store": str(store),
-                    "regimes": {
-                        "models": {"variable": "mlr-error_um-variable"},
-                        "fallback_model": "mlr-error_um-all",
-                    },
-                },
-            }
-        ],
     }
-    path = tmp_path / "config.yaml"
-    path.write_text(yaml.safe_dump(config))
-    return path, cnc
-
-
-def wait_for_file(path: Path, process: subprocess.Popen[str], timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not path.exists():
-        assert process.poll() is None, process.communicate()
-        assert time.monotonic() < deadline, f"no {path.name} after {timeout_s:g} s"
-        time.sleep(0.05)
+    config |= bench.bench_config(store, bus, cnc, speedup=1, cycle_s=cycle_s)
+    (machine,) = config["machines"]
+    machine["sensors"] = {name: {"stale_s": 2 * CYCLE_S} for name in rig.SENSORS}
+    del machine["plausibility"], machine["compensation"]  # this bench keeps the defaults
+    return bench.write_config(config, tmp_path / "config.yaml"), cnc
 
 
 def run_until_stopped(
@@ -121,26 +86,19 @@ def run_until_stopped(
 ) -> tuple[float, subprocess.CompletedProcess[str]]:
     """Serve the simulated machine, run the gateway until ``ready`` exists and one
     second more, send ``signum``; (seconds from the signal to the exit, the run)."""
-    command = [sys.executable, "-m", "gateway"]
-    pipes = {"cwd": ROOT, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE, "text": True}
     cnc = yaml.safe_load(config.read_text())["simulator"]["cnc"]["modbus"]["port"]
-    simulator = subprocess.Popen([*command, "simulate", "--config", str(config)], **pipes)
-    gateway = None
-    try:
-        wait_for_port(cnc)
-        gateway = subprocess.Popen([*command, "run", "--config", str(config)], **pipes)
-        wait_for_file(ready, gateway, timeout_s=60)
-        time.sleep(1.0)  # the cycle is done; the loop sleeps towards the next one
-        sent = time.monotonic()
-        gateway.send_signal(signum)
-        gateway.wait(timeout=30)
-        stopped_s = time.monotonic() - sent
-        out, err = gateway.communicate()
-    finally:
-        if gateway is not None and gateway.poll() is None:
-            gateway.kill()
-        simulator.send_signal(signal.SIGINT)
-        simulator.communicate(timeout=30)
+    with bench.simulator_serving(config, cnc):
+        gateway = bench.gateway_process("run", "--config", config)
+        try:
+            bench.wait_for_file(ready, gateway, timeout_s=60)
+            time.sleep(1.0)  # the cycle is done; the loop sleeps towards the next one
+            sent = time.monotonic()
+            gateway.send_signal(signum)
+            gateway.wait(timeout=30)
+            stopped_s = time.monotonic() - sent
+            out, err = gateway.communicate()
+        finally:
+            bench.kill_if_running(gateway)
     return stopped_s, subprocess.CompletedProcess(gateway.args, gateway.returncode, out, err)
 
 

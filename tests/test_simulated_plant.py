@@ -20,6 +20,7 @@ from drivers.clock import ManualClock
 from simulator.serve import SimulatedPlant, SimulatorConfig
 from tests.ports import free_tcp_port, wait_for_port
 from tests.serial_pty import socat_pty_pair
+from tests.served_bench import gateway_process
 
 NAMESPACE = "urn:spindle-gateway:simulated-cnc"
 
@@ -166,7 +167,6 @@ def test_node_opcua_write_is_applied_to_the_measured_error(tmp_path: Path) -> No
 def test_simulate_serves_config_yaml_until_interrupted(tmp_path: Path) -> None:
     import signal
     import subprocess
-    import sys
 
     import yaml
 
@@ -189,14 +189,7 @@ def test_simulate_serves_config_yaml_until_interrupted(tmp_path: Path) -> None:
             }
         )
     )
-    root = Path(__file__).resolve().parent.parent
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "gateway", "simulate", "--config", str(config)],
-        cwd=root,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
+    proc = gateway_process("simulate", "--config", config)
     try:
         wait_for_port(cnc_port, timeout_s=20)
         mbpoll = ["mbpoll", "-m", "tcp", "-a", "1", "-1", "-r", "1"]

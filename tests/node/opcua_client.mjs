@@ -16,10 +16,6 @@
 // ("NaN"). Exit status: 0 when connected (whatever the operation statuses), 1 on a
 // connection or session failure, 2 on bad arguments.
 
-import { mkdtempSync } from "node:fs";
-import { tmpdir } from "node:os";
-import path from "node:path";
-import { OPCUACertificateManager } from "node-opcua-certificate-manager";
 import {
     AttributeIds,
     DataType,
@@ -27,13 +23,13 @@ import {
     OPCUAClient,
     SecurityPolicy,
 } from "node-opcua-client";
+import { certificateStore, closeQuietly, parseOperations, readOperation, runOperations } from "./common.mjs";
 
 // node-opcua logs (warnings, "Creating default certificate") through console.log:
 // send them to stderr so stdout carries nothing but the one JSON object.
 console.log = console.error;
 
 const DEFAULT_NAMESPACE = "urn:spindle-gateway:simulated-cnc";
-const NAMESPACE_ARRAY = "ns=0;i=2255";
 
 function usage(message) {
     process.stderr.write(`${message}\nusage: node opcua_client.mjs <endpoint> <operations-json> [--pki <folder>] [--namespace <uri>]\n`);
@@ -52,13 +48,7 @@ function parseArgs(argv) {
         }
     }
     if (positional.length !== 2) usage("expected an endpoint and a JSON list of operations");
-    let operations;
-    try {
-        operations = JSON.parse(positional[1]);
-    } catch (err) {
-        usage(`operations are not JSON: ${err.message}`);
-    }
-    if (!Array.isArray(operations)) usage("operations must be a JSON list");
+    const operations = parseOperations(positional[1], usage);
     return { endpoint: positional[0], operations, ...options };
 }
 
@@ -67,17 +57,7 @@ function jsonValue(value) {
 }
 
 async function run(session, namespaceIndex, op) {
-    if (typeof op.read === "string") {
-        const nodeId = `ns=${namespaceIndex};s=${op.read}`;
-        const dv = await session.read({ nodeId, attributeId: AttributeIds.Value });
-        return {
-            op: "read",
-            nodeId: op.read,
-            status: dv.statusCode.name,
-            dataType: DataType[dv.value.dataType],
-            value: jsonValue(dv.value.value),
-        };
-    }
+    if (typeof op.read === "string") return readOperation(session, namespaceIndex, op.read, jsonValue);
     if (typeof op.write === "string" && typeof op.value === "number") {
         const nodeId = `ns=${namespaceIndex};s=${op.write}`;
         const status = await session.write({
@@ -92,11 +72,7 @@ async function run(session, namespaceIndex, op) {
 
 async function main() {
     const args = parseArgs(process.argv.slice(2));
-    const rootFolder = args.pki ?? mkdtempSync(path.join(tmpdir(), "opcua-pki-"));
-    const certificateManager = new OPCUACertificateManager({
-        rootFolder,
-        automaticallyAcceptUnknownCertificate: true,
-    });
+    const { manager: certificateManager } = certificateStore(args.pki);
     const client = OPCUAClient.create({
         applicationName: "spindle-gateway-node-test-client",
         securityMode: MessageSecurityMode.None,
@@ -117,18 +93,13 @@ async function main() {
     }
 
     try {
-        const namespaces = (await session.read({ nodeId: NAMESPACE_ARRAY, attributeId: AttributeIds.Value })).value.value;
-        const namespaceIndex = namespaces.indexOf(args.namespace);
-        if (namespaceIndex < 0) throw new Error(`namespace ${args.namespace} not served`);
-        const results = [];
-        for (const op of args.operations) results.push(await run(session, namespaceIndex, op));
+        const { namespaceIndex, results } = await runOperations(session, args.namespace, args.operations, run);
         process.stdout.write(`${JSON.stringify({ namespaceIndex, results })}\n`);
     } catch (err) {
         process.stderr.write(`session failure: ${err.message}\n`);
         process.exitCode = 1;
     } finally {
-        await session.close().catch(() => {});
-        await client.disconnect().catch(() => {});
+        await closeQuietly(session, client);
     }
 }
 

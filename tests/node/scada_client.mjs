@@ -21,10 +21,7 @@
 // connection or session failure, with {"error": "<message>", "status": "<StatusCode
 // name or null>", "certificate": ...} on stdout; 2 on bad arguments.
 
-import { mkdtempSync } from "node:fs";
-import { tmpdir } from "node:os";
 import path from "node:path";
-import { OPCUACertificateManager } from "node-opcua-certificate-manager";
 import {
     AttributeIds,
     DataType,
@@ -33,12 +30,12 @@ import {
     SecurityPolicy,
     UserTokenType,
 } from "node-opcua-client";
+import { certificateStore, closeQuietly, parseOperations, readOperation, runOperations } from "./common.mjs";
 
 // node-opcua logs through console.log: keep stdout for the one JSON object.
 console.log = console.error;
 
 const DEFAULT_NAMESPACE = "urn:spindle-gateway:scada";
-const NAMESPACE_ARRAY = "ns=0;i=2255";
 const USAGE =
     "usage: node scada_client.mjs <endpoint> <operations-json> [--pki <folder>] [--namespace <uri>] " +
     "[--user <name> --password <secret>] [--anonymous] [--mode SignAndEncrypt|None]";
@@ -73,13 +70,7 @@ function parseArgs(argv) {
     if (!["SignAndEncrypt", "None"].includes(options.mode)) usage(`unknown mode ${options.mode}`);
     if (options.anonymous === (options.user !== undefined)) usage("give either --user or --anonymous");
     if (options.user !== undefined && options.password === undefined) usage("--user needs --password");
-    let operations;
-    try {
-        operations = JSON.parse(positional[1]);
-    } catch (err) {
-        usage(`operations are not JSON: ${err.message}`);
-    }
-    if (!Array.isArray(operations)) usage("operations must be a JSON list");
+    const operations = parseOperations(positional[1], usage);
     return { endpoint: positional[0], operations, ...options };
 }
 
@@ -98,17 +89,7 @@ function statusOf(err) {
 }
 
 async function run(session, namespaceIndex, op) {
-    if (typeof op.read === "string") {
-        const nodeId = `ns=${namespaceIndex};s=${op.read}`;
-        const dv = await session.read({ nodeId, attributeId: AttributeIds.Value });
-        return {
-            op: "read",
-            nodeId: op.read,
-            status: dv.statusCode.name,
-            dataType: DataType[dv.value.dataType],
-            value: jsonValue(dv.value.value),
-        };
-    }
+    if (typeof op.read === "string") return readOperation(session, namespaceIndex, op.read, jsonValue);
     if (typeof op.write === "string" && ["boolean", "number"].includes(typeof op.value)) {
         const nodeId = `ns=${namespaceIndex};s=${op.write}`;
         const dataType = typeof op.value === "boolean" ? DataType.Boolean : DataType.Double;
@@ -128,11 +109,7 @@ async function run(session, namespaceIndex, op) {
 
 async function main() {
     const args = parseArgs(process.argv.slice(2));
-    const rootFolder = args.pki ?? mkdtempSync(path.join(tmpdir(), "opcua-pki-"));
-    const certificateManager = new OPCUACertificateManager({
-        rootFolder,
-        automaticallyAcceptUnknownCertificate: true,
-    });
+    const { rootFolder, manager: certificateManager } = certificateStore(args.pki);
     const secure = args.mode === "SignAndEncrypt";
     const client = OPCUAClient.create({
         applicationName: "spindle-gateway-scada-test-client",
@@ -160,19 +137,14 @@ async function main() {
     }
 
     try {
-        const namespaces = (await session.read({ nodeId: NAMESPACE_ARRAY, attributeId: AttributeIds.Value })).value.value;
-        const namespaceIndex = namespaces.indexOf(args.namespace);
-        if (namespaceIndex < 0) throw new Error(`namespace ${args.namespace} not served`);
-        const results = [];
-        for (const op of args.operations) results.push(await run(session, namespaceIndex, op));
+        const { namespaceIndex, results } = await runOperations(session, args.namespace, args.operations, run);
         process.stdout.write(`${JSON.stringify({ namespaceIndex, certificate, results })}\n`);
     } catch (err) {
         process.stdout.write(`${JSON.stringify({ error: err.message, status: statusOf(err), certificate })}\n`);
         process.stderr.write(`session failure: ${err.message}\n`);
         process.exitCode = 1;
     } finally {
-        await session.close().catch(() => {});
-        await client.disconnect().catch(() => {});
+        await closeQuietly(session, client);
     }
 }
 

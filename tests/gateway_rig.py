@@ -9,14 +9,17 @@ reaches it through those protocols.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import fcntl
 import shutil
 import tempfile
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 from drivers.clock import Clock
 from gateway.demo.compensate import fit_models, write_training_data
+from simulator.closed_loop import ClosedLoop
 from simulator.serve import SimulatedPlant, SimulatorConfig
 from tests.ports import free_tcp_port
 
@@ -149,3 +152,13 @@ def machine_entry(
         "compensation": {"slew_um_per_min": 2000.0},
         "models": demo_models(store),
     }
+
+
+@contextlib.asynccontextmanager
+async def closing(closed: ClosedLoop, plant: SimulatedPlant) -> AsyncIterator[None]:
+    """The loop and then the plant closed when the block ends, however it ends."""
+    try:
+        yield
+    finally:
+        await closed.loop.close()
+        await plant.stop()

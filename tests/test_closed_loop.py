@@ -148,13 +148,10 @@ async def closed_loop(
         if update is not None:
             machine = machine.model_copy(update=update)
         closed = await opener(plant, machine, clock, state_dir=state_dir)
-        try:
+        async with rig.closing(closed, plant):
             await closed.loop.run_cycle()
             plant.machine.schedule_program(plant.machine.time_s + CYCLE_S)
             yield closed, clock
-        finally:
-            await closed.loop.close()
-            await plant.stop()
 
 
 async def run_for(closed: ClosedLoop, clock: ManualClock, seconds: float) -> None:

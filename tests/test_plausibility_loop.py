@@ -13,9 +13,7 @@ noise and differ by the fault alone.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
-from collections.abc import AsyncIterator
 from pathlib import Path
 
 import numpy as np
@@ -105,7 +103,7 @@ async def run_machine(
     plant.machine.schedule_program(math.inf)
     machine = stepped_machine(store, plant, cnc)
     closed = await open_loop(plant, machine, clock)
-    async with closing(closed, plant):
+    async with rig.closing(closed, plant):
         await closed.loop.run_cycle()  # the cold reference, before cycle start
         start_s = plant.machine.time_s + CYCLE_S
         plant.machine.schedule_program(start_s)
@@ -116,16 +114,6 @@ async def run_machine(
         closed.start_s = start_s  # type: ignore[attr-defined]
         await step_for(closed, clock, seconds)
     return closed
-
-
-@contextlib.asynccontextmanager
-async def closing(closed: ClosedLoop, plant: SimulatedPlant) -> AsyncIterator[None]:
-    """The loop and then the plant closed when the block ends, however it ends."""
-    try:
-        yield
-    finally:
-        await closed.loop.close()
-        await plant.stop()
 
 
 async def step_for(closed: ClosedLoop, clock: ManualClock, seconds: float) -> None:

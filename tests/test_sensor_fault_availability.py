@@ -24,7 +24,6 @@ from tests.test_plausibility_loop import (
     BUSY_PROGRAM,
     CYCLE_S,
     FAULT_AT_S,
-    closing,
     run_machine,
     step_for,
     stepped_machine,
@@ -79,7 +78,7 @@ async def run_warm_start(
     machine = stepped_machine(store, plant)
     clock.advance(warm_s)
     closed = await open_loop(plant, machine, clock)
-    async with closing(closed, plant):
+    async with rig.closing(closed, plant):
         await plant.update()
         await closed.loop.run_cycle()
         closed.start_s = plant.machine.time_s  # type: ignore[attr-defined]

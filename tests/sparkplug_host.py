@@ -8,6 +8,7 @@ import json
 import subprocess
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -35,7 +36,14 @@ class TahuHost:
             text=True,
             bufsize=1,
         )
-        self.events: list[dict[str, Any]] = []
+        # The decoded messages as the host printed them: strings, which the garbage
+        # collector does not track. Thousands of parsed messages (dicts of dicts) in the
+        # process the gateway runs in made its full collections stall the loops ~1 s.
+        self.lines: list[str] = []
+        # Kept up to date as events arrive, so that waiting on them costs the event loop
+        # (which the gateway under test shares) nothing however long the run.
+        self._counts: Counter[tuple[str, str | None]] = Counter()
+        self._last_cycle: dict[str, int] = {}
         self._lock = threading.Lock()
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
@@ -43,12 +51,36 @@ class TahuHost:
     def _read(self) -> None:
         assert self.process.stdout is not None
         for line in self.process.stdout:
+            event = json.loads(line)
             with self._lock:
-                self.events.append(json.loads(line))
+                self.lines.append(line)
+                if event["event"] == "message":
+                    self._count(event)
+            del event
+
+    def _count(self, event: dict[str, Any]) -> None:
+        kind, device = event["kind"], event["device"]
+        self._counts[kind, device] += 1
+        self._counts[kind, None] += device is not None
+        if kind == "DDATA":
+            for metric in event["metrics"]:
+                if metric["name"] == "Health/cycles":
+                    self._last_cycle[device] = metric["value"]
+
+    def count(self, kind: str, device: str | None = None) -> int:
+        """Messages of ``kind`` (of ``device``; of every device, or the node's own)."""
+        with self._lock:
+            return self._counts[kind, device]
+
+    def last_cycle(self, device: str) -> int:
+        """The cycle counter of ``device``'s latest DDATA (0 before any)."""
+        with self._lock:
+            return self._last_cycle.get(device, 0)
 
     def snapshot(self) -> list[dict[str, Any]]:
         with self._lock:
-            return list(self.events)
+            lines = list(self.lines)
+        return [json.loads(line) for line in lines]
 
     def messages(self, kind: str | None = None, device: str | None = None) -> list[dict[str, Any]]:
         return [

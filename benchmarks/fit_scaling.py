@@ -9,8 +9,8 @@ each command a process of its own as an operator runs it; wall time is measured
 around the process and peak memory is its maximum resident set (``wait4``).
 
 Prints one JSON document: every figure, and per method and command the growth
-exponent b of wall ∝ runs^b (least squares over all sizes, and between the two
-largest). Figures are from one run on this machine, not a test.
+exponent b of wall ∝ runs^b and of CPU ∝ runs^b (least squares over all sizes, and
+between the two largest). Figures are from one run on this machine, not a test.
 
     .venv/bin/python benchmarks/fit_scaling.py [--runs 6,12,24,48] [--methods ...]
 """
@@ -151,11 +151,12 @@ def main() -> None:
                     results.setdefault(name, {}).setdefault(method, {})[str(runs)] = figures
                     print(name, method, runs, figures, file=sys.stderr, flush=True)
     exponents = {
-        name: {
-            method: growth(sizes, [by_runs[str(r)]["wall_s"] for r in sizes])
+        f"{name} {figure}": {
+            method: growth(sizes, [by_runs[str(r)][figure] for r in sizes])
             for method, by_runs in by_method.items()
         }
         for name, by_method in results.items()
+        for figure in ("wall_s", "cpu_s")
     }
     print(
         json.dumps(

@@ -33,9 +33,9 @@ MAX_CPU_S = 20.0
 #: ``run``: wall time from the process start until every machine has cycled, bounded for a
 #: loaded test machine (8.4 s of CPU; 36 s of wall at a load average of 13 on 2 cores) …
 MAX_START_S = 120.0
-#: … and the gateway's CPU by then (8.4 s measured; 20.7 s when every machine built
+#: … and the gateway's CPU by then (8.4–10.4 s measured; 20.7 s when every machine built
 #: its own sensor relations).
-MAX_START_CPU_S = 12.0
+MAX_START_CPU_S = 15.0
 
 
 def machine(index: int, store: Path, port: int | None = None) -> dict[str, Any]:

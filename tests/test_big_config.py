@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import pytest
 import yaml
 
 from tests.gateway_rig import DEVICES, fit_store
@@ -194,3 +195,45 @@ def test_run_of_1000_machines_cycles_every_machine(tmp_path: Path) -> None:
     assert start.all_cycling_s is not None and start.all_cycling_s < MAX_START_S, start
     assert start.all_cycling_cpu_s is not None, start
     assert start.all_cycling_cpu_s < MAX_START_CPU_S, start
+
+
+def test_libyaml_parse_gives_the_python_parse_and_every_line(tmp_path: Path) -> None:
+    from drivers.yaml_loader import _load_checked, _load_fast, _read_text
+
+    config = write_config(tmp_path, 50)
+    text = _read_text(config)
+    fast = _load_fast(config, text)
+    assert fast is not None, "a good file is parsed by libyaml"
+    slow = _load_checked(config, text)
+    assert fast.data == slow.data
+    assert fast.lines == slow.lines
+    assert (
+        fast.line_of(("machines", 49, "cnc", "modbus", "port"))
+        == text.splitlines().index("      port: 20049") + 1
+    )
+
+
+def test_a_bad_big_file_is_located_as_before(tmp_path: Path) -> None:
+    from drivers.yaml_loader import YamlError, load_yaml
+
+    config = write_config(tmp_path, 200)
+    lines = config.read_text(encoding="utf-8").splitlines()
+    at = lines.index("  cycle_s: 1.0", len(lines) // 2)
+    lines.insert(at + 1, "  cycle_s: 2.0")
+    config.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    with pytest.raises(YamlError) as refused:
+        load_yaml(config)
+    assert str(refused.value).startswith(f"{config}:{at + 2}: machines[")
+    assert f"key given twice (lines {at + 1} and {at + 2})" in str(refused.value)
+
+
+def test_a_deeply_nested_file_is_refused_not_crashed_on(tmp_path: Path) -> None:
+    # libyaml's own composer recurses in C: 500 000 nested lists crash the process.
+    path = tmp_path / "deep.yaml"
+    path.write_text("machines: " + "[" * 500_000, encoding="utf-8")
+    code = "from drivers.yaml_loader import load_yaml; import sys; load_yaml(sys.argv[1])"
+    done = subprocess.run(
+        [sys.executable, "-c", code, str(path)], cwd=ROOT, capture_output=True, text=True
+    )
+    assert done.returncode == 1, (done.returncode, done.stderr[-500:])
+    assert f"{path}:1: nested too deeply to be a configuration" in done.stderr

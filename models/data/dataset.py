@@ -21,7 +21,7 @@ import codecs
 import csv
 import re
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -164,20 +164,14 @@ class MeasuredRuns:
 
     def take(self, rows: np.ndarray) -> MeasuredRuns:
         """The same data restricted to ``rows`` (boolean mask or index array)."""
-        return MeasuredRuns(
-            source=self.source,
+        return replace(
+            self,
             run=self.run[rows],
             time_s=self.time_s[rows],
             speed_rpm=self.speed_rpm[rows],
-            sensors=self.sensors,
-            target=self.target,
             numeric={k: v[rows] for k, v in self.numeric.items()},
             labels={k: v[rows] for k, v in self.labels.items()},
             lines=self.lines[rows],
-            skipped=self.skipped,
-            notes=self.notes,
-            released=self.released,
-            column_order=self.column_order,
         )
 
     def without_readings(self, names: Sequence[str]) -> MeasuredRuns:
@@ -189,18 +183,9 @@ class MeasuredRuns:
         """
         released = dict(self.released)
         released |= {n: bool(np.ptp(self.numeric[n]) > 0) for n in names if n in self.numeric}
-        return MeasuredRuns(
-            source=self.source,
-            run=self.run,
-            time_s=self.time_s,
-            speed_rpm=self.speed_rpm,
-            sensors=self.sensors,
-            target=self.target,
+        return replace(
+            self,
             numeric={k: v for k, v in self.numeric.items() if k not in released},
-            labels=self.labels,
-            lines=self.lines,
-            skipped=self.skipped,
-            notes=self.notes,
             released=released,
             column_order=self.column_order or tuple(self.numeric),
         )

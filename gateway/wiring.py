@@ -351,23 +351,29 @@ class Gateway:
                     await loop.close()
                 except Exception:  # one machine's failure to close must not keep the others open
                     log.exception("%s: closing the loop failed", loop.config.id)
-            if sparkplug_task is not None:
-                log.debug("stopping: Sparkplug edge node (DDEATH, NDEATH)")
-                sparkplug_stop.set()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(sparkplug_task, 3.0)
-                self.sparkplug.buffer.close()  # type: ignore[union-attr]
-            for monitor in self.monitors.values():
-                monitor.close()
-            if self.web is not None:
-                log.debug("stopping: web console")
-                await self.web.stop()
-            if self.scada is not None:
-                log.debug("stopping: SCADA server")
-                await self.scada.stop()
-            log.debug("stopping: logging outputs")
-            await self.outputs.stop()
-            log.debug("stopped")
+            await self._stop_services(sparkplug_task, sparkplug_stop)
+
+    async def _stop_services(
+        self, sparkplug_task: asyncio.Task[None] | None, sparkplug_stop: asyncio.Event
+    ) -> None:
+        """After the loops: the Sparkplug node (its deaths), monitors, console, SCADA, logs."""
+        if sparkplug_task is not None:
+            log.debug("stopping: Sparkplug edge node (DDEATH, NDEATH)")
+            sparkplug_stop.set()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(sparkplug_task, 3.0)
+            self.sparkplug.buffer.close()  # type: ignore[union-attr]
+        for monitor in self.monitors.values():
+            monitor.close()
+        if self.web is not None:
+            log.debug("stopping: web console")
+            await self.web.stop()
+        if self.scada is not None:
+            log.debug("stopping: SCADA server")
+            await self.scada.stop()
+        log.debug("stopping: logging outputs")
+        await self.outputs.stop()
+        log.debug("stopped")
 
 
 def attach_monitors(loops: Sequence[MachineLoop], state_dir: Path) -> dict[str, MonitorSink]:

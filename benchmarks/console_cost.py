@@ -44,7 +44,7 @@ import aiohttp
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gateway.live.record import CycleRecord
+from gateway.live.record import CycleRecord  # noqa: E402
 from gateway.outputs.local_store import SCHEMA  # noqa: E402
 from gateway.scada.login_throttle import ThrottlePolicy  # noqa: E402
 from gateway.scada.server import ScadaUser  # noqa: E402

@@ -31,7 +31,9 @@ def heavy_modules_after(code: str) -> list[str]:
     return json.loads(done.stdout.splitlines()[-1])
 
 
-@pytest.mark.parametrize("module", ["gateway", "gateway.cli.main", "gateway.__main__", "gateway.outputs.heartbeat"])
+@pytest.mark.parametrize(
+    "module", ["gateway", "gateway.cli.main", "gateway.__main__", "gateway.outputs.heartbeat"]
+)
 def test_importing_loads_no_heavy_library(module: str) -> None:
     assert heavy_modules_after(f"import {module}") == []
 

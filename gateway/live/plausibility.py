@@ -135,8 +135,6 @@ FRESH_REFERENCE_C = 0.5
 MIN_SENSORS_TO_BLAME = 3
 
 
-
-
 @dataclass(frozen=True)
 class Suspect:
     """A sensor the prediction rate bound blames, and why."""

@@ -356,7 +356,7 @@ class MonitorSink:
 
 
 def store_publisher(store_dir: Path, machine_id: str) -> Publisher:
-    """Publish a monitor proposal in the model store's proposals (:mod:`models.online.proposals`)."""
+    """Publish a monitor proposal in the store's proposals (:mod:`models.online.proposals`)."""
 
     def publish(summary: dict[str, Any]) -> None:
         from models.online.proposals import ProposalStore

@@ -67,8 +67,6 @@ __all__ = ["CompensationPolicy", "Decision", "ExternalChange"]
 _EPS_UM = 1e-9  # float noise allowed when comparing µm values against a budget
 
 
-
-
 @dataclass(frozen=True)
 class Decision:
     """What to do with the CNC this cycle.

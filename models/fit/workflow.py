@@ -168,7 +168,7 @@ def fit_sensor_fallbacks(
 
 
 def relations_document(inputs: ModelInputs) -> dict[str, object] | None:
-    """The training sensors' relations (:mod:`models.estimators.sensor_relations`) to store with a model.
+    """The training sensors' relations (:mod:`models.estimators.sensor_relations`) to store.
 
     Fitted on every sensor of the training inputs, not only the model's own, so a
     fallback model carries the relation of the sensor it does without. None when

@@ -89,7 +89,7 @@ class StreamingAugmented:
     ) -> None:
         self.model_id = str(document["model_id"])
         self.base = stored_base(document)
-        # A base whose own terms remember the history (models.estimators.lag_ridge) steps its own lags.
+        # A base whose own terms remember the history (lag-ridge) steps its own lags.
         make_stream = getattr(self.base, "stream", None)
         self.base_stream = make_stream() if callable(make_stream) else None
         self.base_sensors = tuple(self.base.sensors_used_)

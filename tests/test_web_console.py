@@ -252,7 +252,9 @@ def test_the_machine_page_plots_the_logged_window_with_its_events(
     for label in ("temperature (°C)", "speed (r/min)", "Z compensation (µm)", "probe error (µm)"):
         assert label in svg, label
     events = viewer.find_element(By.ID, "events").text
-    assert "T3: good → bad" in events, events  # the previous test broke T3
+    # The previous test broke T3; the table lists its flag changes (the break, or its
+    # recovery once the proxy is gone, whichever falls in the window the page shows).
+    assert "T3: good → bad" in events or "T3: bad → good" in events, events
     screenshot(viewer, "machine", "console-machine.png")
 
 

@@ -5,19 +5,23 @@
    each on a 1 s cycle at its own phase, hand a nine-sensor ``CycleRecord`` to the
    console's sink every cycle, as the gateway's loops do; the console's aiohttp server
    runs in the same loop. Lateness is how long after its due time a cycle starts.
-   Measured over ``--window-s`` with no browser, then with ``--browsers`` (default 20)
-   overview pages open: each a logged-in client in another process that loads the
-   overview and keeps its server-sent event stream, as a browser tab does.
+   Measured over windows of ``--window-s``, alternately without a browser and with
+   ``--browsers`` (default 20) overview pages open, ``--rounds`` times (default 3),
+   beginning and ending without: each page a logged-in client in another process
+   that keeps the overview's server-sent event stream, as a browser tab does. The
+   ratio is the p99 of every window with browsers over that of every window without.
    The machines are synthetic (no protocol I/O): what is measured is the console's
    share of the event loop, not the loops' own polling.
 2. ``machine_page``: a local store holding 24 h of one machine at 1 Hz (86 400 cycles,
    nine sensors, a probe every 2 min) is served; the time to load the page and its
-   plot, first (cold: read and drawn) and again (cached), over HTTP and in headless
-   Chromium (navigation start until the plot image is complete) when it is installed.
+   plot, first (cold: read and drawn) and again (cached), over HTTP; and cold in
+   headless Chromium (navigation start until the plot image is complete) when it is
+   installed.
 
 Prints one JSON document.
 
-    .venv/bin/python benchmarks/console_cost.py [--machines 200] [--browsers 20] [--window-s 30]
+    .venv/bin/python benchmarks/console_cost.py [--machines 200] [--browsers 20]
+        [--window-s 30] [--rounds 3]
 """
 
 from __future__ import annotations
@@ -232,7 +236,7 @@ def chromium_load(url: str, machine: str) -> float | None:
         driver.find_element(By.ID, "password").send_keys(USER[1])
         driver.find_element(By.ID, "login").click()
         started = time.perf_counter()
-        driver.get(f"{url}/machines/{machine}?h=24&fresh=1")
+        driver.get(f"{url}/machines/{machine}?h=24")
         plot = driver.find_element(By.ID, "plot")
         while not driver.execute_script("return arguments[0].complete", plot):
             time.sleep(0.02)
@@ -257,31 +261,56 @@ async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     url = f"http://127.0.0.1:{port}"
     try:
         await measure(console, machines, 3.0)  # warm-up
-        alone = await measure(console, machines, args.window_s)
-        ready = multiprocessing.get_context("spawn").Event()
-        watchers = multiprocessing.get_context("spawn").Process(
-            target=browsers, args=(url, args.browsers, args.window_s + 5, ready)
-        )
-        watchers.start()
-        while not ready.is_set():
-            await asyncio.sleep(0.1)
-        watched = await measure(console, machines, args.window_s)
-        watchers.join()
-        after = await measure(console, machines, args.window_s)
+        alone = [await measure(console, machines, args.window_s)]
+        watched = []
+        for _ in range(args.rounds):
+            watched.append(await _with_browsers(console, machines, url, args))
+            alone.append(await measure(console, machines, args.window_s))
         page = await page_load(url, machines[0])
+        console.renderer.clear()  # the browser's first load is drawn afresh too
         chromium_s = await asyncio.get_running_loop().run_in_executor(
             None, chromium_load, url, machines[0]
         )
     finally:
         await console.stop()
-    result = {
-        "no_browser_before": summary(alone),
-        f"{args.browsers}_browsers": summary(watched),
-        "no_browser_after": summary(after),
-        "p99_ratio": round(p(watched, 0.99) / p(alone + after, 0.99), 3),
+    pooled_alone = [x for window in alone for x in window]
+    pooled_watched = [x for window in watched for x in window]
+    return {
+        "windows": [
+            {"browsers": 0 if k % 2 == 0 else args.browsers, **summary(w)}
+            for k, w in enumerate(_interleave(alone, watched))
+        ],
+        "p99_ms_without": round(p(pooled_alone, 0.99), 2),
+        f"p99_ms_with_{args.browsers}": round(p(pooled_watched, 0.99), 2),
+        "p99_ratio": round(p(pooled_watched, 0.99) / p(pooled_alone, 0.99), 3),
+        "p99_ratio_per_round": [
+            round(p(w, 0.99) / p(alone[k] + alone[k + 1], 0.99), 3) for k, w in enumerate(watched)
+        ],
         "machine_page_24h_1hz": {**page, "chromium_s": chromium_s},
     }
-    return result
+
+
+def _interleave(alone: list, watched: list) -> list:
+    out = [alone[0]]
+    for w, a in zip(watched, alone[1:], strict=True):
+        out += [w, a]
+    return out
+
+
+async def _with_browsers(
+    console: WebConsole, machines: list[str], url: str, args: argparse.Namespace
+) -> list[float]:
+    """One window with ``args.browsers`` overviews open (in another process)."""
+    ready = multiprocessing.get_context("spawn").Event()
+    watchers = multiprocessing.get_context("spawn").Process(
+        target=browsers, args=(url, args.browsers, args.window_s + 5, ready)
+    )
+    watchers.start()
+    while not ready.is_set():
+        await asyncio.sleep(0.1)
+    lateness = await measure(console, machines, args.window_s)
+    watchers.join()
+    return lateness
 
 
 def main() -> None:
@@ -289,6 +318,7 @@ def main() -> None:
     parser.add_argument("--machines", type=int, default=200)
     parser.add_argument("--browsers", type=int, default=20)
     parser.add_argument("--window-s", type=float, default=30.0)
+    parser.add_argument("--rounds", type=int, default=3, help="windows with browsers")
     args = parser.parse_args()
     import uvloop
 

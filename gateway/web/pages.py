@@ -97,7 +97,7 @@ class Pages:
             headers={"Content-Type": "text/event-stream", "Cache-Control": "no-store"}
         )
         await response.prepare(request)
-        serial = 0
+        serial = self.board.serial  # the page just rendered holds the rows until now
         try:
             while True:
                 serial, event = await self.board.next_event(serial)

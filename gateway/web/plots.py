@@ -171,6 +171,10 @@ class PlotRenderer:
         self._cache[key] = _Cached(time.monotonic(), svg)
         return svg
 
+    def clear(self) -> None:
+        """Forget every drawn result (the next request reads and draws afresh)."""
+        self._cache.clear()
+
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
             context = multiprocessing.get_context("spawn")  # no fork of the running loop

@@ -36,6 +36,7 @@ from drivers import modbus_tcp
 from drivers.backoff import Backoff
 from drivers.bus_hub import BusHub, rtu_silence_s
 from drivers.link_health import LinkHealth
+from drivers.modbus_tcp import BUSY_BACKOFF_S
 from drivers.register_map import DeviceRegisters, FieldCodec, ReadRequest, fault_meaning
 from drivers.schema import TRANSMITTER_MAP, load_register_map
 
@@ -151,14 +152,17 @@ class ModbusConnection:
         self._client: AsyncModbusSerialClient | None = None
         self._wire: modbus_tcp.TcpTransactions | None = None
         self._busy_retries_before = 0  # of connections closed since
+        #: Serial requests sent again after a busy reply (the bus that resends counts them).
+        self.busy_retries_serial = 0
         where = f"TCP {tcp[0]}:{tcp[1]}" if tcp is not None else f"serial {serial_port}"
         self.where = f"{name} ({where})" if name else where
 
     @property
     def busy_retries(self) -> int:
-        """Requests sent again because the device answered busy (exception 06), TCP."""
+        """Requests sent again because the device answered busy (exception 06)."""
         wire = self._wire
-        return self._busy_retries_before + (wire.busy_retries if wire is not None else 0)
+        tcp = self._busy_retries_before + (wire.busy_retries if wire is not None else 0)
+        return tcp + self.busy_retries_serial
 
     @property
     def connected(self) -> bool:
@@ -384,6 +388,12 @@ class ModbusConnection:
                 f"no response from device {device_id} on {self.where} "
                 f"(gateway exception {code:#04x})"
             )
+        if code == modbus_tcp.DEVICE_BUSY:
+            raise ModbusRefusedError(
+                f"device {device_id} on {self.where} stayed busy (exception 06) when asked "
+                f"again {len(BUSY_BACKOFF_S)} times: no reading",
+                code,
+            )
         raise ModbusRefusedError(
             f"device {device_id} on {self.where} refused the request (exception {code})",
             code,
@@ -515,6 +525,18 @@ def _number(raw: float) -> str:
 
 
 @dataclass
+class _DeviceRead:
+    """How far one device's read has come in a cycle on an RTU bus: its next request,
+    the registers so far, and how often the current request was answered busy."""
+
+    device: DeviceMap
+    index: int = 0
+    registers: list[int] = field(default_factory=list)
+    busy: int = 0
+    ask_at: float = 0.0
+
+
+@dataclass
 class _Cycle:
     """What happened on the bus during one ``read_all``."""
 
@@ -614,8 +636,7 @@ class TransmitterBus:
             if self._chain is not None:
                 await self._read_chained(self._chain, now_s, cycle)
             else:
-                for device in self._devices:
-                    await self._read_device(device, now_s, cycle)
+                await self._read_in_turn(now_s, cycle)
             turn.report(answered=cycle.answered, lost=cycle.lost)
         if cycle.lost is None and not cycle.answered:
             cycle.lost = f"{self.where}: no device answered"
@@ -650,16 +671,44 @@ class TransmitterBus:
         for device, result in zip(self._devices, results, strict=True):
             self._record(device, now_s, cycle, result)
 
-    async def _read_device(self, device: DeviceMap, now_s: float, cycle: _Cycle) -> None:
+    async def _read_in_turn(self, now_s: float, cycle: _Cycle) -> None:
+        """Each device's requests in turn, each through the hub (RTU, or TCP with pauses).
+
+        On RTU, a device that answers busy (exception 06) is asked again after a back-off of
+        5, 15, then 30 ms (:data:`drivers.modbus_tcp.BUSY_BACKOFF_S`, as on TCP); while
+        it waits, the bus reads the devices after it, so the back-off does not keep the
+        line idle while there is other work on it. The turn ends when every device has
+        its registers or its error: a device still busy after the last resend has no
+        reading this cycle.
+        """
+        loop = asyncio.get_running_loop()
+        waiting: list[_DeviceRead] = []
+        for device in self._devices:
+            await self._read_device(_DeviceRead(device), now_s, cycle, waiting)
+        while waiting:
+            read = min(waiting, key=lambda r: r.ask_at)
+            waiting.remove(read)
+            if (wait_s := read.ask_at - loop.time()) > 0 and cycle.lost is None:
+                await asyncio.sleep(wait_s)
+            await self._read_device(read, now_s, cycle, waiting)
+
+    async def _read_device(
+        self, read: _DeviceRead, now_s: float, cycle: _Cycle, waiting: list[_DeviceRead]
+    ) -> None:
+        """Go on with one device's requests; if it answered busy, it joins ``waiting``."""
+        device = read.device
         if cycle.lost is not None:  # the link broke earlier in this cycle
             self._record(device, now_s, cycle, None)
             return
         try:
-            registers = await self._read_requests(device)
+            done = await self._read_requests(read)
         except ModbusRequestError as exc:
             self._record(device, now_s, cycle, exc)
+            return
+        if done:
+            self._record(device, now_s, cycle, read.registers)
         else:
-            self._record(device, now_s, cycle, registers)
+            waiting.append(read)
 
     def _record(
         self,
@@ -695,22 +744,37 @@ class TransmitterBus:
         assert isinstance(link, ModbusConnection)
         return link
 
-    async def _read_requests(self, device: DeviceMap) -> list[int]:
-        """The device's read requests (one per contiguous block), replies concatenated.
+    async def _read_requests(self, read: _DeviceRead) -> bool:
+        """The device's read requests (one per contiguous block) from where ``read`` left
+        off, replies concatenated into ``read.registers``: True when all are in, False when
+        the device answered busy and is to be asked again at ``read.ask_at``.
 
         A device whose workarounds ask for a pause between requests gets it from the
         hub, as a longer inter-frame silence before each of its requests.
         """
-        layout = device.registers
+        layout = read.device.registers
         link = self._link
-        device_id = device.device_id
+        device_id = read.device.device_id
         pause_s = layout.workarounds.pause_between_requests_s
-        registers: list[int] = []
-        for request in layout.requests:
-            registers += await self._hub.request(
-                lambda request=request: link.read(request, device_id), pause_s=pause_s
-            )
-        return registers
+        requests = layout.requests
+        while read.index < len(requests):
+            request = requests[read.index]
+            try:
+                read.registers += await self._hub.request(
+                    lambda request=request: link.read(request, device_id), pause_s=pause_s
+                )
+            except ModbusRefusedError as exc:
+                # TCP's own wire has asked again already (drivers.modbus_tcp).
+                busy = exc.code == modbus_tcp.DEVICE_BUSY and not link.chains
+                if not busy or read.busy >= len(BUSY_BACKOFF_S):
+                    raise
+                read.ask_at = asyncio.get_running_loop().time() + BUSY_BACKOFF_S[read.busy]
+                read.busy += 1
+                link.busy_retries_serial += 1
+                return False
+            read.index += 1
+            read.busy = 0
+        return True
 
     def _all_failed(self, reason: str) -> dict[str, ChannelResult]:
         results: dict[str, ChannelResult] = {}

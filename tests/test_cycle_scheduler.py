@@ -158,9 +158,11 @@ def test_loops_started_apart_run_their_cycles_on_one_wake_up() -> None:
             self.config = SimpleNamespace(id=name, cycle_s=1.0)
             self.clock = clock
             self.starts: list[float] = []
+            self.lates: list[float] = []
 
         async def run_cycle(self) -> None:
             self.starts.append(clock.now())
+            self.lates.append(self.start_late_s)
             if len(self.starts) == 3 and self.config.id == "late":
                 clock.advance(1.5)
             if len(self.starts) >= 6 and self.config.id == "late":
@@ -183,3 +185,7 @@ def test_loops_started_apart_run_their_cycles_on_one_wake_up() -> None:
     assert late.starts[0] == early.starts[1] == pytest.approx(1.0 + tick)
     assert late.starts[3] == pytest.approx(late.starts[2] + 1.5)  # after the overrun: at once
     assert late.starts[4:] == pytest.approx([5.0 + tick, 6.0 + tick])  # then on the grid again
+    # Each cycle's start lateness (what benchmarks/console_gateway_cost.py collects): the
+    # scheduler's tick on the grid, none for the cycle started at once after the overrun.
+    assert late.lates[3] == pytest.approx(0.0)
+    assert late.lates[4:] == early.lates[1:3] == pytest.approx([tick, tick])

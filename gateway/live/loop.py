@@ -118,6 +118,9 @@ class MachineLoop:
         self._handshake_written: float | None = None
         #: Machine time the cycle in progress (or the last one) was due at.
         self.due_s = 0.0
+        #: How long after its due time that cycle started, s (the event loop's delay:
+        #: the scheduler's tick, the loops released before it, any work holding the loop).
+        self.start_late_s = 0.0
 
     # --- one cycle ----------------------------------------------------------------------
     async def run_cycle(self) -> CycleRecord:
@@ -599,6 +602,7 @@ class MachineLoop:
                     if stop.is_set():
                         return
                 self.due_s = next_due
+                self.start_late_s = max(self.clock.now() - next_due, 0.0)
                 if not await guard.cycle(self.run_cycle):
                     return
                 done += 1

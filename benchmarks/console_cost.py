@@ -39,9 +39,10 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, TypeVar
 
 import aiohttp
 
@@ -55,6 +56,7 @@ from gateway.scada.server import ScadaUser  # noqa: E402
 from gateway.web.server import WebConsole, WebSettings  # noqa: E402
 
 SENSORS = [f"T{i}" for i in range(1, 10)]
+T = TypeVar("T")
 USER = ("bench", "bench-secret")
 
 
@@ -264,7 +266,8 @@ async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
         alone = [await measure(console, machines, args.window_s)]
         watched = []
         for _ in range(args.rounds):
-            watched.append(await _with_browsers(console, machines, url, args))
+            window = lambda: measure(console, machines, args.window_s)  # noqa: E731
+            watched.append(await with_browsers(url, args, window))
             alone.append(await measure(console, machines, args.window_s))
         page = await page_load(url, machines[0])
         console.renderer.clear()  # the browser's first load is drawn afresh too
@@ -297,10 +300,10 @@ def _interleave(alone: list, watched: list) -> list:
     return out
 
 
-async def _with_browsers(
-    console: WebConsole, machines: list[str], url: str, args: argparse.Namespace
-) -> list[float]:
-    """One window with ``args.browsers`` overviews open (in another process)."""
+async def with_browsers(
+    url: str, args: argparse.Namespace, window: Callable[[], Awaitable[T]]
+) -> T:
+    """``window()`` measured while ``args.browsers`` overviews are open (another process)."""
     ready = multiprocessing.get_context("spawn").Event()
     watchers = multiprocessing.get_context("spawn").Process(
         target=browsers, args=(url, args.browsers, args.window_s + 5, ready)
@@ -308,9 +311,10 @@ async def _with_browsers(
     watchers.start()
     while not ready.is_set():
         await asyncio.sleep(0.1)
-    lateness = await measure(console, machines, args.window_s)
-    watchers.join()
-    return lateness
+    measured = await window()
+    while watchers.is_alive():
+        await asyncio.sleep(0.2)
+    return measured
 
 
 def main() -> None:

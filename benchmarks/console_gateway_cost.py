@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import multiprocessing
 import os
 import platform
 import sys
@@ -39,7 +38,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.console_cost import USER, browsers, p, summary
+from benchmarks.console_cost import USER, p, summary, with_browsers
 from benchmarks.poll_vs_telegraf import Devices, fit_store, process_cpu_s, project_section
 from tests.ports import free_tcp_port
 
@@ -88,20 +87,6 @@ class Windows:
         return samples, process_cpu_s(os.getpid()) - cpu0
 
 
-async def with_browsers(windows: Windows, url: str, args: argparse.Namespace) -> Any:
-    ready = multiprocessing.get_context("spawn").Event()
-    watchers = multiprocessing.get_context("spawn").Process(
-        target=browsers, args=(url, args.browsers, args.window_s + 5, ready)
-    )
-    watchers.start()
-    while not ready.is_set():
-        await asyncio.sleep(0.1)
-    measured = await windows.window(args.window_s)
-    while watchers.is_alive():
-        await asyncio.sleep(0.2)
-    return measured
-
-
 async def measure(gateway: Any, windows: Windows, args: argparse.Namespace) -> dict[str, Any]:
     stop = asyncio.Event()
     running = asyncio.create_task(gateway.run(stop))
@@ -113,7 +98,7 @@ async def measure(gateway: Any, windows: Windows, args: argparse.Namespace) -> d
     url = f"http://127.0.0.1:{gateway.config.web.port}"
     alone, watched = [await windows.window(args.window_s)], []
     for _ in range(args.rounds):
-        watched.append(await with_browsers(windows, url, args))
+        watched.append(await with_browsers(url, args, lambda: windows.window(args.window_s)))
         alone.append(await windows.window(args.window_s))
     stop.set()
     await running

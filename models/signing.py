@@ -11,9 +11,9 @@ refused naming the file. Without a key nothing is signed or checked.
 
 The key is a file (64+ hex digits, or 32+ raw bytes) named by ``models.signing_key_file``
 in the configuration or by the environment variable ``SPINDLE_MODEL_KEY_FILE``
-(the configuration wins). A key file that others can read is refused: it must be
-readable by its owner (and group) only. See docs/reliability/model-store.md for
-what this protects and what it does not.
+(the configuration wins). A key file that others can read, or that anyone but its
+owner can write, is refused: it must be readable by its owner (and group) only. See
+docs/reliability/model-store.md for what this protects and what it does not.
 """
 
 from __future__ import annotations
@@ -49,6 +49,13 @@ def load_key(path: str | Path) -> bytes:
         raise SigningError(
             f"model signing key {path}: readable by every user (mode {stat.S_IMODE(mode):o}); "
             "make it chmod 600 (or 640 for a group) so only the gateway reads it"
+        )
+    if mode & (stat.S_IWGRP | stat.S_IWOTH):
+        # Whoever may write the key may put in a key of their own and sign any model.
+        who = "every user" if mode & stat.S_IWOTH else "its group"
+        raise SigningError(
+            f"model signing key {path}: writable by {who} (mode {stat.S_IMODE(mode):o}); "
+            "make it chmod 600 (or 640 for a group) so only its owner can change it"
         )
     text = raw.strip()
     try:

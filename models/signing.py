@@ -111,8 +111,10 @@ def verify(document: dict[str, Any], key: bytes | None, canonical: bytes, where:
             f"{where}: the model is not signed and a signing key is configured; "
             "refit or re-sign it with the key (docs/reliability/model-store.md)"
         )
+    # Compared as bytes: compare_digest raises TypeError on a str that is not ASCII.
+    given = str(signature["value"]).encode("utf-8")
     if signature.get("alg") != "hmac-sha256" or not hmac.compare_digest(
-        str(signature["value"]), mac(key, canonical)
+        given, mac(key, canonical).encode("ascii")
     ):
         raise SigningError(
             f"{where}: the model's signature does not match the configured key: "

@@ -162,11 +162,12 @@ def test_simulated_run_arrives_with_tags_fields_and_times(
         stop_ns=1_767_225_650_000_000_001,
     )
     assert {(p.tags["sensor"], p.time_ns) for p in window} == {
-        ("T1", 1_767_225_649_000_000_000),
-        ("T2", 1_767_225_649_000_000_000),
-        ("ambient", 1_767_225_649_000_000_000),  # T3 was silent in cycle 49
+        *((s, 1_767_225_649_000_000_000) for s in ("T1", "T2", "T3", "ambient")),
         *((s, 1_767_225_650_000_000_000) for s in ("T1", "T2", "T3", "ambient")),
     }
+    # T3 was silent in cycle 49: flagged bad, its point holds the reason and no value
+    silent = {(p.tags["sensor"], p.time_ns): p for p in window}[("T3", 1_767_225_649 * 10**9)]
+    assert silent.tags["quality"] == "bad" and silent.fields == {"reason": "no value"}
     reader.close()
 
 

@@ -138,8 +138,15 @@ def test_nones_are_omitted_not_zero() -> None:
     assert "written_cnc" not in cycle.fields  # not finite: omitted
     assert cycle.fields["link_errors"] == 2
     assert cycle.time_ns == 49_000_000_000  # epoch_s defaults to 0
-    sensors = {p.tags["sensor"] for p in points[1:]}
-    assert sensors == {"T1", "T2", "ambient"}  # no point at all for the missing T3
+    by_sensor = {p.tags["sensor"]: p for p in points[1:]}
+    assert set(by_sensor) == {"T1", "T2", "T3", "ambient"}
+    # the missing T3 is flagged bad: its point says so, with no value (never a 0)
+    assert by_sensor["T3"].tags["quality"] == "bad"
+    assert by_sensor["T3"].fields == {"reason": "no value"}
+    # a good sensor without a value (one missed read) gets no point at all
+    record.quality["T3"] = "good"
+    del record.quality_reasons["T3"]
+    assert {p.tags["sensor"] for p in points_from_record(record)[1:]} == {"T1", "T2", "ambient"}
 
     cold = points_from_record(make_records("vmc-1", 1)[0])[0]
     assert cold.tags == {"machine": "vmc-1"}  # no regime/model yet: no empty tags
@@ -150,7 +157,9 @@ def test_bad_quality_is_a_tag() -> None:
     record = make_records("vmc-1", 70)[69]
     temps = {p.tags["sensor"]: p for p in points_from_record(record)[1:]}
     assert temps["T2"].tags["quality"] == "bad"
+    assert temps["T2"].fields == {"value_C": pytest.approx(21.0 + 0.02 * 69), "reason": "rate"}
     assert temps["T1"].tags["quality"] == "good"
+    assert "reason" not in temps["T1"].fields
 
 
 def test_probe_point_and_sink() -> None:

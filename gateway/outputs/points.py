@@ -7,14 +7,18 @@ Every :class:`~gateway.live.loop.CycleRecord` becomes:
   ``written_cnc`` (the value written to the CNC macro, in the CNC's unit),
   ``write_status`` (text) and ``link_errors`` (how many sources failed);
 * one ``spindle_temperature`` point per sensor — tags ``machine``, ``sensor``,
-  ``quality``; field ``value_C``.
+  ``quality``; field ``value_C``, and for a sensor that is not good, field ``reason``
+  (text: "transmitter fault code 1 (open circuit)", "stale", …).
 
 A measured thermal error (a probe or dial-gauge reading) is a ``spindle_probe``
 point with field ``error_um`` (:func:`probe_point`).
 
 Units are part of the field names (µm, °C, r/min). A value the cycle did not have
 (``None``) or that is not a finite number is omitted, never written as 0: a
-temperature point without a value is not written at all. Float fields are always
+good sensor without a value gets no temperature point, a sensor that is not good
+gets one with its ``reason`` only. An open circuit has no value for as long as it
+lasts, so without that point the log (and the console's event table, which reads
+the quality flips from it) would not show the sensor going bad. Float fields are always
 written as floats, so a whole number never turns a float field into an integer
 one (InfluxDB refuses a field whose type changes).
 
@@ -92,7 +96,8 @@ def _floats(**values: float | None) -> dict[str, FieldValue]:
 
 
 def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]:
-    """The points of one cycle: its ``spindle_cycle`` point, then one per measured sensor."""
+    """The points of one cycle: its ``spindle_cycle`` point, then one per sensor that has
+    a value or is not good."""
     time_ns = to_time_ns(record.time_s, epoch_s)
     tags = {"machine": record.machine}
     if record.regime:
@@ -111,15 +116,15 @@ def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]
     fields["link_errors"] = len(record.link_errors)
     points = [Point(CYCLE_MEASUREMENT, tags, fields, time_ns)]
     for sensor, value in record.temperatures_C.items():
+        quality = record.quality.get(sensor, "unknown")
         value_C = _float(value)
-        if value_C is None:
+        sensor_fields: dict[str, FieldValue] = {} if value_C is None else {"value_C": value_C}
+        if quality != "good":
+            sensor_fields["reason"] = record.quality_reasons.get(sensor) or quality
+        elif value_C is None:
             continue
-        sensor_tags = {
-            "machine": record.machine,
-            "sensor": sensor,
-            "quality": record.quality.get(sensor, "unknown"),
-        }
-        points.append(Point(TEMPERATURE_MEASUREMENT, sensor_tags, {"value_C": value_C}, time_ns))
+        sensor_tags = {"machine": record.machine, "sensor": sensor, "quality": quality}
+        points.append(Point(TEMPERATURE_MEASUREMENT, sensor_tags, sensor_fields, time_ns))
     return points
 
 

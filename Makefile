@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: main demo fit test test-quick lint bench reports clean
+.PHONY: main demo fit test test-quick lint bench reports screenshots clean
 
 # The locked set (requirements-dev.lock, hashes checked: the image installs the same
 # versions from requirements.lock), then the project itself without resolving again.
@@ -40,6 +40,13 @@ reports: $(STAMP)
 		$(PY) -m gateway analyze data/fl_thermal.csv --model mlr --target $${ch}_um --no-progress \
 			--report docs/analysis/fl_thermal_$$ch || exit 1; \
 	done
+
+# The console screenshots shown by README.md and docs/console.md (docs/img/console-*.png),
+# taken by its browser tests; a plain test run leaves docs/img alone.
+screenshots: $(STAMP)
+	@command -v chromium >/dev/null && command -v chromedriver >/dev/null \
+		|| { echo "need chromium and chromedriver: bash scripts/setup-system.sh"; exit 1; }
+	SPINDLE_UPDATE_DOCS_IMAGES=1 $(VENV)/bin/pytest -q -p no:cacheprovider tests/test_web_console.py
 
 bench: $(STAMP)
 	$(PY) benchmarks/fit_speed.py

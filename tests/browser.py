@@ -21,6 +21,9 @@ from selenium import webdriver
 ROOT = Path(__file__).resolve().parents[1]
 SHOTS = ROOT / ".cache" / "screenshots" / "console"
 DOCS_IMG = ROOT / "docs" / "img"
+#: Set to 1 (``make screenshots``) to copy the documented screenshots into docs/img; a
+#: plain test run leaves the tracked images alone, so a checkout stays clean.
+UPDATE_DOCS_IMAGES = "SPINDLE_UPDATE_DOCS_IMAGES"
 
 
 def chromium(width: int = 1500, height: int = 1000) -> webdriver.Chrome:
@@ -43,21 +46,30 @@ def chromium(width: int = 1500, height: int = 1000) -> webdriver.Chrome:
 
 
 def screenshot(driver: webdriver.Chrome, name: str, docs_name: str | None = None) -> Path:
-    """Save the page as ``.cache/screenshots/console/<name>.png`` (and into docs/img
-    as ``docs_name``); refuse a blank one: it must hold some ink and several colours."""
+    """Save the page as ``.cache/screenshots/console/<name>.png`` and refuse a blank one.
+
+    ``docs_name``: the docs/img file this screenshot illustrates; it is copied there only
+    when ``SPINDLE_UPDATE_DOCS_IMAGES=1`` (``make screenshots``), never on a plain run.
+    """
     SHOTS.mkdir(parents=True, exist_ok=True)
     path = SHOTS / f"{name}.png"
     height = driver.execute_script("return document.body.scrollHeight")
     driver.set_window_size(1500, min(max(int(height) + 150, 700), 4000))
     assert driver.save_screenshot(str(path)), path
+    assert_not_blank(path)
+    if docs_name is not None and os.environ.get(UPDATE_DOCS_IMAGES) == "1":
+        DOCS_IMG.mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, DOCS_IMG / docs_name)
+    return path
+
+
+def assert_not_blank(path: Path) -> None:
+    """A page's picture holds some ink (2 % of its pixels darker than light grey) and
+    several colours: a white or single-colour page fails."""
     pixels = image.imread(path)[..., :3]
     ink = np.mean(np.any(pixels < 0.9, axis=-1))
     colours = len(np.unique((pixels * 15).astype(np.uint8).reshape(-1, 3), axis=0))
     assert ink > 0.02 and colours >= 8, (path, ink, colours)
-    if docs_name is not None:
-        DOCS_IMG.mkdir(parents=True, exist_ok=True)
-        shutil.copy(path, DOCS_IMG / docs_name)
-    return path
 
 
 class SensorBreakingProxy:

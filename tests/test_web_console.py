@@ -4,17 +4,25 @@ simulated machines, each a ``simulate`` process reached over Modbus TCP.
 One gateway serves the whole file (it is slow to start); the tests follow the
 commissioning engineer's walk: the overview, a sensor breaking, a machine page,
 a viewer who may not promote, an operator who does. Screenshots go to
-.cache/screenshots/console (the overview and a machine page also to docs/img).
+.cache/screenshots/console; the overview and a machine page are copied to docs/img
+only with SPINDLE_UPDATE_DOCS_IMAGES=1 (``make screenshots``), so a run leaves the
+checkout as it was.
 """
 
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import itertools
+import os
 import shutil
+import sqlite3
+import struct
 import subprocess
 import sys
 import time
 from collections.abc import Iterator
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +33,14 @@ from selenium.webdriver.common.by import By
 
 from models.online.proposals import ProposalStore
 from tests import gateway_rig as rig
-from tests.browser import SensorBreakingProxy, chromium, screenshot
+from tests.browser import (
+    DOCS_IMG,
+    UPDATE_DOCS_IMAGES,
+    SensorBreakingProxy,
+    assert_not_blank,
+    chromium,
+    screenshot,
+)
 from tests.ports import free_tcp_port, wait_for_port
 from tests.test_promotion import lag_document, models_dir, publish  # noqa: F401 (fixtures)
 
@@ -34,6 +49,7 @@ OPERATOR = ("olga", "op-secret-7")
 VIEWER = ("vera", "view-secret-8")
 CYCLE_S = 1.0
 MACHINES = ("mill-a", "mill-b")
+DOCS_IMAGES = ("console-overview.png", "console-machine.png")
 
 
 def _simulator(tmp_path: Path, name: str) -> tuple[subprocess.Popen[str], int, int]:
@@ -135,6 +151,7 @@ def console(tmp_path_factory: pytest.TempPathFactory, models_dir: Path) -> Itera
             "stores": {m["id"]: Path(m["models"]["store"]) for m in machines},
             "gateway": gateway,
             "reports": tmp_path / "reports",
+            "points": tmp_path / "points.sqlite",
         }
     finally:
         for process in reversed(processes):
@@ -222,7 +239,10 @@ def test_overview_shows_every_machine_and_updates_within_two_cycles(
         assert {s.get_attribute("data-sensor") for s in sensors} == set(rig.SENSORS)
     applied = '#row-mill-a [data-f="applied_um"]'
     wait(lambda: "–" not in css(viewer, applied).text, 30, "an applied compensation")
+    before = _digest(DOCS_IMG / "console-overview.png")
     screenshot(viewer, "overview", "console-overview.png")
+    if os.environ.get(UPDATE_DOCS_IMAGES) != "1":
+        assert _digest(DOCS_IMG / "console-overview.png") == before, "docs/img changed by a test"
 
 
 def test_a_sensor_broken_on_the_bus_turns_its_cell_bad(console: dict, viewer: Any) -> None:
@@ -244,6 +264,25 @@ def test_a_sensor_broken_on_the_bus_turns_its_cell_bad(console: dict, viewer: An
 def test_the_machine_page_plots_the_logged_window_with_its_events(
     console: dict, viewer: Any
 ) -> None:
+    """T3 of mill-b breaks (open circuit) and recovers; once both are in the local store,
+    the page lists the break and then the recovery at the times they were logged.
+
+    The page of this window is not opened before in this file, so it is read afresh
+    (the console keeps a window's read 15 s per hour of window)."""
+    started_ns = time.time_ns()
+    flips = lambda: _t3_flips(console["points"], started_ns)  # noqa: E731
+    good_now = lambda: _t3_points(console["points"], started_ns)[-1][1] == "good"  # noqa: E731
+    wait(good_now, 30, "T3 of mill-b logged good")
+    console["proxy"].broken.set()
+    try:
+        wait(lambda: any(q == "bad" for _, q, _ in flips()), 2 * CYCLE_S + 10, "T3's break logged")
+    finally:
+        console["proxy"].broken.clear()
+    wait(lambda: flips() and flips()[-1][1] == "good", 30, "T3's recovery logged")
+    logged = flips()
+    broke = next(f for f in logged if f[1] == "bad")
+    assert "open circuit" in broke[2], broke  # logged with its reason, though it had no value
+
     viewer.get(console["url"] + "/machines/mill-b?h=1")
     plot = viewer.find_element(By.ID, "plot")
     loaded = "return arguments[0].complete && arguments[0].naturalWidth"
@@ -251,11 +290,61 @@ def test_the_machine_page_plots_the_logged_window_with_its_events(
     svg = asyncio.run(_get(console["url"], VIEWER, "/machines/mill-b/plot.svg?h=1"))
     for label in ("temperature (°C)", "speed (r/min)", "Z compensation (µm)", "probe error (µm)"):
         assert label in svg, label
-    events = viewer.find_element(By.ID, "events").text
-    # The previous test broke T3; the table lists its flag changes (the break, or its
-    # recovery once the proxy is gone, whichever falls in the window the page shows).
-    assert "T3: good → bad" in events or "T3: bad → good" in events, events
+    rows = viewer.find_elements(By.CSS_SELECTOR, "#events tbody tr")
+    shown = [r.text for r in rows if "T3: " in r.text]
+    expected = [
+        f"{_clock(t_ns)} sensor flag T3: {'good → bad' if q == 'bad' else 'bad → good'}"
+        for t_ns, q, _ in reversed(logged)
+    ]
+    assert shown[: len(expected)] == expected, (shown, logged)
     screenshot(viewer, "machine", "console-machine.png")
+
+
+def _t3_points(store: Path, after_ns: int) -> list[tuple[int, str, str]]:
+    """mill-b's logged T3 points after ``after_ns``: (time_ns, quality, reason), by time."""
+    db = sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=5.0)
+    try:
+        return db.execute(
+            "SELECT time_ns, json_extract(tags, '$.quality'), "
+            "coalesce(json_extract(fields, '$.reason'), '') FROM points "
+            "WHERE measurement = 'spindle_temperature' AND machine = 'mill-b' "
+            "AND json_extract(tags, '$.sensor') = 'T3' AND time_ns > ? ORDER BY time_ns",
+            (after_ns,),
+        ).fetchall()
+    finally:
+        db.close()
+
+
+def _t3_flips(store: Path, after_ns: int) -> list[tuple[int, str, str]]:
+    """The logged T3 points after ``after_ns`` whose quality differs from the one before."""
+    points = _t3_points(store, after_ns)
+    return [now for before, now in itertools.pairwise(points) if now[1] != before[1]]
+
+
+def _clock(time_ns: int) -> str:
+    """A time as the page's event table shows it (local time, whole seconds)."""
+    return datetime.fromtimestamp(time_ns / 1e9).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def _digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_the_documented_screenshots_are_real_pictures_shown_in_the_docs() -> None:
+    """docs/img holds the overview and a machine page (``make screenshots`` remakes them):
+    PNGs of the browser's width, not blank, shown by the README and the manual."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    manual = (ROOT / "docs" / "console.md").read_text(encoding="utf-8")
+    for name in DOCS_IMAGES:
+        path = DOCS_IMG / name
+        data = path.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR", path
+        width, height = struct.unpack(">II", data[16:24])
+        assert width == 1500 and 400 <= height <= 4000, (path, width, height)
+        assert 20_000 <= len(data) <= 3_000_000, (path, len(data))
+        assert_not_blank(path)
+        assert f"](docs/img/{name})" in readme, f"README.md does not show docs/img/{name}"
+        assert f"](img/{name})" in manual, f"docs/console.md does not show img/{name}"
 
 
 def test_a_viewer_sees_no_promote_button_and_forged_posts_are_refused(

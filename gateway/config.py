@@ -927,6 +927,28 @@ class GatewayConfig(Strict):
                 writers[(*address, number)] = (index, machine.id)
         return self
 
+    @model_validator(mode="after")
+    def _one_key_per_store(self) -> GatewayConfig:
+        """A store's models are checked with one key (models.signing keys it by store): a
+        machine naming none, or another one, would silently replace the key of a machine
+        sharing its store, whose promotions would then go unchecked."""
+        keys: dict[Path, tuple[int, str, Path | None]] = {}
+        for index, machine in enumerate(self.machines):
+            store = machine.models.store.resolve()
+            key = machine.models.signing_key_file
+            resolved = None if key is None else key.resolve()
+            first = keys.setdefault(store, (index, machine.id, resolved))
+            if first[2] != resolved:
+                named = "none" if key is None else f"signing key {key}"
+                other = "none" if first[2] is None else f"signing key {first[2]}"
+                raise KeyPathError(
+                    ("machines", index, "models", "signing_key_file"),
+                    f"machine '{machine.id}' names {named}, but shares the model store "
+                    f"{machine.models.store} with machine '{first[1]}' (machines[{first[0]}]), "
+                    f"which names {other}; machines sharing a store name the same key",
+                )
+        return self
+
 
 def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
     """The configuration in ``path``, validated; any problem is one located :class:`ConfigError`.

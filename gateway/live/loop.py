@@ -379,18 +379,34 @@ class MachineLoop:
         await self._bump_handshake(record)
 
     async def _bump_handshake(self, record: CycleRecord) -> None:
-        """After a confirmed write: the next handshake count, remembered as the token."""
+        """After a confirmed write: the next handshake count, remembered as the token.
+
+        Written only over the count the gateway wrote last (read in the same session, as
+        #500 is): a reset that landed since the token was checked stays at the CNC, and
+        the next cycle's check sees it as any other reset.
+        """
         macro = self.config.compensation.handshake_macro
         if macro is None:
             return
+        previous, self._handshake_written = self._handshake_written, None
         self.handshake += 1
-        self._handshake_written = None  # unknown until the write is answered
+        count = float(self.handshake)
         try:
-            await self.cnc.write_macro(macro, float(self.handshake))
+            if previous is None:  # no count of the gateway's there to keep
+                await self.cnc.write_macro(macro, count)
+            else:
+                guarded = await self.cnc.write_macro_if(macro, count, lambda v: v == previous)
+                if not guarded.written:
+                    self._handshake_written = previous  # the next check finds the change
+                    record.write_status += (
+                        f"; handshake not written: #{macro} holds {guarded.held}, "
+                        f"changed at the CNC since the gateway wrote {previous}"
+                    )
+                    return
         except CncError as exc:
             record.write_status += f"; handshake failed: {exc}"
             return
-        self._handshake_written = float(self.handshake)
+        self._handshake_written = count
 
     async def _handshake_is_ours(self, record: CycleRecord) -> bool:
         """The handshake macro as an ownership token: before writing again, it must

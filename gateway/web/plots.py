@@ -1,8 +1,8 @@
 """Server-side plots as SVG (matplotlib), drawn in a worker process off the event loop.
 
-A long series is cut to a min/max envelope per pixel column before drawing
-(:func:`envelope`): 24 h of 1 Hz data (86 400 points a series) becomes about two
-points per column, every spike still visible, and draws in well under a second.
+The machine page draws :func:`gateway.web.series.machine_view`: each line already cut
+to a min/max envelope per pixel column of the window (24 h of 1 Hz data, 86 400
+points a series, becomes at most two points per column, every spike still visible).
 Rendering runs in one spawned worker process (:class:`PlotRenderer`), so neither
 the drawing nor the reading of the store holds the gateway's interpreter; the
 newest SVG of each request is kept for ``cache_s``.
@@ -22,38 +22,17 @@ from typing import Any
 
 import numpy as np
 
-from gateway.web.series import MachineSeries, SourceSpec, events, read_machine
-
-#: Pixel columns of a plot: the envelope keeps two points per column.
-COLUMNS = 900
-
-
-def envelope(t: np.ndarray, y: np.ndarray, columns: int = COLUMNS) -> tuple[np.ndarray, ...]:
-    """``(t, y)`` reduced to each column's minimum and maximum, in time order.
-
-    ``t`` must be sorted. NaNs are dropped. Short series come back unchanged.
-    """
-    keep = np.isfinite(y)
-    t, y = t[keep], y[keep]
-    if len(t) <= 2 * columns:
-        return t, y
-    span = max(float(t[-1] - t[0]), 1e-9)
-    column = np.minimum(((t - t[0]) / span * columns).astype(np.int64), columns - 1)
-    starts = np.flatnonzero(np.r_[True, column[1:] != column[:-1]])
-    lows = np.minimum.reduceat(y, starts)
-    highs = np.maximum.reduceat(y, starts)
-    ends = np.r_[starts[1:], len(t)] - 1
-    return np.column_stack([t[starts], t[ends]]).ravel(), np.column_stack([lows, highs]).ravel()
+from gateway.web.series import COLUMNS, MachineView, SourceSpec, machine_view, read_probes
 
 
 def _dates(t: np.ndarray) -> list[datetime]:
     return [datetime.fromtimestamp(float(x)) for x in t]
 
 
-def _line(ax: Any, t: np.ndarray, y: np.ndarray, label: str, **style: Any) -> None:
-    te, ye = envelope(t, y)
-    if len(te):
-        ax.plot(_dates(te), ye, label=label, linewidth=0.9, **style)
+def _line(ax: Any, series: tuple[np.ndarray, np.ndarray], label: str, **style: Any) -> None:
+    t, y = series
+    if len(t):
+        ax.plot(_dates(t), y, label=label, linewidth=0.9, **style)
 
 
 def _figure(rows: int) -> tuple[Any, Sequence[Any]]:
@@ -70,18 +49,19 @@ def _svg(fig: Any) -> str:
     return out.getvalue()
 
 
-def machine_svg(data: MachineSeries, title: str) -> str:
+def machine_svg(data: MachineView, title: str) -> str:
     """The machine page's four panels: temperatures, speed, compensation, probes."""
     fig, (temps, speed, comp, probe) = _figure(4)
-    for sensor, (t, y) in sorted(data.temperatures_C.items()):
-        _line(temps, t, y, sensor)
+    for sensor, series in sorted(data.temperatures_C.items()):
+        _line(temps, series, sensor)
     temps.set_ylabel("temperature (°C)")
-    _line(speed, data.t_s, data.speed_rpm, "speed")
+    lines = data.lines
+    _line(speed, lines["speed_rpm"], "speed")
     speed.set_ylabel("speed (r/min)")
-    _line(comp, data.t_s, data.predicted_um, "predicted")
-    _line(comp, data.t_s, data.applied_um, "applied")
-    _line(comp, data.t_s, data.cnc_um, "CNC holds", linestyle="--")
-    _line(comp, data.t_s, data.correction_um, "online correction", linestyle=":")
+    _line(comp, lines["predicted_um"], "predicted")
+    _line(comp, lines["applied_um"], "applied")
+    _line(comp, lines["cnc_um"], "CNC holds", linestyle="--")
+    _line(comp, lines["correction_um"], "online correction", linestyle=":")
     comp.set_ylabel("Z compensation (µm)")
     if len(data.probe_t_s):
         dates = _dates(data.probe_t_s)
@@ -98,14 +78,16 @@ def machine_svg(data: MachineSeries, title: str) -> str:
     return _svg(fig)
 
 
-def proposal_svg(data: MachineSeries, before_rmse_um: float, after_rmse_um: float) -> str:
+def proposal_svg(
+    probe_t_s: np.ndarray, residual_um: np.ndarray, before_rmse_um: float, after_rmse_um: float
+) -> str:
     """A proposal's effect: the logged probe residuals, and its held-out RMSE before/after."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(10, 2.6), dpi=90, layout="constrained")
     resid, bars = fig.subplots(1, 2, width_ratios=[3, 1])
-    if len(data.probe_t_s):
-        resid.plot(_dates(data.probe_t_s), data.probe_residual_um, "o", markersize=4)
+    if len(probe_t_s):
+        resid.plot(_dates(probe_t_s), residual_um, "o", markersize=4)
     resid.axhline(0.0, color="grey", linewidth=0.5)
     resid.set_ylabel("logged probe residual (µm)")
     resid.set_xlabel("local time")
@@ -121,17 +103,17 @@ def render_machine(
     """Worker entry: read the window once, draw it and list its events (in the plot
     process); the page and its plot share the result through the cache."""
     now = time.time()
-    data = read_machine(spec, machine, now - window_s, now, cnc_um_per_unit)
+    data = machine_view(spec, machine, now - window_s, now, cnc_um_per_unit, COLUMNS)
     hours = window_s / 3600
-    return machine_svg(data, f"{machine}: last {hours:g} h ({data.cycles} cycles)"), events(data)
+    return machine_svg(data, f"{machine}: last {hours:g} h ({data.cycles} cycles)"), data.events
 
 
 def render_proposal(
     spec: SourceSpec, machine: str, window_s: float, before_um: float, after_um: float
 ) -> str:
     now = time.time()
-    data = read_machine(spec, machine, now - window_s, now, 1.0)
-    return proposal_svg(data, before_um, after_um)
+    probe_t_s, _, residual_um = read_probes(spec, machine, now - window_s, now)
+    return proposal_svg(probe_t_s, residual_um, before_um, after_um)
 
 
 @dataclass

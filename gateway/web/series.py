@@ -4,6 +4,11 @@ The local store is read with SQLite's own JSON functions on a read-only
 connection (a day of 1 Hz data is about a million temperature rows: parsing each
 row's JSON in Python would take seconds); InfluxDB is read through
 :class:`gateway.outputs.influx.InfluxReader`, as ``export`` does.
+
+The machine page draws :func:`machine_view`: every line cut to a min/max envelope
+per pixel column of the window (:func:`window_envelope`), the temperatures of the
+local store grouped per column in SQL (:mod:`gateway.web.store_window`), the events
+from the full rows. :func:`read_machine` gives the whole window, row by row.
 """
 
 from __future__ import annotations
@@ -21,12 +26,19 @@ from gateway.outputs.points import (
     PROBE_MEASUREMENT,
     TEMPERATURE_MEASUREMENT,
 )
+from gateway.web.store_window import temperature_envelopes
 
 #: ("local", path) or ("influx", url, token, org, bucket, timeout_s): picklable for the worker.
 SourceSpec = tuple
 
 CYCLE_FIELDS = ("speed_rpm", "predicted_um", "applied_um", "written_cnc", "correction_um")
 MAX_EVENTS = 200
+#: Pixel columns of a plot: the envelope keeps two points per column.
+COLUMNS = 900
+PARTS = ("cycles", "temps", "probes")
+
+Event = tuple[float, str, str]
+Series = tuple[np.ndarray, np.ndarray]
 
 
 @dataclass
@@ -52,110 +64,181 @@ class MachineSeries:
         return len(self.t_s)
 
 
+@dataclass
+class MachineView:
+    """What the machine page draws: each line ``(Unix s, value)`` cut to the window's
+    column envelope, the probes, and the events (newest first), from all the rows."""
+
+    cycles: int
+    lines: dict[str, Series]  # speed_rpm, predicted_um, applied_um, cnc_um, correction_um
+    temperatures_C: dict[str, Series]
+    probe_t_s: np.ndarray
+    probe_error_um: np.ndarray
+    probe_residual_um: np.ndarray
+    events: list[Event]
+
+
+@dataclass
+class _Cycles:
+    t_ns: np.ndarray
+    t_s: np.ndarray
+    values: dict[str, np.ndarray]
+    write_status: list[str]
+    link_errors: np.ndarray
+
+
 def _array(values: Iterable[object]) -> np.ndarray:
-    return np.array([np.nan if v is None else v for v in values], dtype=float)
+    """Floats with ``None`` as NaN."""
+    return np.array(list(values), dtype=float)
 
 
-def _local_rows(path: Path, machine: str, start_ns: int, stop_ns: int) -> dict[str, list]:
-    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
+def _connect(path: Path) -> sqlite3.Connection:
+    return sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
+
+
+_WHERE = "measurement = ? AND machine = ? AND time_ns >= ? AND time_ns < ?"
+_CYCLE_COLUMNS = ", ".join(
+    f"json_extract(fields, '$.{f}')" for f in (*CYCLE_FIELDS, "write_status", "link_errors")
+)
+_LOCAL_SQL = {
+    "cycles": (CYCLE_MEASUREMENT, f"SELECT time_ns, {_CYCLE_COLUMNS}"),
+    "temps": (
+        TEMPERATURE_MEASUREMENT,
+        "SELECT time_ns, json_extract(tags, '$.sensor'), json_extract(tags, '$.quality'), "
+        "json_extract(fields, '$.value_C')",
+    ),
+    "probes": (PROBE_MEASUREMENT, "SELECT time_ns, json_extract(fields, '$.error_um')"),
+}
+
+
+def _local_part(db: sqlite3.Connection, part: str, machine: str, window: tuple) -> list:
+    measurement, select = _LOCAL_SQL[part]
+    sql = f"{select} FROM points WHERE {_WHERE} ORDER BY time_ns"
+    return db.execute(sql, (measurement, machine, *window)).fetchall()
+
+
+def _local_rows(
+    path: Path, machine: str, start_ns: int, stop_ns: int, parts: tuple[str, ...] = PARTS
+) -> dict[str, list]:
+    db = _connect(path)
     try:
-        where = "measurement = ? AND machine = ? AND time_ns >= ? AND time_ns < ?"
-        cycle_cols = ", ".join(f"json_extract(fields, '$.{f}')" for f in CYCLE_FIELDS)
-        cycles = db.execute(
-            f"SELECT time_ns, {cycle_cols}, json_extract(fields, '$.write_status'), "
-            f"json_extract(fields, '$.link_errors') FROM points WHERE {where} ORDER BY time_ns",
-            (CYCLE_MEASUREMENT, machine, start_ns, stop_ns),
-        ).fetchall()
-        temps = db.execute(
-            "SELECT time_ns, json_extract(tags, '$.sensor'), json_extract(tags, '$.quality'), "
-            f"json_extract(fields, '$.value_C') FROM points WHERE {where} ORDER BY time_ns",
-            (TEMPERATURE_MEASUREMENT, machine, start_ns, stop_ns),
-        ).fetchall()
-        probes = db.execute(
-            "SELECT time_ns, json_extract(fields, '$.error_um') FROM points "
-            f"WHERE {where} ORDER BY time_ns",
-            (PROBE_MEASUREMENT, machine, start_ns, stop_ns),
-        ).fetchall()
+        return {p: _local_part(db, p, machine, (start_ns, stop_ns)) for p in parts}
     finally:
         db.close()
-    return {"cycles": cycles, "temps": temps, "probes": probes}
 
 
-def _influx_rows(spec: SourceSpec, machine: str, start_ns: int, stop_ns: int) -> dict[str, list]:
+_MEASUREMENTS = (CYCLE_MEASUREMENT, TEMPERATURE_MEASUREMENT, PROBE_MEASUREMENT)
+_INFLUX_ROW = {
+    "cycles": lambda p: (
+        p.time_ns,
+        *(p.fields.get(f) for f in CYCLE_FIELDS),
+        p.fields.get("write_status"),
+        p.fields.get("link_errors"),
+    ),
+    "temps": lambda p: (
+        p.time_ns,
+        p.tags.get("sensor"),
+        p.tags.get("quality"),
+        p.fields.get("value_C"),
+    ),
+    "probes": lambda p: (p.time_ns, p.fields.get("error_um")),
+}
+
+
+def _influx_rows(
+    spec: SourceSpec, machine: str, start_ns: int, stop_ns: int, parts: tuple[str, ...] = PARTS
+) -> dict[str, list]:
     from gateway.outputs.influx import InfluxReader
 
     _, url, token, org, bucket, timeout_s = spec
     reader = InfluxReader(url, token, org, bucket, timeout_s)
+    measurements = dict(zip(PARTS, _MEASUREMENTS, strict=True))
     try:
-
-        def read(measurement: str) -> list:
-            return reader.query(measurement, machine=machine, start_ns=start_ns, stop_ns=stop_ns)
-
-        cycles = [
-            (
-                p.time_ns,
-                *(p.fields.get(f) for f in CYCLE_FIELDS),
-                p.fields.get("write_status"),
-                p.fields.get("link_errors"),
-            )
-            for p in read(CYCLE_MEASUREMENT)
-        ]
-        temps = [
-            (p.time_ns, p.tags.get("sensor"), p.tags.get("quality"), p.fields.get("value_C"))
-            for p in read(TEMPERATURE_MEASUREMENT)
-        ]
-        probes = [(p.time_ns, p.fields.get("error_um")) for p in read(PROBE_MEASUREMENT)]
+        return {
+            part: [
+                _INFLUX_ROW[part](p)
+                for p in reader.query(
+                    measurements[part], machine=machine, start_ns=start_ns, stop_ns=stop_ns
+                )
+            ]
+            for part in parts
+        }
     finally:
         reader.close()
-    return {"cycles": cycles, "temps": temps, "probes": probes}
 
 
-def _temperatures(rows: list) -> tuple[dict, list[tuple[float, str, str]]]:
+def _rows(
+    spec: SourceSpec, machine: str, start_ns: int, stop_ns: int, parts: tuple[str, ...] = PARTS
+) -> dict[str, list]:
+    if spec[0] == "local":
+        return _local_rows(Path(spec[1]), machine, start_ns, stop_ns, parts)
+    return _influx_rows(spec, machine, start_ns, stop_ns, parts)
+
+
+def _split_temperatures(rows: list) -> tuple[dict[str, tuple[list, list]], list]:
+    """Per sensor ``(times ns, values)``, and the quality changes ``(Unix s, sensor,
+    "before → after")`` ordered by time, then sensor."""
     by_sensor: dict[str, tuple[list, list]] = {}
     last_quality: dict[str, str] = {}
     changes = []
     for time_ns, sensor, quality, value in rows:
-        times, values = by_sensor.setdefault(str(sensor), ([], []))
-        times.append(time_ns / NS_PER_S)
+        name = str(sensor)
+        times, values = by_sensor.setdefault(name, ([], []))
+        times.append(time_ns)
         values.append(value)
-        before = last_quality.get(sensor)
+        before = last_quality.get(name)
         if before is not None and before != quality:
-            changes.append((time_ns / NS_PER_S, str(sensor), f"{before} → {quality}"))
-        last_quality[sensor] = quality
-    arrays = {s: (np.array(t), _array(v)) for s, (t, v) in by_sensor.items()}
-    return arrays, changes
+            changes.append((time_ns / NS_PER_S, name, f"{before} → {quality}"))
+        last_quality[name] = quality
+    changes.sort(key=lambda c: (c[0], c[1]))
+    return by_sensor, changes
+
+
+def _cycles(rows: list) -> _Cycles:
+    columns = list(zip(*rows, strict=True)) if rows else [()] * (len(CYCLE_FIELDS) + 3)
+    return _Cycles(
+        t_ns=np.array(columns[0], dtype=np.int64),
+        t_s=np.array(columns[0], dtype=float) / NS_PER_S,
+        values={f: _array(c) for f, c in zip(CYCLE_FIELDS, columns[1:6], strict=True)},
+        write_status=[str(s or "") for s in columns[6]],
+        link_errors=_array(columns[7]),
+    )
+
+
+def _probes(rows: list, cycles: _Cycles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Probe times (Unix s), measured errors, and residuals against the prediction of
+    the cycle at or before each probe."""
+    probe_t = np.array([r[0] for r in rows], dtype=float) / NS_PER_S
+    probe_err = _array(r[1] for r in rows)
+    t_s, predicted = cycles.t_s, cycles.values["predicted_um"]
+    if len(t_s) and len(probe_t):
+        at = np.clip(np.searchsorted(t_s, probe_t, side="right") - 1, 0, len(t_s) - 1)
+        return probe_t, probe_err, probe_err - predicted[at]
+    return probe_t, probe_err, np.zeros(len(probe_t))
 
 
 def read_machine(
     spec: SourceSpec, machine: str, start_s: float, stop_s: float, cnc_um_per_unit: float
 ) -> MachineSeries:
-    """The logged window ``start_s ≤ t < stop_s`` (Unix seconds) of ``machine``."""
-    start_ns, stop_ns = int(start_s * NS_PER_S), int(stop_s * NS_PER_S)
-    if spec[0] == "local":
-        rows = _local_rows(Path(spec[1]), machine, start_ns, stop_ns)
-    else:
-        rows = _influx_rows(spec, machine, start_ns, stop_ns)
-    cycles = rows["cycles"]
-    columns = list(zip(*cycles, strict=True)) if cycles else [()] * (len(CYCLE_FIELDS) + 3)
-    t_s = np.array(columns[0], dtype=float) / NS_PER_S
-    speed, predicted, applied, written, correction = (_array(c) for c in columns[1:6])
-    temperatures, changes = _temperatures(rows["temps"])
-    probe_t = np.array([r[0] for r in rows["probes"]], dtype=float) / NS_PER_S
-    probe_err = _array(r[1] for r in rows["probes"])
-    if len(t_s) and len(probe_t):
-        at = np.clip(np.searchsorted(t_s, probe_t, side="right") - 1, 0, len(t_s) - 1)
-        residual = probe_err - predicted[at]
-    else:
-        residual = np.zeros(len(probe_t))
+    """The logged window ``start_s ≤ t < stop_s`` (Unix seconds) of ``machine``, every row."""
+    rows = _rows(spec, machine, int(start_s * NS_PER_S), int(stop_s * NS_PER_S))
+    cycles = _cycles(rows["cycles"])
+    by_sensor, changes = _split_temperatures(rows["temps"])
+    temperatures = {
+        s: (np.array([t / NS_PER_S for t in times]), _array(values))
+        for s, (times, values) in by_sensor.items()
+    }
+    probe_t, probe_err, residual = _probes(rows["probes"], cycles)
+    values = cycles.values
     return MachineSeries(
-        t_s=t_s,
-        speed_rpm=speed,
-        predicted_um=predicted,
-        applied_um=applied,
-        cnc_um=written * cnc_um_per_unit,
-        correction_um=correction,
-        write_status=[str(s or "") for s in columns[6]],
-        link_errors=_array(columns[7]),
+        t_s=cycles.t_s,
+        speed_rpm=values["speed_rpm"],
+        predicted_um=values["predicted_um"],
+        applied_um=values["applied_um"],
+        cnc_um=values["written_cnc"] * cnc_um_per_unit,
+        correction_um=values["correction_um"],
+        write_status=cycles.write_status,
+        link_errors=cycles.link_errors,
         temperatures_C=temperatures,
         quality_changes=changes,
         probe_t_s=probe_t,
@@ -164,29 +247,134 @@ def read_machine(
     )
 
 
+def read_probes(
+    spec: SourceSpec, machine: str, start_s: float, stop_s: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Probe times (Unix s), measured errors and residuals (µm) of the window: its cycles
+    and probes only."""
+    window = (int(start_s * NS_PER_S), int(stop_s * NS_PER_S))
+    rows = _rows(spec, machine, *window, parts=("cycles", "probes"))
+    return _probes(rows["probes"], _cycles(rows["cycles"]))
+
+
+def window_envelope(
+    t_ns: np.ndarray, y: np.ndarray, start_ns: int, stop_ns: int, columns: int = COLUMNS
+) -> Series:
+    """``(t_ns, y)`` (sorted by time) cut to each column's first time with its lowest
+    value and last time with its highest; column ``k`` holds the times with
+    ``(t - start) * columns // (stop - start) == k``. NaNs are dropped; a series of at
+    most ``2 × columns`` points comes back whole."""
+    keep = np.isfinite(y)
+    t, y = t_ns[keep], y[keep]
+    if len(t) <= 2 * columns:
+        return t, y
+    column = (t - start_ns) * columns // (stop_ns - start_ns)
+    starts = np.flatnonzero(np.r_[True, column[1:] != column[:-1]])
+    ends = np.r_[starts[1:], len(t)] - 1
+    lows = np.minimum.reduceat(y, starts)
+    highs = np.maximum.reduceat(y, starts)
+    return np.column_stack([t[starts], t[ends]]).ravel(), np.column_stack([lows, highs]).ravel()
+
+
+def _full_temperatures(
+    rows: list, start_ns: int, stop_ns: int, columns: int
+) -> tuple[dict[str, Series], list]:
+    by_sensor, changes = _split_temperatures(rows)
+    series = {
+        s: window_envelope(np.array(t, dtype=np.int64), _array(v), start_ns, stop_ns, columns)
+        for s, (t, v) in by_sensor.items()
+    }
+    return series, changes
+
+
+def machine_view(
+    spec: SourceSpec,
+    machine: str,
+    start_s: float,
+    stop_s: float,
+    cnc_um_per_unit: float,
+    columns: int = COLUMNS,
+    aggregate: bool = True,
+) -> MachineView:
+    """The window ``start_s ≤ t < stop_s`` as the machine page draws it. ``aggregate``:
+    the local store's temperatures are cut per column in SQL (the same result as
+    reading every row, which ``aggregate=False`` does)."""
+    start_ns, stop_ns = int(start_s * NS_PER_S), int(stop_s * NS_PER_S)
+    if spec[0] == "local" and aggregate:
+        db = _connect(Path(spec[1]))
+        try:
+            window = (start_ns, stop_ns)
+            rows = {p: _local_part(db, p, machine, window) for p in ("cycles", "probes")}
+            temps, changes = temperature_envelopes(db, machine, start_ns, stop_ns, columns)
+        finally:
+            db.close()
+    else:
+        rows = _rows(spec, machine, start_ns, stop_ns)
+        temps, changes = _full_temperatures(rows["temps"], start_ns, stop_ns, columns)
+    cycles = _cycles(rows["cycles"])
+    probe_t, probe_err, residual = _probes(rows["probes"], cycles)
+    values = dict(cycles.values, cnc_um=cycles.values["written_cnc"] * cnc_um_per_unit)
+    names = ("speed_rpm", "predicted_um", "applied_um", "cnc_um", "correction_um")
+    lines = {n: window_envelope(cycles.t_ns, values[n], start_ns, stop_ns, columns) for n in names}
+    found = _cycle_events(cycles.t_s, cycles.write_status, cycles.link_errors)
+    found += [(t, "sensor flag", f"{sensor}: {change}") for t, sensor, change in changes]
+    return MachineView(
+        cycles=len(cycles.t_ns),
+        lines={n: _seconds(s) for n, s in lines.items()},
+        temperatures_C={s: _seconds(series) for s, series in temps.items()},
+        probe_t_s=probe_t,
+        probe_error_um=probe_err,
+        probe_residual_um=residual,
+        events=_newest_first(found),
+    )
+
+
+def _seconds(series: Series) -> Series:
+    t_ns, y = series
+    return np.asarray(t_ns, dtype=np.int64) / NS_PER_S, np.asarray(y, dtype=float)
+
+
 def _refused(status: str) -> bool:
     """A write the loop did not make for a fault (not a hold or a deadband)."""
     return bool(status) and not status.startswith(("ok", "no write"))
 
 
-def events(data: MachineSeries) -> list[tuple[float, str, str]]:
+def _cycle_events(t_s: np.ndarray, statuses: list[str], link_errors: np.ndarray) -> list[Event]:
+    """Macro changes, write refusals, link losses and reconnects, each at the cycle where
+    it began (the first cycle follows an "ok" one with every link up). Only cycles whose
+    status or link state differs from the one before can begin one, so only those are
+    looked at."""
+    if not statuses:
+        return []
+    links = np.where(np.isnan(link_errors), 0.0, link_errors)
+    status = np.array(statuses, dtype=object)
+    up = links > 0
+    changed = np.flatnonzero((status[1:] != status[:-1]) | (up[1:] != up[:-1])) + 1
+    found: list[Event] = []
+    for i in [0, *changed.tolist()]:
+        previous, previous_links = ("ok", 0.0) if i == 0 else (statuses[i - 1], links[i - 1])
+        t, now, count = float(t_s[i]), statuses[i], float(links[i])
+        if "external" in now and "external" not in previous:
+            found.append((t, "external macro change", now))
+        elif _refused(now) and now[:24] != previous[:24]:
+            found.append((t, "write", now))
+        if count > 0 and previous_links == 0:
+            found.append((t, "link lost", f"{count:.0f} source(s) not answering"))
+        elif count == 0 and previous_links > 0:
+            found.append((t, "reconnected", "every source answering again"))
+    return found
+
+
+def _newest_first(found: list[Event]) -> list[Event]:
+    found.sort(key=lambda e: e[0], reverse=True)
+    return found[:MAX_EVENTS]
+
+
+def events(data: MachineSeries) -> list[Event]:
     """(Unix s, kind, text), newest first: macro changes, write refusals, sensor flags,
     link losses and reconnects, each at the cycle where it began."""
-    found: list[tuple[float, str, str]] = []
-    previous_status, previous_links = "ok", 0.0
-    for t, status, links in zip(data.t_s, data.write_status, data.link_errors, strict=True):
-        if "external" in status and "external" not in previous_status:
-            found.append((float(t), "external macro change", status))
-        elif _refused(status) and status[:24] != previous_status[:24]:
-            found.append((float(t), "write", status))
-        links = 0.0 if np.isnan(links) else float(links)
-        if links > 0 and previous_links == 0:
-            found.append((float(t), "link lost", f"{links:.0f} source(s) not answering"))
-        elif links == 0 and previous_links > 0:
-            found.append((float(t), "reconnected", "every source answering again"))
-        previous_status, previous_links = status, links
+    found = _cycle_events(data.t_s, data.write_status, data.link_errors)
     found += [
         (t, "sensor flag", f"{sensor}: {change}") for t, sensor, change in data.quality_changes
     ]
-    found.sort(key=lambda e: e[0], reverse=True)
-    return found[:MAX_EVENTS]
+    return _newest_first(found)

@@ -58,6 +58,7 @@ import numpy as np
 
 from models.base import ModelInputs, ThermalModel
 from models.data.lag_terms import SPEED_SCALE_RPM, first_order_lag, lag_step
+from models.estimators.lag_grams import group_grams, inputs_fingerprint
 from models.estimators.lag_structures import (
     DEFAULT_SPEED_POWERS,
     DEFAULT_TAUS_S,
@@ -115,11 +116,13 @@ def speed_powers(speed_rpm: np.ndarray, powers: Sequence[float]) -> np.ndarray:
     return np.column_stack([(n > 0).astype(float) if p == 0 else n**p for p in powers])
 
 
-#: The terms last built for one inputs object, by structure: validation and residual
+#: The terms last built for one data set, by structure: validation and residual
 #: analysis ask for the same inputs' terms once per fold, and the nested choice once per
-#: candidate structure.
+#: candidate structure. The data set is the inputs object, or one with the same content
+#: (a fold fitted in a worker process receives its own copy).
 _last_terms: dict[tuple, np.ndarray] = {}
 _last_inputs: list[ModelInputs] = []
+_last_fingerprint: list[str] = []
 _TERM_CACHE_SIZE = 4
 
 
@@ -132,7 +135,10 @@ def lag_terms(
     """
     key = (tuple(sensors), tuple(taus_s), tuple(powers))
     if not (_last_inputs and _last_inputs[0] is inputs):
-        _last_terms.clear()
+        fingerprint = inputs_fingerprint(inputs)
+        if _last_fingerprint != [fingerprint]:
+            _last_terms.clear()
+            _last_fingerprint[:] = [fingerprint]
         _last_inputs[:] = [inputs]
     terms = _last_terms.get(key)
     if terms is None:
@@ -167,18 +173,36 @@ def candidate_paths(
     labels: np.ndarray,
 ) -> list[CandidatePaths]:
     """Each structure's terms of ``inputs`` and its fits over the groups of rows in
-    ``labels`` (-1: a row left out), ready for :func:`models.estimators.lag_structures.choose`."""
-    return [
-        CandidatePaths(
-            s,
-            lag_terms(inputs, sensors, s.lag_taus_s, s.speed_powers),
-            y,
-            labels,
-            len(sensors),
-            term_names(sensors, s.lag_taus_s, s.speed_powers),
+    ``labels`` (-1: a row left out), ready for :func:`models.estimators.lag_structures.choose`.
+
+    The structures share the terms of the largest one (every family member's terms are
+    among them) and the Gram products of its terms per run
+    (:func:`models.estimators.lag_grams.group_grams`).
+    """
+    names = [term_names(sensors, s.lag_taus_s, s.speed_powers) for s in structures]
+    largest = max(range(len(structures)), key=lambda k: len(names[k]))
+    index = {name: j for j, name in enumerate(names[largest])}
+    if not all(set(n) <= index.keys() for n in names):
+        return [
+            CandidatePaths(
+                s, lag_terms(inputs, sensors, s.lag_taus_s, s.speed_powers), y, labels,
+                len(sensors), n,
+            )
+            for s, n in zip(structures, names, strict=True)
+        ]  # fmt: skip
+    full = structures[largest]
+    terms = lag_terms(inputs, sensors, full.lag_taus_s, full.speed_powers)
+    key = _last_fingerprint[0] + repr((tuple(sensors), full.lag_taus_s, full.speed_powers))
+    order, products = group_grams(key, terms, y, labels, inputs.run_index)
+    shared: dict = {}
+    paths = []
+    for structure, own in zip(structures, names, strict=True):
+        columns = np.array([index[name] for name in own], dtype=int)
+        grams = GroupGrams.from_products(order, products, columns)
+        paths.append(
+            CandidatePaths(structure, terms, y, labels, len(sensors), own, grams, columns, shared)
         )
-        for s in structures
-    ]
+    return paths
 
 
 class LagRidgeModel(ThermalModel):

@@ -59,11 +59,13 @@ all of them; the stack is their weighted sum. With fewer than three groups of
 training rows there is nothing to nest a choice in, and the first structure is
 taken.
 
-Every fit is a sum over runs: a ridge path from the runs' Gram products of the
-terms (one eigendecomposition per penalty ratio serves every penalty), a lasso
-path from the rows (scikit-learn's ``enet_path``, all L1 for a lasso, on the
-standardised terms).
-Paths are kept per set of runs, so the nested loops fit each set once.
+Every fit is a sum over runs of their Gram products of the terms
+(:mod:`models.estimators.lag_grams`: each run's taken once and shared by every fold and
+candidate): a ridge path from one eigendecomposition of the sensor block for every
+penalty and ratio (:class:`models.estimators.lag_paths.TwoGroupRidge`), a lasso path
+(scikit-learn's ``enet_path``, all L1 for a lasso, on the standardised terms) on a
+square root of the products, which has the rows' products in p + 1 rows. No fit passes
+over the rows. Paths are kept per set of runs, so the nested loops fit each set once.
 """
 
 from __future__ import annotations
@@ -76,6 +78,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from models.estimators.lag_paths import (
+    TwoGroupRidge,
+    centred_products,
+    ridge_solutions,
+    square_root_rows,
+)
 
 #: Time constants of the lags, s: 5 min, 10 min, 20 min, 30 min, 1 h, 2 h, 4 h, 8 h, 16 h, 24 h.
 DEFAULT_TAUS_S = (300.0, 600.0, 1200.0, 1800.0, 3600.0, 7200.0, 14400.0, 28800.0, 57600.0, 86400.0)
@@ -196,8 +205,23 @@ class GroupGrams:
             self.cross.append(z.T @ y[mask])
             self.yy.append(float(y[mask] @ y[mask]))
 
+    @classmethod
+    def from_products(cls, labels: Sequence[Any], products: np.ndarray, columns: np.ndarray):
+        """From each group's ``[1, T, y]ᵀ[1, T, y]`` (``products``, (g, k + 2, k + 2)) over a
+        larger set of terms T, of which this structure's are ``columns``."""
+        grams = cls.__new__(cls)
+        index = np.r_[0, 1 + np.asarray(columns, dtype=int)]
+        grams.labels = list(labels)
+        grams.gram = [g[np.ix_(index, index)] for g in products]
+        grams.cross = [g[index, -1] for g in products]
+        grams.yy = [float(g[-1, -1]) for g in products]
+        return grams
+
     def total(self, members: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         return sum(self.gram[i] for i in members), sum(self.cross[i] for i in members)
+
+    def total_yy(self, members: Sequence[int]) -> float:
+        return float(sum(self.yy[i] for i in members))
 
     def sse(self, member: int, beta: np.ndarray) -> float:
         g, c = self.gram[member], self.cross[member]
@@ -273,15 +297,24 @@ class CandidatePaths:
         labels: np.ndarray,
         n_sensors: int,
         names: Sequence[str],
+        grams: GroupGrams | None = None,
+        columns: np.ndarray | None = None,
+        shared: dict | None = None,
     ) -> None:
-        """``names``: the name of every column of ``terms``; ``labels``: the group of every
-        row (−1: not a training row)."""
+        """``names``: the name of every term of the structure; ``labels``: the group of every
+        row (−1: not a training row). ``terms`` are its terms, or, with ``columns``, a
+        larger set of which its terms are those columns (``grams`` then given over them).
+        ``shared``: ridge factorisations kept per set of groups, shared with the other
+        candidates on the same terms (the one-penalty ridge is the two-group one at r = 1).
+        """
         self.structure = structure
         self.names = list(names)
         self.terms = terms
+        self.columns = None if columns is None else np.asarray(columns, dtype=int)
         self.y = y
         self.labels = labels
-        self.grams = GroupGrams(terms, y, labels, labels >= 0)
+        self.grams = GroupGrams(terms, y, labels, labels >= 0) if grams is None else grams
+        self._shared = {} if shared is None else shared
         self.groups = term_groups(n_sensors, len(structure.lag_taus_s), len(structure.speed_powers))
         self._paths: dict[frozenset[int], list[np.ndarray]] = {}
         if structure.estimator == TWO_GROUP_RIDGE and structure.speed_powers:
@@ -310,24 +343,40 @@ class CandidatePaths:
             self._paths[members] = cached
         return cached
 
+    def _standardised(
+        self, members: frozenset[int]
+    ) -> tuple[float, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray, float]:
+        """(n, mean, scale, ȳ, C, c, Σ(y − ȳ)²) of the groups ``members``: what the fit
+        removes, and the centred products of the terms standardised by ``scale``."""
+        ordered = sorted(members)
+        gram, cross = self.grams.total(ordered)
+        mean, scale, y_mean = centring(gram, cross, self.structure.intercept == FITTED)
+        zz, zy, yy = centred_products(gram, cross, self.grams.total_yy(ordered), mean, y_mean)
+        zz /= np.outer(scale, scale)
+        zy /= scale
+        return float(gram[0, 0]), mean, scale, y_mean, zz, zy, yy
+
     def _ridge(self, members: frozenset[int]) -> list[np.ndarray]:
-        gram, cross = self.grams.total(sorted(members))
-        path: list[np.ndarray] = []
-        fitted = self.structure.intercept == FITTED
-        for ratio in self._ratios:
-            path.extend(ridge_path(gram, cross, self.groups, ratio, intercept=fitted))
-        return path
+        n, mean, scale, y_mean, zz, zy, _ = self._standardised(members)
+        key = (self._column_key(), self.structure.intercept, members)
+        solver = self._shared.get(key)
+        if solver is None:
+            solver = TwoGroupRidge(zz, zy, n, self.groups == SPEED_GROUP)
+            self._shared[key] = solver
+        return ridge_solutions(solver, self._ratios, PENALTIES, mean, scale, y_mean)
+
+    def _column_key(self) -> tuple[int, ...] | int:
+        return len(self.names) if self.columns is None else tuple(self.columns.tolist())
 
     def _sparse(self, members: frozenset[int]) -> list[np.ndarray]:
         from sklearn.exceptions import ConvergenceWarning
         from sklearn.linear_model import enet_path
 
-        gram, cross = self.grams.total(sorted(members))
-        mean, scale, y_mean = centring(gram, cross, self.structure.intercept == FITTED)
-        rows = self.rows_of(members)
-        z = (self.terms[rows] - mean) / scale
-        y = self.y[rows] - y_mean
-        sigma = max(float(np.sqrt(np.mean(y**2))), 1e-12)
+        n, mean, scale, y_mean, zz, zy, yy = self._standardised(members)
+        sigma = max(float(np.sqrt(yy / n)), 1e-12)
+        # The lasso on the rows, on p + 1 rows with the same products instead; its L1
+        # penalty is per row, so it is rescaled from n rows to p + 1.
+        z, y = square_root_rows(zz, zy, yy)
         with warnings.catch_warnings():
             # The small-penalty end of the path may stop short of the tolerance on nearly
             # collinear lags; it is scored like every other grid point, so it is chosen only
@@ -338,7 +387,7 @@ class CandidatePaths:
                 z,
                 y,
                 l1_ratio=l1_ratio,
-                alphas=sigma * np.asarray(LASSO_PENALTIES),
+                alphas=sigma * np.asarray(LASSO_PENALTIES) * n / z.shape[0],
                 max_iter=5000,
                 precompute=True,
             )
@@ -386,14 +435,21 @@ class CandidatePaths:
 
     def nested_predictions(self, members: frozenset[int]) -> np.ndarray:
         """Every training row of ``members`` (in row order) predicted as in :meth:`nested_sse`."""
-        rows = self.rows_of(members)
-        predicted = np.empty(self.labels.size)
-        for held in members:
+        held_out = sorted(members)
+        # One pass over the terms for every held-out group (each column one group's fit).
+        coefficients = np.zeros((self.terms.shape[1], len(held_out)))
+        intercepts = np.zeros(len(held_out))
+        for i, held in enumerate(held_out):
             rest = members - {held}
             beta = self.path(rest)[self.choose(rest)]
+            intercepts[i] = beta[0]
+            coefficients[slice(None) if self.columns is None else self.columns, i] = beta[1:]
+        every = self.terms @ coefficients + intercepts
+        predicted = np.empty(self.labels.size)
+        for i, held in enumerate(held_out):
             mask = self.labels == self.grams.labels[held]
-            predicted[mask] = beta[0] + self.terms[mask] @ beta[1:]
-        return predicted[rows]
+            predicted[mask] = every[mask, i]
+        return predicted[self.rows_of(members)]
 
     def training_target(self, members: frozenset[int]) -> np.ndarray:
         return self.y[self.rows_of(members)]

@@ -28,6 +28,7 @@ tests).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 from collections.abc import Awaitable, Callable, Mapping, Sequence
@@ -49,6 +50,7 @@ from gateway.live.record import CycleRecord, Sink, sink_name
 from gateway.live.reference import TemperatureReference
 from gateway.live.scheduler import CycleScheduler, after_cycle
 from gateway.live.writeback import CompensationPolicy, Decision
+from gateway.process.file_writer import STATE
 from models.base import ModelInputs
 from models.data.dataset import ambient_sensor_of
 from models.online.correction import CorrectionParams, OnlineCorrection
@@ -62,6 +64,8 @@ S = TypeVar("S")
 
 #: Wall seconds a cycle in progress may take to finish once a stop is requested.
 STOP_GRACE_S = 0.5
+#: How long a closing loop waits for its last lag-state save to reach the disk, s.
+STATE_FLUSH_S = 5.0
 
 
 class MachineLoop:
@@ -95,7 +99,7 @@ class MachineLoop:
         self.promotions = Promotions(config, running=True)
         self.promotions.load(bank)
         warm = WarmLags(self.sensors, ambient_sensor_of(self.sensors))
-        self.effects = EffectStates(bank.augmented(), effect_file, warm=warm)
+        self.effects = EffectStates(bank.augmented(), effect_file, warm=warm, writer=STATE)
         self.policy: CompensationPolicy | None = None
         self.compensation_enabled = config.compensation.enabled
         self.handshake = 0
@@ -633,6 +637,9 @@ class MachineLoop:
 
     async def close(self) -> None:
         self.effects.save()
+        with contextlib.suppress(TimeoutError):  # a hung disk must not hang the stop
+            async with asyncio.timeout(STATE_FLUSH_S):
+                await self.effects.flush()
         for bus in self.buses:
             await bus.close()
         await self.cnc.close()

@@ -1,7 +1,8 @@
 """Liveness of the compensation loops, for a container health check.
 
-Each machine loop calls :func:`write_heartbeat` once a cycle; it replaces
-``<state_dir>/<machine>-heartbeat.json`` atomically with::
+Each machine loop calls :func:`submit_heartbeat` once a cycle (:func:`write_heartbeat`
+off the event loop); it replaces ``<state_dir>/<machine>-heartbeat.json`` atomically
+with::
 
     {"machine": "vmc-1", "wall_time": 1732370000.25, "time_s": 8113.0, "cycles": 8113,
      "health": {"failed_writes": 0, "external_changes": 0, "link_errors_total": 3,
@@ -35,6 +36,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, NoReturn
 
+from gateway.process.file_writer import HEARTBEATS, Done
 from models.json_files import write_json_atomic
 
 SUFFIX = "-heartbeat.json"
@@ -74,7 +76,37 @@ def write_heartbeat(
     of one. No fsync: a heartbeat lost in a power cut does not matter.
     """
     path = heartbeat_path(state_dir, machine_id)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = _payload(machine_id, time_s, cycles, wall_time, health)
+    return write_json_atomic(path, payload, indent=None, durable=False)
+
+
+def submit_heartbeat(
+    state_dir: str | Path,
+    machine_id: str,
+    time_s: float,
+    cycles: int = 0,
+    *,
+    health: Mapping[str, Any] | None = None,
+    done: Done | None = None,
+) -> Path:
+    """:func:`write_heartbeat` for the event loop: the heartbeat (its wall time taken
+    now) is written by :data:`gateway.process.file_writer.HEARTBEATS`' thread, whose
+    rename cannot hold up the other machines' cycles on a busy disk. ``done`` is called
+    in that thread with the error, or None, once the file is written."""
+    path = heartbeat_path(state_dir, machine_id)
+    payload = _payload(machine_id, time_s, cycles, None, health)
+    text = json.dumps(payload, ensure_ascii=False) + "\n"
+    HEARTBEATS.submit(path, text, done)
+    return path
+
+
+def _payload(
+    machine_id: str,
+    time_s: float,
+    cycles: int,
+    wall_time: float | None,
+    health: Mapping[str, Any] | None,
+) -> dict[str, Any]:
     payload: dict[str, Any] = {
         "machine": machine_id,
         "wall_time": time.time() if wall_time is None else float(wall_time),
@@ -83,7 +115,7 @@ def write_heartbeat(
     }
     if health is not None:
         payload["health"] = dict(health)
-    return write_json_atomic(path, payload, indent=None, durable=False)
+    return payload
 
 
 def check(state_dir: str | Path, max_age_s: float, now: float | None = None) -> tuple[bool, str]:

@@ -24,6 +24,7 @@ written.
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import dataclasses
 import logging
@@ -36,15 +37,18 @@ from drivers.clock import Clock
 from gateway.config import GatewayConfig
 from gateway.live.record import CycleRecord
 from gateway.outputs.disk_buffer import PointBuffer
-from gateway.outputs.heartbeat import write_heartbeat
+from gateway.outputs.heartbeat import submit_heartbeat
 from gateway.outputs.influx import Forwarder, InfluxWriter
 from gateway.outputs.local_store import LocalStore
 from gateway.outputs.points import Point, points_from_record, probe_point
+from gateway.process.file_writer import HEARTBEATS
 
 log = logging.getLogger(__name__)
 
 #: Wall seconds a stopping gateway waits for the forwarder to empty the buffer.
 FLUSH_TIMEOUT_S = 0.3
+#: How long a stop waits for the last heartbeats to reach the disk, s.
+HEARTBEAT_FLUSH_S = 2.0
 
 
 HealthProvider = Callable[[str], Mapping[str, Any]]
@@ -141,22 +145,24 @@ class Outputs:
             self.enforce_retention(points[0].time_ns)
 
     def beat(self, record: CycleRecord) -> None:
-        """Write the machine's heartbeat, with its health counters when known."""
+        """Write the machine's heartbeat, with its health counters when known (by the
+        heartbeat thread: the rename does not hold up the event loop)."""
         self._cycles[record.machine] = self._cycles.get(record.machine, 0) + 1
-        try:
-            write_heartbeat(
-                self.state_dir,
-                record.machine,
-                record.time_s,
-                cycles=self._cycles[record.machine],
-                health=None if self.health is None else self.health(record.machine),
-            )
-        except OSError as exc:  # a full disk: the health check will say so, the loop goes on
-            if not self._heartbeat_failing:
-                log.error("cannot write the heartbeat in %s: %s", self.state_dir, exc)
-            self._heartbeat_failing = True
-        else:
-            self._heartbeat_failing = False
+        submit_heartbeat(
+            self.state_dir,
+            record.machine,
+            record.time_s,
+            cycles=self._cycles[record.machine],
+            health=None if self.health is None else self.health(record.machine),
+            done=self._heartbeat_written,
+        )
+
+    def _heartbeat_written(self, path: Path, error: OSError | None) -> None:
+        """In the heartbeat thread: one line when heartbeats start failing (a full disk:
+        the health check will say so, the loop goes on)."""
+        if error is not None and not self._heartbeat_failing:
+            log.error("cannot write the heartbeat in %s: %s", path.parent, error)
+        self._heartbeat_failing = error is not None
 
     def start(self) -> None:
         if self.forwarder is not None:
@@ -177,3 +183,6 @@ class Outputs:
             self.buffer.close()
         if self.store is not None:
             self.store.close()
+        with contextlib.suppress(TimeoutError):  # a hung disk must not hang the stop
+            async with asyncio.timeout(HEARTBEAT_FLUSH_S):
+                await HEARTBEATS.drain()  # the last cycle's heartbeats

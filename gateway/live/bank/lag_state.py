@@ -30,15 +30,17 @@ model's lags start from the present inputs (logged). The cost is 19 inputs × 9 
 multiply-adds per cycle, and a few kB of state.
 
 Both are kept in one file, ``<state_dir>/<machine>-effect-state.json``, next to the
-temperature reference, each model's state with the checksum of the model it
-belongs to (:func:`save_lag_file`, :func:`read_lag_file`). The file is written
-atomically on the first cycle, then at most every ``SAVE_EVERY_S`` of machine time
-and when the loop closes; a restarted gateway carries on from it, the first
-cycle's Δt spanning the downtime. A state saved for a model that has changed since,
-or one the model cannot take, is dropped (with a warning) and that model's lags
-start again from the present rises. A save that fails (a full disk) never stops the
-compensation; one warning names the first failure of an episode (any machine, the
-same errno), one line says when saves work again.
+temperature reference, each model's state with the checksum of the model it belongs to
+(:func:`save_lag_file`, :func:`read_lag_file`). The file is written atomically on the
+first cycle, then at most every ``SAVE_EVERY_S`` of machine time and when the loop
+closes, by the state writer's thread in a running gateway
+(:data:`gateway.process.file_writer.STATE`: the ``fsync`` does not hold up the event
+loop, and the loop's close waits for the last save); a restarted gateway carries on
+from it, the first cycle's Δt spanning the downtime. A state saved for a model that
+has changed since, or one the model cannot take, is dropped (with a warning) and that
+model's lags start again from the present rises. A save that fails (a full disk) never
+stops the compensation; one warning names the first failure of an episode (any
+machine, the same errno), one line says when saves work again.
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import threading
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -53,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from gateway.live.bank.model_bank import BankedAugmented
+from gateway.process.file_writer import FileWriter
 from models.data.lag_terms import (
     AMBIENT_TAUS_S,
     HEAT_TAUS_S,
@@ -76,8 +80,10 @@ SAVE_EVERY_S = 60.0
 
 #: Lag-state files whose last save failed, with its errno, in this process. A full
 #: disk fails every machine's save every minute: the first failure of an episode is
-#: logged, the rest only once a save succeeds again.
+#: logged, the rest only once a save succeeds again. Saves end in the state writer's
+#: thread or in the caller's: the lock keeps the two apart.
 _failing: dict[Path, int | None] = {}
+_failing_lock = threading.Lock()
 
 
 # --- the file ------------------------------------------------------------------------------
@@ -86,11 +92,20 @@ def save_lag_file(state_file: Path, payload: Mapping[str, object]) -> bool:
     try:
         write_json_atomic(state_file, dict(payload))
     except OSError as exc:  # compensation goes on; a restart would start the lags again
-        _save_failed(state_file, exc)
+        lag_file_saved(state_file, exc)
         return False
-    if _failing.pop(state_file, False) is not False and not _failing:
-        log.info("%s: lag states are saved again", state_file)
+    lag_file_saved(state_file, None)
     return True
+
+
+def lag_file_saved(state_file: Path, error: OSError | None) -> None:
+    """How a save ended (``error`` None: written): a failure that starts an episode is
+    logged, and so is the first success after one."""
+    with _failing_lock:
+        if error is not None:
+            _save_failed(state_file, error)
+        elif _failing.pop(state_file, False) is not False and not _failing:
+            log.info("%s: lag states are saved again", state_file)
 
 
 def _save_failed(state_file: Path, exc: OSError) -> None:
@@ -264,13 +279,17 @@ class EffectStates:
         state_file: Path | None,
         save_every_s: float = SAVE_EVERY_S,
         warm: WarmLags | None = None,
+        writer: FileWriter | None = None,
     ) -> None:
-        """``warm``: lags of every input kept for models added later (:meth:`set_models`)."""
+        """``warm``: lags of every input kept for models added later (:meth:`set_models`).
+        ``writer``: saves are handed to its thread (the event loop does not wait for the
+        disk; :meth:`flush` waits for them); without one, :meth:`save` writes itself."""
         self.models = list(models)
         self.streams = {m.model_id: m.stream() for m in self.models}
         self.state_file = state_file
         self.save_every_s = save_every_s
         self.warm = warm
+        self.writer = writer
         self._saved_s: float | None = None
         self._restore()
 
@@ -347,7 +366,17 @@ class EffectStates:
         payload: dict[str, object] = {"models": states}
         if self.warm is not None:
             payload["warm_lags"] = self.warm.export_state()
-        save_lag_file(self.state_file, payload)
+        if self.writer is None:
+            save_lag_file(self.state_file, payload)
+            return
+        # The text is taken now (the states go on changing); only the disk waits.
+        text = json.dumps(payload, indent=2, ensure_ascii=False) + "\n"
+        self.writer.submit(self.state_file, text, lag_file_saved)
+
+    async def flush(self) -> None:
+        """Wait until the saves handed to the writer are on disk (a stop's last save)."""
+        if self.writer is not None:
+            await self.writer.drain()
 
     def _restore(self) -> None:
         document = read_lag_file(self.state_file)

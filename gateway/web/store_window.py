@@ -1,14 +1,17 @@
 """A window of temperature points from the local store, cut to per-column envelopes in SQL.
 
 A day of one machine at 1 Hz holds 777 600 temperature rows. Moving each into
-Python costs seconds; grouping them in SQLite by (plot column, tags) returns a
-few thousand rows: each group's row count, first and last time, lowest and highest
-value. The tags text holds the sensor and its quality, so a group never mixes two
-qualities, and a column where a sensor shows a single group holds a single run of
-one quality. The few columns that do not (a quality change inside the column, or
-rows logged without a value) are read row by row, so the envelope and every quality
-change come out exactly as from the full read (:func:`gateway.web.series.window_envelope`
-and the change list of :func:`gateway.web.series.machine_view` without aggregation).
+Python costs seconds; grouping them in SQLite by plot column and tags returns a few
+thousand rows: each group's row count, first and last time, lowest and highest
+value. One query per column, each a short walk of the time index sorting the
+column's rows by tags (one query grouping the whole day sorts 777 600 rows and
+took a third longer). The tags text holds the sensor and its quality, so a group
+never mixes two qualities, and a column where a sensor shows a single group holds
+a single run of one quality. The few columns that do not (a quality change inside
+the column, or rows logged without a value) are read row by row, so the envelope
+and every quality change come out exactly as from the full read
+(:func:`gateway.web.series.window_envelope` and the change list of
+:func:`gateway.web.series.machine_view` without aggregation).
 """
 
 from __future__ import annotations

@@ -300,6 +300,12 @@ class LagRidgeModel(ThermalModel):
         return lag_terms(inputs, self.sensors_used_, self.lag_taus_s, self.speed_powers)
 
     def _predict(self, inputs: ModelInputs) -> np.ndarray:
+        if inputs.time_s is None:
+            # No history: every lag equals its input, so each input's coefficients add up
+            # (the bias sensitivity predicts dozens of shifted copies of the training rows).
+            direct = _build_terms(inputs, self.sensors_used_, (), self.speed_powers)
+            summed = self.coef_.reshape(len(self.lag_taus_s) + 1, direct.shape[1]).sum(axis=0)
+            return self.intercept_um_ + direct @ summed
         return self.intercept_um_ + self._terms(inputs) @ self.coef_
 
     def predict_rows(self, inputs: ModelInputs, rows: np.ndarray) -> np.ndarray:

@@ -2,7 +2,8 @@
 plot column in SQL give the same lines and events as reading every row.
 
 Real parts: cycle records become points as the gateway makes them and go into the
-local SQLite store; both reads run against that file. The run has short spikes, a
+local SQLite store; both reads run against that file. The same points written to a
+real InfluxDB 2 (``tests/influx_server.py``) give the same page. The run has short spikes, a
 sensor that breaks without a value every 50th cycle, another flagged bad every 70th,
 link errors, quality changes on a column's first row and inside a column (there and
 back within it), write refusals and an external macro change.
@@ -16,9 +17,11 @@ import numpy as np
 import pytest
 
 from gateway.live.record import CycleRecord
+from gateway.outputs.influx import InfluxWriter
 from gateway.outputs.local_store import LocalStore
-from gateway.outputs.points import points_from_record, probe_point
-from gateway.web.series import MachineView, machine_view
+from gateway.outputs.points import Point, points_from_record, probe_point
+from gateway.web.series import MachineView, SourceSpec, machine_view
+from tests.influx_server import InfluxServer
 from tests.test_timeseries import EPOCH_S, make_records
 
 CYCLES = 2400
@@ -52,18 +55,21 @@ def _run() -> list[CycleRecord]:
     return records
 
 
+def _points() -> list[Point]:
+    points = [p for record in _run() for p in points_from_record(record, EPOCH_S)]
+    return points + [probe_point("m1", t, 5.0 + t / 1000, EPOCH_S) for t in range(0, CYCLES, 120)]
+
+
 @pytest.fixture(scope="module")
 def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("window") / "points.sqlite"
     with LocalStore(path) as local:
-        for record in _run():
-            local.write(points_from_record(record, EPOCH_S))
-        local.write([probe_point("m1", t, 5.0 + t / 1000, EPOCH_S) for t in range(0, CYCLES, 120)])
+        local.write(_points())
     return path
 
 
-def _view(store: Path, aggregate: bool) -> MachineView:
-    spec = ("local", str(store))
+def _view(store: Path | SourceSpec, aggregate: bool = True) -> MachineView:
+    spec = ("local", str(store)) if isinstance(store, Path) else store
     return machine_view(spec, "m1", EPOCH_S, EPOCH_S + CYCLES, 1000.0, COLUMNS, aggregate)
 
 
@@ -79,6 +85,7 @@ def test_the_columns_grouped_in_sql_give_the_lines_and_events_of_every_row(store
     for name, series in full.lines.items():
         assert _same(grouped.lines[name], series), name
     assert grouped.events == full.events
+    assert grouped.quality_changes == full.quality_changes
     assert grouped.cycles == full.cycles == CYCLES
     assert _same(
         (grouped.probe_t_s, grouped.probe_residual_um), (full.probe_t_s, full.probe_residual_um)
@@ -121,3 +128,22 @@ def test_a_long_window_is_cut_to_two_points_a_column_and_a_short_series_kept_who
     t_s, value_C = view.temperatures_C["T9"]
     assert np.array_equal(t_s, [EPOCH_S + i for i in LATE])
     assert np.array_equal(value_C, [30.0 + (i % 7) for i in LATE])
+
+
+def test_the_same_points_in_influxdb_give_the_same_page(store: Path, tmp_path: Path) -> None:
+    with InfluxServer(tmp_path / "influxdb") as server:
+        bucket = server.create_bucket("spindle")
+        writer = InfluxWriter(server.url, server.token, server.org, bucket)
+        try:
+            writer.write_sync(_points())
+        finally:
+            writer.close()
+        influx = _view(("influx", server.url, server.token, server.org, bucket, 30.0))
+    local = _view(store)
+    assert sorted(influx.temperatures_C) == sorted(local.temperatures_C)
+    for sensor, series in local.temperatures_C.items():
+        assert _same(influx.temperatures_C[sensor], series), sensor
+    for name, series in local.lines.items():
+        assert _same(influx.lines[name], series), name
+    assert influx.events == local.events and influx.cycles == CYCLES
+    assert influx.quality_changes == local.quality_changes

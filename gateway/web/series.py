@@ -76,6 +76,7 @@ class MachineView:
     probe_error_um: np.ndarray
     probe_residual_um: np.ndarray
     events: list[Event]
+    quality_changes: list[tuple[float, str, str]]  # (Unix s, sensor, "before → after"), all
 
 
 @dataclass
@@ -326,6 +327,7 @@ def machine_view(
         probe_error_um=probe_err,
         probe_residual_um=residual,
         events=_newest_first(found),
+        quality_changes=changes,
     )
 
 

@@ -77,7 +77,7 @@ class FileWriter:
                 self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
                 self._thread.start()
                 atexit.register(self.flush, EXIT_FLUSH_S)
-            self._cond.notify()
+            self._cond.notify_all()  # the thread, not only a flush() waiting on the same
 
     def flush(self, timeout_s: float | None = None) -> bool:
         """Block until everything handed over is written; False if ``timeout_s`` passed."""
@@ -87,7 +87,8 @@ class FileWriter:
             )
 
     async def drain(self) -> None:
-        """Wait, on the event loop, until everything handed over so far is written."""
+        """Wait, on the event loop, until everything handed over is written (the writer
+        is idle: a stop, after the last cycle, waits for its last files this way)."""
         loop = asyncio.get_running_loop()
         future: asyncio.Future[None] = loop.create_future()
         with self._cond:
@@ -122,6 +123,9 @@ class FileWriter:
             self.written += 1
         except OSError as exc:
             error = exc
+        except Exception:  # not the disk (text it cannot encode): the thread goes on
+            log.exception("%s: cannot write", path)
+            return
         if job.done is None:
             if error is not None:
                 log.error("%s: cannot write: %s", path, error)

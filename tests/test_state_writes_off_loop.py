@@ -1,11 +1,12 @@
 """The heartbeat and the lag states are written off the event loop, whole or not at all.
 
-Every machine writes its heartbeat each cycle and its lag states (two ``fsync``) on its
-first cycle. Written on the event loop, a thousand machines' first cycles held it for
-seconds, and every other machine's cycle waited. Here 300 machines run their first
-cycle as tasks, on this machine's real disk, while a probe task measures how long the
-event loop was held at a stretch: with the writer threads, and (as a control in the
-same run, showing the probe sees what it must) with the same files written on the loop.
+Every machine writes its heartbeat each cycle and its lag states (two ``fsync``) on
+its first cycle. Written on the event loop, a thousand machines' first cycles held it
+for seconds, and every other machine's cycle waited. Here 300 machines run their first
+cycle as tasks, on this machine's real disk kept busy by another process (8 MB blocks,
+each synced), while a probe task measures how long the event loop was held at a
+stretch: with the writer threads, and (as a control in the same run, showing the probe
+sees what it must) with the same files written on the loop.
 
 A gateway process killed (SIGKILL) right after a cycle leaves every heartbeat and
 lag-state file readable: the old state or the new one, never a torn one. And on a full
@@ -102,9 +103,30 @@ def first_cycles(state_dir: Path, background: bool) -> float:
     return asyncio.run(body())
 
 
+#: Another process writing to the same disk, each block synced: every ``fsync`` of a
+#: small file then waits behind it, as on a gateway whose disk is busy.
+DISK_LOAD = textwrap.dedent(
+    """
+    import os, sys
+    block = b"\\0" * (8 << 20)
+    while True:
+        with open(sys.argv[1], "wb") as out:
+            out.write(block)
+            out.flush()
+            os.fsync(out.fileno())
+    """
+)
+
+
 def test_first_cycles_do_not_hold_the_event_loop_for_the_disk(tmp_path: Path) -> None:
-    on_loop_s = first_cycles(tmp_path / "on-loop", background=False)
-    off_loop_s = first_cycles(tmp_path / "off-loop", background=True)
+    load = subprocess.Popen([sys.executable, "-c", DISK_LOAD, str(tmp_path / "load.bin")])
+    try:
+        time.sleep(0.5)  # the first blocks are on their way
+        on_loop_s = first_cycles(tmp_path / "on-loop", background=False)
+        off_loop_s = first_cycles(tmp_path / "off-loop", background=True)
+    finally:
+        load.kill()
+        load.wait()
     print(
         f"{MACHINES} first cycles: loop held {on_loop_s * 1e3:.0f} ms at a stretch with "
         f"the writes on it, {off_loop_s * 1e3:.0f} ms with the writer threads"

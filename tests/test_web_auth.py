@@ -98,3 +98,30 @@ def test_a_console_without_accounts_or_with_half_a_tls_pair_is_refused(tmp_path:
         WebConsole(settings, gateway_of(["m1"], tmp_path))
     with pytest.raises(ValidationError, match="tls_cert and tls_key go together"):
         WebSection.model_validate({"tls_cert": str(tmp_path / "c.pem")})
+
+
+def test_a_login_starts_the_plot_worker_and_a_wrong_password_does_not(tmp_path: Path) -> None:
+    """The first plot after a login does not wait for a new interpreter to start: the
+    login starts the worker process (and its imports); a failed one starts nothing."""
+
+    async def scenario() -> tuple[bool, bool, bool]:
+        settings = WebSettings(
+            host="127.0.0.1", port=free_tcp_port(), users=[OPERATOR], throttle=ThrottlePolicy()
+        )
+        console = WebConsole(settings, gateway_of(["m1"], tmp_path))
+        await console.start()
+        try:
+            url = console.url.rstrip("/")
+            assert await attempt(url, "wrong") == 401
+            after_failure = console.renderer._pool is not None
+            assert await attempt(url, OPERATOR.password) == 303
+            pool = console.renderer._pool
+            started = pool is not None
+            processes = await asyncio.get_running_loop().run_in_executor(
+                None, lambda: pool.submit(int).result(timeout=60) == 0 and pool._processes
+            )
+            return after_failure, started, bool(processes)
+        finally:
+            await console.stop()
+
+    assert asyncio.run(scenario()) == (False, True, True)

@@ -69,6 +69,7 @@ class Pages:
             response = self.page("login.html", request, failed=True, next="/")
             response.set_status(401)
             return response
+        self.renderer.warm()
         target = str(form.get("next", "/"))
         response = web.HTTPSeeOther(target if target.startswith("/") else "/")
         response.set_cookie(

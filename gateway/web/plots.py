@@ -122,6 +122,11 @@ def render_proposal(
     return proposal_svg(probe_t_s, residual_um, before_um, after_um)
 
 
+def _import_plotting() -> None:
+    """Worker entry: import what drawing needs (the worker keeps the modules)."""
+    import matplotlib.figure  # noqa: F401
+
+
 @dataclass
 class _Cached:
     made_s: float
@@ -162,6 +167,13 @@ class PlotRenderer:
     def clear(self) -> None:
         """Forget every drawn result (the next request reads and draws afresh)."""
         self._cache.clear()
+
+    def warm(self) -> None:
+        """Start the worker and its imports now (a person just logged in and a plot is
+        likely next), so the first plot does not also wait for a new interpreter to
+        import numpy and matplotlib. Nothing is awaited; a second call does nothing."""
+        if self._pool is None:
+            self._executor().submit(_import_plotting)
 
     def _executor(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:

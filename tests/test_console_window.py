@@ -113,8 +113,8 @@ def test_spikes_and_every_quality_change_are_kept(store: Path) -> None:
     kinds = {(round(t - EPOCH_S), kind) for t, kind, _ in view.events}
     assert {(1500, "write"), (1800, "external macro change")} <= kinds
     assert (1501, "write") not in kinds  # the same refusal goes on: listed once
-    links = [kind for t, kind, _ in view.events if kind in ("link lost", "reconnected")]
-    assert links[:2] == ["reconnected", "link lost"] and len(links) % 2 == 0, links
+    links = [kind for t, kind, _ in view.events if kind in ("source fault", "reconnected")]
+    assert links[:2] == ["reconnected", "source fault"] and len(links) % 2 == 0, links
 
 
 def test_a_long_window_is_cut_to_two_points_a_column_and_a_short_series_kept_whole(

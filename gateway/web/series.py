@@ -342,8 +342,9 @@ def _refused(status: str) -> bool:
 
 
 def _cycle_events(t_s: np.ndarray, statuses: list[str], link_errors: np.ndarray) -> list[Event]:
-    """Macro changes, write refusals, link losses and reconnects, each at the cycle where
-    it began (the first cycle follows an "ok" one with every link up). Only cycles whose
+    """Macro changes, write refusals, source faults (a bus, a sensor channel or the CNC
+    failing: the cycle logs only their count) and reconnects, each at the cycle where it
+    began (the first cycle follows an "ok" one with every link up). Only cycles whose
     status or link state differs from the one before can begin one, so only those are
     looked at."""
     if not statuses:
@@ -361,7 +362,8 @@ def _cycle_events(t_s: np.ndarray, statuses: list[str], link_errors: np.ndarray)
         elif _refused(now) and now[:24] != previous[:24]:
             found.append((t, "write", now))
         if count > 0 and previous_links == 0:
-            found.append((t, "link lost", f"{count:.0f} source(s) not answering"))
+            text = f"{count:.0f} source(s) failing: a bus, a sensor channel or the CNC"
+            found.append((t, "source fault", text))
         elif count == 0 and previous_links > 0:
             found.append((t, "reconnected", "every source answering again"))
     return found

@@ -42,10 +42,12 @@ nested score and the stacking weights. :class:`LagRidgeStream` runs the
 fitted model one sample at a time for the gateway's loop, carrying the lag
 states (exported as plain floats, so a restarted gateway carries on warm).
 
-The ridge paths are closed-form (:mod:`models.estimators.lag_structures`): per run the
-Gram products of the terms are summed once; for each penalty ratio one
-eigendecomposition of the standardised training Gram matrix gives the solutions
-for every penalty at once.
+Every fit is from Gram products, never a pass over the rows
+(:mod:`models.estimators.lag_structures`): each run's products of the largest
+candidate's terms are taken once per data set and shared by every fold and candidate
+(:mod:`models.estimators.lag_grams`); per set of training runs one eigendecomposition
+of the sensor block gives the ridge at every penalty and ratio, and the lasso runs on
+a square root of the products (:mod:`models.estimators.lag_paths`).
 """
 
 from __future__ import annotations

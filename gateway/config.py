@@ -338,6 +338,8 @@ class CompensationSection(Strict):
     decimals: int = Field(default=4, ge=0, le=8)
     handshake_macro: int | None = Field(default=None, ge=500, le=999)
     probe_macro: int | None = Field(default=None, ge=500, le=999)  # measured error, µm
+    # Sign of life for the CNC: a count 1…9999 written every cycle the CNC is reached.
+    alive_macro: int | None = Field(default=None, ge=500, le=999)
     # No prediction: hold the value this long after the last prediction, then ramp to 0.
     hold_on_loss_s: float = Field(default=60.0, ge=0, allow_inf_nan=False)
     fallback_ramp_um_per_min: float | None = Field(default=None, gt=0, allow_inf_nan=False)
@@ -385,7 +387,7 @@ class CompensationSection(Strict):
                 "nothing would ever be written",
             )
         roles = {"macro": self.macro}
-        for role in ("handshake_macro", "probe_macro"):
+        for role in ("handshake_macro", "probe_macro", "alive_macro"):
             number = getattr(self, role)
             if number is None:
                 continue
@@ -642,6 +644,8 @@ class MachineSection(Strict):
         written = {"macro": comp.macro}
         if comp.handshake_macro is not None:
             written["handshake_macro"] = comp.handshake_macro
+        if comp.alive_macro is not None:
+            written["alive_macro"] = comp.alive_macro
         return written
 
 
@@ -925,6 +929,28 @@ class GatewayConfig(Strict):
                         f"'{owner[1]}' (machines[{owner[0]}]); each macro needs one writer",
                     )
                 writers[(*address, number)] = (index, machine.id)
+        return self
+
+    @model_validator(mode="after")
+    def _alive_count_not_read_as_probe(self) -> GatewayConfig:
+        """The alive count changes every cycle: in another machine's probe macro on the same
+        CNC it would be read as a new measurement of the error each cycle."""
+        probes = {
+            (*m.cnc_address(), m.compensation.probe_macro): (i, m.id)
+            for i, m in enumerate(self.machines)
+            if m.compensation.probe_macro is not None
+        }
+        for index, machine in enumerate(self.machines):
+            number = machine.compensation.alive_macro
+            reader = probes.get((*machine.cnc_address(), number))
+            if number is None or reader is None or reader[0] == index:
+                continue
+            host, port, _ = machine.cnc_address()
+            raise KeyPathError(
+                ("machines", index, "compensation", "alive_macro"),
+                f"#{number} of the CNC at {host}:{port} is the probe_macro of machine "
+                f"'{reader[1]}' (machines[{reader[0]}]); the alive count needs its own macro",
+            )
         return self
 
     @model_validator(mode="after")

@@ -17,7 +17,9 @@ Once per ``cycle_s`` of machine time:
    external change: logged, counted, and the policy moves on from it), let the
    compensation policy decide the value (clamp, slew, deadband; with no
    prediction it holds, then ramps to zero), write it to the CNC macro, read it
-   back, and only then count it as applied; then bump the handshake counter.
+   back, and only then count it as applied; then bump the handshake counter;
+6. write the next alive count (``compensation.alive_macro``), the CNC's sign that
+   the gateway runs and reaches it, in every cycle the CNC answered.
 
 Nothing is written before the loop has read what the CNC macro holds, in the
 same cycle, so the slew limit starts from the value the machine really applies.
@@ -66,6 +68,14 @@ S = TypeVar("S")
 STOP_GRACE_S = 0.5
 #: How long a closing loop waits for its last lag-state save to reach the disk, s.
 STATE_FLUSH_S = 5.0
+#: The alive count runs 1…ALIVE_WRAP and starts again at 1: far below what a macro holds.
+ALIVE_WRAP = 9999
+
+
+def next_alive_count(count: int) -> int:
+    """The alive count after ``count`` (0: none written yet): never 0, so a macro the CNC
+    cleared at power-on is told apart from a gateway that writes."""
+    return count % ALIVE_WRAP + 1
 
 
 class MachineLoop:
@@ -120,6 +130,10 @@ class MachineLoop:
         self._external_note = ""  # this cycle's external change, for the write status
         #: The handshake count last written and answered (None: none, or unknown).
         self._handshake_written: float | None = None
+        #: The alive count the CNC last acknowledged (0: none yet).
+        self.alive = 0
+        self._alive_failing = False  # an alive write failed; logged once until one works
+        self._cnc_reached = False  # this cycle's read of the compensation macro was answered
         #: Machine time the cycle in progress (or the last one) was due at.
         self.due_s = 0.0
         #: How long after its due time that cycle started, s (the event loop's delay:
@@ -184,6 +198,7 @@ class MachineLoop:
         )
         corrected = self._corrected(now, banked, predicted, record)
         await self._compensate(now, corrected, record)
+        await self._write_alive(record)
         await self._read_probe(record)
         self._online_update(now, predicted, record)
         self.cycles += 1
@@ -317,6 +332,7 @@ class MachineLoop:
         """
         comp = self.config.compensation
         held, read_error = await self._read_held(comp.macro)
+        self._cnc_reached = held is not None
         if self.policy is None:
             if held is None:
                 record.write_status = f"waiting for the CNC: {read_error}"
@@ -411,6 +427,38 @@ class MachineLoop:
             record.write_status += f"; handshake failed: {exc}"
             return
         self._handshake_written = count
+
+    async def _write_alive(self, record: CycleRecord) -> None:
+        """The next alive count in ``compensation.alive_macro``: the gateway runs and
+        reaches this CNC (not: the compensation is good). Written in every cycle whose
+        read of the compensation macro was answered, whatever the deadband, a hold or a
+        switch-off decided.
+
+        It comes after the compensation's write and read-back, so a slow or refused
+        alive write never delays or replaces them. One plain write, no read-back: the
+        CNC acts on no value of it, only on its change, and a count that did not land
+        is exactly the stall a watchdog must see; the next cycle writes the next count
+        anyway. The count advances only on an acknowledged write, so after a link drop
+        the CNC gets the count after the last one it had, none invented meanwhile.
+        """
+        macro = self.config.compensation.alive_macro
+        if macro is None or not self._cnc_reached:
+            return
+        count = next_alive_count(self.alive)
+        try:
+            await self.cnc.write_macro(macro, float(count))
+        except (CncError, ValueError) as exc:  # ValueError: a macro the driver cannot map
+            self.failed_writes += 1
+            note = f"alive count not written to #{macro}: {exc}"
+            record.write_status = "; ".join(filter(None, [record.write_status, note]))
+            if not self._alive_failing:
+                self._alive_failing = True
+                log.warning("%s: %s (failed writes: %d)", self.config.id, note, self.failed_writes)
+            return
+        self.alive = count
+        if self._alive_failing:
+            self._alive_failing = False
+            log.info("%s: alive count written to #%d again", self.config.id, macro)
 
     async def _handshake_is_ours(self, record: CycleRecord) -> bool:
         """The handshake macro as an ownership token: before writing again, it must

@@ -8,12 +8,13 @@ episode is named again.
 
 from __future__ import annotations
 
+import errno
 import logging
 from pathlib import Path
 
 import pytest
 
-from gateway.live.bank.lag_state import EffectStates, WarmLags
+from gateway.live.bank.lag_state import EffectStates, WarmLags, lag_file_saved
 from tests.test_retention import fill, small_disk
 
 MACHINES = 20
@@ -51,3 +52,25 @@ def test_a_full_disk_gives_one_lag_state_warning_per_episode(
         failed = [r for r in caplog.records if "cannot save the lag states" in r.message]
         assert len(failed) == 2
         filler.unlink()
+
+
+def test_a_folder_still_failing_does_not_silence_a_new_failure_elsewhere(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A state folder on a disk that stays full (its files keep failing, never saved
+    again) is one episode; a full disk under another folder is another, named too."""
+    first, second = tmp_path / "a", tmp_path / "b"
+    full = OSError(errno.ENOSPC, "No space left on device")
+    with caplog.at_level(logging.INFO, logger="gateway.live.bank.lag_state"):
+        for i in range(3):
+            lag_file_saved(first / f"m{i}-effect-state.json", full)
+        for i in range(3):
+            lag_file_saved(second / f"m{i}-effect-state.json", full)
+        for i in range(3):  # the second folder recovers while the first stays full
+            lag_file_saved(second / f"m{i}-effect-state.json", None)
+    failed = [r.getMessage() for r in caplog.records if "cannot save" in r.getMessage()]
+    assert [Path(m.split(":")[0]).parent.name for m in failed] == ["a", "b"], failed
+    again = [r.getMessage() for r in caplog.records if "saved again" in r.getMessage()]
+    assert len(again) == 1 and "/b/" in again[0], again
+    for i in range(3):
+        lag_file_saved(first / f"m{i}-effect-state.json", None)

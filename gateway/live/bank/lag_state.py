@@ -80,8 +80,10 @@ SAVE_EVERY_S = 60.0
 
 #: Lag-state files whose last save failed, with its errno, in this process. A full
 #: disk fails every machine's save every minute: the first failure of an episode is
-#: logged, the rest only once a save succeeds again. Saves end in the state writer's
-#: thread or in the caller's: the lock keeps the two apart.
+#: logged, the rest only once a save succeeds again. An episode is one folder's (one
+#: disk's): a file failing elsewhere, long ago, does not silence a new failure here.
+#: Saves end in the state writer's thread or in the caller's: the lock keeps the two
+#: apart.
 _failing: dict[Path, int | None] = {}
 _failing_lock = threading.Lock()
 
@@ -104,14 +106,20 @@ def lag_file_saved(state_file: Path, error: OSError | None) -> None:
     with _failing_lock:
         if error is not None:
             _save_failed(state_file, error)
-        elif _failing.pop(state_file, False) is not False and not _failing:
+        elif _failing.pop(state_file, False) is not False and not _failing_beside(state_file):
             log.info("%s: lag states are saved again", state_file)
+
+
+def _failing_beside(state_file: Path) -> dict[Path, int | None]:
+    """The failing files in ``state_file``'s folder (itself included)."""
+    return {path: errno for path, errno in _failing.items() if path.parent == state_file.parent}
 
 
 def _save_failed(state_file: Path, exc: OSError) -> None:
     """Log a failed save only if it starts an episode: no other file (of any machine)
-    is failing the same way already, and this one was not."""
-    episode = exc.errno not in _failing.values() and state_file not in _failing
+    in its folder is failing the same way already, and this one was not."""
+    beside = _failing_beside(state_file)
+    episode = exc.errno not in beside.values() and state_file not in beside
     _failing[state_file] = exc.errno
     if episode:
         log.warning(

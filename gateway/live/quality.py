@@ -35,15 +35,25 @@ lets the loop hold the sensor its prediction rate bound blames.
 
 Everything is plain numbers and machine time in seconds passed in by the caller;
 no I/O happens here.
+
+The "others moved" test of rule 4 runs every cycle for every sensor whose value
+has stayed within the band for ``stuck_s`` while the others did not move: the
+normal state of a stopped machine, whose temperatures hold still for hours.
+Each sensor therefore keeps the running extremes of its last ``stuck_s`` of
+values (:class:`_MovingRange`) and answers "how far did it move since t" in
+O(log n) instead of scanning them: the scan cost grows with ``stuck_s`` (900
+values at the default and a 1 s cycle, for every pair of sensors, every cycle).
 """
 
 from __future__ import annotations
 
 import math
+from bisect import bisect_left
 from collections import deque
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
+from operator import itemgetter
 from typing import TYPE_CHECKING
 
 from gateway.limits import QualityLimits
@@ -97,7 +107,7 @@ class _SensorState:
     # run_start_s of the run found stuck: it stays stuck until the value moves.
     stuck_run_s: float | None = None
     # Plausible values (passed status, range and rate) kept for the "others moved" test.
-    history: deque[tuple[float, float]] = field(default_factory=deque)
+    moves: _MovingRange = field(default_factory=lambda: _MovingRange())
 
 
 class QualityMonitor:
@@ -306,13 +316,51 @@ class QualityMonitor:
             # Restarting at this sample (rather than searching back for the longest
             # run within the band) can only make a run look shorter: never a false stuck.
             state.run_start_s, state.run_min_C, state.run_max_C = now_s, value, value
-        history = state.history
-        history.append((now_s, value))
-        while history and history[0][0] < now_s - self._history_s:
-            history.popleft()
+        state.moves.push(now_s, value, now_s - self._history_s)
 
 
 def _moved_since(state: _SensorState, since_s: float) -> float:
     """How far (max - min, °C) a sensor's plausible values moved since ``since_s``."""
-    values = [v for t, v in state.history if t >= since_s]
-    return max(values) - min(values) if values else 0.0
+    return state.moves.since(since_s)
+
+
+_time = itemgetter(0)
+
+
+class _MovingRange:
+    """max - min of a sensor's values since any time within the kept span, in O(log n).
+
+    Two monotonic queues of (time_s, value): ``_highs`` keeps each value larger
+    than every later one, ``_lows`` each value smaller than every later one.
+    The largest value since t is then the first entry of ``_highs`` at or after
+    t (a larger earlier entry would be larger than it, a later one is smaller),
+    and likewise for the smallest. Times must increase; values must be finite.
+    """
+
+    __slots__ = ("_highs", "_lows")
+
+    def __init__(self) -> None:
+        self._highs: deque[tuple[float, float]] = deque()
+        self._lows: deque[tuple[float, float]] = deque()
+
+    def push(self, now_s: float, value: float, keep_from_s: float) -> None:
+        """Add a value and forget those before ``keep_from_s``."""
+        highs, lows = self._highs, self._lows
+        while highs and highs[-1][1] <= value:
+            highs.pop()
+        highs.append((now_s, value))
+        while lows and lows[-1][1] >= value:
+            lows.pop()
+        lows.append((now_s, value))
+        while highs[0][0] < keep_from_s:
+            highs.popleft()
+        while lows[0][0] < keep_from_s:
+            lows.popleft()
+
+    def since(self, since_s: float) -> float:
+        """max - min of the kept values at or after ``since_s`` (0 without any)."""
+        highs, lows = self._highs, self._lows
+        top = bisect_left(highs, since_s, key=_time)
+        if top == len(highs):
+            return 0.0
+        return highs[top][1] - lows[bisect_left(lows, since_s, key=_time)][1]

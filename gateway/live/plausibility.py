@@ -52,8 +52,10 @@ whose rise, put back to its earlier value, undoes most of the jump; it is held
 BAD as above ("implausible: moved the prediction …") and the cycle predicts with
 the model without it (so the policy does not fall back to hold-and-ramp). It is
 released by rule 1, or, where rule 1 cannot run, after ``plausibility_recover_s``
-of good per-sensor checks. Augmented models (lag states) are not bounded this
-way: their speed terms legitimately step with the speed. Rates are per second
+of good per-sensor checks. The earlier cycles' rows and predictions are kept
+from cycle to cycle (:mod:`gateway.live.earlier_rows`): the rule's cost does not
+grow with the time the machine has run. Augmented models (lag states) are not
+bounded this way: their speed terms legitimately step with the speed. Rates are per second
 of the loop's clock: a simulated machine served faster than the gateway's wall
 clock needs the bound scaled by the same factor.
 
@@ -90,7 +92,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
-from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import TypeVar
@@ -99,6 +100,7 @@ import numpy as np
 
 from gateway.limits import PlausibilityLimits
 from gateway.live.bank.model_bank import Banked, BankedModel, ModelBank
+from gateway.live.earlier_rows import EarlierRows
 from models.base import ModelInputs
 from models.estimators.sensor_relations import SensorRelations
 
@@ -219,31 +221,6 @@ def relations_from_bank(bank: ModelBank, sensors: Iterable[str]) -> SensorRelati
     return min(found, key=lambda f: f[:3])[3] if found else None
 
 
-class _Past:
-    """One earlier cycle's trusted rises, and its row for the model's sensors, kept.
-
-    The rate rule looks back over every cycle of :data:`RATE_HORIZON_S` each cycle
-    (120 rows at a 1 s cycle); the row of an earlier cycle only changes when the
-    model's sensors do, so it is built once, not once per later cycle.
-    """
-
-    __slots__ = ("_row", "_sensors", "rises_C", "time_s")
-
-    def __init__(self, time_s: float, rises_C: dict[str, float]) -> None:
-        self.time_s = time_s
-        self.rises_C = rises_C
-        self._sensors: tuple[str, ...] | None = None
-        self._row: list[float] | None = None
-
-    def row(self, sensors: tuple[str, ...]) -> list[float] | None:
-        """The rises of ``sensors`` in that order; None when one of them was not trusted."""
-        if sensors != self._sensors:
-            rises = self.rises_C
-            self._sensors = sensors
-            self._row = [rises[s] for s in sensors] if all(s in rises for s in sensors) else None
-        return self._row
-
-
 class Plausibility:
     """Both rules for one machine, with the holds they place (see the module docstring)."""
 
@@ -263,7 +240,8 @@ class Plausibility:
         self.flags = 0  # how many times a sensor was newly held
         # The largest |z| of a sensor found sound: how close this machine runs to the threshold.
         self.largest_sound_z = 0.0
-        self._history: deque[_Past] = deque()
+        #: Rule 2's earlier cycles, their rows and predictions kept (cost flat in run time).
+        self._earlier = EarlierRows(RATE_HORIZON_S)
 
     @classmethod
     def for_machine(
@@ -455,24 +433,10 @@ class Plausibility:
         if any(s not in rises_C for s in sensors) or (model.uses_speed and speed_rpm is None):
             return None
         now_x = np.array([rises_C[s] for s in sensors])
-        earlier = [
-            (past.time_s, row)
-            for past in self._history
-            if now_s - past.time_s <= RATE_HORIZON_S and (row := past.row(sensors)) is not None
-        ]
-        if not earlier:
+        found = self._fastest_move(now_s, banked, sensors, now_x, speed_rpm)
+        if found is None:
             return None
-        # One model call for this cycle and every earlier one in the horizon.
-        rows = np.array([now_x, *(then for _, then in earlier)])
-        predicted = _predict(banked, sensors, rows, speed_rpm)
-        spans_s = now_s - np.array([then_s for then_s, _ in earlier])
-        moved = predicted[0] - predicted[1:]
-        excess = np.abs(moved) - self._allowed_um(spans_s)
-        excess[np.isnan(excess)] = -np.inf  # a NaN prediction blames nobody
-        worst = int(np.argmax(excess))  # the first of equal ones, as a scan would take
-        if not excess[worst] > 0:
-            return None
-        moved_um, span_s, then_x = float(moved[worst]), float(spans_s[worst]), rows[worst + 1]
+        moved_um, span_s, then_x = found
         # Put each sensor back to its earlier rise in turn: the one that undoes most is to blame.
         rows = np.tile(now_x, (len(sensors), 1))
         rows[np.arange(len(sensors)), np.arange(len(sensors))] = then_x
@@ -488,6 +452,41 @@ class Plausibility:
         self._hold(now_s, sensor, reason)
         return Suspect(sensor, reason)
 
+    def _fastest_move(
+        self,
+        now_s: float,
+        banked: BankedModel,
+        sensors: tuple[str, ...],
+        now_x: np.ndarray,
+        speed_rpm: float | None,
+    ) -> tuple[float, float, np.ndarray] | None:
+        """(moved µm, over s, the earlier rises) of the earlier cycle most past the bound.
+
+        Every earlier cycle in the horizon is predicted at this cycle's model and
+        speed; the predictions are kept from cycle to cycle while those are
+        unchanged (:mod:`gateway.live.earlier_rows`), so the cost does not grow
+        with the horizon's length. None: no earlier cycle is past the bound.
+        """
+        model = banked.model
+        compared = self._earlier.compare(
+            now_s,
+            sensors,
+            now_x,
+            model,
+            speed_rpm if model.uses_speed else None,
+            lambda rows: _predict(banked, sensors, rows, speed_rpm),
+        )
+        if compared is None:
+            return None
+        spans_s = compared.spans_s
+        moved = compared.now_um - compared.then_um
+        excess = np.abs(moved) - self._allowed_um(spans_s)
+        excess[np.isnan(excess)] = -np.inf  # a NaN prediction blames nobody
+        worst = int(np.argmax(excess))  # the first of equal ones, as a scan would take
+        if not excess[worst] > 0:
+            return None
+        return float(moved[worst]), float(spans_s[worst]), compared.rows[worst]
+
     def accept(
         self, now_s: float, rises_C: Mapping[str, float], speed_rpm: float | None = None
     ) -> None:
@@ -499,11 +498,7 @@ class Plausibility:
             self._turning_at_start = speed_rpm is not None and speed_rpm > 0
         if self.armed is None and rises_C:
             self._arm(rises_C)
-        self._history.append(
-            _Past(now_s, {s: v for s, v in rises_C.items() if s not in self.holds})
-        )
-        while self._history and now_s - self._history[0].time_s > RATE_HORIZON_S:
-            self._history.popleft()
+        self._earlier.append(now_s, {s: v for s, v in rises_C.items() if s not in self.holds})
 
     def _arm(self, rises_C: Mapping[str, float]) -> None:
         """Rule 1 on rises above a cold reference, or since a warm one (module docstring)."""

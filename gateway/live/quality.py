@@ -91,6 +91,48 @@ class SensorCheck:
     reason: str | None
 
 
+_time = itemgetter(0)
+
+
+class _MovingRange:
+    """max - min of a sensor's values since any time within the kept span, in O(log n).
+
+    Two monotonic queues of (time_s, value): ``_highs`` keeps each value larger
+    than every later one, ``_lows`` each value smaller than every later one.
+    The largest value since t is then the first entry of ``_highs`` at or after
+    t (a larger earlier entry would be larger than it, a later one is smaller),
+    and likewise for the smallest. Times must increase; values must be finite.
+    """
+
+    __slots__ = ("_highs", "_lows")
+
+    def __init__(self) -> None:
+        self._highs: deque[tuple[float, float]] = deque()
+        self._lows: deque[tuple[float, float]] = deque()
+
+    def push(self, now_s: float, value: float, keep_from_s: float) -> None:
+        """Add a value and forget those before ``keep_from_s``."""
+        highs, lows = self._highs, self._lows
+        while highs and highs[-1][1] <= value:
+            highs.pop()
+        highs.append((now_s, value))
+        while lows and lows[-1][1] >= value:
+            lows.pop()
+        lows.append((now_s, value))
+        while highs[0][0] < keep_from_s:
+            highs.popleft()
+        while lows[0][0] < keep_from_s:
+            lows.popleft()
+
+    def since(self, since_s: float) -> float:
+        """max - min of the kept values at or after ``since_s`` (0 without any)."""
+        highs, lows = self._highs, self._lows
+        top = bisect_left(highs, since_s, key=_time)
+        if top == len(highs):
+            return 0.0
+        return highs[top][1] - lows[bisect_left(lows, since_s, key=_time)][1]
+
+
 @dataclass
 class _SensorState:
     """What the monitor remembers about one sensor between cycles."""
@@ -107,7 +149,7 @@ class _SensorState:
     # run_start_s of the run found stuck: it stays stuck until the value moves.
     stuck_run_s: float | None = None
     # Plausible values (passed status, range and rate) kept for the "others moved" test.
-    moves: _MovingRange = field(default_factory=lambda: _MovingRange())
+    moves: _MovingRange = field(default_factory=_MovingRange)
 
 
 class QualityMonitor:
@@ -322,45 +364,3 @@ class QualityMonitor:
 def _moved_since(state: _SensorState, since_s: float) -> float:
     """How far (max - min, °C) a sensor's plausible values moved since ``since_s``."""
     return state.moves.since(since_s)
-
-
-_time = itemgetter(0)
-
-
-class _MovingRange:
-    """max - min of a sensor's values since any time within the kept span, in O(log n).
-
-    Two monotonic queues of (time_s, value): ``_highs`` keeps each value larger
-    than every later one, ``_lows`` each value smaller than every later one.
-    The largest value since t is then the first entry of ``_highs`` at or after
-    t (a larger earlier entry would be larger than it, a later one is smaller),
-    and likewise for the smallest. Times must increase; values must be finite.
-    """
-
-    __slots__ = ("_highs", "_lows")
-
-    def __init__(self) -> None:
-        self._highs: deque[tuple[float, float]] = deque()
-        self._lows: deque[tuple[float, float]] = deque()
-
-    def push(self, now_s: float, value: float, keep_from_s: float) -> None:
-        """Add a value and forget those before ``keep_from_s``."""
-        highs, lows = self._highs, self._lows
-        while highs and highs[-1][1] <= value:
-            highs.pop()
-        highs.append((now_s, value))
-        while lows and lows[-1][1] >= value:
-            lows.pop()
-        lows.append((now_s, value))
-        while highs[0][0] < keep_from_s:
-            highs.popleft()
-        while lows[0][0] < keep_from_s:
-            lows.popleft()
-
-    def since(self, since_s: float) -> float:
-        """max - min of the kept values at or after ``since_s`` (0 without any)."""
-        highs, lows = self._highs, self._lows
-        top = bisect_left(highs, since_s, key=_time)
-        if top == len(highs):
-            return 0.0
-        return highs[top][1] - lows[bisect_left(lows, since_s, key=_time)][1]

@@ -43,6 +43,8 @@ Each sensor therefore keeps the running extremes of its last ``stuck_s`` of
 values (:class:`_MovingRange`) and answers "how far did it move since t" in
 O(log n) instead of scanning them: the scan cost grows with ``stuck_s`` (900
 values at the default and a 1 s cycle, for every pair of sensors, every cycle).
+A stopped machine's 6 steady sensors took 1.5 ms a check once ``stuck_s`` had
+passed, and take 19 µs (``benchmarks/cycle_cost_over_time.py``, CPU time).
 """
 
 from __future__ import annotations

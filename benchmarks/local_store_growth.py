@@ -1,0 +1,179 @@
+"""The local store's write cost as its file grows toward its size cap.
+
+The gateway without InfluxDB logs every machine's cycle to the local store
+(:class:`gateway.outputs.local_store.LocalStore`): the event-loop thread calls
+``LocalStore.write`` once per machine and cycle with that cycle's points (one
+``spindle_cycle`` point and one per sensor), one transaction each. This benchmark
+fills one store file with a fleet's points (``--machines``, 9 sensors, 1-s cycles)
+up to each of ``--sizes-gb`` and, at each size, times the writes of one second of
+the fleet (``--machines`` writes of ``points_from_record`` points, as the sink
+makes them) for each connection setting in ``VARIANTS``, one after another on the
+same file: ``--warm-s`` seconds of writes first (the page cache of a running
+gateway is warm), then ``--seconds`` timed ones. Reported per setting and size:
+the median and 90th percentile of the thread CPU and wall time per second of data.
+
+The file is filled fast with rows made from one second's template (the same
+tables, keys and row sizes, 60 s of the fleet per transaction); the timed writes
+go through ``LocalStore.write``. Files live in a temporary folder (``--folder``).
+
+    .venv/bin/python benchmarks/local_store_growth.py [--sizes-gb 0.1 0.5 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from gateway.outputs.local_store import LocalStore, _tags_text  # noqa: E402
+from gateway.outputs.points import Point, points_from_record  # noqa: E402
+from tests.records import written_record  # noqa: E402
+
+SENSORS = [f"T{i}" for i in range(1, 10)]
+EPOCH_S = 1.7e9
+FILL_SECONDS_PER_TRANSACTION = 60
+MAX_BYTES = 8_000_000_000  # the default logging.local_store_max_mb
+
+#: Connection settings compared: the PRAGMAs run on the store's connection after opening.
+VARIANTS: dict[str, list[str]] = {
+    "default (2 MB cache)": [],
+    "cache 16 MB": ["PRAGMA cache_size = -16384"],
+    "cache 64 MB": ["PRAGMA cache_size = -65536"],
+    "mmap 1 GB": ["PRAGMA mmap_size = 1000000000"],
+    "cache 64 MB + wal_autocheckpoint 10000": [
+        "PRAGMA cache_size = -65536",
+        "PRAGMA wal_autocheckpoint = 10000",
+    ],
+}
+
+
+def fleet_points(machines: int, second: int) -> list[list[Point]]:
+    """One second of the fleet: each machine's cycle points, as the logging sink makes them."""
+    batches = []
+    for m in range(machines):
+        record = written_record(
+            f"vmc-{m:03d}",
+            float(second),
+            {s: 20.0 + 0.01 * (second % 500) + i + 0.001 * m for i, s in enumerate(SENSORS)},
+            10.0 + 0.001 * (second % 1000),
+            regime="variable",
+            model_id=f"mlr-error_um-{m % 3}",
+            predicted_um=10.0 + 0.001 * (second % 1000),
+            write_status="ok: tracking",
+        )
+        batches.append(points_from_record(record, EPOCH_S))
+    return batches
+
+
+def fill(store: LocalStore, machines: int, start_s: int, target_bytes: int) -> int:
+    """Add whole seconds of the fleet until the file holds ``target_bytes``; the next second."""
+    template = [p for batch in fleet_points(machines, 0) for p in batch]
+    rows = [
+        (
+            p.measurement,
+            p.tags["machine"],
+            _tags_text(p.tags),
+            p.time_ns,
+            json.dumps(p.fields, separators=(",", ":")),
+        )
+        for p in template
+    ]  # the store's own row format (LocalStore.write)
+    base_ns = template[0].time_ns
+    second = start_s
+    while store.used_bytes() < target_bytes:
+        chunk = []
+        for s in range(second, second + FILL_SECONDS_PER_TRANSACTION):
+            shift = s * 1_000_000_000 - base_ns + round(EPOCH_S * 1e9)
+            chunk.extend((a, b, c, t + shift, f) for a, b, c, t, f in rows)
+        store._insert(chunk)  # one big transaction, to fill fast
+        second += FILL_SECONDS_PER_TRANSACTION
+    return second
+
+
+def timed_seconds(
+    store: LocalStore, machines: int, start_s: int, warm_s: int, seconds: int
+) -> tuple[list[float], list[float], int]:
+    """Thread CPU and wall s of each timed second of writes (one write per machine)."""
+    cpu, wall = [], []
+    for k in range(warm_s + seconds):
+        batches = fleet_points(machines, start_s + k)
+        c0, w0 = time.thread_time(), time.perf_counter()
+        for batch in batches:
+            store.write(batch)
+        c1, w1 = time.thread_time(), time.perf_counter()
+        if k >= warm_s:
+            cpu.append(c1 - c0)
+            wall.append(w1 - w0)
+    return cpu, wall, start_s + warm_s + seconds
+
+
+def summary(values: list[float]) -> dict[str, float]:
+    ordered = sorted(values)
+    return {
+        "median_ms": round(1000 * statistics.median(ordered), 1),
+        "p90_ms": round(1000 * ordered[int(0.9 * (len(ordered) - 1))], 1),
+    }
+
+
+def measure(args: argparse.Namespace, folder: Path) -> dict[str, object]:
+    path = folder / "points.sqlite"
+    second = 0
+    results: dict[str, object] = {}
+    for size_gb in args.sizes_gb:
+        store = LocalStore(path, max_bytes=MAX_BYTES)
+        started = time.perf_counter()
+        second = fill(store, args.machines, second, round(size_gb * 1e9))
+        fill_s = time.perf_counter() - started
+        rows = len(store)
+        used = store.used_bytes()
+        store.close()
+        at_size: dict[str, object] = {
+            "used_mb": round(used / 1e6),
+            "rows": rows,
+            "fill_s": round(fill_s, 1),
+        }
+        for name, pragmas in VARIANTS.items():
+            store = LocalStore(path, max_bytes=MAX_BYTES)
+            for pragma in pragmas:
+                store._db.execute(pragma)  # the setting compared
+            cpu, wall, second = timed_seconds(
+                store, args.machines, second, args.warm_s, args.seconds
+            )
+            store.close()
+            at_size[name] = {"cpu": summary(cpu), "wall": summary(wall)}
+            print(f"{size_gb} GB {name}: {at_size[name]}", file=sys.stderr, flush=True)
+        results[f"{size_gb} GB"] = at_size
+    return results
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--machines", type=int, default=200)
+    parser.add_argument("--sizes-gb", type=float, nargs="+", default=[0.1, 0.5, 1.0, 2.0])
+    parser.add_argument("--warm-s", type=int, default=10, help="untimed seconds of writes first")
+    parser.add_argument("--seconds", type=int, default=30, help="timed seconds of writes")
+    parser.add_argument("--folder", type=Path, default=None, help="where the file is made")
+    args = parser.parse_args()
+    folder = Path(tempfile.mkdtemp(prefix="local-store-growth-", dir=args.folder))
+    try:
+        result = {
+            "machines": args.machines,
+            "sensors": len(SENSORS),
+            "points_per_write": len(fleet_points(1, 0)[0]),
+            "sizes": measure(args, folder),
+        }
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()

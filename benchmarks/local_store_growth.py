@@ -8,21 +8,25 @@ fills one store file with a fleet's points (``--machines``, 9 sensors, 1-s cycle
 up to each of ``--sizes-gb`` and, at each size, times the writes of one second of
 the fleet (``--machines`` writes of ``points_from_record`` points, as the sink
 makes them) for each connection setting in ``VARIANTS``, one after another on the
-same file: ``--warm-s`` seconds of writes first (the page cache of a running
-gateway is warm), then ``--seconds`` timed ones. Reported per setting and size:
-the median and 90th percentile of the thread CPU and wall time per second of data.
+same file: per block ``--warm-s`` seconds of writes first (the page cache of a
+running gateway is warm), then ``--seconds`` timed ones. Reported per setting and size:
+the median and 90th percentile of the thread CPU and wall time per second of data,
+and the median bytes written (WAL frames and checkpoints) per second of data.
 
 The file is filled fast with rows made from one second's template (the same
 tables, keys and row sizes, 60 s of the fleet per transaction); the timed writes
-go through ``LocalStore.write``. Files live in a temporary folder (``--folder``).
+go through ``LocalStore.write``. After each fill the WAL is checkpointed and the
+OS's dirty pages flushed; each setting is then timed in ``--blocks`` blocks, the
+order reversed every block. Files live in a temporary folder (``--folder``).
 
-    .venv/bin/python benchmarks/local_store_growth.py [--sizes-gb 0.1 0.5 1 2]
+    .venv/bin/python benchmarks/local_store_growth.py [--sizes-gb 0.01 0.5 1 2 4]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import statistics
 import sys
@@ -45,13 +49,9 @@ MAX_BYTES = 8_000_000_000  # the default logging.local_store_max_mb
 #: Connection settings compared: the PRAGMAs run on the store's connection after opening.
 VARIANTS: dict[str, list[str]] = {
     "default (2 MB cache)": [],
-    "cache 16 MB": ["PRAGMA cache_size = -16384"],
     "cache 64 MB": ["PRAGMA cache_size = -65536"],
-    "mmap 1 GB": ["PRAGMA mmap_size = 1000000000"],
-    "cache 64 MB + wal_autocheckpoint 10000": [
-        "PRAGMA cache_size = -65536",
-        "PRAGMA wal_autocheckpoint = 10000",
-    ],
+    "mmap 2 GB": ["PRAGMA mmap_size = 2000000000"],
+    "wal_autocheckpoint 10000": ["PRAGMA wal_autocheckpoint = 10000"],
 }
 
 
@@ -98,21 +98,27 @@ def fill(store: LocalStore, machines: int, start_s: int, target_bytes: int) -> i
     return second
 
 
+def written_bytes() -> int:
+    """Bytes this process has passed to write() so far (the WAL's frames and checkpoints)."""
+    with open("/proc/self/io") as stream:
+        return next(int(line.split()[1]) for line in stream if line.startswith("wchar:"))
+
+
 def timed_seconds(
     store: LocalStore, machines: int, start_s: int, warm_s: int, seconds: int
-) -> tuple[list[float], list[float], int]:
-    """Thread CPU and wall s of each timed second of writes (one write per machine)."""
-    cpu, wall = [], []
+) -> tuple[list[tuple[float, float, int]], int]:
+    """Thread CPU s, wall s and bytes written of each timed second of writes (one write
+    per machine)."""
+    timed = []
     for k in range(warm_s + seconds):
         batches = fleet_points(machines, start_s + k)
-        c0, w0 = time.thread_time(), time.perf_counter()
+        c0, w0, b0 = time.thread_time(), time.perf_counter(), written_bytes()
         for batch in batches:
             store.write(batch)
-        c1, w1 = time.thread_time(), time.perf_counter()
+        c1, w1, b1 = time.thread_time(), time.perf_counter(), written_bytes()
         if k >= warm_s:
-            cpu.append(c1 - c0)
-            wall.append(w1 - w0)
-    return cpu, wall, start_s + warm_s + seconds
+            timed.append((c1 - c0, w1 - w0, b1 - b0))
+    return timed, start_s + warm_s + seconds
 
 
 def summary(values: list[float]) -> dict[str, float]:
@@ -121,6 +127,40 @@ def summary(values: list[float]) -> dict[str, float]:
         "median_ms": round(1000 * statistics.median(ordered), 1),
         "p90_ms": round(1000 * ordered[int(0.9 * (len(ordered) - 1))], 1),
     }
+
+
+def settle(path: Path) -> None:
+    """Checkpoint the WAL into the file and flush the OS's dirty pages, so the timed writes
+    do not pay for the fill's write-back."""
+    store = LocalStore(path, max_bytes=MAX_BYTES)
+    store._db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    store.close()
+    os.sync()
+
+
+def measure_variants(
+    path: Path, args: argparse.Namespace, second: int
+) -> tuple[dict[str, object], int]:
+    """Each variant in ``args.blocks`` blocks, the order reversed every block (A B C, C B A,
+    …) so that no variant always follows the fill or another; the blocks' seconds pooled."""
+    timed: dict[str, list[tuple[float, float, int]]] = {name: [] for name in VARIANTS}
+    names = list(VARIANTS)
+    for block in range(args.blocks):
+        for name in names if block % 2 == 0 else names[::-1]:
+            store = LocalStore(path, max_bytes=MAX_BYTES)
+            for pragma in VARIANTS[name]:
+                store._db.execute(pragma)  # the setting compared
+            seconds, second = timed_seconds(store, args.machines, second, args.warm_s, args.seconds)
+            store.close()
+            timed[name].extend(seconds)
+    return {
+        name: {
+            "cpu": summary([c for c, _, _ in timed[name]]),
+            "wall": summary([w for _, w, _ in timed[name]]),
+            "written_mb_per_s": round(statistics.median(b for _, _, b in timed[name]) / 1e6, 1),
+        }
+        for name in names
+    }, second
 
 
 def measure(args: argparse.Namespace, folder: Path) -> dict[str, object]:
@@ -135,22 +175,15 @@ def measure(args: argparse.Namespace, folder: Path) -> dict[str, object]:
         rows = len(store)
         used = store.used_bytes()
         store.close()
-        at_size: dict[str, object] = {
+        settle(path)
+        variants, second = measure_variants(path, args, second)
+        results[f"{size_gb} GB"] = {
             "used_mb": round(used / 1e6),
             "rows": rows,
             "fill_s": round(fill_s, 1),
+            **variants,
         }
-        for name, pragmas in VARIANTS.items():
-            store = LocalStore(path, max_bytes=MAX_BYTES)
-            for pragma in pragmas:
-                store._db.execute(pragma)  # the setting compared
-            cpu, wall, second = timed_seconds(
-                store, args.machines, second, args.warm_s, args.seconds
-            )
-            store.close()
-            at_size[name] = {"cpu": summary(cpu), "wall": summary(wall)}
-            print(f"{size_gb} GB {name}: {at_size[name]}", file=sys.stderr, flush=True)
-        results[f"{size_gb} GB"] = at_size
+        print(f"{size_gb} GB: {json.dumps(variants)}", file=sys.stderr, flush=True)
     return results
 
 
@@ -158,8 +191,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--machines", type=int, default=200)
     parser.add_argument("--sizes-gb", type=float, nargs="+", default=[0.1, 0.5, 1.0, 2.0])
-    parser.add_argument("--warm-s", type=int, default=10, help="untimed seconds of writes first")
-    parser.add_argument("--seconds", type=int, default=30, help="timed seconds of writes")
+    parser.add_argument("--warm-s", type=int, default=5, help="untimed seconds per block first")
+    parser.add_argument("--seconds", type=int, default=15, help="timed seconds per block")
+    parser.add_argument("--blocks", type=int, default=2, help="blocks per variant and size")
     parser.add_argument("--folder", type=Path, default=None, help="where the file is made")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="local-store-growth-", dir=args.folder))

@@ -41,7 +41,11 @@ def _board(machines: int, tick_s: float = 0.05) -> LiveBoard:
 
 async def _held_ms(board: LiveBoard, watch: bool) -> tuple[float, list[bytes]]:
     """Longest time the loop was held away from a 1 ms sleeper over a few ticks,
-    with one watcher (``watch``) or none; and the events the watcher got."""
+    with one watcher (``watch``) or none; and the events the watcher got.
+
+    Counted in this thread's CPU time: on a busy machine the kernel may take the core
+    away for tens of ms at any moment, which says nothing about how long the board
+    holds the loop."""
     stop = asyncio.Event()
     ticker = asyncio.create_task(board.run(stop))
     await asyncio.sleep(0)
@@ -64,9 +68,9 @@ async def _held_ms(board: LiveBoard, watch: bool) -> tuple[float, list[bytes]]:
     ):
         for m in board.machines:
             board.record(_record(m, time.time()))
-        before = time.perf_counter()
+        before = time.thread_time()
         await asyncio.sleep(0.001)
-        worst = max(worst, time.perf_counter() - before - 0.001)
+        worst = max(worst, time.thread_time() - before)
     stop.set()
     for task in (ticker, watching):
         if task is not None:
@@ -81,9 +85,9 @@ def test_a_tick_hands_the_loop_back_between_slices_of_machines() -> None:
     board = _board(2000)
     for m in board.machines:
         board.record(_record(m, time.time()))
-    started = time.perf_counter()
+    started = time.thread_time()
     json.dumps(board.rows())
-    whole_ms = (time.perf_counter() - started) * 1000
+    whole_ms = (time.thread_time() - started) * 1000
     held_ms, got = asyncio.run(_held_ms(board, watch=True))
     assert got, "the watcher received no event"
     rows = json.loads(got[-1].decode().split("data: ", 1)[1])

@@ -17,7 +17,9 @@ The file is filled fast with rows made from one second's template (the same
 tables, keys and row sizes, 60 s of the fleet per transaction); the timed writes
 go through ``LocalStore.write``. After each fill the WAL is checkpointed and the
 OS's dirty pages flushed; each setting is then timed in ``--blocks`` blocks, the
-order reversed every block. Files live in a temporary folder (``--folder``).
+order reversed every block. With ``--fleet-write`` the default settings are also
+timed with the whole fleet's second in one write (one transaction per cycle instead
+of one per machine and cycle). Files live in a temporary folder (``--folder``).
 
     .venv/bin/python benchmarks/local_store_growth.py [--sizes-gb 0.01 0.5 1 2 4]
 """
@@ -43,7 +45,8 @@ from tests.records import written_record  # noqa: E402
 
 SENSORS = [f"T{i}" for i in range(1, 10)]
 EPOCH_S = 1.7e9
-FILL_SECONDS_PER_TRANSACTION = 60
+FILL_SECONDS_PER_TRANSACTION = 60  # 1 below FINE_FILL_BYTES, to stop close to a small size
+FINE_FILL_BYTES = 100_000_000
 MAX_BYTES = 8_000_000_000  # the default logging.local_store_max_mb
 
 #: Connection settings compared: the PRAGMAs run on the store's connection after opening.
@@ -53,6 +56,8 @@ VARIANTS: dict[str, list[str]] = {
     "mmap 2 GB": ["PRAGMA mmap_size = 2000000000"],
     "wal_autocheckpoint 10000": ["PRAGMA wal_autocheckpoint = 10000"],
 }
+#: With ``--fleet-write``: the default settings, but the whole fleet's second in one write.
+FLEET_WRITE = "default, one write per second of the fleet"
 
 
 def fleet_points(machines: int, second: int) -> list[list[Point]]:
@@ -88,13 +93,14 @@ def fill(store: LocalStore, machines: int, start_s: int, target_bytes: int) -> i
     ]  # the store's own row format (LocalStore.write)
     base_ns = template[0].time_ns
     second = start_s
-    while store.used_bytes() < target_bytes:
+    while (used := store.used_bytes()) < target_bytes:
+        span = FILL_SECONDS_PER_TRANSACTION if used > FINE_FILL_BYTES else 1
         chunk = []
-        for s in range(second, second + FILL_SECONDS_PER_TRANSACTION):
+        for s in range(second, second + span):
             shift = s * 1_000_000_000 - base_ns + round(EPOCH_S * 1e9)
             chunk.extend((a, b, c, t + shift, f) for a, b, c, t, f in rows)
         store._insert(chunk)  # one big transaction, to fill fast
-        second += FILL_SECONDS_PER_TRANSACTION
+        second += span
     return second
 
 
@@ -105,13 +111,16 @@ def written_bytes() -> int:
 
 
 def timed_seconds(
-    store: LocalStore, machines: int, start_s: int, warm_s: int, seconds: int
+    store: LocalStore, machines: int, start_s: int, span: tuple[int, int], fleet_write: bool
 ) -> tuple[list[tuple[float, float, int]], int]:
     """Thread CPU s, wall s and bytes written of each timed second of writes (one write
-    per machine)."""
+    per machine, or one for the whole fleet); ``span`` is the warm and the timed seconds."""
+    warm_s, seconds = span
     timed = []
     for k in range(warm_s + seconds):
         batches = fleet_points(machines, start_s + k)
+        if fleet_write:
+            batches = [[p for batch in batches for p in batch]]
         c0, w0, b0 = time.thread_time(), time.perf_counter(), written_bytes()
         for batch in batches:
             store.write(batch)
@@ -143,14 +152,15 @@ def measure_variants(
 ) -> tuple[dict[str, object], int]:
     """Each variant in ``args.blocks`` blocks, the order reversed every block (A B C, C B A,
     …) so that no variant always follows the fill or another; the blocks' seconds pooled."""
-    timed: dict[str, list[tuple[float, float, int]]] = {name: [] for name in VARIANTS}
-    names = list(VARIANTS)
+    names = [*VARIANTS, *([FLEET_WRITE] if args.fleet_write else [])]
+    timed: dict[str, list[tuple[float, float, int]]] = {name: [] for name in names}
     for block in range(args.blocks):
         for name in names if block % 2 == 0 else names[::-1]:
             store = LocalStore(path, max_bytes=MAX_BYTES)
-            for pragma in VARIANTS[name]:
+            for pragma in VARIANTS.get(name, []):
                 store._db.execute(pragma)  # the setting compared
-            seconds, second = timed_seconds(store, args.machines, second, args.warm_s, args.seconds)
+            span = (args.warm_s, args.seconds)
+            seconds, second = timed_seconds(store, args.machines, second, span, name == FLEET_WRITE)
             store.close()
             timed[name].extend(seconds)
     return {
@@ -194,6 +204,9 @@ def main() -> None:
     parser.add_argument("--warm-s", type=int, default=5, help="untimed seconds per block first")
     parser.add_argument("--seconds", type=int, default=15, help="timed seconds per block")
     parser.add_argument("--blocks", type=int, default=2, help="blocks per variant and size")
+    parser.add_argument(
+        "--fleet-write", action="store_true", help="also time one write per fleet second"
+    )
     parser.add_argument("--folder", type=Path, default=None, help="where the file is made")
     args = parser.parse_args()
     folder = Path(tempfile.mkdtemp(prefix="local-store-growth-", dir=args.folder))

@@ -13,6 +13,16 @@ calls it every ``logging.retention_interval_s``); by size, the file never grows 
 write that fails because the disk is full is dropped and counted
 (:attr:`LocalStore.dropped`), logged once when it starts and once when writes
 succeed again, and never raised: compensation does not depend on its log.
+
+Write cost: the gateway writes each machine's cycle (about 10 points) as one
+transaction. Each point goes to the end of its own series in the primary key and the
+machine/time index, so one write dirties many pages, each written whole to the WAL and
+again at the checkpoint (about 40 MB/s for 200 machines, 0.64 MB/s of points). The CPU
+of a second of 200 machines rises about 40 % from a new file to 0.5 GB, then stays flat
+to 4 GB (``benchmarks/local_store_growth.py``, docs/benchmarks.md). The connection keeps
+SQLite's defaults: a 64 MB page cache or memory-mapped reads changed it by less than the
+spread between runs (the operating system already holds the file's pages), and a larger
+WAL checkpoint made it dearer.
 """
 
 from __future__ import annotations

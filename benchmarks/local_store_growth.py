@@ -19,7 +19,9 @@ go through ``LocalStore.write``. After each fill the WAL is checkpointed and the
 OS's dirty pages flushed; each setting is then timed in ``--blocks`` blocks, the
 order reversed every block. With ``--fleet-write`` the default settings are also
 timed with the whole fleet's second in one write (one transaction per cycle instead
-of one per machine and cycle). Files live in a temporary folder (``--folder``).
+of one per machine and cycle). With ``--schemas-at GB`` the table made otherwise
+(``SCHEMAS``: without rowid, without the time index) is compared too, each filled to
+that size in a file of its own. Files live in a temporary folder (``--folder``).
 
     .venv/bin/python benchmarks/local_store_growth.py [--sizes-gb 0.01 0.5 1 2 4]
 """
@@ -39,6 +41,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from gateway.outputs import local_store  # noqa: E402
 from gateway.outputs.local_store import LocalStore, _tags_text  # noqa: E402
 from gateway.outputs.points import Point, points_from_record  # noqa: E402
 from tests.records import written_record  # noqa: E402
@@ -55,6 +58,16 @@ VARIANTS: dict[str, list[str]] = {
     "cache 64 MB": ["PRAGMA cache_size = -65536"],
     "mmap 2 GB": ["PRAGMA mmap_size = 2000000000"],
     "wal_autocheckpoint 10000": ["PRAGMA wal_autocheckpoint = 10000"],
+}
+#: With ``--schemas-at``: the store's table made otherwise (each in a file of its own).
+SCHEMAS: dict[str, str] = {
+    "default schema": local_store.SCHEMA,
+    "WITHOUT ROWID": local_store.SCHEMA.replace(
+        ");\nCREATE INDEX", ") WITHOUT ROWID;\nCREATE INDEX", 1
+    ),
+    "no points_by_time index": local_store.SCHEMA.replace(
+        "CREATE INDEX IF NOT EXISTS points_by_time ON points (time_ns);", ""
+    ),
 }
 #: With ``--fleet-write``: the default settings, but the whole fleet's second in one write.
 FLEET_WRITE = "default, one write per second of the fleet"
@@ -197,15 +210,52 @@ def measure(args: argparse.Namespace, folder: Path) -> dict[str, object]:
     return results
 
 
+def compare_schemas(args: argparse.Namespace, folder: Path) -> dict[str, object]:
+    """Each of ``SCHEMAS`` filled to ``--schemas-at`` GB in its own file, then timed in
+    blocks as :func:`measure_variants` does (default connection settings)."""
+    paths, second, results = {}, {}, {}
+    default_schema = local_store.SCHEMA
+    try:
+        for name, schema in SCHEMAS.items():
+            local_store.SCHEMA = schema  # what LocalStore creates its table with
+            paths[name] = folder / f"schema-{len(paths)}.sqlite"
+            store = LocalStore(paths[name], max_bytes=MAX_BYTES)
+            second[name] = fill(store, args.machines, 0, round(args.schemas_at * 1e9))
+            results[name] = {"used_mb": round(store.used_bytes() / 1e6), "rows": len(store)}
+            store.close()
+            settle(paths[name])
+        timed: dict[str, list[tuple[float, float, int]]] = {name: [] for name in SCHEMAS}
+        names = list(SCHEMAS)
+        for block in range(args.blocks):
+            for name in names if block % 2 == 0 else names[::-1]:
+                local_store.SCHEMA = SCHEMAS[name]
+                store = LocalStore(paths[name], max_bytes=MAX_BYTES)
+                span = (args.warm_s, args.seconds)
+                seconds, second[name] = timed_seconds(
+                    store, args.machines, second[name], span, False
+                )
+                store.close()
+                timed[name].extend(seconds)
+    finally:
+        local_store.SCHEMA = default_schema
+    for name in SCHEMAS:
+        results[name]["cpu"] = summary([c for c, _, _ in timed[name]])
+        results[name]["wall"] = summary([w for _, w, _ in timed[name]])
+    return results
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--machines", type=int, default=200)
-    parser.add_argument("--sizes-gb", type=float, nargs="+", default=[0.1, 0.5, 1.0, 2.0])
+    parser.add_argument("--sizes-gb", type=float, nargs="*", default=[0.1, 0.5, 1.0, 2.0])
     parser.add_argument("--warm-s", type=int, default=5, help="untimed seconds per block first")
     parser.add_argument("--seconds", type=int, default=15, help="timed seconds per block")
     parser.add_argument("--blocks", type=int, default=2, help="blocks per variant and size")
     parser.add_argument(
         "--fleet-write", action="store_true", help="also time one write per fleet second"
+    )
+    parser.add_argument(
+        "--schemas-at", type=float, default=None, help="also compare SCHEMAS at this size, GB"
     )
     parser.add_argument("--folder", type=Path, default=None, help="where the file is made")
     args = parser.parse_args()
@@ -217,6 +267,8 @@ def main() -> None:
             "points_per_write": len(fleet_points(1, 0)[0]),
             "sizes": measure(args, folder),
         }
+        if args.schemas_at is not None:
+            result["schemas"] = compare_schemas(args, folder)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
     print(json.dumps(result, indent=2))

@@ -22,7 +22,9 @@ of a second of 200 machines rises about 40 % from a new file to 0.5 GB, then sta
 to 4 GB (``benchmarks/local_store_growth.py``, docs/benchmarks.md). The connection keeps
 SQLite's defaults: a 64 MB page cache or memory-mapped reads changed it by less than the
 spread between runs (the operating system already holds the file's pages), and a larger
-WAL checkpoint made it dearer.
+WAL checkpoint made it dearer. The schema stays too: a WITHOUT ROWID table was no
+cheaper, and the time index (8–23 % of the cost) is how retention and the size cap find
+the oldest points.
 """
 
 from __future__ import annotations

@@ -250,7 +250,13 @@ def test_an_operator_writing_at_random_moments_is_never_overwritten_unseen(
                     assert await client.connect()
                     stack.callback(client.close)
                 task = asyncio.create_task(operator(client))
+                # 60 cycles, and on until the operator hit the loop 5 times (a busy
+                # machine can starve the operator's task for most of 60 fast cycles)
                 await b.cycles(60)
+                for _ in range(20):
+                    if len(episodes(b.cnc.events)[0]) >= 5:
+                        break
+                    await b.cycles(20)
                 stop.set()
                 await task
             seen_next, unseen = episodes(b.cnc.events)

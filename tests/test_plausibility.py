@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -103,27 +104,39 @@ def test_without_relations_the_check_is_unavailable() -> None:
     assert check.judge(0.0, rises) == {}
 
 
+def as_banked(
+    model: Any,
+    model_id: str,
+    inputs: ModelInputs,
+    error_um: np.ndarray,
+    folder: Path,
+    sensor_relations: dict | None = None,
+) -> BankedModel:
+    """A fitted model as the bank holds it: its stored document beside it."""
+    document = build_document(
+        model,
+        model_id=model_id,
+        inputs=inputs,
+        error_um=error_um,
+        target="error_um",
+        source_file=str(folder / "training.csv"),
+        runs=["R1"],
+        reference={"policy": "auto"},
+        regime="all",
+        validation={"pooled": {"rmse_um": 0.1}},
+        software_version="test",
+        sensor_relations=sensor_relations,
+    )
+    return BankedModel(model_id, model, StoredModel.model_validate(document))
+
+
 def stored_mlr(tmp_path: Path, relations_document: dict | None) -> BankedModel:
     """An MLR model e = 2 A + 1 E as the bank holds it (with or without relations)."""
     x = training_rises()
     inputs = ModelInputs(rise_C=x, sensors=SENSORS, speed_rpm=np.zeros(x.shape[0]))
     error_um = 2 * x[:, 0] + x[:, 4]
     model = MlrModel(["A", "E"]).fit(inputs, error_um)
-    document = build_document(
-        model,
-        model_id="mlr-error_um-all",
-        inputs=inputs,
-        error_um=error_um,
-        target="error_um",
-        source_file=str(tmp_path / "training.csv"),
-        runs=["R1"],
-        reference={"policy": "auto"},
-        regime="all",
-        validation={"pooled": {"rmse_um": 0.1}},
-        software_version="test",
-        sensor_relations=relations_document,
-    )
-    return BankedModel("mlr-error_um-all", model, StoredModel.model_validate(document))
+    return as_banked(model, "mlr-error_um-all", inputs, error_um, tmp_path, relations_document)
 
 
 def test_the_prediction_rate_bound_blames_the_sensor_that_jumped(tmp_path: Path) -> None:

@@ -26,7 +26,7 @@ from gateway.live.bank.model_bank import BankedModel
 from gateway.live.plausibility import RATE_HORIZON_S, Plausibility, _predict
 from models.base import ModelInputs, ThermalModel
 from models.estimators.registry import make_model
-from models.store import StoredModel, build_document
+from tests.test_plausibility import as_banked
 
 SENSORS = ("A", "B", "C", "D", "E")
 
@@ -79,21 +79,7 @@ def _training() -> tuple[ModelInputs, np.ndarray]:
 def _bank(tmp_path: Path, method: str, sensors: list[str]) -> BankedModel:
     inputs, error_um = _training()
     model = make_model(method, sensors).fit(inputs, error_um)
-    model_id = f"{method}-{''.join(sensors)}"
-    document = build_document(
-        model,
-        model_id=model_id,
-        inputs=inputs,
-        error_um=error_um,
-        target="error_um",
-        source_file=str(tmp_path / "training.csv"),
-        runs=["R1"],
-        reference={"policy": "auto"},
-        regime="all",
-        validation={"pooled": {"rmse_um": 0.1}},
-        software_version="test",
-    )
-    return BankedModel(model_id, model, StoredModel.model_validate(document))
+    return as_banked(model, f"{method}-{''.join(sensors)}", inputs, error_um, tmp_path)
 
 
 @pytest.fixture(scope="module")

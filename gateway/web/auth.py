@@ -107,7 +107,7 @@ class Auth:
 
 
 #: Where the middleware keeps the request's session (None: not logged in).
-SESSION = web.RequestKey("session", Optional["Session"])
+SESSION = web.RequestKey[Optional[Session]]("session")
 
 
 def same_origin(request: web.Request) -> bool:

@@ -760,7 +760,7 @@ class LoggingSection(Strict):
 
 
 class ScadaUserSection(Credentials):
-    username: str  # type: ignore[assignment]
+    username: str  # the login name  # type: ignore[assignment]
     role: Literal["operator", "viewer"] = "viewer"
 
 

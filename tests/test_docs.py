@@ -116,6 +116,9 @@ def test_configuration_reference_lists_every_section_and_key(site: Path) -> None
         for name, field in model.model_fields.items():
             assert (field.alias or name) in text, f"{path}.{name} missing"
     assert "clamp_um" in text and "50.0" in text  # a key with its default
+    for directive in ("type: ignore", "noqa", "pragma"):  # comments for tools, not readers
+        assert directive not in text, f"{directive!r} in the configuration reference"
+    assert "the login name" in text  # web.users[].username's own words instead
 
 
 def test_cli_reference_lists_every_command_and_option(site: Path) -> None:

@@ -134,8 +134,8 @@ def source_comments(model: type[BaseModel]) -> dict[str, str]:
     return comments
 
 
-#: Where a comment turns into an instruction to a type checker or linter (``# type:
-#: ignore[…]``, ``# noqa``, ``# pragma``): for tools, not for the reader of the reference.
+#: Where a comment turns into an instruction to a type checker, linter or formatter
+#: (type-ignore, noqa, pragma, fmt markers): for tools, not for the reader of the reference.
 TOOL_DIRECTIVE = re.compile(r"#\s*(?:type:|noqa\b|pragma\b|fmt:)")
 
 

@@ -1067,11 +1067,14 @@ def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
 def _secret_reference_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
     """Every secret the configuration names, read as ``run`` will read it: each
     ``*_env`` set and not empty, each secret or key file there, readable and not empty,
-    each account with a password (a user without one would log in with an empty one)."""
+    each account with a password (a user without one would log in with an empty one), and
+    each certificate, key and model signing key file readable."""
     problems: list[tuple[Loc, str]] = []
     for index, machine in enumerate(config.machines):
         if machine.cnc.opcua is not None:
             problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
+        keys = ("signing_key_file",)
+        problems += _key_file_problems(machine.models, ("machines", index, "models"), keys)
     if config.scada is not None:
         problems += _account_problems(config.scada.users, ("scada", "users"))
     if config.web is not None:

@@ -5,11 +5,13 @@
 // (retained, will: offline), subscribes to the group, decodes every message, checks the
 // sequence numbers of each edge node and prints one JSON line per message:
 //   {"event":"message","kind":"DDATA","node":..,"device":..,"seq":..,"gap":false,
-//    "bdSeq":..,"metrics":[{"name":..,"alias":..,"type":..,"value":..,"historical":..}]}
+//    "qos":..,"retain":..,"metrics":[{"name":..,"sentName":..,"alias":..,"type":..,"value":..,
+//    "historical":..}]}  (name: as sent, else the birth's name of the alias; sentName: as sent)
 // It reads JSON commands on stdin, one per line:
 //   {"op":"rebirth","node":N}          NCMD Node Control/Rebirth
 //   {"op":"dcmd","node":N,"device":D,"metrics":[{name|alias,type,value}],"timestamp":T,"seq":S}
 //   {"op":"raw","topic":T,"hex":H}     arbitrary bytes (a malformed command)
+//   {"op":"rawstate","text":X}         X as its STATE payload, not retained (old or malformed)
 //   {"op":"state","online":bool}       its own STATE
 //   {"op":"quit"}
 import { readFileSync } from "node:fs";
@@ -66,7 +68,7 @@ function track(kind, node, device, payload) {
   return { gap, names: n.aliases.get(key) ?? new Map() };
 }
 
-client.on("message", (topic, buf) => {
+client.on("message", (topic, buf, packet) => {
   const parts = topic.split("/");
   if (parts[1] === "STATE") return;
   const [, , kind, node, device] = parts;
@@ -81,6 +83,7 @@ client.on("message", (topic, buf) => {
   const { gap, names } = track(kind, node, device ?? null, payload);
   const metrics = (payload.metrics ?? []).map((m) => ({
     name: m.name ?? names.get(plain(m.alias)) ?? null,
+    sentName: m.name ?? null,
     alias: plain(m.alias),
     type: m.type,
     value: plain(m.value),
@@ -90,7 +93,7 @@ client.on("message", (topic, buf) => {
   say({
     event: "message", kind, node, device: device ?? null,
     seq: payload.seq === undefined ? null : plain(payload.seq),
-    timestamp: plain(payload.timestamp), gap, metrics,
+    timestamp: plain(payload.timestamp), gap, qos: packet.qos, retain: packet.retain, metrics,
   });
 });
 
@@ -101,6 +104,8 @@ rl.on("line", (line) => {
     client.end(true, () => process.exit(0));
   } else if (cmd.op === "state") {
     client.publish(stateTopic, stateMessage(cmd.online), { qos: 1, retain: true }, () => say({ event: "state-sent", online: cmd.online }));
+  } else if (cmd.op === "rawstate") {
+    client.publish(stateTopic, cmd.text, { qos: 1, retain: false }, () => say({ event: "state-sent", text: cmd.text }));
   } else if (cmd.op === "raw") {
     client.publish(cmd.topic, Buffer.from(cmd.hex, "hex"), { qos: 1 }, () => say({ event: "sent", op: "raw" }));
   } else if (cmd.op === "rebirth") {

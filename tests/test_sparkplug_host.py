@@ -304,6 +304,8 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
             births = host.messages("NBIRTH")
             assert len(births) == 1 and births[0]["seq"] == 0
             bd_seq = bd_seq_of(births[0])
+            rebirth = [m for m in births[0]["metrics"] if m["sentName"] == "Node Control/Rebirth"]
+            assert rebirth[0]["type"] == "Boolean" and rebirth[0].get("alias") is None
             dbirth = host.messages("DBIRTH", "m1")[0]
             units = {m["name"]: m.get("unit") for m in dbirth["metrics"]}
             assert units["Temperature/T1"] == "°C" and units["Spindle/Speed"] == "r/min"

@@ -91,7 +91,7 @@ class CommandHandler:
             raise CommandRefusedError(f"replayed command (timestamp {key[0]}, seq {key[1]})")
         if not payload.metrics:
             raise CommandRefusedError("no metric")
-        by_alias = {s.alias: s for s in specs}
+        by_alias = {s.alias: s for s in specs if s.alias is not None}
         by_name = {s.name: s for s in specs}
         steps = [self._step(m, by_alias, by_name, device) for m in payload.metrics]
         self._seen.append(key)

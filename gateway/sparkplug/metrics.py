@@ -23,8 +23,9 @@ CYCLES = "Health/cycles"
 
 #: Aliases: node metrics below ``ALIAS_BLOCK``, device ``i`` from ``(i + 1) * ALIAS_BLOCK``.
 ALIAS_BLOCK = 1000
-#: bdSeq is an Int64 in the will and the NBIRTH (Sparkplug 3.0, 5.2 and 6.4.x).
-NODE_METRICS = (MetricSpec(BD_SEQ, INT64, 1), MetricSpec(REBIRTH, BOOLEAN, 2))
+#: bdSeq is an Int64 in the will and the NBIRTH; the rebirth switch has no alias, so that
+#: any host can ask for births by its name (Sparkplug 3.0).
+NODE_METRICS = (MetricSpec(BD_SEQ, INT64, 1), MetricSpec(REBIRTH, BOOLEAN, None))
 NODE_HEALTH_ALIAS = 10  # the node's ``Health/…`` metrics from here
 #: The metrics a host may write, with the value type each takes; every other is read-only.
 WRITABLE = {REBIRTH: bool, ENABLED: bool, PROMOTE: str, ROLLBACK: bool}
@@ -67,7 +68,7 @@ def node_specs(health_keys: Sequence[str]) -> list[MetricSpec]:
         MetricSpec(f"Health/{key}", UINT64, NODE_HEALTH_ALIAS + i)
         for i, key in enumerate(health_keys)
     ]
-    if health and health[-1].alias >= ALIAS_BLOCK:
+    if NODE_HEALTH_ALIAS + len(health) > ALIAS_BLOCK:
         raise ValueError(
             f"{len(health)} node health counters: more than the aliases below {ALIAS_BLOCK}"
         )

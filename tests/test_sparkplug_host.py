@@ -440,3 +440,30 @@ def test_primary_host_state_offline_disconnects_and_old_or_malformed_state_is_ig
         assert_every_cycle_once_in_order(host, run.records)
 
     asyncio.run(scenario())
+
+
+def test_primary_host_crash_its_will_ends_the_session_and_a_new_host_gets_births(
+    tmp_path: Path, store: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The host SIGKILLed: the broker publishes its will (offline, with the timestamp of
+    its online STATE, as Sparkplug 3.0 has it), which the node takes: NDEATH, a new
+    connection that waits; a host started afterwards gets births with bdSeq + 1."""
+    monkeypatch.setenv("SPB_TEST_PASSWORD", PASSWORD)
+
+    async def scenario() -> None:
+        async with Run(tmp_path, store, {}) as run:
+            node = run.gateway.sparkplug
+            assert node is not None
+            await run.host.wait(lambda: run.host.count("DDATA") >= 3, 60, "data")
+            bd_seq = bd_seq_of(run.host.messages("NBIRTH")[0])
+            run.host.close()  # SIGKILL
+            deadline = time.monotonic() + 30  # the broker sees the dead socket at once
+            while not (node.sessions == 2 and node.link is not None and not node.born):
+                assert time.monotonic() < deadline, "no new connection after the host's will"
+                await asyncio.sleep(0.05)
+            run.host = TahuHost(run.broker, GROUP, HOST)
+            await run.host.wait(lambda: run.host.count("NBIRTH") == 1, 20, "births")
+            assert bd_seq_of(run.host.messages("NBIRTH")[0]) == (bd_seq + 1) % 256
+            await run.host.wait(lambda: run.host.count("DDATA") >= 3, 20, "data again")
+
+    asyncio.run(scenario())

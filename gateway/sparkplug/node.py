@@ -2,12 +2,12 @@
 
 Every cycle's values go first to a disk buffer (the :class:`PointBuffer` class of the
 InfluxDB path, its own file), from which a task publishes them in order once the
-node is born and the primary host is online; a point is removed only when the broker
-acknowledged it (QoS 1). So a broker down or a host offline costs nothing: the points
-wait and are delivered afterwards, marked historical (``is_historical``) when births
-came between their cycle and their delivery. The sink itself only appends to the
-buffer, so MQTT never slows the compensation loop. At QoS 0 (Sparkplug 3.0's, the
-default) "acknowledged" means written to the socket; QoS 1 waits for the broker's.
+node is born and the primary host is online; a point is removed only when it was
+delivered: written to the socket at QoS 0 (Sparkplug 3.0's, the default), acknowledged
+by the broker at QoS 1. So a host offline costs nothing, nor a broker down at QoS 1:
+the points wait and are delivered afterwards, marked historical (``is_historical``)
+when births came between their cycle and their delivery. The sink itself only appends
+to the buffer, so MQTT never slows the compensation loop.
 
 Sessions: a random start-up delay (``startup_delay_max_s``) spreads births when many
 nodes reconnect; each connection takes the next broker of the list. Every MQTT CONNECT

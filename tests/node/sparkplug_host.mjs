@@ -2,7 +2,7 @@
 // payload library (sparkplug-payload) and the MQTT client sparkplug-client uses (mqtt).
 //
 // argv[2]: JSON {url, ca, username, password, group, host}. It publishes its STATE
-// (retained, will: offline), subscribes to the group, decodes every message, checks the
+// (retained, will: offline, both with the connect's timestamp), subscribes to the group, decodes every message, checks the
 // sequence numbers of each edge node and prints one JSON line per message:
 //   {"event":"message","kind":"DDATA","node":..,"device":..,"seq":..,"gap":false,
 //    "qos":..,"retain":..,"metrics":[{"name":..,"sentName":..,"alias":..,"type":..,"value":..,
@@ -24,7 +24,9 @@ const cfg = JSON.parse(process.argv[2]);
 const stateTopic = `spBv1.0/STATE/${cfg.host}`;
 const say = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
 const plain = (v) => (v !== null && typeof v === "object" && typeof v.toNumber === "function" ? v.toNumber() : v);
-const stateMessage = (online) => JSON.stringify({ online, timestamp: Date.now() });
+const stateMessage = (online, timestamp = Date.now()) => JSON.stringify({ online, timestamp });
+// Sparkplug 3.0: the online STATE carries the timestamp of the will of the CONNECT before it.
+const connectedAt = Date.now();
 
 const nodes = new Map(); // node → {seq, bdSeq, aliases: Map(device → Map(alias → name))}
 
@@ -35,12 +37,12 @@ const client = mqtt.connect(cfg.url, {
   clientId: `host-${cfg.host}-${process.pid}`,
   clean: true,
   reconnectPeriod: 200,
-  will: { topic: stateTopic, payload: stateMessage(false), qos: 1, retain: true },
+  will: { topic: stateTopic, payload: stateMessage(false, connectedAt), qos: 1, retain: true },
 });
 
 client.on("connect", () => {
   client.subscribe(`spBv1.0/${cfg.group}/#`, { qos: 1 }, () => {
-    client.publish(stateTopic, stateMessage(true), { qos: 1, retain: true }, () => say({ event: "online" }));
+    client.publish(stateTopic, stateMessage(true, connectedAt), { qos: 1, retain: true }, () => say({ event: "online" }));
   });
 });
 client.on("error", (err) => say({ event: "error", message: String(err) }));

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -467,3 +468,24 @@ def test_primary_host_crash_its_will_ends_the_session_and_a_new_host_gets_births
             await run.host.wait(lambda: run.host.count("DDATA") >= 3, 20, "data again")
 
     asyncio.run(scenario())
+
+
+def test_bd_seq_counts_every_connect_sent_those_the_broker_refused_too(
+    tmp_path: Path, store: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A wrong password: every CONNECT carries a will with a new bdSeq (Sparkplug 3.0),
+    so the saved bdSeq counts the refusals (from 0); no births."""
+    monkeypatch.setenv("SPB_TEST_PASSWORD", "not-the-password")
+
+    async def scenario() -> Run:
+        async with Run(tmp_path, store, {}) as run:
+            await run.host.wait(lambda: len(logged(caplog, "Sparkplug:", " refused: ")) >= 3,
+                                30, "three refused CONNECTs")  # fmt: skip
+            await run.stop_gateway()
+        return run
+
+    run = asyncio.run(scenario())
+    refused = logged(caplog, "Sparkplug:", " refused: ")
+    saved = json.loads((tmp_path / "state" / "sparkplug-bdseq.json").read_text())["bdSeq"]
+    assert saved == len(refused) - 1, (saved, refused)
+    assert run.host.count("NBIRTH") == 0

@@ -845,7 +845,7 @@ class SparkplugSection(Credentials):
     edge_node_id: str
     primary_host_id: str | None = None
     client_id: str | None = None
-    qos: Literal[0, 1] = 1
+    qos: Literal[0, 1] = 0  # births and data; Sparkplug 3.0 asks QoS 0 (docs/fleet.md)
     keepalive_s: int = Field(default=30, ge=5, le=3600)
     ca_file: Path | None = None
     cert_file: Path | None = None

@@ -101,6 +101,14 @@ import numpy as np
 from gateway.limits import PlausibilityLimits
 from gateway.live.bank.model_bank import Banked, BankedModel, ModelBank
 from gateway.live.earlier_rows import EarlierRows
+from gateway.live.step_blame import (
+    Attribution,
+    attribute,
+    changes,
+    is_own_step,
+    jump_floor_C,
+    own_step_z,
+)
 from models.base import ModelInputs
 from models.estimators.sensor_relations import SensorRelations
 
@@ -152,6 +160,9 @@ class _Hold:
     since_s: float
     reason: str
     agree_since_s: float | None = None
+    #: Held by the rate bound: the trusted rises of the earlier cycle its step was
+    #: measured from (the step is judged shared, or not, against them).
+    then_C: Mapping[str, float] | None = None
 
 
 class WarmStarts:
@@ -242,6 +253,10 @@ class Plausibility:
         self.largest_sound_z = 0.0
         #: Rule 2's earlier cycles, their rows and predictions kept (cost flat in run time).
         self._earlier = EarlierRows(RATE_HORIZON_S)
+        #: Moves past the bound that were no sensor's own step (the bound re-referenced).
+        self.re_references = 0
+        self._re_references_logged = 0
+        self._re_referenced_s: float | None = None
 
     @classmethod
     def for_machine(
@@ -383,6 +398,9 @@ class Plausibility:
             hold.agree_since_s = None
             hold.reason = f"implausible: {z:+.1f}σ from its neighbours ({said})"
             return
+        if self._step_shared(sensor, {**others, sensor: value_C}):
+            self._release(sensor, "its step is shared by its neighbours now")
+            return
         if hold.agree_since_s is None:
             hold.agree_since_s = now_s
         agreed_s = now_s - hold.agree_since_s
@@ -398,22 +416,52 @@ class Plausibility:
         """Without relations: a held sensor with good values is trusted after recover_s."""
         for sensor in [s for s in self.holds if s in rises_C]:
             hold = self.holds[sensor]
+            others = {s: v for s, v in rises_C.items() if s not in self.holds}
+            if self._step_shared(sensor, {**others, sensor: rises_C[sensor]}):
+                self._release(sensor, "its step is shared by its neighbours now")
+                continue
             if hold.agree_since_s is None:
                 hold.agree_since_s = now_s
             if now_s - hold.agree_since_s >= self.limits.recover_s:
                 self._release(sensor)
 
-    def _hold(self, now_s: float, sensor: str, reason: str) -> None:
-        self.holds[sensor] = _Hold(since_s=now_s, reason=reason)
+    def _hold(
+        self,
+        now_s: float,
+        sensor: str,
+        reason: str,
+        then_C: Mapping[str, float] | None = None,
+    ) -> None:
+        self.holds[sensor] = _Hold(since_s=now_s, reason=reason, then_C=then_C)
         self.flags += 1
         log.warning("%s: sensor %s is bad: %s", self.machine, sensor, reason)
 
-    def _release(self, sensor: str) -> None:
+    def _step_shared(self, sensor: str, now_C: Mapping[str, float]) -> bool:
+        """Whether the step the rate bound held ``sensor`` for is its neighbours' too by now.
+
+        Its change since the earlier cycle it was judged from must still be a step
+        (past the noise floor: a spike that went away is not "shared", it waits for
+        ``recover_s``) and agree with its trusted neighbours' changes over the same
+        span: a restart or a re-zero they followed, never a fault of its own.
+        """
+        then_C = self.holds[sensor].then_C
+        if then_C is None or sensor not in then_C:
+            return False
+        moved_C = changes(now_C, then_C)
+        if abs(moved_C[sensor]) <= jump_floor_C(self.limits):
+            return False
+        z = own_step_z(self.relations, self.limits, sensor, moved_C)
+        if z is not None:
+            return abs(z) <= AGREE_SHARE * self.limits.sigma
+        return not is_own_step(None, self.limits, sensor, moved_C)[0]
+
+    def _release(self, sensor: str, why: str = "agrees again") -> None:
         hold = self.holds.pop(sensor)
         log.info(
-            "%s: sensor %s agrees again; trusted (held since %.0f s)",
+            "%s: sensor %s %s; trusted (held since %.0f s)",
             self.machine,
             sensor,
+            why,
             hold.since_s,
         )
 
@@ -425,7 +473,8 @@ class Plausibility:
         rises_C: Mapping[str, float],
         speed_rpm: float | None,
     ) -> Suspect | None:
-        """Blame (and hold) the sensor that moves a plain model's prediction too fast, if any."""
+        """Blame (and hold) the sensor whose own step moves a plain model's prediction too
+        fast, if any; a move that is no sensor's own step re-references the bound."""
         if not isinstance(banked, BankedModel):
             return None
         model = banked.model
@@ -436,21 +485,56 @@ class Plausibility:
         found = self._fastest_move(now_s, banked, sensors, now_x, speed_rpm)
         if found is None:
             return None
-        moved_um, span_s, then_x = found
-        # Put each sensor back to its earlier rise in turn: the one that undoes most is to blame.
-        rows = np.tile(now_x, (len(sensors), 1))
-        rows[np.arange(len(sensors)), np.arange(len(sensors))] = then_x
-        undone = _predict(banked, sensors, np.vstack([now_x, rows]), speed_rpm)
-        left_um = np.abs(undone[1:] - (undone[0] - moved_um))
-        sensor = sensors[int(np.argmin(left_um))]
+        moved_um, span_s, then_C = found
+        allowed_um = self._allowed_um(span_s)
+        verdict = attribute(
+            self.relations,
+            self.limits,
+            sensors,
+            rises_C,
+            then_C,
+            allowed_um,
+            lambda rows: _predict(banked, sensors, rows, speed_rpm),
+        )
+        if verdict.sensor is None:
+            self._re_reference(now_s, moved_um, span_s, verdict, len(changes(rises_C, then_C)))
+            return None
         reason = (
             f"implausible: moved the prediction {moved_um:+.1f} µm in {span_s:.0f} s "
-            f"(bound {self._allowed_um(span_s):.1f} µm: "
+            f"(bound {allowed_um:.1f} µm: "
             f"{self.limits.max_prediction_rate_um_per_s:g} µm/s + "
             f"{self.limits.prediction_noise_um:g} µm)"
         )
-        self._hold(now_s, sensor, reason)
-        return Suspect(sensor, reason)
+        self._hold(now_s, verdict.sensor, reason, then_C)
+        return Suspect(verdict.sensor, reason)
+
+    def _re_reference(
+        self, now_s: float, moved_um: float, span_s: float, verdict: Attribution, known: int
+    ) -> None:
+        """No sensor's own step: forget the earlier cycles, this one is the new reference.
+
+        Logged once per RATE_HORIZON_S at most (a model with large coefficients can
+        do it now and then from noise alone), with the count since the last line.
+        """
+        self._earlier.clear()
+        self.re_references += 1
+        if self._re_referenced_s is not None and now_s - self._re_referenced_s < RATE_HORIZON_S:
+            return
+        since = self.re_references - self._re_references_logged
+        self._re_referenced_s, self._re_references_logged = now_s, self.re_references
+        log.info(
+            "%s: the prediction moved %+.1f µm in %.0f s (bound %.1f µm) but no sensor stepped "
+            "on its own (%d of %d sensors moved together; %s): nobody held, the rate bound "
+            "counts from this cycle (%d time(s) since the last line)",
+            self.machine,
+            moved_um,
+            span_s,
+            self._allowed_um(span_s),
+            verdict.together,
+            known,
+            verdict.account,
+            since,
+        )
 
     def _fastest_move(
         self,
@@ -459,13 +543,16 @@ class Plausibility:
         sensors: tuple[str, ...],
         now_x: np.ndarray,
         speed_rpm: float | None,
-    ) -> tuple[float, float, np.ndarray] | None:
-        """(moved µm, over s, the earlier rises) of the earlier cycle most past the bound.
+    ) -> tuple[float, float, Mapping[str, float]] | None:
+        """(moved µm, over s, that cycle's trusted rises) of the earlier cycle most past the
+        bound.
 
         Every earlier cycle in the horizon is predicted at this cycle's model and
-        speed; the predictions are kept from cycle to cycle while those are
-        unchanged (:mod:`gateway.live.earlier_rows`), so the cost does not grow
-        with the horizon's length. None: no earlier cycle is past the bound.
+        speed: the same model at both ends, so a switch of model (to a fallback
+        without a sensor, or between regimes) is never a move. The predictions
+        are kept from cycle to cycle while those are unchanged
+        (:mod:`gateway.live.earlier_rows`), so the cost does not grow with the
+        horizon's length. None: no earlier cycle is past the bound.
         """
         model = banked.model
         compared = self._earlier.compare(
@@ -485,7 +572,8 @@ class Plausibility:
         worst = int(np.argmax(excess))  # the first of equal ones, as a scan would take
         if not excess[worst] > 0:
             return None
-        return float(moved[worst]), float(spans_s[worst]), compared.rows[worst]
+        then_C = self._earlier.rises_of(int(compared.index[worst]))
+        return float(moved[worst]), float(spans_s[worst]), then_C
 
     def accept(
         self, now_s: float, rises_C: Mapping[str, float], speed_rpm: float | None = None

@@ -51,7 +51,7 @@ class PlainPlausibility(Plausibility):
             if now_s - then_s <= RATE_HORIZON_S and all(s in rises for s in sensors)
         ]
         if not earlier:
-            return None
+            return []
         rows = np.array([now_x, *([rises[s] for s in sensors] for _, rises in earlier)])
         predicted = _predict(banked, sensors, rows, speed_rpm)
         spans_s = now_s - np.array([then_s for then_s, _ in earlier])
@@ -60,8 +60,12 @@ class PlainPlausibility(Plausibility):
         excess[np.isnan(excess)] = -np.inf
         worst = int(np.argmax(excess))
         if not excess[worst] > 0:
-            return None
-        return float(moved[worst]), float(spans_s[worst]), earlier[worst][1]
+            return []
+        past = [k for k in range(len(earlier)) if excess[k] > 0]
+        return [
+            (float(moved[k]), float(spans_s[k]), earlier[k][1])
+            for k in dict.fromkeys((past[-1], worst))
+        ]
 
     def _re_reference(self, *args) -> None:
         self.kept.clear()  # the plain scan forgets its earlier cycles too

@@ -482,26 +482,29 @@ class Plausibility:
         if any(s not in rises_C for s in sensors) or (model.uses_speed and speed_rpm is None):
             return None
         now_x = np.array([rises_C[s] for s in sensors])
-        found = self._fastest_move(now_s, banked, sensors, now_x, speed_rpm)
-        if found is None:
+        moves = self._fastest_move(now_s, banked, sensors, now_x, speed_rpm)
+        if not moves:
             return None
-        moved_um, span_s, then_C = found
-        allowed_um = self._allowed_um(span_s)
-        verdict = attribute(
-            self.relations,
-            self.limits,
-            sensors,
-            rises_C,
-            then_C,
-            allowed_um,
-            lambda rows: _predict(banked, sensors, rows, speed_rpm),
-        )
+        verdict, move = Attribution(None, ""), moves[0]
+        for move in moves:
+            verdict = attribute(
+                self.relations,
+                self.limits,
+                sensors,
+                rises_C,
+                move[2],
+                self._allowed_um(move[1]),
+                lambda rows: _predict(banked, sensors, rows, speed_rpm),
+            )
+            if verdict.sensor is not None:
+                break
+        moved_um, span_s, then_C = move
         if verdict.sensor is None:
             self._re_reference(now_s, moved_um, span_s, verdict, len(changes(rises_C, then_C)))
             return None
         reason = (
             f"implausible: moved the prediction {moved_um:+.1f} µm in {span_s:.0f} s "
-            f"(bound {allowed_um:.1f} µm: "
+            f"(bound {self._allowed_um(span_s):.1f} µm: "
             f"{self.limits.max_prediction_rate_um_per_s:g} µm/s + "
             f"{self.limits.prediction_noise_um:g} µm)"
         )
@@ -543,16 +546,17 @@ class Plausibility:
         sensors: tuple[str, ...],
         now_x: np.ndarray,
         speed_rpm: float | None,
-    ) -> tuple[float, float, Mapping[str, float]] | None:
-        """(moved µm, over s, that cycle's trusted rises) of the earlier cycle most past the
-        bound.
+    ) -> list[tuple[float, float, Mapping[str, float]]]:
+        """(moved µm, over s, that cycle's trusted rises) of the earlier cycles past the
+        bound a step is looked for against: the latest one past it (a sudden step
+        stands alone there, apart from what came before it), then the one most past it.
 
         Every earlier cycle in the horizon is predicted at this cycle's model and
         speed: the same model at both ends, so a switch of model (to a fallback
         without a sensor, or between regimes) is never a move. The predictions
         are kept from cycle to cycle while those are unchanged
         (:mod:`gateway.live.earlier_rows`), so the cost does not grow with the
-        horizon's length. None: no earlier cycle is past the bound.
+        horizon's length. Empty: no earlier cycle is past the bound.
         """
         model = banked.model
         compared = self._earlier.compare(
@@ -564,16 +568,19 @@ class Plausibility:
             lambda rows: _predict(banked, sensors, rows, speed_rpm),
         )
         if compared is None:
-            return None
+            return []
         spans_s = compared.spans_s
         moved = compared.now_um - compared.then_um
         excess = np.abs(moved) - self._allowed_um(spans_s)
         excess[np.isnan(excess)] = -np.inf  # a NaN prediction blames nobody
         worst = int(np.argmax(excess))  # the first of equal ones, as a scan would take
         if not excess[worst] > 0:
-            return None
-        then_C = self._earlier.rises_of(int(compared.index[worst]))
-        return float(moved[worst]), float(spans_s[worst]), then_C
+            return []
+        latest = int(np.flatnonzero(excess > 0)[-1])
+        return [
+            (float(moved[k]), float(spans_s[k]), self._earlier.rises_of(int(compared.index[k])))
+            for k in dict.fromkeys((latest, worst))
+        ]
 
     def accept(
         self, now_s: float, rises_C: Mapping[str, float], speed_rpm: float | None = None

@@ -341,17 +341,21 @@ def test_a_step_every_sensor_shares_re_references_and_one_of_its_own_is_held(
     tmp_path: Path, relations: SensorRelations
 ) -> None:
     banked = stored_mlr(tmp_path, None)  # e = 2 A + E
+    # A restart whose machine comes back cooler (-16 µm in 16 s), and a re-zero that
+    # takes 2 °C off every transmitter.
+    cooler = rises_at(2.0, 1.0)
+    re_zeroed = {s: v - 2.0 for s, v in rises_at(8.0, 4.0).items()}
     for judged_by in (None, relations):
-        check = Plausibility(judged_by, PlausibilityLimits())
-        check.accept(0.0, rises_at(8.0, 4.0))
-        # A restart: the machine comes back cold, every rise lower (-16 µm in 16 s).
-        assert check.check_prediction(16.0, banked, rises_at(2.0, 1.0), 0.0) is None
-        assert check.holds == {} and check.re_references == 1
-        check.accept(16.0, rises_at(2.0, 1.0))
-        # From the new level, one sensor's own jump is still caught.
-        jumped = rises_at(2.0, 1.0) | {"A": rises_at(2.0, 1.0)["A"] + 3.0}
-        suspect = check.check_prediction(17.0, banked, jumped, 0.0)
-        assert suspect is not None and suspect.sensor == "A", judged_by
+        for after in (cooler, re_zeroed):
+            check = Plausibility(judged_by, PlausibilityLimits())
+            check.accept(0.0, rises_at(8.0, 4.0))
+            assert check.check_prediction(16.0, banked, after, 0.0) is None
+            assert check.holds == {} and check.re_references == 1
+            check.accept(16.0, after)
+            # From the new level, one sensor's own jump is still caught.
+            jumped = after | {"A": after["A"] + 3.0}
+            suspect = check.check_prediction(17.0, banked, jumped, 0.0)
+            assert suspect is not None and suspect.sensor == "A", judged_by
 
 
 def test_a_sensor_held_for_a_step_its_neighbours_then_share_is_trusted_again(

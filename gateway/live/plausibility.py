@@ -47,12 +47,31 @@ most::
 
     max_prediction_rate_um_per_s · Δt + prediction_noise_um
 
-A prediction that moves faster is not used. The sensor responsible is the one
-whose rise, put back to its earlier value, undoes most of the jump; it is held
-BAD as above ("implausible: moved the prediction …") and the cycle predicts with
-the model without it (so the policy does not fall back to hold-and-ramp). It is
-released by rule 1, or, where rule 1 cannot run, after ``plausibility_recover_s``
-of good per-sensor checks. The earlier cycles' rows and predictions are kept
+Both ends are predicted by the same model: every earlier cycle is predicted again
+with this cycle's model, so a switch between regimes' models, or to the fallback
+without a sensor, is never a move. A move past the bound is put on a sensor only
+for a step of its own (:mod:`gateway.live.step_blame`): its change over the span
+disagrees with what its neighbours' changes say (the relation without its
+intercept, at rule 1's threshold; without a relation, a change past
+``sigma × min_sigma_C`` that fewer than half of the others share), and with its
+rise put back to its earlier value the move is within the bound. The step is
+looked for against the latest earlier cycle past the bound, then the one most
+past it. Of the sensors meeting both, the one whose rise put back leaves the
+smallest move is held BAD as above ("implausible: moved the prediction …") and
+the cycle predicts with the model without it (so the policy does not fall back
+to hold-and-ramp).
+
+A move that is no sensor's own step (heat the sensors agree on, the noise of a
+fallback with large coefficients, a step most sensors share after a restart of
+the transmitters or a re-zero) holds nobody: the prediction is used, and the
+bound forgets the earlier cycles and counts from this one (logged, at most once
+per ``RATE_HORIZON_S``, with how many sensors moved together). A sensor held for
+a step that its neighbours have since shared (its change since the cycle it was
+judged from is still past the noise floor and now agrees with theirs) is
+trusted again at once; otherwise it is released by rule 1, or, where rule 1
+cannot run, after ``plausibility_recover_s`` of good per-sensor checks.
+
+The earlier cycles' rows and predictions are kept
 from cycle to cycle (:mod:`gateway.live.earlier_rows`): the rule's cost does not
 grow with the time the machine has run. Augmented models (lag states) are not
 bounded this way: their speed terms legitimately step with the speed. Rates are per second
@@ -399,7 +418,7 @@ class Plausibility:
             hold.reason = f"implausible: {z:+.1f}σ from its neighbours ({said})"
             return
         if self._step_shared(sensor, {**others, sensor: value_C}):
-            self._release(sensor, "its step is shared by its neighbours now")
+            self._release(sensor, "shares its step with its neighbours now")
             return
         if hold.agree_since_s is None:
             hold.agree_since_s = now_s
@@ -418,7 +437,7 @@ class Plausibility:
             hold = self.holds[sensor]
             others = {s: v for s, v in rises_C.items() if s not in self.holds}
             if self._step_shared(sensor, {**others, sensor: rises_C[sensor]}):
-                self._release(sensor, "its step is shared by its neighbours now")
+                self._release(sensor, "shares its step with its neighbours now")
                 continue
             if hold.agree_since_s is None:
                 hold.agree_since_s = now_s
@@ -528,7 +547,7 @@ class Plausibility:
         log.info(
             "%s: the prediction moved %+.1f µm in %.0f s (bound %.1f µm) but no sensor stepped "
             "on its own (%d of %d sensors moved together; %s): nobody held, the rate bound "
-            "counts from this cycle (%d time(s) since the last line)",
+            "counts from this cycle (%d such move(s) since the last line)",
             self.machine,
             moved_um,
             span_s,

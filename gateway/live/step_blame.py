@@ -150,7 +150,7 @@ def attribute(
             notes.append(f"{sensor} {account}" + ("" if explains else ", not enough alone"))
     if best is not None:
         return Attribution(best[1], "", stepped_together(limits, moved_C))
-    account = "; ".join(notes) if notes else "no sensor stepped on its own"
+    account = "; ".join(notes) if notes else "every change agrees with its neighbours'"
     return Attribution(None, account, stepped_together(limits, moved_C))
 
 

@@ -56,11 +56,15 @@ def test_one_faulty_sensor_keeps_the_compensation_predicting(
     assert len(run.held()) <= 1, run.held()  # never a second sensor beside the one at fault
 
 
-@pytest.mark.parametrize("seed", [1, 2])
-def test_the_noisy_model_without_t5_holds_no_sound_sensor(store: Path, seed: int) -> None:
-    """A +3 °C offset on T5 for 900 cycles: the model without it serves throughout."""
+@pytest.mark.parametrize(("seed", "warm"), [(1, False), (2, False), (2, True)])
+def test_the_noisy_model_without_t5_holds_no_sound_sensor(
+    store: Path, seed: int, warm: bool
+) -> None:
+    """A +3 °C offset on T5 for 900 cycles: the model without it serves throughout; also
+    with the gateway started 10 min into the programme (a reference taken warm)."""
     fault = SensorFault("T5", "offset", start_s=0.0, magnitude_C=3.0)
-    run = asyncio.run(one.run(store, fault, 600.0, 900, seed=seed))
+    run = asyncio.run(one.run(store, fault, 600.0, 900, seed=seed, warm=warm))
+    assert run.closed.loop.plausibility.warm is warm
     assert run.held() == ["T5"]
     assert run.predicting == 1.0, run.predicting
     assert run.after[-1].model_id == "mlr-error_um-all-without-T5"

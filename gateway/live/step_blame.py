@@ -45,7 +45,15 @@ import numpy as np
 from gateway.limits import PlausibilityLimits
 from models.estimators.sensor_relations import SensorRelations
 
-__all__ = ["Attribution", "attribute", "own_step_z", "shared_step"]
+__all__ = [
+    "Attribution",
+    "attribute",
+    "changes",
+    "is_own_step",
+    "jump_floor_C",
+    "own_step_z",
+    "shared_step",
+]
 
 #: Fewest other sensors, trusted at both ends of the span, to judge a change by.
 MIN_NEIGHBOURS = 2

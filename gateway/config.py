@@ -760,7 +760,7 @@ class LoggingSection(Strict):
 
 
 class ScadaUserSection(Credentials):
-    username: str  # type: ignore[assignment]
+    username: str  # the login name  # type: ignore[assignment]
     role: Literal["operator", "viewer"] = "viewer"
 
 
@@ -845,7 +845,7 @@ class SparkplugSection(Credentials):
     edge_node_id: str
     primary_host_id: str | None = None
     client_id: str | None = None
-    qos: Literal[0, 1] = 1
+    qos: Literal[0, 1] = 0  # births and data; Sparkplug 3.0 asks QoS 0 (docs/fleet.md)
     keepalive_s: int = Field(default=30, ge=5, le=3600)
     ca_file: Path | None = None
     cert_file: Path | None = None
@@ -1046,31 +1046,47 @@ def rename_old_keys(document: YamlDocument) -> list[str]:
 
 def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
     """Secrets and folders, as ``run`` will use them; the first problem, located."""
-    problems: list[tuple[Loc, str]] = []
+    problems = _secret_reference_problems(config)
     for index, machine in enumerate(config.machines):
-        if machine.cnc.opcua is not None:
-            problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
-            if machine.cnc.opcua.security is not None:
-                loc = ("machines", index, "cnc", "opcua", "security")
-                problems += _security_problems(machine.cnc.opcua.security, loc)
+        if machine.cnc.opcua is not None and machine.cnc.opcua.security is not None:
+            loc = ("machines", index, "cnc", "opcua", "security")
+            problems += _security_problems(machine.cnc.opcua.security, loc)
     if config.scada is not None:
-        for index, user in enumerate(config.scada.users):
-            problems += _secret_problems(user, ("scada", "users", index))
         problems += _folder_problems(config.scada.pki_dir, ("scada", "pki_dir"))
     problems += _folder_problems(Path(config.state_dir), ("state_dir",))
     logging = config.logging
     if logging.influxdb is not None:
-        try:
-            logging.influxdb.token()
-        except ConfigError as exc:
-            key = "token_env" if logging.influxdb.token_env else "token_file"
-            problems.append((("logging", "influxdb", key), str(exc)))
         problems += _file_problems(logging.buffer_path, ("logging", "buffer_path"))
     else:
         problems += _file_problems(logging.local_store, ("logging", "local_store"))
     if problems:
         loc, message = problems[0]
         raise document.error(loc, message)
+
+
+def _secret_reference_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
+    """Every secret the configuration names, read as ``run`` will read it: each
+    ``*_env`` set and not empty, each secret or key file there, readable and not empty,
+    each account with a password (a user without one would log in with an empty one), and
+    each certificate, key and model signing key file readable."""
+    problems: list[tuple[Loc, str]] = []
+    for index, machine in enumerate(config.machines):
+        if machine.cnc.opcua is not None:
+            problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
+        keys = ("signing_key_file",)
+        problems += _key_file_problems(machine.models, ("machines", index, "models"), keys)
+    if config.scada is not None:
+        problems += _account_problems(config.scada.users, ("scada", "users"))
+    if config.web is not None:
+        problems += _account_problems(config.web.users or [], ("web", "users"))
+        problems += _key_file_problems(config.web, ("web",), ("tls_cert", "tls_key"))
+    if config.sparkplug is not None:
+        problems += _secret_problems(config.sparkplug, ("sparkplug",))
+        keys = ("ca_file", "cert_file", "key_file")
+        problems += _key_file_problems(config.sparkplug, ("sparkplug",), keys)
+    if config.logging.influxdb is not None:
+        problems += _token_problems(config.logging.influxdb, ("logging", "influxdb"))
+    return problems
 
 
 def _secret_problems(credentials: Credentials, loc: Loc) -> list[tuple[Loc, str]]:
@@ -1081,7 +1097,50 @@ def _secret_problems(credentials: Credentials, loc: Loc) -> list[tuple[Loc, str]
         return [((*loc, key), str(exc))]
     if secret == "" and credentials.password_file is not None:
         return [((*loc, key), f"password_file {credentials.password_file} is empty")]
+    if secret == "" and credentials.password_env:
+        message = f"environment variable {credentials.password_env} (password_env) is empty"
+        return [((*loc, key), message)]
     return []
+
+
+def _account_problems(users: Sequence[ScadaUserSection], loc: Loc) -> list[tuple[Loc, str]]:
+    """Each login account's password: named, and there."""
+    problems: list[tuple[Loc, str]] = []
+    for index, user in enumerate(users):
+        if not user.password_env and user.password_file is None:
+            message = f"user '{user.username}' has no password: give password_env or password_file"
+            problems.append(((*loc, index, "username"), message))
+        else:
+            problems += _secret_problems(user, (*loc, index))
+    return problems
+
+
+def _token_problems(influxdb: InfluxSection, loc: Loc) -> list[tuple[Loc, str]]:
+    key = "token_env" if influxdb.token_env else "token_file"
+    try:
+        token = influxdb.token()
+    except ConfigError as exc:
+        return [((*loc, key), str(exc))]
+    if token == "" and influxdb.token_env:
+        return [((*loc, key), f"environment variable {influxdb.token_env} (token_env) is empty")]
+    if token == "" and influxdb.token_file is not None:
+        return [((*loc, key), f"token_file {influxdb.token_file} is empty")]
+    return []
+
+
+def _key_file_problems(section: object, loc: Loc, keys: Sequence[str]) -> list[tuple[Loc, str]]:
+    """Certificates and keys the section names: files there and readable."""
+    problems: list[tuple[Loc, str]] = []
+    for key in keys:
+        path: Path | None = getattr(section, key)
+        if path is None:
+            continue
+        try:
+            with path.open("rb") as file:
+                file.read(1)
+        except OSError as exc:
+            problems.append(((*loc, key), f"{path}: {exc.strerror or exc}"))
+    return problems
 
 
 def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[Loc, str]]:

@@ -33,7 +33,7 @@ from gateway.live.loop import MachineLoop
 from gateway.live.proposal_monitor import MonitorSink, build_monitor
 from gateway.live.record import CycleRecord, Sink
 from gateway.live.scheduler import CycleScheduler
-from gateway.outputs.health import Health, machine_health, scalar_counters
+from gateway.outputs.health import Health, gateway_counters, machine_health, scalar_counters
 from gateway.outputs.sinks import Outputs
 from gateway.process.gc_tuning import frozen_startup_heap
 from gateway.process.supervision import Supervised
@@ -225,6 +225,11 @@ class Gateway:
             self._loop_of(machine_id), self.supervisors[machine_id], self.outputs.forwarder
         )
 
+    def gateway_health(self) -> dict[str, int]:
+        """The process's own counters, which belong to no one machine (the Sparkplug
+        node's ``Health/…`` metrics of NBIRTH and NDATA)."""
+        return gateway_counters(self.outputs.forwarder)
+
     def _build_scada(self) -> ScadaServer | None:
         section = self.config.scada
         if section is None:
@@ -263,12 +268,12 @@ class Gateway:
 
         by = "Sparkplug host"
         actions = Actions(
-            set_enabled=self._set_enabled,
+            set_enabled=lambda machine, on: self._set_enabled(machine, on, by=by),
             promote=lambda machine, proposal: self.promote(machine, proposal, by=by),
             rollback=lambda machine: self.rollback(machine, by=by),
             rebirth=lambda: node.rebirth(),
         )
-        node = build_node(self.config, self.health, actions)
+        node = build_node(self.config, self.health, actions, self.gateway_health)
         for loop in self.loops:
             loop.sinks.insert(max(len(loop.sinks) - 1, 0), node.sink)
             self.supervisors[loop.config.id].on_failure = functools.partial(
@@ -279,12 +284,13 @@ class Gateway:
     def _loop_of(self, machine_id: str) -> MachineLoop:
         return next(loop for loop in self.loops if loop.config.id == machine_id)
 
-    def _set_enabled(self, machine_id: str, enabled: bool) -> None:
-        """An authorised SCADA user switched compensation on or off."""
+    def _set_enabled(self, machine_id: str, enabled: bool, by: str = "SCADA") -> None:
+        """An authorised SCADA user (or a Sparkplug host, ``by``) switched compensation on
+        or off."""
         loop = self._loop_of(machine_id)
         if loop.compensation_enabled != enabled:
             log.warning(
-                "%s: compensation %s from SCADA", machine_id, "enabled" if enabled else "disabled"
+                "%s: compensation %s from %s", machine_id, "enabled" if enabled else "disabled", by
             )
         loop.compensation_enabled = enabled
 

@@ -21,8 +21,9 @@ Security (asyncua's defaults are open, so every layer is set explicitly):
   with one log line and no traceback;
 * identity: user name and password checked against :class:`ScadaUser` (constant-
   time compare); anonymous only if ``allow_anonymous``, and then read-only.
-  Failed logins lock the remote address and the user name out for a while
-  (:mod:`gateway.scada.login_throttle`), so passwords cannot be guessed at speed;
+  Failed logins lock the user name out for a while, and the remote address when it
+  fails many users (:mod:`gateway.scada.login_throttle`), so passwords cannot be
+  guessed at speed;
 * authorisation: only operators may send Write requests (viewers and anonymous
   get BadUserAccessDenied and nothing changes); the only writable node is each
   machine's ``CompensationEnabled``. An operator's write calls

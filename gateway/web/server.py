@@ -31,7 +31,14 @@ from gateway.web.plots import PlotRenderer
 log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).with_name("static")
-OPEN_PATHS = ("/login", "/static/")
+FAVICON = STATIC / "favicon.svg"
+OPEN_PATHS = ("/login", "/static/", "/favicon.ico")
+#: Sent with every response: pages, redirects, 404s, refusals, errors and static files.
+SECURITY_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'",
+    "X-Frame-Options": "DENY",
+    "X-Content-Type-Options": "nosniff",
+}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,6 +91,7 @@ class WebConsole:
 
     def app(self) -> web.Application:
         app = web.Application(middlewares=[self._session_middleware], client_max_size=64 * 1024)
+        app.on_response_prepare.append(_security_headers)
         p = self.pages
         app.add_routes(
             [
@@ -100,6 +108,7 @@ class WebConsole:
                 web.post("/machines/{machine}/{action}", p.action),
                 web.get("/reports", p.reports),
                 web.get("/reports/{path:.+}", p.report_file),
+                web.get("/favicon.ico", _favicon),
                 web.static("/static", STATIC),
             ]
         )
@@ -115,10 +124,7 @@ class WebConsole:
             if request.method == "GET":
                 raise web.HTTPSeeOther(f"/login?next={request.path}")
             raise web.HTTPUnauthorized(text="log in first")
-        response = await handler(request)
-        response.headers.setdefault("X-Frame-Options", "DENY")
-        response.headers.setdefault("Content-Security-Policy", "default-src 'self'")
-        return response
+        return await handler(request)
 
     async def start(self) -> None:
         self._runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
@@ -146,6 +152,20 @@ class WebConsole:
         if self._runner is not None:
             await self._runner.cleanup()
         self.renderer.close()
+
+
+async def _security_headers(request: web.Request, response: web.StreamResponse) -> None:
+    """Every response gets the headers, whoever made it: a handler, a redirect or refusal
+    raised as an HTTPException, the router's 404/405, the static files, or aiohttp's own
+    500 after an unexpected exception (a middleware sees none of the last)."""
+    for name, value in SECURITY_HEADERS.items():
+        response.headers.setdefault(name, value)
+
+
+async def _favicon(request: web.Request) -> web.FileResponse:
+    """The tab icon at the address browsers ask for first (an SVG: Chromium and Firefox
+    take it from here too), so no page's load ends in a 404."""
+    return web.FileResponse(FAVICON, headers={"Content-Type": "image/svg+xml"})
 
 
 def build_web(config: Any, gateway: GatewayLike) -> WebConsole:

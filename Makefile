@@ -34,6 +34,7 @@ test-quick: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 
 # The residual analysis reports of the bundled real data (HTML and plots, git-ignored),
 # on the default model (lag-ridge), as `analyze` gives them.

@@ -579,8 +579,9 @@ class MachineSection(Strict):
         """One missed read must not make a sensor stale; a fixed reference covers every sensor."""
         for name in self.sensor_names:
             sensor = self.sensors.get(name)
-            explicit = sensor is not None and "stale_s" in sensor.model_fields_set
-            if explicit and sensor.stale_s < self.cycle_s:
+            if sensor is None or "stale_s" not in sensor.model_fields_set:
+                continue
+            if sensor.stale_s < self.cycle_s:
                 raise KeyPathError(
                     ("sensors", name, "stale_s"),
                     f"{sensor.stale_s:g} s is shorter than cycle_s ({self.cycle_s:g} s): "
@@ -694,7 +695,10 @@ class InfluxSection(Strict):
         if variable is not None:
             return from_environment(variable, f"{key}_env")
         literal = getattr(self, key)
-        return default if literal is None else literal
+        value = default if literal is None else literal
+        if value is None:  # the section's validator refuses this before any value is read
+            raise ConfigError(f"give '{key}' or '{key}_env' (an environment variable)")
+        return value
 
     def url_value(self) -> str:
         url = self._setting("url")
@@ -942,8 +946,10 @@ class GatewayConfig(Strict):
         }
         for index, machine in enumerate(self.machines):
             number = machine.compensation.alive_macro
+            if number is None:
+                continue
             reader = probes.get((*machine.cnc_address(), number))
-            if number is None or reader is None or reader[0] == index:
+            if reader is None or reader[0] == index:
                 continue
             host, port, _ = machine.cnc_address()
             raise KeyPathError(
@@ -1023,9 +1029,11 @@ def rename_old_keys(document: YamlDocument) -> list[str]:
     line of its first use and the new name. Both names in one machine are refused.
     """
     machines = document.data.get("machines") if isinstance(document.data, dict) else None
+    if not isinstance(machines, list):
+        machines = []
     notes: list[str] = []
     for old, new in RENAMED_MACHINE_KEYS.items():
-        used = [i for i, m in enumerate(machines or []) if isinstance(m, dict) and old in m]
+        used = [i for i, m in enumerate(machines) if isinstance(m, dict) and old in m]
         for i in used:
             if new in machines[i]:
                 raise document.error(
@@ -1049,8 +1057,8 @@ def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
     problems = _secret_reference_problems(config)
     for index, machine in enumerate(config.machines):
         if machine.cnc.opcua is not None and machine.cnc.opcua.security is not None:
-            loc = ("machines", index, "cnc", "opcua", "security")
-            problems += _security_problems(machine.cnc.opcua.security, loc)
+            security = ("machines", index, "cnc", "opcua", "security")
+            problems += _security_problems(machine.cnc.opcua.security, security)
     if config.scada is not None:
         problems += _folder_problems(config.scada.pki_dir, ("scada", "pki_dir"))
     problems += _folder_problems(Path(config.state_dir), ("state_dir",))
@@ -1073,7 +1081,7 @@ def _secret_reference_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
     for index, machine in enumerate(config.machines):
         if machine.cnc.opcua is not None:
             problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
-        keys = ("signing_key_file",)
+        keys: tuple[str, ...] = ("signing_key_file",)
         problems += _key_file_problems(machine.models, ("machines", index, "models"), keys)
     if config.scada is not None:
         problems += _account_problems(config.scada.users, ("scada", "users"))

@@ -135,10 +135,11 @@ def load_bank(machine: MachineSection) -> ModelBank:
     bank.check_sensors(machine.sensor_names)
     limits = machine.models
     refused = bank.refuse_sensitive(limits.sensor_accuracy_C, limits.max_bias_error_um)
-    for model_id, reason in refused.items():
-        log.warning("machine %s: model %s refused: %s", machine.id, model_id, reason)
+    for refused_id, reason in refused.items():
+        log.warning("machine %s: model %s refused: %s", machine.id, refused_id, reason)
     rules = machine.models.regimes
-    for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
+    named: dict[str, str | None] = {**rules.models, "fallback": rules.fallback_model}
+    for regime, model_id in named.items():
         if model_id in refused:
             raise ValueError(
                 f"machine {machine.id}: regime '{regime}' names model '{model_id}', which is "
@@ -148,7 +149,7 @@ def load_bank(machine: MachineSection) -> ModelBank:
     if not bank.models:
         raise ValueError(f"machine {machine.id}: every model in {machine.models.store} is refused")
     Promotions(machine).load(bank)  # the promoted set in force, checked like the rest
-    for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
+    for regime, model_id in named.items():
         if model_id is not None and model_id not in bank:
             raise ValueError(
                 f"machine {machine.id}: regime '{regime}' names model '{model_id}', "

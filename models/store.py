@@ -124,7 +124,8 @@ def data_fingerprint(inputs: ModelInputs, error_um: np.ndarray) -> str:
     digest = hashlib.sha256()
     digest.update(json.dumps(list(inputs.sensors)).encode())
     for array in (inputs.rise_C, inputs.speed_rpm, np.asarray(error_um, dtype=float)):
-        digest.update(np.ascontiguousarray(array, dtype="<f8"))  # the buffer itself, no copy
+        values = np.ascontiguousarray(array, dtype="<f8")
+        digest.update(values.data.cast("B") if values.size else b"")  # no copy
     return digest.hexdigest()
 
 

@@ -525,7 +525,7 @@ def export(
 ) -> None:
     """Write logged data as a measured-run CSV (for fit and analyze)."""
     from gateway.config import load_config
-    from gateway.offline.export import ExportError, export_runs
+    from gateway.offline.export import ExportError, PointSource, export_runs
     from gateway.outputs.influx import InfluxReader
     from gateway.outputs.local_store import LocalStore
 
@@ -540,6 +540,7 @@ def export(
             f"no machine '{machine}' in {config_path} (machines: {', '.join(ids)})"
         )
     influx = config.logging.influxdb
+    source: PointSource
     if influx is not None:
         source = InfluxReader(
             influx.url_value(),

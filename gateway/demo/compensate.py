@@ -175,7 +175,7 @@ async def demo(
         f"{unseen.duration_s / speedup:.0f} s)"
     )
     closed = await _compensate(plant, machine, clock, workdir, unseen.duration_s)
-    result = closed.trace.summary()
+    result: dict[str, Any] = dict(closed.trace.summary())
     result.update(
         {
             "program": program,

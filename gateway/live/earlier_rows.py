@@ -57,6 +57,12 @@ class EarlierRows:
         self._model: object = None  # the model (and speed) the kept predictions are from
         self._speed: float | None = None
         self._start = self._end = 0
+        # One row per kept cycle, from _start to _end (made by _allocate).
+        self._times: np.ndarray
+        self._rows: np.ndarray
+        self._ok: np.ndarray  # every sensor trusted
+        self._predicted: np.ndarray
+        self._have: np.ndarray  # predicted kept
         self._allocate(_INITIAL_ROWS, 0)
 
     def __len__(self) -> int:

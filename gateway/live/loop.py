@@ -152,7 +152,7 @@ class MachineLoop:
         }
         checks = self.quality.check(now, readings, self.reference.values_C)
         good = {n for n, c in checks.items() if c.quality is Quality.GOOD}
-        good_values = {n: readings[n][0] for n in good if readings[n][0] is not None}
+        good_values = {n: value for n in good if (value := readings[n][0]) is not None}
         self.reference.observe(good_values, speed_rpm)
         self.plausibility.reference_turning = self.reference.taken_turning
         augmented_um = self.effects.advance(
@@ -260,16 +260,15 @@ class MachineLoop:
         self, now: float
     ) -> tuple[dict[str, ChannelResult], float | None, list[str]]:
         bus_reads = [bus.read_all(now) for bus in self.buses]
-        outcomes = await read_together(bus_reads, self.cnc.read_speed())
+        outcomes, speed = await read_together(bus_reads, self.cnc.read_speed())
         results: dict[str, ChannelResult] = {}
         failures: dict[str, str] = {}  # source → what failed
-        for bus_config, outcome in zip(self.config.transmitters, outcomes[:-1], strict=True):
+        for bus_config, outcome in zip(self.config.transmitters, outcomes, strict=True):
             if isinstance(outcome, BaseException):
                 failures[f"bus {bus_config.name}"] = str(outcome)
                 continue
             results.update(outcome)
             failures.update({f"sensor {r.sensor}": r.error for r in outcome.values() if r.error})
-        speed = outcomes[-1]
         speed_rpm = None
         if isinstance(speed, BaseException):
             failures["CNC"] = str(speed)
@@ -695,13 +694,13 @@ class MachineLoop:
 
 async def read_together(
     bus_reads: Sequence[Awaitable[T]], speed_read: Awaitable[S]
-) -> list[T | S | BaseException]:
+) -> tuple[list[T | BaseException], S | BaseException]:
     """Await the reads concurrently, as ``gather(..., return_exceptions=True)`` does.
 
     The speed read runs in the calling task and only the bus reads get tasks of
     their own: one task fewer per machine and cycle than ``gather`` (which also
-    adds a gathering future and its callbacks). Outcomes come in the order given,
-    the speed last; an ``Exception`` is returned in its place, a cancellation
+    adds a gathering future and its callbacks). The buses' outcomes come in the order
+    given, then the speed's; an ``Exception`` is returned in its place, a cancellation
     cancels every read and propagates.
     """
     tasks = [asyncio.ensure_future(read) for read in bus_reads]
@@ -710,7 +709,7 @@ async def read_together(
             speed: S | BaseException = await speed_read
         except Exception as exc:
             speed = exc
-        outcomes: list[T | S | BaseException] = []
+        outcomes: list[T | BaseException] = []
         for task in tasks:
             try:
                 outcomes.append(await task)
@@ -719,8 +718,7 @@ async def read_together(
     finally:
         for task in tasks:
             task.cancel()  # a no-op on the finished ones
-    outcomes.append(speed)
-    return outcomes
+    return outcomes, speed
 
 
 class _StopGuard:

@@ -127,8 +127,8 @@ class WriteRejectedError(WriteError):
 
 def to_influx(point: Point) -> InfluxPoint:
     influx = InfluxPoint(point.measurement)
-    for key, value in point.tags.items():
-        influx.tag(key, value)
+    for key, tag in point.tags.items():
+        influx.tag(key, tag)
     for key, value in point.fields.items():
         influx.field(key, value)
     return influx.time(point.time_ns, WritePrecision.NS)
@@ -212,9 +212,8 @@ class InfluxWriter:
             return
         records = [to_influx(p) for p in points]
         try:
-            self._write_api.write(
-                bucket=self.bucket, org=self.org, record=records, write_precision=WritePrecision.NS
-            )
+            # Each point carries its precision (ns), which the client groups points by.
+            self._write_api.write(bucket=self.bucket, org=self.org, record=records)
         except ApiException as exc:
             raise _api_error(exc, self.url, len(points)) from exc
         except Exception as exc:  # urllib3 connection errors, timeouts, …

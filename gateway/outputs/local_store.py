@@ -186,6 +186,7 @@ class LocalStore:
             return self._delete_before(time_ns, limit)
 
     def _delete_before(self, time_ns: int, limit: int | None) -> int:
+        args: tuple[int, ...]
         if limit is None:
             sql, args = "DELETE FROM points WHERE time_ns < ?", (time_ns,)
         else:

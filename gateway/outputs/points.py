@@ -46,11 +46,16 @@ NS_PER_S = 1_000_000_000
 
 @dataclass(frozen=True)
 class Point:
-    """One time-series point: what InfluxDB stores as measurement, tags, fields, time."""
+    """One time-series point: what InfluxDB stores as measurement, tags, fields, time.
+
+    A field may be None only in the Sparkplug node's backlog, where a metric without a
+    value travels as a null; the cycle's points for InfluxDB and the local store leave
+    such a field out.
+    """
 
     measurement: str
     tags: dict[str, str]
-    fields: dict[str, FieldValue]
+    fields: Mapping[str, FieldValue | None]
     time_ns: int
 
     @property

@@ -64,7 +64,15 @@ from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from drivers.opcua_common import CELSIUS, MICROMETRE, RPM, ServerLifecycle
+from drivers.opcua_common import (
+    CELSIUS,
+    MICROMETRE,
+    RPM,
+    ServerLifecycle,
+    data_value,
+    node_id,
+    status_code,
+)
 from gateway.live.record import CycleRecord
 from gateway.scada.login_throttle import Key, LoginThrottle, ThrottlePolicy
 from gateway.scada.trust_store import TolerantTrustStore
@@ -185,8 +193,8 @@ _NO_VIEWER = {
     ua.ObjectIds.WriteRequest_Encoding_DefaultBinary,
     ua.ObjectIds.CallRequest_Encoding_DefaultBinary,
 }
-_OPERATOR_REQUESTS = frozenset(ua.NodeId(t) for t in USER_TYPES)
-_VIEWER_REQUESTS = frozenset(ua.NodeId(t) for t in USER_TYPES if t not in _NO_VIEWER)
+_OPERATOR_REQUESTS = frozenset(node_id(t) for t in USER_TYPES)
+_VIEWER_REQUESTS = frozenset(node_id(t) for t in USER_TYPES if t not in _NO_VIEWER)
 
 
 class _RoleRuleset(PermissionRuleset):
@@ -233,7 +241,7 @@ class _ClientTrust:
                 raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
             await CertificateValidator(options, store).validate(cert, app)
         except ServiceError as err:
-            name = ua.StatusCode(err.code).name
+            name = status_code(err.code).name
             subject = _common_name(cert)
             if err.code == ua.StatusCodes.BadCertificateUntrusted:
                 path, removed = self._save_rejected(cert, der)
@@ -384,11 +392,12 @@ def _watch_peers(server: Server, manager: _UserManager) -> None:
                 manager.peer = None
                 manager.admitted_certificate = None
 
-        session.create_session = create_checked
-        session.activate_session = activate_session
+        # asyncua has no hook for this: its methods are wrapped in place, on purpose.
+        session.create_session = create_checked  # type: ignore[method-assign]
+        session.activate_session = activate_session  # type: ignore[method-assign]
         return session
 
-    iserver.create_session = create_watched_session
+    iserver.create_session = create_watched_session  # type: ignore[method-assign]
 
 
 # -- the server -----------------------------------------------------------------------
@@ -399,10 +408,7 @@ def _now() -> datetime:
 
 
 def _dv(variant: ua.Variant, status: int = ua.StatusCodes.Good) -> ua.DataValue:
-    now = _now()
-    return ua.DataValue(
-        variant, StatusCode=ua.StatusCode(status), SourceTimestamp=now, ServerTimestamp=now
-    )
+    return data_value(variant, status)
 
 
 def _double(value: float | None, missing: int = ua.StatusCodes.BadNoData) -> ua.DataValue:
@@ -723,12 +729,12 @@ class ScadaServer(ServerLifecycle):
             await self._variable(proposals, machine, name, initial[kind], description, unit)
         proposal_id = ua.Argument()
         proposal_id.Name = "ProposalId"
-        proposal_id.DataType = ua.NodeId(ua.ObjectIds.String)
+        proposal_id.DataType = node_id(ua.ObjectIds.String)
         proposal_id.ValueRank = -1
         proposal_id.Description = ua.LocalizedText("Id of the proposal, e.g. P0001")
         result = ua.Argument()
         result.Name = "Result"
-        result.DataType = ua.NodeId(ua.ObjectIds.String)
+        result.DataType = node_id(ua.ObjectIds.String)
         result.ValueRank = -1
         result.Description = ua.LocalizedText("What changed")
         for name, call, inputs in (
@@ -736,7 +742,7 @@ class ScadaServer(ServerLifecycle):
             ("RollbackModels", self._rollback_method, []),
         ):
             await obj.add_method(
-                ua.NodeId(self.node_id(machine, name), ns),
+                node_id(self.node_id(machine, name), ns),
                 ua.QualifiedName(name, ns),
                 call,
                 inputs,
@@ -747,9 +753,9 @@ class ScadaServer(ServerLifecycle):
         """``PromoteProposal(ProposalId)``: operators only (the ruleset refuses others)."""
         machine = self._machine_of_object(parent)
         if self._on_promote is None:
-            return ua.StatusCode(ua.StatusCodes.BadNotImplemented)
+            return status_code(ua.StatusCodes.BadNotImplemented)
         if len(args) != 1 or args[0].VariantType != ua.VariantType.String:
-            return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+            return status_code(ua.StatusCodes.BadInvalidArgument)
         proposal_id = str(args[0].Value or "")
         on_promote = self._on_promote
         return await self._operator_action(
@@ -760,9 +766,9 @@ class ScadaServer(ServerLifecycle):
         """``RollbackModels()``: operators only (the ruleset refuses others)."""
         machine = self._machine_of_object(parent)
         if self._on_rollback is None:
-            return ua.StatusCode(ua.StatusCodes.BadNotImplemented)
+            return status_code(ua.StatusCodes.BadNotImplemented)
         if args:
-            return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
+            return status_code(ua.StatusCodes.BadTooManyArguments)
         on_rollback = self._on_rollback
         return await self._operator_action(
             machine, "RollbackModels()", lambda: on_rollback(machine)
@@ -790,7 +796,7 @@ class ScadaServer(ServerLifecycle):
                 self._nodeids[self.node_id(machine, "Proposals.LastAction")], _string(line)
             )
         if status != ua.StatusCodes.Good:
-            return ua.StatusCode(status)
+            return status_code(status)
         return [ua.Variant(text, ua.VariantType.String)]
 
     def _machine_of_object(self, parent: ua.NodeId) -> str:
@@ -801,10 +807,10 @@ class ScadaServer(ServerLifecycle):
 
     async def _object(self, parent: Node, nodeid: str, browse: str, description: str) -> Node:
         node = await parent.add_object(
-            ua.NodeId(nodeid, self.namespace_index), ua.QualifiedName(browse, self.namespace_index)
+            node_id(nodeid, self.namespace_index), ua.QualifiedName(browse, self.namespace_index)
         )
         await node.write_attribute(
-            ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+            ua.AttributeIds.Description, data_value(ua.LocalizedText(description), stamped=False)
         )
         return node
 
@@ -820,17 +826,17 @@ class ScadaServer(ServerLifecycle):
         ns = self.namespace_index
         nodeid = self.node_id(machine, name)
         node = await parent.add_variable(
-            ua.NodeId(nodeid, ns), ua.QualifiedName(name.rsplit(".", 1)[-1], ns), initial
+            node_id(nodeid, ns), ua.QualifiedName(name.rsplit(".", 1)[-1], ns), initial
         )
         await node.write_attribute(
-            ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+            ua.AttributeIds.Description, data_value(ua.LocalizedText(description), stamped=False)
         )
         if unit is not None:
             await node.add_property(
-                ua.NodeId(f"{nodeid}.EngineeringUnits", ns),
+                node_id(f"{nodeid}.EngineeringUnits", ns),
                 ua.QualifiedName("EngineeringUnits", 0),
                 ua.Variant(unit, ua.VariantType.ExtensionObject),
-                datatype=ua.NodeId(ua.ObjectIds.EUInformation),
+                datatype=node_id(ua.ObjectIds.EUInformation),
             )
         # No value until the first publish(): SCADA sees "waiting", not a fake zero.
         await node.write_value(_dv(initial, ua.StatusCodes.BadWaitingForInitialData))

@@ -15,6 +15,7 @@ from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
+from gateway.sparkplug import sparkplug_b_pb2 as pb
 from gateway.sparkplug.metrics import ENABLED, PROMOTE, REBIRTH, ROLLBACK, WRITABLE
 from gateway.sparkplug.payload import DATATYPE_NAMES, MetricSpec, decode, value_of
 
@@ -99,7 +100,7 @@ class CommandHandler:
 
     def _step(
         self,
-        metric: object,
+        metric: pb.Payload.Metric,
         by_alias: Mapping[int, MetricSpec],
         by_name: Mapping[str, MetricSpec],
         device: str | None,
@@ -108,13 +109,13 @@ class CommandHandler:
         kind = WRITABLE.get(spec.name)
         if kind is None:
             raise CommandRefusedError(f"{spec.name} is read-only; {_writable(by_name)}")
-        if metric.HasField("datatype") and metric.datatype != spec.datatype:  # type: ignore[attr-defined]
+        if metric.HasField("datatype") and metric.datatype != spec.datatype:
             raise CommandRefusedError(
-                f"{spec.name}: datatype {_type_name(metric.datatype)} where "  # type: ignore[attr-defined]
+                f"{spec.name}: datatype {_type_name(metric.datatype)} where "
                 f"{_type_name(spec.datatype)} is expected"
             )
-        value = value_of(metric)  # type: ignore[arg-type]
-        if not isinstance(value, kind):
+        value = value_of(metric)
+        if not isinstance(value, kind) or not isinstance(value, bool | str):
             wanted = _type_name(spec.datatype)
             raise CommandRefusedError(f"{spec.name}: a {wanted} value expected, got {value!r}")
         return spec.name, self._action(spec.name, value, device)
@@ -145,14 +146,14 @@ def _writable(by_name: Mapping[str, MetricSpec]) -> str:
 
 
 def _spec_of(
-    metric: object, by_alias: Mapping[int, MetricSpec], by_name: Mapping[str, MetricSpec]
+    metric: pb.Payload.Metric, by_alias: Mapping[int, MetricSpec], by_name: Mapping[str, MetricSpec]
 ) -> MetricSpec:
-    if metric.HasField("alias"):  # type: ignore[attr-defined]
-        spec = by_alias.get(metric.alias)  # type: ignore[attr-defined]
+    if metric.HasField("alias"):
+        spec = by_alias.get(metric.alias)
         if spec is None:
-            raise CommandRefusedError(f"unknown alias {metric.alias}")  # type: ignore[attr-defined]
+            raise CommandRefusedError(f"unknown alias {metric.alias}")
         return spec
-    spec = by_name.get(metric.name)  # type: ignore[attr-defined]
+    spec = by_name.get(metric.name)
     if spec is None:
-        raise CommandRefusedError(f"unknown metric {metric.name!r}")  # type: ignore[attr-defined]
+        raise CommandRefusedError(f"unknown metric {metric.name!r}")
     return spec

@@ -21,9 +21,14 @@ DOUBLE = pb.Double
 BOOLEAN = pb.Boolean
 STRING = pb.String
 
-DATATYPE_NAMES = {INT64: "Int64", UINT64: "UInt64", DOUBLE: "Double", BOOLEAN: "Boolean",
-                  STRING: "String"}  # fmt: skip
-_VALUE_FIELD = {
+DATATYPE_NAMES: dict[int, str] = {
+    INT64: "Int64",
+    UINT64: "UInt64",
+    DOUBLE: "Double",
+    BOOLEAN: "Boolean",
+    STRING: "String",
+}
+_VALUE_FIELD: dict[int, str] = {
     INT64: "long_value",
     UINT64: "long_value",
     DOUBLE: "double_value",

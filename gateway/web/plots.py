@@ -46,7 +46,7 @@ def _figure(rows: int) -> tuple[Any, Sequence[Any]]:
         left=0.08, right=0.955, top=1 - 0.3 / height_in, bottom=0.55 / height_in, hspace=0.12
     )
     axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
-    return fig, axes
+    return fig, list(axes)
 
 
 def _svg(fig: Any) -> str:

@@ -115,7 +115,9 @@ class WebConsole:
         return app
 
     @web.middleware
-    async def _session_middleware(self, request: web.Request, handler: Handler):  # type: ignore[no-untyped-def]
+    async def _session_middleware(
+        self, request: web.Request, handler: Handler
+    ) -> web.StreamResponse:
         session = self.auth.session(request)
         request[SESSION] = session
         if session is None and not request.path.startswith(OPEN_PATHS):

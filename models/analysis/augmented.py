@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -190,7 +191,7 @@ def sign(document: dict[str, Any], key: bytes | None) -> dict[str, Any]:
     return signing.sign(document, key, canonical_bytes(document))
 
 
-def stored_base(document: dict[str, Any]) -> ThermalModel:
+def stored_base(document: Mapping[str, Any]) -> ThermalModel:
     """The base model of a stored augmented model, as its terms were fitted.
 
     Documents before format 2 with a ridge or PLS base stored the coefficients of
@@ -206,7 +207,7 @@ def stored_base(document: dict[str, Any]) -> ThermalModel:
     return METHODS[method].from_params(info["hyperparams"], info["params"])
 
 
-def stored_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
+def stored_design(document: Mapping[str, Any], prepared: Prepared) -> np.ndarray:
     """The design (intercept, base terms, effect terms) of a stored augmented model."""
     base = stored_base(document)
     columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]

@@ -252,8 +252,9 @@ class ResidualAnalysis:
                 )
                 break
             best = min(believed, key=lambda i: candidates[i].rmse_um)
-            family, ev = tried[best]
-            assert ev is not None
+            family, believed_ev = tried[best]
+            assert believed_ev is not None
+            ev = believed_ev
             overall = candidates[best]
             choice = _overall_choice(ev, family)
             variant = family.variants[choice]
@@ -505,8 +506,8 @@ class ResidualAnalysis:
             fixed = designs[key]
             for vi in sorted({chosen[f] for f in folds_in_group}):
                 built_vi, extra = last_built.pop(key, (None, None))
-                if built_vi != vi:
-                    del extra
+                if built_vi != vi or extra is None:
+                    extra = None  # another variant's terms go before these are made
                     extra = self._extra(variants[vi])
                 for f in (f for f in folds_in_group if chosen[f] == vi):
                     part, beta = self.folds.parts[f], betas[vi, f]
@@ -549,7 +550,7 @@ class ResidualAnalysis:
         products = []
         for part in self.folds.parts:
             rows = a.rows(part) if isinstance(a, FixedDesign) else a[part]
-            other = rows if b is a else b[part]
+            other = rows if b is a else (b.rows(part) if isinstance(b, FixedDesign) else b[part])
             products.append(rows.T @ other)
         return np.stack(products)
 

@@ -287,7 +287,7 @@ class LagRidgeModel(ThermalModel):
         with threadpool_limits(1):
             choice = choose(candidate_paths(inputs, used, self.candidates, y, labels))
         self._use(choice.structure)
-        self._design_cache = None
+        self._design_cache: tuple[ModelInputs, np.ndarray] | None = None
         self.sensors_used_ = used
         self.intercept_um_ = float(choice.beta[0])
         self.coef_ = choice.beta[1:]
@@ -508,6 +508,6 @@ class LagRidgeStream:
         self._time_s = float(state["time_s"])
         self._lags = values.reshape(len(self.model.lag_taus_s), len(self.names))
         last = [state.get(k) for k in self.input_keys()]
-        self._last = None if last[0] is None else np.array([float(v) for v in last])
+        self._last = None if last[0] is None else np.array(last, dtype=float)
         if self._last is not None and not np.all(np.isfinite(self._last)):
             raise ValueError("lag-ridge: state holds a value that is not finite")

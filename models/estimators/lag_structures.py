@@ -218,7 +218,11 @@ class GroupGrams:
         return grams
 
     def total(self, members: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-        return sum(self.gram[i] for i in members), sum(self.cross[i] for i in members)
+        zeros_gram, zeros_cross = np.zeros_like(self.gram[0]), np.zeros_like(self.cross[0])
+        return (
+            sum((self.gram[i] for i in members), zeros_gram),
+            sum((self.cross[i] for i in members), zeros_cross),
+        )
 
     def total_yy(self, members: Sequence[int]) -> float:
         return float(sum(self.yy[i] for i in members))
@@ -416,7 +420,7 @@ class CandidatePaths:
             return best
         standard_error = math.sqrt(len(held_out)) * float(sse[:, best].std(ddof=1))
         within = np.flatnonzero(total <= total[best] + standard_error)
-        return int(max(within, key=self._strength))
+        return int(max(within.tolist(), key=self._strength))
 
     def _strength(self, k: int) -> tuple[float, float]:
         point = self.grid[k]

@@ -352,7 +352,6 @@ class ProposalStore:
         created = time.time() if created_s is None else float(created_s)
         params_json = json.loads(json.dumps(dict(params)))
         self.folder.mkdir(parents=True, exist_ok=True)
-        figures = {name: float(value) for name, value in figures.items()}
         published = {"status": PROPOSED, "time_s": created, "note": "published"}
         with self.versions.locked():  # a recovery removes temporary files under it
             while True:
@@ -367,7 +366,8 @@ class ProposalStore:
                     replaces=replaces,
                     note=note,
                     history=(published,),
-                    **figures,
+                    before_rmse_um=float(before_rmse_um),
+                    after_rmse_um=float(after_rmse_um),
                 )
                 if _write_new(self._path(proposal.id), proposal.to_json()):
                     return proposal

@@ -390,7 +390,10 @@ class _ReplayBase:
         self.slices = dict(data.run_slices())
         self.masks = {r: data.run == r for r in data.run_ids}
         self._lagged: dict[tuple[str, ...], LaggedFeatures] = {}  # by the sensors a model uses
-        self.design = stored_design(document, prepared) if base == "augmented" else None
+        self.design = None
+        if base == "augmented":
+            assert document is not None, "an augmented base is replayed from its document"
+            self.design = stored_design(document, prepared)
         self.grams = {}
         if self.design is not None:
             y = prepared.error_um

@@ -885,6 +885,8 @@ class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
     #: One line per old key name the file still uses (file, line, the new name).
     _deprecations: list[str] = PrivateAttr(default_factory=list)
+    #: The file it was read from, to locate later refusals (a model store's) on its lines.
+    _document: YamlDocument | None = PrivateAttr(default=None)
     state_dir: Path = Path(".cache/state")
     logging: LoggingSection = LoggingSection()
     scada: ScadaSection | None = None
@@ -898,6 +900,13 @@ class GatewayConfig(Strict):
     def deprecations(self) -> list[str]:
         """Old key names the file used, one located line each (empty for a current file)."""
         return list(self._deprecations)
+
+    def error_at(self, loc: Loc, message: str) -> ConfigError:
+        """``message`` located at ``loc`` of the file this configuration was read from
+        (``file:line: key.path: message``); unlocated for one built in code."""
+        if self._document is None:
+            return ConfigError(message)
+        return ConfigError(str(self._document.error(loc, message)))
 
     @model_validator(mode="after")
     def _unique_ids(self) -> GatewayConfig:
@@ -999,6 +1008,7 @@ def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
         deprecations = rename_old_keys(document)
         config = validate_section(document, GatewayConfig)
         config._deprecations = deprecations
+        config._document = document
         if config.simulator is not None:
             from simulator.serve import SimulatorConfig
 
@@ -1068,6 +1078,7 @@ def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
         problems += _file_problems(logging.buffer_path, ("logging", "buffer_path"))
     else:
         problems += _file_problems(logging.local_store, ("logging", "local_store"))
+    problems += _named_path_problems(config)
     if problems:
         loc, message = problems[0]
         raise document.error(loc, message)
@@ -1133,6 +1144,46 @@ def _file_problems(path: Path, loc: Loc) -> list[tuple[Loc, str]]:
     if path.exists() and not os.access(path, os.W_OK):
         return [(loc, f"{path} is not writable")]
     return _folder_problems(path.parent, loc, subject=path)
+
+
+def _named_path_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
+    """The keys, certificates and buffers the sections name, as ``run`` will open them: each
+    refused here on its own line rather than by ``run`` later, unlocated. (The model
+    stores are refused, located, by :func:`gateway.wiring.load_located_bank`.)"""
+    problems: list[tuple[Loc, str]] = []
+    for index, machine in enumerate(config.machines):
+        key = machine.models.signing_key_file
+        if key is not None:
+            loc = ("machines", index, "models", "signing_key_file")
+            problems += _readable_problems(key, loc, "key")
+    if config.web is not None:
+        for key in ("tls_cert", "tls_key"):
+            path = getattr(config.web, key)
+            if path is not None:
+                problems += _readable_problems(path, ("web", key), "PEM")
+        reports = config.web.reports_dir
+        if reports is not None and reports.exists() and not reports.is_dir():
+            problems.append(
+                (("web", "reports_dir"), f"{reports} is a file; a folder of reports was expected")
+            )
+    if config.sparkplug is not None:
+        for key in ("ca_file", "cert_file", "key_file"):
+            path = getattr(config.sparkplug, key)
+            if path is not None:
+                problems += _readable_problems(path, ("sparkplug", key), "PEM")
+        problems += _file_problems(config.sparkplug.buffer_path, ("sparkplug", "buffer_path"))
+    return problems
+
+
+def _readable_problems(path: Path, loc: Loc, kind: str) -> list[tuple[Loc, str]]:
+    """A file the gateway reads at start (a key, a certificate), there and readable."""
+    if not path.exists():
+        return [(loc, f"{path} does not exist; a readable {kind} file was expected")]
+    if not path.is_file():
+        return [(loc, f"{path} is a folder; a readable {kind} file was expected")]
+    if not os.access(path, os.R_OK):
+        return [(loc, f"{path} is not readable by this user; a readable {kind} file was expected")]
+    return []
 
 
 # --------------------------------------------------------------------------- RS-485 lines

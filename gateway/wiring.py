@@ -123,6 +123,20 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
     )
 
 
+def load_located_bank(config: GatewayConfig, index: int) -> ModelBank:
+    """:func:`load_bank` for ``config.machines[index]``; a refusal (no such store, no models,
+    a bad signature, a regime naming a missing model) names the file and the line of that
+    machine's ``models.store``."""
+    loc = ("machines", index, "models", "store")
+    store = config.machines[index].models.store
+    if store.exists() and not store.is_dir():
+        raise config.error_at(loc, f"{store} is a file; the model store folder was expected")
+    try:
+        return load_bank(config.machines[index])
+    except (ValueError, OSError) as exc:
+        raise config.error_at(loc, str(exc)) from None
+
+
 def load_bank(machine: MachineSection) -> ModelBank:
     """The machine's models, checked against its sensors and its regime rules (and their
     signatures, with ``models.signing_key_file``)."""
@@ -188,11 +202,11 @@ class Gateway:
                 self.clock,
                 build_buses(machine, hubs),
                 build_cnc(machine, self.clock),
-                load_bank(machine),
+                load_located_bank(config, index),
                 state_dir=Path(config.state_dir),
                 sinks=sinks,
             )
-            for machine in config.machines
+            for index, machine in enumerate(config.machines)
         ]
         # One timer for every loop, and each loop's polls at its own phase of the cycle.
         self.scheduler = CycleScheduler(self.clock)

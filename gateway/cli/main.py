@@ -356,10 +356,10 @@ def check_config(config_path: Path, connect: bool) -> None:
         click.echo(f"warning: {line}", err=True)
     # The runtime (protocol clients, the model stack) only once the file is known good:
     # a bad file is refused in well under a second.
-    from gateway.wiring import check_connections, load_bank
+    from gateway.wiring import check_connections, load_located_bank
 
-    for machine in config.machines:
-        bank = load_bank(machine)
+    for index, machine in enumerate(config.machines):
+        bank = load_located_bank(config, index)
         click.echo(
             f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
             f"{len(bank.models)} models in {machine.models.store} (target {bank.target}), "

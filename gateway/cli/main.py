@@ -104,6 +104,9 @@ def fit(
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
     data, sensor_list = _load_reported(data_csv, target, sensors)
+    from models.data.recording_checks import refuse_constant_target
+
+    refuse_constant_target(data)
     # The fitting stack (scipy, scikit-learn) only once the file is known good.
     from gateway.offline.fit import FitRequest, run_fit
 
@@ -126,12 +129,16 @@ def _warn(text: str) -> None:
 def _load_reported(
     data_csv: Path, target: str, sensors: str | None, sparse_target: bool = False
 ) -> tuple[Any, list[str] | None]:
-    """The runs of DATA_CSV (skipped rows and notes said on stderr) and the --sensors list."""
+    """The runs of DATA_CSV (skipped rows, notes and remarks on the whole recording said on
+    stderr) and the --sensors list."""
     from models.data.dataset import load_runs
+    from models.data.recording_checks import recording_remarks
 
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=sparse_target)
     report_skipped(data)
+    for remark in recording_remarks(data):
+        _warn(f"warning: {remark}")
     return data, sensor_list
 
 

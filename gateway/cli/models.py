@@ -26,15 +26,11 @@ from typing import Any
 
 import click
 
-from gateway.cli.options import input_errors_exit
+from gateway.cli.options import config_option, input_errors_exit, store_option
 
-STORE_OPTION = click.option(
-    "--store", "store_dir", type=click.Path(path_type=Path), help="The model store folder."
-)
-CONFIG_OPTION = click.option(
-    "--config",
-    "config_path",
-    type=click.Path(path_type=Path),
+STORE_OPTION = store_option("The model store folder.")
+CONFIG_OPTION = config_option(
+    default=None,
     help="Gateway configuration naming the stores (default config.yaml, unless --store).",
 )
 MACHINE_OPTION = click.option("--machine", "machine_id", help="Machine id (with --config).")

@@ -57,7 +57,7 @@ from drivers.yaml_loader import (
     load_yaml,
 )
 from drivers.yaml_loader import validate as validate_section
-from gateway.limits import CompensationLimits, QualityLimits
+from gateway.limits import CompensationLimits, LoginLimits, QualityLimits
 from gateway.process.event_loop import DEFAULT as DEFAULT_EVENT_LOOP
 from gateway.process.event_loop import EventLoopName
 from models.fit.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
@@ -983,6 +983,17 @@ class GatewayConfig(Strict):
                     f"which names {other}; machines sharing a store name the same key",
                 )
         return self
+
+
+def login_limits(section: ScadaSection | WebSection) -> LoginLimits:
+    """The lockout of repeated failed logins a section's ``login_*`` keys set (the SCADA
+    server's or the console's), built here once for both, like the other limits."""
+    return LoginLimits(
+        max_failures=section.login_max_failures,
+        window_s=section.login_window_s,
+        lockout_s=section.login_lockout_s,
+        max_lockout_s=section.login_max_lockout_s,
+    )
 
 
 def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:

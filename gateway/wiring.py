@@ -26,7 +26,7 @@ from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.register_map import DeviceRegisters
 from drivers.transmitters import DeviceMap, ModbusConnection, TransmitterBus
-from gateway.config import GatewayConfig, MachineSection, rtu_buses
+from gateway.config import GatewayConfig, MachineSection, login_limits, rtu_buses
 from gateway.live.bank.model_bank import ModelBank
 from gateway.live.bank.promotion import Promotions, proposals_view
 from gateway.live.loop import MachineLoop
@@ -37,7 +37,6 @@ from gateway.outputs.health import Health, machine_health, scalar_counters
 from gateway.outputs.sinks import Outputs
 from gateway.process.gc_tuning import frozen_startup_heap
 from gateway.process.supervision import Supervised
-from gateway.scada.login_throttle import ThrottlePolicy
 from gateway.scada.server import ScadaServer, ScadaSettings, ScadaUser
 from gateway.web.server import WebConsole, build_web
 from models.data.dataset import ambient_sensor_of
@@ -250,12 +249,7 @@ class Gateway:
             host=section.host,
             allow_anonymous=section.allow_anonymous,
             rejected_keep=section.rejected_keep,
-            login_throttle=ThrottlePolicy(
-                max_failures=section.login_max_failures,
-                window_s=section.login_window_s,
-                lockout_s=section.login_lockout_s,
-                max_lockout_s=section.login_max_lockout_s,
-            ),
+            login_throttle=login_limits(section),
         )
         machines = {m.id: m.sensor_names for m in self.config.machines}
         return ScadaServer(

@@ -1158,8 +1158,8 @@ def _file_problems(path: Path, loc: Loc) -> list[tuple[Loc, str]]:
 
 
 def _named_path_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
-    """The keys, certificates and buffers the sections name, as ``run`` will open them: each
-    refused here on its own line rather than by ``run`` later, unlocated. (The model
+    """The signing keys, folders and buffers the sections name, as ``run`` will open them:
+    each refused here on its own line rather than by ``run`` later, unlocated. (The model
     stores are refused, located, by :func:`gateway.wiring.load_located_bank`.)"""
     problems: list[tuple[Loc, str]] = []
     for index, machine in enumerate(config.machines):
@@ -1167,21 +1167,12 @@ def _named_path_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
         if key is not None:
             loc = ("machines", index, "models", "signing_key_file")
             problems += _readable_problems(key, loc, "key")
-    if config.web is not None:
-        for key in ("tls_cert", "tls_key"):
-            path = getattr(config.web, key)
-            if path is not None:
-                problems += _readable_problems(path, ("web", key), "PEM")
-        reports = config.web.reports_dir
-        if reports is not None and reports.exists() and not reports.is_dir():
-            problems.append(
-                (("web", "reports_dir"), f"{reports} is a file; a folder of reports was expected")
-            )
+    reports = None if config.web is None else config.web.reports_dir
+    if reports is not None and reports.exists() and not reports.is_dir():
+        problems.append(
+            (("web", "reports_dir"), f"{reports} is a file; a folder of reports was expected")
+        )
     if config.sparkplug is not None:
-        for key in ("ca_file", "cert_file", "key_file"):
-            path = getattr(config.sparkplug, key)
-            if path is not None:
-                problems += _readable_problems(path, ("sparkplug", key), "PEM")
         problems += _file_problems(config.sparkplug.buffer_path, ("sparkplug", "buffer_path"))
     return problems
 

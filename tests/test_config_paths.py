@@ -19,3 +19,19 @@ def test_run_refuses_a_model_store_with_the_line_check_config_prints(name: str) 
     result = gateway("run", "--config", case, timeout_s=120)
     assert result.returncode == 2, result.stdout + result.stderr
     assert result.stderr.splitlines() == [expected]
+
+
+def test_a_store_option_naming_a_file_says_so_with_the_option() -> None:
+    """``score --store`` and ``models … --store`` with a file: the option, the path and
+    what was expected (they said "no such folder")."""
+    from tests.cli import gateway_in_process
+
+    readme = ROOT / "README.md"
+    expected = f"error: --store {readme}: is a file; a model store folder was expected"
+    for command in (
+        ("score", CASES / "model-store-is-a-file.yaml", "--model", "m", "--store", readme),
+        ("models", "versions", "--store", readme),
+    ):
+        result = gateway_in_process(*command)
+        assert result.returncode == 2, result.stdout + result.stderr
+        assert result.stderr.splitlines()[-1] == expected

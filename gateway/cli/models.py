@@ -160,7 +160,8 @@ def _stores(
         if config_path is not None:
             raise ValueError("give --store or --config, not both")
         if not store_dir.is_dir():
-            raise ValueError(f"model store {store_dir}: no such folder")
+            what = "is a file" if store_dir.exists() else "no such folder"
+            raise ValueError(f"--store {store_dir}: {what}; a model store folder was expected")
         return [(_recovered(store_dir), machine_id)]
     machines = _machines(config_path, machine_id)
     seen: dict[Path, str | None] = {}

@@ -1113,11 +1113,16 @@ def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[L
     present = {key: path.is_file() for key, path in pair.items()}
     if present["certificate"] != present["private_key"]:
         missing = next(key for key, there in present.items() if not there)
+        other = pair["private_key" if missing == "certificate" else "certificate"]
+        there = (
+            "is a folder, but {} is a file"
+            if pair[missing].is_dir()
+            else "does not exist, but {} does"
+        )
         return [
             (
                 (*loc, missing),
-                f"{pair[missing]} does not exist, but "
-                f"{pair['private_key' if missing == 'certificate' else 'certificate']} does: "
+                f"{pair[missing]} {there.format(other)}: "
                 "give both, or neither to have them made on the first connect",
             )
         ]
@@ -1127,8 +1132,13 @@ def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[L
             problems += _file_problems(path, (*loc, key))
     pinned = security.server_certificate
     if pinned is not None and not pinned.is_file():
-        problems.append(((*loc, "server_certificate"), f"{pinned} does not exist"))
+        problems.append(((*loc, "server_certificate"), f"{pinned} {_absent(pinned)}"))
     return problems
+
+
+def _absent(path: Path) -> str:
+    """Why a file the configuration names is not one: a folder there, or nothing."""
+    return "is a folder, not a file" if path.is_dir() else "does not exist"
 
 
 def _folder_problems(folder: Path, loc: Loc, subject: Path | None = None) -> list[tuple[Loc, str]]:

@@ -57,7 +57,7 @@ from drivers.yaml_loader import (
     load_yaml,
 )
 from drivers.yaml_loader import validate as validate_section
-from gateway.limits import CompensationLimits, QualityLimits
+from gateway.limits import CompensationLimits, LoginLimits, QualityLimits
 from gateway.process.event_loop import DEFAULT as DEFAULT_EVENT_LOOP
 from gateway.process.event_loop import EventLoopName
 from models.fit.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
@@ -889,6 +889,8 @@ class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
     #: One line per old key name the file still uses (file, line, the new name).
     _deprecations: list[str] = PrivateAttr(default_factory=list)
+    #: The file it was read from, to locate later refusals (a model store's) on its lines.
+    _document: YamlDocument | None = PrivateAttr(default=None)
     state_dir: Path = Path(".cache/state")
     logging: LoggingSection = LoggingSection()
     scada: ScadaSection | None = None
@@ -902,6 +904,13 @@ class GatewayConfig(Strict):
     def deprecations(self) -> list[str]:
         """Old key names the file used, one located line each (empty for a current file)."""
         return list(self._deprecations)
+
+    def error_at(self, loc: Loc, message: str) -> ConfigError:
+        """``message`` located at ``loc`` of the file this configuration was read from
+        (``file:line: key.path: message``); unlocated for one built in code."""
+        if self._document is None:
+            return ConfigError(message)
+        return ConfigError(str(self._document.error(loc, message)))
 
     @model_validator(mode="after")
     def _unique_ids(self) -> GatewayConfig:
@@ -982,6 +991,17 @@ class GatewayConfig(Strict):
         return self
 
 
+def login_limits(section: ScadaSection | WebSection) -> LoginLimits:
+    """The lockout of repeated failed logins a section's ``login_*`` keys set (the SCADA
+    server's or the console's), built here once for both, like the other limits."""
+    return LoginLimits(
+        max_failures=section.login_max_failures,
+        window_s=section.login_window_s,
+        lockout_s=section.login_lockout_s,
+        max_lockout_s=section.login_max_lockout_s,
+    )
+
+
 def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
     """The configuration in ``path``, validated; any problem is one located :class:`ConfigError`.
 
@@ -1005,6 +1025,7 @@ def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
         deprecations = rename_old_keys(document)
         config = validate_section(document, GatewayConfig)
         config._deprecations = deprecations
+        config._document = document
         if config.simulator is not None:
             from simulator.serve import SimulatorConfig
 
@@ -1067,6 +1088,7 @@ def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
         problems += _file_problems(logging.buffer_path, ("logging", "buffer_path"))
     else:
         problems += _file_problems(logging.local_store, ("logging", "local_store"))
+    problems += _named_path_problems(config)
     if problems:
         loc, message = problems[0]
         raise document.error(loc, message)
@@ -1158,11 +1180,16 @@ def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[L
     present = {key: path.is_file() for key, path in pair.items()}
     if present["certificate"] != present["private_key"]:
         missing = next(key for key, there in present.items() if not there)
+        other = pair["private_key" if missing == "certificate" else "certificate"]
+        there = (
+            "is a folder, but {} is a file"
+            if pair[missing].is_dir()
+            else "does not exist, but {} does"
+        )
         return [
             (
                 (*loc, missing),
-                f"{pair[missing]} does not exist, but "
-                f"{pair['private_key' if missing == 'certificate' else 'certificate']} does: "
+                f"{pair[missing]} {there.format(other)}: "
                 "give both, or neither to have them made on the first connect",
             )
         ]
@@ -1172,8 +1199,13 @@ def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[L
             problems += _file_problems(path, (*loc, key))
     pinned = security.server_certificate
     if pinned is not None and not pinned.is_file():
-        problems.append(((*loc, "server_certificate"), f"{pinned} does not exist"))
+        problems.append(((*loc, "server_certificate"), f"{pinned} {_absent(pinned)}"))
     return problems
+
+
+def _absent(path: Path) -> str:
+    """Why a file the configuration names is not one: a folder there, or nothing."""
+    return "is a folder, not a file" if path.is_dir() else "does not exist"
 
 
 def _folder_problems(folder: Path, loc: Loc, subject: Path | None = None) -> list[tuple[Loc, str]]:
@@ -1200,6 +1232,37 @@ def _file_problems(path: Path, loc: Loc) -> list[tuple[Loc, str]]:
     if path.exists() and not os.access(path, os.W_OK):
         return [(loc, f"{path} is not writable")]
     return _folder_problems(path.parent, loc, subject=path)
+
+
+def _named_path_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
+    """The signing keys, folders and buffers the sections name, as ``run`` will open them:
+    each refused here on its own line rather than by ``run`` later, unlocated. (The model
+    stores are refused, located, by :func:`gateway.wiring.load_located_bank`.)"""
+    problems: list[tuple[Loc, str]] = []
+    for index, machine in enumerate(config.machines):
+        key = machine.models.signing_key_file
+        if key is not None:
+            loc = ("machines", index, "models", "signing_key_file")
+            problems += _readable_problems(key, loc, "key")
+    reports = None if config.web is None else config.web.reports_dir
+    if reports is not None and reports.exists() and not reports.is_dir():
+        problems.append(
+            (("web", "reports_dir"), f"{reports} is a file; a folder of reports was expected")
+        )
+    if config.sparkplug is not None:
+        problems += _file_problems(config.sparkplug.buffer_path, ("sparkplug", "buffer_path"))
+    return problems
+
+
+def _readable_problems(path: Path, loc: Loc, kind: str) -> list[tuple[Loc, str]]:
+    """A file the gateway reads at start (a key, a certificate), there and readable."""
+    if not path.exists():
+        return [(loc, f"{path} does not exist; a readable {kind} file was expected")]
+    if not path.is_file():
+        return [(loc, f"{path} is a folder; a readable {kind} file was expected")]
+    if not os.access(path, os.R_OK):
+        return [(loc, f"{path} is not readable by this user; a readable {kind} file was expected")]
+    return []
 
 
 # --------------------------------------------------------------------------- RS-485 lines

@@ -26,7 +26,7 @@ from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.register_map import DeviceRegisters
 from drivers.transmitters import DeviceMap, ModbusConnection, TransmitterBus
-from gateway.config import GatewayConfig, MachineSection, rtu_buses
+from gateway.config import GatewayConfig, MachineSection, login_limits, rtu_buses
 from gateway.live.bank.model_bank import ModelBank
 from gateway.live.bank.promotion import Promotions, proposals_view
 from gateway.live.loop import MachineLoop
@@ -37,7 +37,6 @@ from gateway.outputs.health import Health, gateway_counters, machine_health, sca
 from gateway.outputs.sinks import Outputs
 from gateway.process.gc_tuning import frozen_startup_heap
 from gateway.process.supervision import Supervised
-from gateway.scada.login_throttle import ThrottlePolicy
 from gateway.scada.server import ScadaServer, ScadaSettings, ScadaUser
 from gateway.web.server import WebConsole, build_web
 from models.data.dataset import ambient_sensor_of
@@ -123,6 +122,20 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
     )
 
 
+def load_located_bank(config: GatewayConfig, index: int) -> ModelBank:
+    """:func:`load_bank` for ``config.machines[index]``; a refusal (no such store, no models,
+    a bad signature, a regime naming a missing model) names the file and the line of that
+    machine's ``models.store``."""
+    loc = ("machines", index, "models", "store")
+    store = config.machines[index].models.store
+    if store.exists() and not store.is_dir():
+        raise config.error_at(loc, f"{store} is a file; the model store folder was expected")
+    try:
+        return load_bank(config.machines[index])
+    except (ValueError, OSError) as exc:
+        raise config.error_at(loc, str(exc)) from None
+
+
 def load_bank(machine: MachineSection) -> ModelBank:
     """The machine's models, checked against its sensors and its regime rules (and their
     signatures, with ``models.signing_key_file``)."""
@@ -189,11 +202,11 @@ class Gateway:
                 self.clock,
                 build_buses(machine, hubs),
                 build_cnc(machine, self.clock),
-                load_bank(machine),
+                load_located_bank(config, index),
                 state_dir=Path(config.state_dir),
                 sinks=sinks,
             )
-            for machine in config.machines
+            for index, machine in enumerate(config.machines)
         ]
         # One timer for every loop, and each loop's polls at its own phase of the cycle.
         self.scheduler = CycleScheduler(self.clock)
@@ -242,12 +255,7 @@ class Gateway:
             host=section.host,
             allow_anonymous=section.allow_anonymous,
             rejected_keep=section.rejected_keep,
-            login_throttle=ThrottlePolicy(
-                max_failures=section.login_max_failures,
-                window_s=section.login_window_s,
-                lockout_s=section.login_lockout_s,
-                max_lockout_s=section.login_max_lockout_s,
-            ),
+            login_throttle=login_limits(section),
         )
         machines = {m.id: m.sensor_names for m in self.config.machines}
         return ScadaServer(

@@ -26,15 +26,11 @@ from typing import Any
 
 import click
 
-from gateway.cli.options import input_errors_exit
+from gateway.cli.options import config_option, input_errors_exit, store_option
 
-STORE_OPTION = click.option(
-    "--store", "store_dir", type=click.Path(path_type=Path), help="The model store folder."
-)
-CONFIG_OPTION = click.option(
-    "--config",
-    "config_path",
-    type=click.Path(path_type=Path),
+STORE_OPTION = store_option("The model store folder.")
+CONFIG_OPTION = config_option(
+    default=None,
     help="Gateway configuration naming the stores (default config.yaml, unless --store).",
 )
 MACHINE_OPTION = click.option("--machine", "machine_id", help="Machine id (with --config).")
@@ -164,7 +160,8 @@ def _stores(
         if config_path is not None:
             raise ValueError("give --store or --config, not both")
         if not store_dir.is_dir():
-            raise ValueError(f"model store {store_dir}: no such folder")
+            what = "is a file" if store_dir.exists() else "no such folder"
+            raise ValueError(f"--store {store_dir}: {what}; a model store folder was expected")
         return [(_recovered(store_dir), machine_id)]
     machines = _machines(config_path, machine_id)
     seen: dict[Path, str | None] = {}

@@ -67,7 +67,8 @@ def find_model(spec: str, store_dir: Path | None) -> Path:
             f"--model {spec}: no such model file; give --store DIR to look a model id up"
         )
     if not store_dir.is_dir():
-        raise ValueError(f"--store {store_dir}: no such folder")
+        what = "is a file" if store_dir.exists() else "no such folder"
+        raise ValueError(f"--store {store_dir}: {what}; a model store folder was expected")
     for candidate in (
         ModelStore(store_dir).path_of(spec),
         store_dir / augmented.FOLDER / f"{spec}.json",

@@ -37,34 +37,14 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
+from gateway.limits import LoginLimits
+
+#: The lockout policy (its one definition: :class:`gateway.limits.LoginLimits`).
+ThrottlePolicy = LoginLimits
+
 Key = tuple[str, str]  # ("address", "10.0.0.7") or ("user", "alice")
 
 MAX_KEYS = 10_000  # a flood of made-up user names cannot grow the table without bound
-
-
-@dataclass(frozen=True, kw_only=True)
-class ThrottlePolicy:
-    """When a key is locked, and for how long."""
-
-    max_failures: int = 5
-    window_s: float = 60.0
-    lockout_s: float = 30.0
-    max_lockout_s: float = 900.0
-    forget_s: float = 3600.0
-
-    def __post_init__(self) -> None:
-        if self.max_failures < 1:
-            raise ValueError(f"max_failures must be at least 1, got {self.max_failures}")
-        if not 0 < self.lockout_s <= self.max_lockout_s:
-            raise ValueError(
-                f"need 0 < lockout_s ({self.lockout_s}) <= max_lockout_s ({self.max_lockout_s})"
-            )
-        if self.window_s <= 0 or self.forget_s <= 0:
-            raise ValueError("window_s and forget_s must be positive")
-
-    def lockout_for(self, previous_lockouts: int) -> float:
-        """The length of a key's next lockout after ``previous_lockouts`` earlier ones."""
-        return min(self.lockout_s * 2.0 ** min(previous_lockouts, 64), self.max_lockout_s)
 
 
 @dataclass

@@ -19,6 +19,7 @@ from typing import Any
 
 from aiohttp import web
 
+from gateway.config import login_limits
 from gateway.live.record import CycleRecord
 from gateway.scada.login_throttle import ThrottlePolicy
 from gateway.scada.server import ScadaUser
@@ -177,12 +178,7 @@ def build_web(config: Any, gateway: GatewayLike) -> WebConsole:
         host=section.host,
         port=section.port,
         users=users,
-        throttle=ThrottlePolicy(
-            max_failures=section.login_max_failures,
-            window_s=section.login_window_s,
-            lockout_s=section.login_lockout_s,
-            max_lockout_s=section.login_max_lockout_s,
-        ),
+        throttle=login_limits(section),
         session_s=section.session_hours * 3600.0,
         tls_cert=section.tls_cert,
         tls_key=section.tls_key,

@@ -54,7 +54,9 @@ def fold_labels(prepared: Prepared) -> tuple[str, np.ndarray]:
     n = prepared.data.n_samples
     if n < BLOCKS * 2:
         raise ValueError(
-            f"one run of {n} samples is too short for a blocked split into {BLOCKS} blocks"
+            f"{prepared.data.source}: one run of {n} samples is too short for a blocked "
+            f"split into {BLOCKS} blocks; at least {BLOCKS * 2} samples, or two runs, "
+            "were expected"
         )
     block = np.minimum(np.arange(n) * BLOCKS // n, BLOCKS - 1)
     labels = np.array([f"{runs[0]}#block{b + 1}" for b in block], dtype=object)

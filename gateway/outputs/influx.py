@@ -70,7 +70,7 @@ import time
 from collections.abc import Sequence
 from typing import Protocol
 
-from influxdb_client import InfluxDBClient, WritePrecision
+from influxdb_client import InfluxDBClient
 from influxdb_client.client.write_api import SYNCHRONOUS
 from influxdb_client.rest import ApiException
 

@@ -33,8 +33,8 @@ Row = tuple[int, Point]
 def to_influx(point: Point) -> InfluxPoint:
     """The influxdb-client point that is sent for ``point``."""
     influx = InfluxPoint(point.measurement)
-    for key, value in point.tags.items():
-        influx.tag(key, value)
+    for key, tag in point.tags.items():
+        influx.tag(key, tag)
     for key, value in point.fields.items():
         influx.field(key, value)
     return influx.time(point.time_ns, WritePrecision.NS)

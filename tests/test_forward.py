@@ -1,0 +1,135 @@
+"""Forward validation (models/fit/forward.py): each later recording or run predicted by a
+model fitted on the earlier ones only, started as a new recording, as ``score`` runs a
+stored model on a later file.
+
+On data/fl_thermal.csv (one continuous recording of six cycles) leave-one-run-out hands
+a held-out cycle the lag states the recording carried into it; a plant's next recording
+starts them cold. A 24 h lag learned inside the one 30-46 h recording scores well
+leave-one-run-out and fails on a later recording: the forward figure must say so.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.estimators.lag_ridge import LagRidgeModel
+from models.fit.crossval import cross_validate
+from models.fit.forward import disagreement, first_predicted, forward_units, forward_validate
+from tests.cli import gateway, gateway_in_process
+
+DATA = Path(__file__).resolve().parent.parent / "data" / "fl_thermal.csv"
+
+
+def _write_runs(path: Path, prefixes: tuple[str, ...]) -> Path:
+    """The rows of the cycles named by ``prefixes``, as a file of their own."""
+    with DATA.open(newline="") as source, path.open("w", newline="") as out:
+        rows = csv.reader(source)
+        writer = csv.writer(out)
+        writer.writerow(next(rows))
+        writer.writerows(r for r in rows if r[0].startswith(prefixes))
+    return path
+
+
+def test_a_24h_lag_learned_inside_one_recording_is_flagged() -> None:
+    """The 24 h lag of the rises and the speed, learned inside the one recording: its
+    forward figure is more than twice its leave-one-run-out figure on the same cycles, and
+    the comparison says they disagree. Leave-one-run-out alone ranks it fine (< 4.5 µm)."""
+    data = load_runs(DATA, target="ch3_um")
+    prepared = prepare(data).without_sensor_readings()
+
+    def factory():
+        return LagRidgeModel(lag_taus_s=(1800.0, 86400.0))
+
+    forward = forward_validate(factory, prepared, data)
+    assert forward is not None and forward.unit == "run"
+    assert forward.folds == ("c4_5000rpm", "c5_3500rpm", "c6_steps")
+    assert forward.trained_on["c5_3500rpm"] == (
+        "c1_1250rpm",
+        "c2_2500rpm",
+        "c3_3750rpm",
+        "c4_5000rpm",
+    )
+    loro = cross_validate(factory, prepared)
+    assert loro.pooled.rmse_um < 4.5
+    agreement = disagreement(forward, loro.predicted_um, prepared.error_um, prepared.data.run)
+    assert agreement.disagree
+    assert agreement.forward_rmse_um > 1.5 * agreement.loro_rmse_um
+    assert forward.per_fold["c5_3500rpm"].rmse_um > 2 * loro.per_fold["c5_3500rpm"].rmse_um
+    assert "disagree" in agreement.sentence()
+
+
+def test_units_are_recordings_when_there_are_several() -> None:
+    """Runs that each start a recording of their own are the units, predicted from the
+    recordings before them; at least half of them and two runs train the first fold."""
+    data = load_runs(DATA, target="ch1_um")
+    prepared = prepare(data, reference="run-start")
+    unit, units = forward_units(prepared)
+    assert unit == "recording" and len(units) == 6
+    assert first_predicted(units) == 3
+    assert first_predicted(units[:2]) is None  # one run to fit on: no forward figure
+
+
+def test_forward_fold_is_what_score_gives_on_a_later_file(tmp_path: Path) -> None:
+    """``fit --json`` on the whole file reports, for c5, the RMSE that ``score`` gives the
+    model fitted on c1-c4 alone (a file of its own) on c5 written as a file of its own."""
+    store = tmp_path / "store"
+    fit_json = tmp_path / "fit.json"
+    done = gateway_in_process(
+        "fit", DATA, "--target", "ch5_um", "--method", "mlr", "--store", store,
+        "--json", fit_json,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    forward = json.loads(fit_json.read_text())["forward"]["all"]
+    assert forward["unit"] == "run"
+    assert forward["trained_on"]["c5_3500rpm"] == [
+        "c1_1250rpm",
+        "c2_2500rpm",
+        "c3_3750rpm",
+        "c4_5000rpm",
+    ]
+    assert set(forward["against_loro"]) >= {"forward_rmse_um", "loro_rmse_um_same_runs"}
+    assert "forward" in done.stdout and "started as a new recording" in done.stdout
+    per_fold = forward["per_fold"]
+    pooled = np.sqrt(
+        sum(f["rmse_um"] ** 2 * f["n_samples"] for f in per_fold.values())
+        / sum(f["n_samples"] for f in per_fold.values())
+    )
+    assert forward["pooled"]["rmse_um"] == pytest.approx(pooled, rel=1e-9)
+
+    early = _write_runs(tmp_path / "c1_c4.csv", ("c1", "c2", "c3", "c4"))
+    later = _write_runs(tmp_path / "c5.csv", ("c5",))
+    store2 = tmp_path / "store2"
+    done = gateway_in_process(
+        "fit", early, "--target", "ch5_um", "--method", "mlr", "--store", store2
+    )
+    assert done.returncode == 0, done.stderr
+    score_json = tmp_path / "score.json"
+    done = gateway(
+        "score", later, "--model", "mlr-ch5_um-all", "--store", store2, "--json", score_json
+    )
+    assert done.returncode == 0, done.stderr
+    scored = json.loads(score_json.read_text())["pooled"]
+    assert scored["rmse_um"] == pytest.approx(per_fold["c5_3500rpm"]["rmse_um"], rel=1e-6)
+    assert scored["n_samples"] == per_fold["c5_3500rpm"]["n_samples"]
+
+
+def test_analyze_reports_the_base_forward_figure(tmp_path: Path) -> None:
+    """``analyze --json`` carries the base model's forward figure and its comparison."""
+    out = tmp_path / "a.json"
+    done = gateway_in_process(
+        "analyze", DATA, "--target", "ch1_um", "--model", "mlr", "--json", out
+    )
+    assert done.returncode == 0, done.stderr
+    forward = json.loads(out.read_text())["forward"]
+    assert forward["model"] == "mlr"
+    assert list(forward["per_fold"]) == ["c4_5000rpm", "c5_3500rpm", "c6_steps"]
+    assert forward["pooled"]["rmse_um"] > 0
+    assert forward["against_loro"]["loro_rmse_um_same_runs"] > 0
+    assert "forward (mlr base" in done.stdout

@@ -18,7 +18,9 @@ the training runs alone among a small family fixed in the code
 one on the speed terms, a ridge with one penalty on every term, a lasso on the
 sensors and their 30 min lags, a lasso on the sensors and the speed powers with their
 30 min lags whose intercept is held at 0 µm),
-by a doubly nested leave-one-run-out (above 10 training runs the inner folds are
+by a doubly nested leave-one-run-out, each run that continues a recording scored as
+a new recording too (its cold start, :func:`with_cold_starts`), so the choice holds
+on a later file (above 10 training runs the inner folds are
 5 folds of consecutive runs, :func:`models.estimators.ridge_pls.inner_groups`). The
 chosen structures are stacked with weights on the simplex (a weight of 1 is one
 structure alone); since every candidate's terms are among the largest one's,

@@ -49,11 +49,18 @@ The choice is nested twice. Every training run is predicted by every
 structure fitted on the other training runs *with its penalty chosen by
 leave-one-run-out on those alone* (so a structure with a larger grid gains
 nothing from the grid's size); the structure's score is the pooled RMSE of
-those predictions. The stacking weights (multiples of 1/``STACK_STEPS`` that
-sum to 1) are the ones whose weighted sum of those predictions has the lowest
-pooled squared error: one structure alone when it is clearly the best, a blend
-when the runs disagree (a hard pick among structures whose scores are close
-follows the noise of five runs). Each structure with a weight then has its
+those predictions. A training run that continues a recording is predicted a
+second time as a *cold start*: the same run prepared as a new recording (its own
+reference, every lag from its first sample), as ``score`` and a new gateway meet
+a later file (:func:`models.estimators.lag_ridge.with_cold_starts`; never fitted
+on). The stacking weights (multiples of 1/``STACK_STEPS`` that sum to 1) are the
+ones whose weighted sum of those predictions has the lowest of the worse of two
+mean squared errors, over the runs as the recording carried them and over their
+cold starts (:func:`stack_weights`): a structure that leans on the history of one
+long recording (a 24 h lag learned inside 30 h) scores well the first way and
+fails the second. One structure alone when it is clearly the best, a blend when
+the runs disagree (a hard pick among structures whose scores are close follows
+the noise of five runs). Each structure with a weight then has its
 penalty chosen by leave-one-run-out on all the training runs and is fitted on
 all of them; the stack is their weighted sum. With fewer than three groups of
 training rows there is nothing to nest a choice in, and the first structure is

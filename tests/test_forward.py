@@ -164,16 +164,20 @@ def test_cold_starts_are_the_runs_as_a_new_recording_and_never_the_held_out_one(
     )
 
 
-def test_the_default_chosen_with_cold_starts_holds_on_a_later_recording(tmp_path: Path) -> None:
-    """fl_thermal ch3, defaults fitted on c1-c4 and scored on c5-c6 written as a new file:
-    the stack chosen on leave-one-run-out alone scored 16.75 µm (σ 4.9: an offset from
-    the 16 h and 24 h lags); chosen on the cold starts too it scores 5.49 µm."""
+@pytest.mark.parametrize(("target", "limit_um"), [("ch3_um", 6.0), ("ch5_um", 5.5)])
+def test_the_default_chosen_with_cold_starts_holds_on_a_later_recording(
+    tmp_path: Path, target: str, limit_um: float
+) -> None:
+    """fl_thermal, defaults fitted on c1-c4 and scored on c5-c6 written as a new file: the
+    stack chosen on leave-one-run-out alone scored 16.75 µm on ch3 (σ 4.9: an offset from
+    the 16 h and 24 h lags) and 8.78 µm on ch5; chosen on the cold starts too, 5.49 and
+    4.84 µm. The ridges' cold-start scores are what moved it."""
     early = _write_runs(tmp_path / "c1_c4.csv", ("c1", "c2", "c3", "c4"))
     later = _write_runs(tmp_path / "c5_c6.csv", ("c5", "c6"))
-    train = prepare(load_runs(early, target="ch3_um"))
-    test = prepare(load_runs(later, target="ch3_um"))
+    train = prepare(load_runs(early, target=target))
+    test = prepare(load_runs(later, target=target))
     model = LagRidgeModel().fit(train.inputs, train.error_um)
     rmse = float(np.sqrt(np.mean((test.error_um - model.predict(test.inputs)) ** 2)))
-    assert rmse < 6.0
+    assert rmse < limit_um
     assert set(model.cold_rmse_um_) == set(model.inner_rmse_um_)
-    assert model.cold_rmse_um_["two-group"] > 2 * model.inner_rmse_um_["two-group"]
+    assert model.cold_rmse_um_["two-group"] > 1.5 * model.inner_rmse_um_["two-group"]

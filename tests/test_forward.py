@@ -181,3 +181,25 @@ def test_the_default_chosen_with_cold_starts_holds_on_a_later_recording(
     assert rmse < limit_um
     assert set(model.cold_rmse_um_) == set(model.inner_rmse_um_)
     assert model.cold_rmse_um_["two-group"] > 1.5 * model.inner_rmse_um_["two-group"]
+
+
+def test_score_steps_the_default_as_the_batch_predicts_a_new_recording(tmp_path: Path) -> None:
+    """The default fitted with ``fit`` on c1-c4 and stepped by ``score`` through c5-c6 (the
+    gateway's stream, every lag from the new recording's first sample) gives the batch
+    prediction of the same file prepared on its own: the cold start the choice scored."""
+    early = _write_runs(tmp_path / "c1_c4.csv", ("c1", "c2", "c3", "c4"))
+    later = _write_runs(tmp_path / "c5_c6.csv", ("c5", "c6"))
+    store = tmp_path / "store"
+    done = gateway_in_process("fit", early, "--target", "ch1_um", "--store", store)
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "score.json"
+    done = gateway_in_process(
+        "score", later, "--model", "lag-ridge-ch1_um-all", "--store", store, "--json", out
+    )
+    assert done.returncode == 0, done.stderr
+    scored = json.loads(out.read_text())["pooled"]["rmse_um"]
+    train = prepare(load_runs(early, target="ch1_um"))
+    test = prepare(load_runs(later, target="ch1_um"))
+    model = LagRidgeModel().fit(train.inputs, train.error_um)
+    batch = float(np.sqrt(np.mean((test.error_um - model.predict(test.inputs)) ** 2)))
+    assert scored == pytest.approx(batch, abs=1e-6)

@@ -273,6 +273,9 @@ class AnalysisResult:
     base_choice: dict[str, Any] | None = None
     #: ``--nested``: the whole analysis scored by an outer leave-one-run-out.
     nested: NestedAnalysis | None = None
+    #: the base model's forward figure (:mod:`models.fit.forward`): each later recording
+    #: (or run) predicted by the base fitted on the earlier ones, against leave-one-run-out
+    forward: dict[str, Any] | None = None
 
     # ---- figures derived once, read by every renderer ------------------------------
 
@@ -440,6 +443,8 @@ class AnalysisResult:
             extra["base_choice"] = self.base_choice
         if self.nested is not None:
             extra["nested"] = self.nested.as_dict()
+        if self.forward is not None:
+            extra["forward"] = self.forward
         return extra
 
 

@@ -239,6 +239,7 @@ def with_cold_starts(
         return inputs, y, labels, None
     part = inputs.take(copied)
     runs = part.run_index
+    assert runs is not None and part.time_s is not None  # a mix scored on runs has both
     position = np.unique(runs, return_inverse=True)[1]
     reference = reference_rows(position, part.time_s, part.speed_rpm)
     rise = part.rise_C.copy()

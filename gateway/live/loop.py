@@ -144,6 +144,7 @@ class MachineLoop:
     async def run_cycle(self) -> CycleRecord:
         self._swap_promoted()
         now = self.clock.now()
+        stamp_s = self.clock.stamp()  # the one wall time every output gives this cycle
         results, speed_rpm, errors = await self._read_inputs(now)
         self.link_errors += len(errors)
         readings = {
@@ -195,6 +196,7 @@ class MachineLoop:
             written_cnc=None,
             write_status="",
             link_errors=errors,
+            stamp_s=stamp_s,
         )
         corrected = self._corrected(now, banked, predicted, record)
         await self._compensate(now, corrected, record)

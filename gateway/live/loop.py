@@ -103,7 +103,9 @@ class MachineLoop:
         self.selector = RegimeSelector(config.models.regimes.rules())
         reference = config.models.reference
         state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
-        self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
+        self.reference = TemperatureReference(
+            reference.mode, reference.values_C, state_file, writer=STATE
+        )
         effect_file = None if state_dir is None else state_dir / f"{config.id}-effect-state.json"
         #: The promoted set of the store, swapped into the bank between cycles.
         self.promotions = Promotions(config, running=True)

@@ -179,12 +179,11 @@ class Gateway:
         sinks: Sequence[Sink] = (),
     ) -> None:
         self.config = config
-        # In the plant machine time is Unix time, so logged points carry real timestamps;
-        # Outputs stamps them with time.time_ns() (NTP followed), the loops stay monotonic.
+        # In the plant machine time starts at Unix time and runs on the monotonic clock
+        # (the loops schedule on it); each cycle's record also carries the wall time of
+        # its start (NTP and steps followed), which every output stamps it with.
         self.clock = clock or WallClock(origin_s=time.time())
-        self.outputs = Outputs(
-            config, health=self.health, wall_clock=self.clock if clock is None else None
-        )
+        self.outputs = Outputs(config, health=self.health)
         # The heartbeat last: it carries the counts of this cycle's sink failures too.
         sinks = [self.outputs.log_points, *sinks]
         self._proposals_shown: dict[str, tuple[int, int]] = {}  # machine → what SCADA shows

@@ -103,7 +103,9 @@ class MachineLoop:
         self.selector = RegimeSelector(config.models.regimes.rules())
         reference = config.models.reference
         state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
-        self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
+        self.reference = TemperatureReference(
+            reference.mode, reference.values_C, state_file, writer=STATE
+        )
         effect_file = None if state_dir is None else state_dir / f"{config.id}-effect-state.json"
         #: The promoted set of the store, swapped into the bank between cycles.
         self.promotions = Promotions(config, running=True)
@@ -144,6 +146,7 @@ class MachineLoop:
     async def run_cycle(self) -> CycleRecord:
         self._swap_promoted()
         now = self.clock.now()
+        stamp_s = self.clock.stamp()  # the one wall time every output gives this cycle
         results, speed_rpm, errors = await self._read_inputs(now)
         self.link_errors += len(errors)
         readings = {
@@ -195,6 +198,7 @@ class MachineLoop:
             written_cnc=None,
             write_status="",
             link_errors=errors,
+            stamp_s=stamp_s,
         )
         corrected = self._corrected(now, banked, predicted, record)
         await self._compensate(now, corrected, record)

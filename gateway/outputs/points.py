@@ -22,10 +22,12 @@ the quality flips from it) would not show the sensor going bad. Float fields are
 written as floats, so a whole number never turns a float field into an integer
 one (InfluxDB refuses a field whose type changes).
 
-Timestamps: ``time_ns = round((epoch_s + time_s) × 1e9)``, where ``time_s`` is the
-machine clock of the record and ``epoch_s`` the real time (Unix seconds) that
-machine time 0 stands for. Two points are the same point when measurement, tags
-and ``time_ns`` agree (InfluxDB's identity), which is what makes re-sending safe.
+Timestamps: ``time_ns = round((epoch_s + t) × 1e9)``, where ``t`` is the record's
+stamp (:attr:`~gateway.live.record.CycleRecord.stamped_s`: in the plant the wall time
+of the cycle's start, the time every output gives the cycle; else its machine time)
+and ``epoch_s`` the real time (Unix seconds) that time 0 stands for. Two points are
+the same point when measurement, tags and ``time_ns`` agree (InfluxDB's identity),
+which is what makes re-sending safe.
 """
 
 from __future__ import annotations
@@ -103,7 +105,7 @@ def _floats(**values: float | None) -> dict[str, FieldValue]:
 def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]:
     """The points of one cycle: its ``spindle_cycle`` point, then one per sensor that has
     a value or is not good."""
-    time_ns = to_time_ns(record.time_s, epoch_s)
+    time_ns = to_time_ns(record.stamped_s, epoch_s)
     tags = {"machine": record.machine}
     if record.regime:
         tags["regime"] = record.regime

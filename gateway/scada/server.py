@@ -407,6 +407,13 @@ def _now() -> datetime:
     return datetime.now(UTC)
 
 
+def _source_time(record: CycleRecord) -> datetime | None:
+    """When the cycle measured its values: the wall stamp every output of the cycle carries
+    (None for a simulation's machine time counted from 0: the values are stamped now)."""
+    stamp_s = record.stamped_s
+    return datetime.fromtimestamp(stamp_s, UTC) if stamp_s >= 1e9 else None
+
+
 def _dv(variant: ua.Variant, status: int = ua.StatusCodes.Good) -> ua.DataValue:
     return data_value(variant, status)
 
@@ -594,7 +601,10 @@ class ScadaServer(ServerLifecycle):
                 for key, (node, _) in HEALTH_COUNTERS.items()
                 if key in health
             ]
+            measured = _source_time(record)
             for name, datavalue in values:
+                if measured is not None:
+                    datavalue.SourceTimestamp = measured
                 await server.write_attribute_value(
                     self._nodeids[self.node_id(machine, name)], datavalue
                 )

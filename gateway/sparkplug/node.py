@@ -125,7 +125,8 @@ class EdgeNode:
         values = snapshot(record, self.health(record.machine))
         self.latest[record.machine] = values
         tags = {"machine": record.machine, "epoch": str(self.epoch if self.born else -1)}
-        ms = round(time.time() * 1000) if record.time_s < 1e9 else round(record.time_s * 1000)
+        stamp_s = record.stamped_s  # the cycle's one time, as its logged points carry
+        ms = round(time.time() * 1000) if stamp_s < 1e9 else round(stamp_s * 1000)
         self.buffer.append([Point(MEASUREMENT, tags, dict(values), ms * 1_000_000)])
 
     # -- bdSeq, one per CONNECT sent, kept across restarts --------------------------------

@@ -26,6 +26,11 @@ def node_id(identifier: int | str, namespace: int = 0) -> ua.NodeId:
     return ua.NodeId(ident, ua.Int16(namespace))
 
 
+def ua_datetime(value: datetime) -> ua.DateTime:
+    """A timestamp as asyncua types it (its DateTime adds nothing to a datetime)."""
+    return cast(ua.DateTime, value)
+
+
 def status_code(code: int) -> ua.StatusCode:
     return ua.StatusCode(ua.UInt32(code))
 
@@ -34,7 +39,7 @@ def data_value(value: Any, status: int = ua.StatusCodes.Good, stamped: bool = Tr
     """``value`` (a Variant, or what a Variant holds) with a status and, when
     ``stamped``, the source and server time of now."""
     variant = value if isinstance(value, ua.Variant) else ua.Variant(value)
-    now = cast(ua.DateTime, datetime.now(UTC)) if stamped else None
+    now = ua_datetime(datetime.now(UTC)) if stamped else None
     return ua.DataValue(
         variant, StatusCode=status_code(status), SourceTimestamp=now, ServerTimestamp=now
     )

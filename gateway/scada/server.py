@@ -72,6 +72,7 @@ from drivers.opcua_common import (
     data_value,
     node_id,
     status_code,
+    ua_datetime,
 )
 from gateway.live.record import CycleRecord
 from gateway.scada.login_throttle import Key, LoginThrottle, ThrottlePolicy
@@ -407,11 +408,11 @@ def _now() -> datetime:
     return datetime.now(UTC)
 
 
-def _source_time(record: CycleRecord) -> datetime | None:
+def _source_time(record: CycleRecord) -> ua.DateTime | None:
     """When the cycle measured its values: the wall stamp every output of the cycle carries
     (None for a simulation's machine time counted from 0: the values are stamped now)."""
     stamp_s = record.stamped_s
-    return datetime.fromtimestamp(stamp_s, UTC) if stamp_s >= 1e9 else None
+    return ua_datetime(datetime.fromtimestamp(stamp_s, UTC)) if stamp_s >= 1e9 else None
 
 
 def _dv(variant: ua.Variant, status: int = ua.StatusCodes.Good) -> ua.DataValue:

@@ -189,30 +189,39 @@ class WarmStarts:
 
     A gateway restarted mid-shift with a new state folder finds every machine
     warm: one line per machine would be a thousand at a thousand machines. The
-    machines noted within ``delay_s`` of the first (their first cycles run
-    together) are logged as one line with their count.
+    line is said once no machine has been noted for ``delay_s`` (a thousand first
+    cycles under load take longer than any fixed delay after the first), and at the
+    latest ``max_wait_s`` after the first, with the count of the machines noted.
     """
 
-    def __init__(self, delay_s: float = 2.0, shown: int = 5) -> None:
+    def __init__(self, delay_s: float = 2.0, shown: int = 5, max_wait_s: float = 60.0) -> None:
         self.delay_s = delay_s
         self.shown = shown
+        self.max_wait_s = max_wait_s
         self.machines: list[str] = []
-        self._pending = False
+        self._first_s: float | None = None
+        self._timer: asyncio.TimerHandle | None = None
 
     def note(self, machine: str) -> None:
         self.machines.append(machine)
-        if self._pending:
-            return
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:  # no event loop (plain calls): say it now
             self.flush()
             return
-        self._pending = True
-        loop.call_later(self.delay_s, self.flush)
+        now = loop.time()
+        if self._first_s is None:
+            self._first_s = now
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer = loop.call_at(
+            min(now + self.delay_s, self._first_s + self.max_wait_s), self.flush
+        )
 
     def flush(self) -> None:
-        self._pending = False
+        if self._timer is not None:
+            self._timer.cancel()
+        self._first_s, self._timer = None, None
         names, self.machines = self.machines, []
         if not names:
             return

@@ -85,6 +85,14 @@ def main() -> None:
     DEFAULT_MAX_BIAS_ERROR_UM,
     "Warn when one sensor off by its accuracy moves the compensation by more (µm).",
 )
+@click.option(
+    "--collinearity",
+    type=click.Choice(["short", "full"]),
+    default="short",
+    show_default=True,
+    help="short: the condition number and the worst VIFs; full: every input's VIF and bias "
+    "sensitivity (the JSON always holds every input).",
+)
 @input_errors_exit
 def fit(
     data_csv: Path,
@@ -99,6 +107,7 @@ def fit(
     progress: bool | None,
     sensor_accuracy_C: float,
     max_bias_error_um: float,
+    collinearity: str,
 ) -> None:
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
@@ -115,6 +124,7 @@ def fit(
         regime_column=regime_column,
         sensor_accuracy_C=sensor_accuracy_C,
         max_bias_error_um=max_bias_error_um,
+        collinearity=collinearity,
     )
     write_json(json_out, run_fit(data, request, click.echo, _warn))
 

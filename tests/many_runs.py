@@ -33,6 +33,16 @@ def _programme(rng: np.random.Generator, n: int, dt_s: float) -> np.ndarray:
     return speed
 
 
+def _sensor_lags(n_sensors: int) -> tuple[np.ndarray, np.ndarray]:
+    """Time constants (s) and gains of ``n_sensors`` sensors: :mod:`tests.synthetic`'s seven,
+    then more spread between its extremes."""
+    taus, gains = np.asarray(SENSOR_TAUS_S), np.asarray(SENSOR_GAINS)
+    extra = max(n_sensors - taus.size, 0)
+    more_taus = np.geomspace(taus[0] * 1.1, taus[-1] * 0.95, extra)
+    more_gains = np.linspace(gains[0] * 0.95, gains[-1] * 1.05, extra)
+    return np.r_[taus, more_taus][:n_sensors], np.r_[gains, more_gains][:n_sensors]
+
+
 def campaign(
     n_runs: int = 43,
     seed: int = 0,
@@ -42,15 +52,20 @@ def campaign(
     speed: bool = True,
     outlier_run: int | None = None,
     outlier_um: float = 12.0,
+    n_sensors: int = len(SENSOR_TAUS_S),
 ) -> tuple[list[str], list[list]]:
     """(header, rows) of ``n_runs`` runs, each ``hours`` long (uniform), sampled every ``dt_s``.
 
-    ``speed=False`` leaves the ``speed_rpm`` column out. ``outlier_run`` (an index) adds
-    a slow ramp up to ``outlier_um`` to that run's error, seen by no sensor.
+    ``speed=False``: the speed was not recorded, ``speed_rpm`` is 0 on every row (the
+    column the data format requires, filled as a user fills it). ``outlier_run`` (an
+    index) adds a slow ramp up to ``outlier_um`` to that run's error, seen by no sensor.
+    ``n_sensors`` above the seven of :mod:`tests.synthetic` adds sensors whose time
+    constants and gains lie between theirs.
     """
     rng = np.random.default_rng(seed)
-    sensors = [f"T{i + 1}" for i in range(len(SENSOR_TAUS_S))]
-    header = ["run", "time_s", *(["speed_rpm"] if speed else []), *sensors, "error_um"]
+    taus, gains = _sensor_lags(n_sensors)
+    sensors = [f"T{i + 1}" for i in range(n_sensors)]
+    header = ["run", "time_s", "speed_rpm", *sensors, "error_um"]
     rows: list[list] = []
     for r in range(n_runs):
         n = int(rng.uniform(*hours) * 3600.0 / dt_s)
@@ -60,7 +75,7 @@ def campaign(
         temps = np.column_stack(
             [
                 room + g * 10 * first_order(drive, tau, dt_s)
-                for tau, g in zip(SENSOR_TAUS_S, SENSOR_GAINS, strict=True)
+                for tau, g in zip(taus, gains, strict=True)
             ]
         )
         temps += rng.normal(0, 0.02, temps.shape)
@@ -73,7 +88,7 @@ def campaign(
             error = error + outlier_um * np.linspace(0.0, 1.0, n)
         run = f"day{r + 1:02d}"
         for k in range(n):
-            rows.append([run, k * dt_s, *([rpm[k]] if speed else []), *temps[k], error[k]])
+            rows.append([run, k * dt_s, rpm[k] if speed else 0.0, *temps[k], error[k]])
     return header, rows
 
 

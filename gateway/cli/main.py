@@ -724,6 +724,7 @@ def analyze(
     "for the first interval, as an augmented model (sub-folder augmented/).",
 )
 @click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
 @input_errors_exit
 def replay(
     data_csv: Path,
@@ -736,6 +737,7 @@ def replay(
     filter_kinds: tuple[str, ...],
     store_dir: Path | None,
     json_out: Path | None,
+    progress: bool | None,
 ) -> None:
     """Replay measured runs causally through the online probe correction, leave-one-run-out."""
     from gateway.offline.replay import run_replay
@@ -752,6 +754,7 @@ def replay(
         store_dir=store_dir,
         version=__version__,
         filter_kinds=filter_kinds,
+        progress=sys.stderr.isatty() if progress is None else progress,
     )
     write_json(json_out, result)
 

@@ -12,6 +12,7 @@ from models.analysis import augmented
 from models.data.dataset import MeasuredRuns, load_runs
 from models.data.features import Prepared, prepare
 from models.fit.metrics import accuracy
+from models.online import declared_fits
 from models.online.replay import (
     DEFAULT_KINDS,
     filter_choice,
@@ -58,6 +59,7 @@ def run_replay(
     store_dir: Path | None = None,
     version: str = "unknown",
     filter_kinds: Sequence[str] = (),
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6.
 
@@ -84,6 +86,8 @@ def run_replay(
     )
     if document is not None and Path(document["provenance"]["source_file"]).name == data_csv.name:
         say(SAME_FILE_NOTE)
+    if base == "declared":  # every base fit of every interval, once, on every core
+        declared_fits.prefill(prepared, method, sensors, progress)
     offline = offline_accuracy(prepared, method, sensors)
     online = [
         replay_interval(
@@ -94,6 +98,7 @@ def run_replay(
             sensors=sensors,
             document=document,
             kinds=filter_kinds,
+            progress=progress,
         )
         for m in intervals_min
     ]

@@ -390,6 +390,7 @@ class CandidatePaths:
                 alphas=sigma * np.asarray(LASSO_PENALTIES) * n / z.shape[0],
                 max_iter=5000,
                 precompute=True,
+                check_input=False,  # z, y made contiguous float64 above (square_root_rows)
             )
         path = []
         for w in coefs.T:

@@ -100,7 +100,9 @@ def _held_out(
     from joblib import Parallel, delayed
 
     jobs = (delayed(_fold_one_thread)(factory, prepared, labels == fold) for fold in folds)
-    return list(Parallel(n_jobs=workers)(jobs))
+    results = Parallel(n_jobs=workers, return_as="generator")(jobs)  # in order, as they end
+    bar = tqdm(results, total=len(folds), desc="held-out folds", disable=not progress, leave=False)
+    return list(bar)
 
 
 def _fold(factory: ModelFactory, prepared: Prepared, test: np.ndarray) -> np.ndarray:

@@ -576,11 +576,13 @@ def export(
     if result.implausible_values:
         click.echo(
             f"note: {result.implausible_values} logged value(s) were not plausible for their unit "
-            "(NaN, infinite or out of range) and were left empty"
+            "(NaN, infinite or out of range) and were left empty",
+            err=True,
         )
     if result.rows_without_probe:
         click.echo(
-            f"note: {result.rows_without_probe} cycles had no probe measurement and were left out"
+            f"note: {result.rows_without_probe} cycles had no probe measurement and were left out",
+            err=True,
         )
 
 
@@ -755,6 +757,7 @@ def replay(
         version=__version__,
         filter_kinds=filter_kinds,
         progress=sys.stderr.isatty() if progress is None else progress,
+        note=_warn,
     )
     write_json(json_out, result)
 
@@ -786,7 +789,9 @@ def score(
     """Apply a stored model to measured runs as the gateway would, without refitting."""
     from gateway.offline.score import score as score_model
 
-    write_json(json_out, score_model(data_csv, model_spec, store_dir, target, click.echo))
+    write_json(
+        json_out, score_model(data_csv, model_spec, store_dir, target, click.echo, note=_warn)
+    )
 
 
 def _add_models_group() -> None:

@@ -1,0 +1,97 @@
+"""What the offline commands print: notes on one stream, errors that name what the
+user gave, progress over many runs, nothing said about a speed that was not recorded,
+an outlier run named, and ``fit`` and ``analyze`` agreeing on the same base."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from tests.cli import gateway_in_process
+from tests.many_runs import write_campaign_csv
+from tests.synthetic import write_runs_csv
+
+
+def with_an_empty_cell(path: Path) -> Path:
+    """``path`` with one temperature cell of its fifth data row left empty."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    cells = lines[5].split(",")
+    cells[4] = ""
+    lines[5] = ",".join(cells)
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+@pytest.fixture(scope="module")
+def holed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("holed")
+    return with_an_empty_cell(write_runs_csv(folder / "runs.csv", n_runs=4, n=120))
+
+
+@pytest.fixture(scope="module")
+def stored(holed: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    store = tmp_path_factory.mktemp("store")
+    done = gateway_in_process("fit", holed, "--method", "mlr", "--store", store, "--no-progress")
+    assert done.returncode == 0, done.stderr
+    return store
+
+
+@pytest.mark.parametrize("command", ["fit", "analyze", "score", "replay"])
+def test_the_skipped_rows_note_goes_to_stderr_in_every_command(
+    command: str, holed: Path, stored: Path, tmp_path: Path
+) -> None:
+    options = {
+        "fit": ["--method", "mlr", "--store", tmp_path, "--no-progress"],
+        "analyze": ["--model", "mlr", "--no-progress"],
+        "score": ["--model", "mlr-error_um-all", "--store", stored],
+        "replay": ["--model", "mlr", "--base", "declared", "--no-progress"],
+    }[command]
+    done = gateway_in_process(command, holed, *options)
+    assert done.returncode == 0, done.stderr
+    assert re.search(r"^note: .*skipped 1 row", done.stderr, re.MULTILINE), done.stderr
+    assert "note:" not in done.stdout and "skipped 1 row" not in done.stdout
+
+
+def test_score_names_the_models_sensors_when_the_file_lacks_them(
+    stored: Path, tmp_path: Path
+) -> None:
+    source = write_runs_csv(tmp_path / "full.csv", n_runs=2, n=60)
+    lines = source.read_text(encoding="utf-8").splitlines()
+    fewer = tmp_path / "fewer.csv"
+    keep = [i for i, name in enumerate(lines[0].split(",")) if name not in ("T6", "T7")]
+    fewer.write_text(
+        "\n".join(",".join(line.split(",")[i] for i in keep) for line in lines) + "\n",
+        encoding="utf-8",
+    )
+    done = gateway_in_process("score", fewer, "--model", "mlr-error_um-all", "--store", stored)
+    assert done.returncode != 0
+    assert "--sensors" not in done.stderr
+    assert f"{fewer}:1: column 'T6': the model mlr-error_um-all reads sensor(s) T6, T7" in (
+        done.stderr
+    )
+
+
+def test_fit_shows_progress_while_its_folds_run_in_parallel(tmp_path: Path) -> None:
+    csv = write_campaign_csv(tmp_path / "campaign.csv", n_runs=12, hours=(1.0, 1.5))
+    done = gateway_in_process(
+        "fit", csv, "--method", "mlr", "--store", tmp_path / "store", "--progress"
+    )
+    assert done.returncode == 0, done.stderr
+    assert re.search(r"held-out folds: .*\b[1-9]\d*/12 ", done.stderr), done.stderr
+
+
+def test_nothing_is_said_about_speed_on_a_recording_without_speed(tmp_path: Path) -> None:
+    csv = write_campaign_csv(tmp_path / "no_speed.csv", n_runs=4, hours=(2.0, 3.0), speed=False)
+    out = tmp_path / "fit.json"
+    done = gateway_in_process(
+        "fit", csv, "--store", tmp_path / "store", "--json", out, "--no-progress"
+    )
+    assert done.returncode == 0, done.stderr
+    assert "speed" not in done.stdout and "n_krpm" not in done.stdout
+    (model,) = json.loads(out.read_text())["saved"].values()
+    params = json.loads(Path(model).read_text())["params"]
+    assert params["speed_powers"] == []
+    assert not any("n_krpm" in term for term in params["terms"])

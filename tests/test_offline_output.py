@@ -84,7 +84,7 @@ def test_fit_shows_progress_while_its_folds_run_in_parallel(tmp_path: Path) -> N
 
 
 def test_nothing_is_said_about_speed_on_a_recording_without_speed(tmp_path: Path) -> None:
-    csv = write_campaign_csv(tmp_path / "no_speed.csv", n_runs=4, hours=(2.0, 3.0), speed=False)
+    csv = write_campaign_csv(tmp_path / "temperatures_only.csv", n_runs=4, hours=(2.0, 3.0), speed=False)
     out = tmp_path / "fit.json"
     done = gateway_in_process(
         "fit", csv, "--store", tmp_path / "store", "--json", out, "--no-progress"

@@ -10,6 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from models.analysis.search import analyze
+from models.data.dataset import load_runs
+from models.data.features import prepare
+from models.estimators.registry import make_model
+from models.fit.crossval import cross_validate
 from tests.cli import gateway_in_process
 from tests.many_runs import write_campaign_csv
 from tests.synthetic import write_runs_csv
@@ -84,7 +89,8 @@ def test_fit_shows_progress_while_its_folds_run_in_parallel(tmp_path: Path) -> N
 
 
 def test_nothing_is_said_about_speed_on_a_recording_without_speed(tmp_path: Path) -> None:
-    csv = write_campaign_csv(tmp_path / "temperatures_only.csv", n_runs=4, hours=(2.0, 3.0), speed=False)
+    csv = tmp_path / "temperatures_only.csv"
+    write_campaign_csv(csv, n_runs=4, hours=(2.0, 3.0), speed=False)
     out = tmp_path / "fit.json"
     done = gateway_in_process(
         "fit", csv, "--store", tmp_path / "store", "--json", out, "--no-progress"
@@ -95,3 +101,30 @@ def test_nothing_is_said_about_speed_on_a_recording_without_speed(tmp_path: Path
     params = json.loads(Path(model).read_text())["params"]
     assert params["speed_powers"] == []
     assert not any("n_krpm" in term for term in params["terms"])
+
+
+@pytest.mark.parametrize("method", ["lag-ridge", "ridge", "mlr"])
+def test_fit_and_analyze_report_the_same_figure_for_the_same_base(
+    method: str, tmp_path: Path
+) -> None:
+    csv = write_runs_csv(tmp_path / "runs.csv", n_runs=4, n=200, seed=5)
+    prepared = prepare(load_runs(csv)).without_sensor_readings()
+    validated = cross_validate(lambda: make_model(method), prepared)
+    result, _, _ = analyze(prepared, method)
+    for key in ("rmse_um", "sigma_um", "max_abs_um"):
+        fitted = validated.pooled.as_dict()[key]
+        assert result.before.as_dict()[key] == pytest.approx(fitted, abs=1e-9), key
+    # The commands print and write the same figure (analyze's JSON to 4 decimals).
+    fitted_json, analysed_json = tmp_path / "fit.json", tmp_path / "analyze.json"
+    done = gateway_in_process(
+        "fit", csv, "--method", method, "--store", tmp_path / "s", "--json", fitted_json,
+        "--no-progress",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    done = gateway_in_process(
+        "analyze", csv, "--model", method, "--json", analysed_json, "--no-progress"
+    )
+    assert done.returncode == 0, done.stderr
+    (validation,) = json.loads(fitted_json.read_text())["validations"].values()
+    before = json.loads(analysed_json.read_text())["before"]
+    assert before["rmse_um"] == round(validation["pooled"]["rmse_um"], 4)

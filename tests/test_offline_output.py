@@ -18,6 +18,7 @@ from models.fit.crossval import cross_validate
 from tests.cli import gateway_in_process
 from tests.many_runs import write_campaign_csv
 from tests.synthetic import write_runs_csv
+from tests.test_analysis_agreement import _result
 
 
 def with_an_empty_cell(path: Path) -> Path:
@@ -128,3 +129,19 @@ def test_fit_and_analyze_report_the_same_figure_for_the_same_base(
     (validation,) = json.loads(fitted_json.read_text())["validations"].values()
     before = json.loads(analysed_json.read_text())["before"]
     assert before["rmse_um"] == round(validation["pooled"]["rmse_um"], 4)
+
+
+def test_one_run_far_above_its_share_of_the_error_is_named_an_outlier() -> None:
+    # 43 runs; one with 6 times the others' residual holds 36 / (42 + 36) = 46 % of the
+    # squared error (not the 50 % of a dominant run), 20 times its 2.3 % of the rows.
+    rmse = {f"day{k:02d}": 1.0 for k in range(1, 44)}
+    rmse["day17"] = 6.0
+    result = _result(rmse, "thermal_lag", tolerance_um=0.5)
+    assert [step.action for step in result.next_steps] == ["promote", "check_run"]
+    assert "check run day17" in result.next_step_text
+    assert "spread over the runs" not in result.next_step_text
+    assert result.as_dict()["outlier_run"] == "day17"
+    # Even runs: the error is spread over them, and a sensor is what is missing.
+    even = _result({f"day{k:02d}": 1.0 for k in range(1, 44)}, "thermal_lag", tolerance_um=0.5)
+    assert [step.action for step in even.next_steps] == ["promote", "add_sensor"]
+    assert even.outlier_run is None and even.as_dict()["outlier_run"] is None

@@ -247,7 +247,7 @@ def score(
     figures = run_figures(prepared, predictions(scored, prepared))
     found = excursions(scored, prepared)
     for line in report_lines(scored, prepared, figures, found):
-        (note if line.startswith(("note:", "warning:")) else say)(line)
+        (note if line.startswith("note:") else say)(line)
     return {
         "model_id": scored.banked.model_id,
         "model_file": str(scored.path),

@@ -101,7 +101,10 @@ def _held_out(
 
     jobs = (delayed(_fold_one_thread)(factory, prepared, labels == fold) for fold in folds)
     results = Parallel(n_jobs=workers, return_as="generator")(jobs)  # in order, as they end
-    bar = tqdm(results, total=len(folds), desc="held-out folds", disable=not progress, leave=False)
+    bar = tqdm(
+        results, total=len(folds), desc="held-out folds", disable=not progress, leave=False,
+        mininterval=0,  # every fold shown as it ends, however fast
+    )  # fmt: skip
     return list(bar)
 
 

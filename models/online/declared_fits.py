@@ -33,9 +33,7 @@ _CACHE_SIZE = 32
 _prefilled: dict[_Key, np.ndarray] = {}
 
 
-def _key(
-    prepared: Prepared, method: str, sensors: Sequence[str] | None, train: np.ndarray
-) -> _Key:
+def _key(prepared: Prepared, method: str, sensors: Sequence[str] | None, train: np.ndarray) -> _Key:
     names = None if sensors is None else tuple(sensors)
     return (id(prepared), method, names, np.packbits(train).tobytes())
 
@@ -108,10 +106,11 @@ def prefill(
 ) -> int:
     """Fit every training set of the replay (:func:`training_sets`) once; the count."""
     _prefilled.clear()
-    todo = [
-        m for m in training_sets(prepared) if _key(prepared, method, sensors, m) not in _cache
-    ]
-    bar = tqdm(total=len(todo), desc="base fits", unit="fit", disable=not progress, leave=False)
+    todo = [m for m in training_sets(prepared) if _key(prepared, method, sensors, m) not in _cache]
+    bar = tqdm(
+        total=len(todo), desc="base fits", unit="fit", disable=not progress, leave=False,
+        mininterval=0,  # every fit shown as it ends
+    )  # fmt: skip
     workers = min(os.cpu_count() or 1, len(todo))
     with bar:
         if len(todo) < PARALLEL_FROM_FITS or workers < 2:

@@ -442,7 +442,7 @@ def replay_interval(
     base_residual = np.empty(prepared.error_um.size)
     choices: dict[str, dict[str, Any]] = {}
     bar = tqdm(runs, desc=f"held-out runs, probe every {interval_min:g} min", unit="run",
-               disable=not progress, leave=False)  # fmt: skip
+               disable=not progress, leave=False, mininterval=0)  # fmt: skip
     for held in bar:
         train_runs = [r for r in runs if r != held]
         predicted, chosen = model.fitted(train_runs)

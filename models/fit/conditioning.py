@@ -153,9 +153,9 @@ class Conditioning:
             return rows
         finite = [(v, n) for n, v in zip(self.inputs, self.vif, strict=True) if np.isfinite(v)]
         worst = sorted(finite, reverse=True)[:SHORT_ROWS]
-        alarm = sum(1 for v, _ in finite if v > 10)
+        alarm = sum(1 for v, _ in finite if v > 10) + len(self.collinear)
         rows = [
-            f"VIF > 10 on {alarm} of {len(self.inputs)} inputs; worst identifiable: "
+            f"VIF > 10 or unbounded on {alarm} of {len(self.inputs)} inputs; worst finite: "
             + (", ".join(f"{n} {v:.3g}" for v, n in worst) or "none")
             + (" (every input: --collinearity full)" if len(self.inputs) > SHORT_ROWS else "")
         ]

@@ -96,6 +96,14 @@ def method_option(flag: str, help: str, also: tuple[str, ...] = ()) -> Callable[
     DEFAULT_MAX_BIAS_ERROR_UM,
     "Warn when one sensor off by its accuracy moves the compensation by more (µm).",
 )
+@click.option(
+    "--collinearity",
+    type=click.Choice(["short", "full"]),
+    default="short",
+    show_default=True,
+    help="short: the condition number and the worst VIFs; full: every input's VIF and bias "
+    "sensitivity (the JSON always holds every input).",
+)
 @input_errors_exit
 def fit(
     data_csv: Path,
@@ -110,6 +118,7 @@ def fit(
     progress: bool | None,
     sensor_accuracy_C: float,
     max_bias_error_um: float,
+    collinearity: str,
 ) -> None:
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
@@ -129,6 +138,7 @@ def fit(
         regime_column=regime_column,
         sensor_accuracy_C=sensor_accuracy_C,
         max_bias_error_um=max_bias_error_um,
+        collinearity=collinearity,
     )
     write_json(json_out, run_fit(data, request, click.echo, _warn))
 
@@ -568,11 +578,13 @@ def export(
     if result.implausible_values:
         click.echo(
             f"note: {result.implausible_values} logged value(s) were not plausible for their unit "
-            "(NaN, infinite or out of range) and were left empty"
+            "(NaN, infinite or out of range) and were left empty",
+            err=True,
         )
     if result.rows_without_probe:
         click.echo(
-            f"note: {result.rows_without_probe} cycles had no probe measurement and were left out"
+            f"note: {result.rows_without_probe} cycles had no probe measurement and were left out",
+            err=True,
         )
 
 
@@ -690,6 +702,7 @@ def analyze(
     "for the first interval, as an augmented model (sub-folder augmented/)."
 )
 @json_option()
+@progress_option()
 @input_errors_exit
 def replay(
     data_csv: Path,
@@ -702,6 +715,7 @@ def replay(
     filter_kinds: tuple[str, ...],
     store_dir: Path | None,
     json_out: Path | None,
+    progress: bool | None,
 ) -> None:
     """Replay measured runs causally through the online probe correction, leave-one-run-out."""
     from gateway.offline.replay import run_replay
@@ -718,6 +732,8 @@ def replay(
         store_dir=store_dir,
         version=__version__,
         filter_kinds=filter_kinds,
+        progress=sys.stderr.isatty() if progress is None else progress,
+        note=_warn,
     )
     write_json(json_out, result)
 
@@ -744,7 +760,9 @@ def score(
     """Apply a stored model to measured runs as the gateway would, without refitting."""
     from gateway.offline.score import score as score_model
 
-    write_json(json_out, score_model(data_csv, model_spec, store_dir, target, click.echo))
+    write_json(
+        json_out, score_model(data_csv, model_spec, store_dir, target, click.echo, note=_warn)
+    )
 
 
 def _add_models_group() -> None:

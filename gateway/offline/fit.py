@@ -37,6 +37,7 @@ class FitRequest:
     regime_column: str | None
     sensor_accuracy_C: float
     max_bias_error_um: float
+    collinearity: str = "short"  # "full": every input's VIF and bias sensitivity
 
 
 def run_fit(
@@ -120,7 +121,7 @@ def _say_outcome(
     for model_id, text in outcome.summaries.items():
         say(f"\n{model_id}: {text}")
     for model_id, conditioning in outcome.conditioning.items():
-        say(f"\n{model_id} {conditioning.table()}")
+        say(f"\n{model_id} {conditioning.table(request.collinearity == 'full')}")
         if conditioning.worst_single_um > request.max_bias_error_um:
             warn(
                 f"warning: {model_id}: a bias of ±{request.sensor_accuracy_C:g} °C on "

@@ -32,9 +32,10 @@ import numpy as np
 from gateway.live.bank.model_bank import Banked, BankedAugmented, BankedModel
 from models.analysis import augmented
 from models.base import ModelInputs
-from models.data.dataset import AMBIENT_COLUMN, load_runs
+from models.data.dataset import AMBIENT_COLUMN, HEADER_LINE, DataError, load_runs, read_header
 from models.data.features import Prepared, prepare
 from models.data.references import first_rows
+from models.data.unit_ranges import SENSOR_PATTERN
 from models.fit.metrics import accuracy
 from models.store import FORMAT as PLAIN_FORMAT
 from models.store import ModelStore, StoreError, load_file
@@ -182,6 +183,22 @@ def streamed(banked: BankedAugmented, prepared: Prepared) -> np.ndarray:
     return out
 
 
+def _require_model_sensors(data_csv: Path, scored: ScoredModel) -> None:
+    """Refuse a file without a sensor the model reads, naming the model (the sensors are
+    the model's, not a --sensors list the user gave)."""
+    names = read_header(data_csv)
+    missing = [s for s in needed_sensors(scored) if s not in names]
+    if missing:
+        present = [n for n in names if SENSOR_PATTERN.match(n)]
+        raise DataError(
+            data_csv,
+            HEADER_LINE,
+            missing[0],
+            f"the model {scored.banked.model_id} reads sensor(s) {', '.join(missing)}, "
+            f"which this file lacks (its temperature columns: {', '.join(present) or 'none'})",
+        )
+
+
 def run_figures(prepared: Prepared, predicted: np.ndarray) -> dict[str, dict[str, float | int]]:
     """RMSE, σ and max|e| (µm) of each run, then of every row pooled."""
     measured = prepared.error_um
@@ -212,20 +229,26 @@ def score(
     store_dir: Path | None,
     target: str | None,
     say: Callable[[str], None],
+    note: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """Score the model on DATA_CSV; print the table and notes; return the JSON result."""
+    """Score the model on DATA_CSV; print the table (``say``) and the notes on the data
+    (``note``, default ``say``: the command gives stderr); return the JSON result."""
+    note = note or say
     scored = load_model(find_model(model_spec, store_dir))
     target = target or scored.target
+    _require_model_sensors(Path(data_csv), scored)
     data = load_runs(data_csv, target=target, sensors=needed_sensors(scored))
     if scored.banked.sensors & {AMBIENT_COLUMN} and data.ambient_C is None:
         raise ValueError(f"{data_csv}: the model needs an {AMBIENT_COLUMN} column; there is none")
     for skipped in data.skipped:
-        say(f"note: {skipped.describe()}")
+        note(f"note: {skipped.describe()}")
+    for text in data.notes:
+        note(f"note: {data.source}: {text}")
     prepared = prepare(data, needed_sensors(scored), scored.policy)
     figures = run_figures(prepared, predictions(scored, prepared))
     found = excursions(scored, prepared)
     for line in report_lines(scored, prepared, figures, found):
-        say(line)
+        (note if line.startswith("note:") else say)(line)
     return {
         "model_id": scored.banked.model_id,
         "model_file": str(scored.path),

@@ -38,6 +38,7 @@ folds and inner folds there are.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -222,7 +223,7 @@ class ResidualAnalysis:
 
     def run(self) -> tuple[list[StepResult], list[Accepted]]:
         accepted: list[Accepted] = []
-        current = self.evaluate(accepted, None)
+        current = self._declared(self.evaluate(accepted, None))
         steps: list[StepResult] = []
         while len(accepted) < MAX_STEPS:
             families = self._open_families(accepted)
@@ -275,6 +276,20 @@ class ResidualAnalysis:
             )
             current = ev
         return steps, accepted
+
+    def _declared(self, ev: Evaluation) -> Evaluation:
+        """The base alone as ``fit`` validates it: a base refitted per fold whose design is
+        not its terms (lag-ridge, ridge, pls: one column, its penalised prediction) predicts
+        each held-out fold itself, not rescaled by a least-squares level and slope, so the
+        analysis starts from the figure ``fit`` reports. Candidates refit that column's
+        level and slope with their own terms."""
+        if self.base.fixed:
+            return ev  # the model is least squares on its design: the same fit
+        predicted = ev.predicted_um.copy()
+        for f, rows in enumerate(self.folds.rows):
+            predicted[rows] = self.base.models[f].predict(self.prepared.inputs)[rows]
+        sse = np.array([np.sum((self.y[rows] - predicted[rows]) ** 2) for rows in self.folds.rows])
+        return dataclasses.replace(ev, predicted_um=predicted, per_fold_sse=sse)
 
     def _open_families(self, accepted: list[Accepted]) -> list[EffectFamily]:
         """Families that may still enter the model.

@@ -54,6 +54,7 @@ a square root of the products (:mod:`models.estimators.lag_paths`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -260,6 +261,18 @@ def with_cold_starts(
     return joined, np.r_[y, y_cold], np.r_[labels, np.full(part.n_samples, -1)], cold
 
 
+def _without_constant_speed(
+    candidates: tuple[Structure, ...], speed_rpm: np.ndarray
+) -> tuple[Structure, ...]:
+    """``candidates`` without their speed powers when the speed does not vary on the
+    training rows (not recorded, or one speed throughout): such terms are constant, the
+    data say nothing of them, and a model without them does not need the speed."""
+    speed = np.asarray(speed_rpm, dtype=float)
+    if speed.size and np.ptp(speed) > 0:
+        return candidates
+    return tuple(dataclasses.replace(c, speed_powers=()) for c in candidates)
+
+
 class LagRidgeModel(ThermalModel):
     """Rises, speed powers and their lags; the structure and its penalties chosen nested."""
 
@@ -336,12 +349,13 @@ class LagRidgeModel(ThermalModel):
         part = inputs if rows is None else inputs.take(rows)
         labels = np.full(inputs.n_samples, -1)
         labels[rows if rows is not None else slice(None)] = inner_groups(part)
+        candidates = _without_constant_speed(self.candidates, part.speed_rpm)
         cold = None
-        if len(self.candidates) > 1:
+        if len(candidates) > 1:
             inputs, y, labels, cold = with_cold_starts(inputs, y, labels)
         # Small dense problems: one BLAS thread is faster than several fighting for cores.
         with threadpool_limits(1):
-            choice = choose(candidate_paths(inputs, used, self.candidates, y, labels, cold))
+            choice = choose(candidate_paths(inputs, used, candidates, y, labels, cold))
         self._use(choice.structure)
         self._design_cache: tuple[ModelInputs, np.ndarray] | None = None
         self.sensors_used_ = used
@@ -467,10 +481,11 @@ class LagRidgeModel(ThermalModel):
         penalties = ", ".join(f"{k} {v:.3g}" for k, v in self.penalties_.items())
         scores = ", ".join(f"{k} {v:.2f}" for k, v in self.inner_rmse_um_.items())
         chosen = f"; inner RMSE µm {scores}" if scores else ""
+        speed = f" and {len(self.speed_powers)} speed powers" if self.speed_powers else ""
         return (
             f"lag-ridge [{self.structure_.name}: {self.structure_.estimator}]: "
-            f"{len(self.sensors_used_)} sensors and {len(self.speed_powers)} speed "
-            f"powers with lags at τ = {taus} min ({self.coef_.size} terms); penalties "
+            f"{len(self.sensors_used_)} sensors{speed} "
+            f"with lags at τ = {taus} min ({self.coef_.size} terms); penalties "
             f"{penalties} (nested leave-one-run-out{chosen})"
         )
 

@@ -341,6 +341,8 @@ class CandidatePaths:
             self.grid = [{"l1_over_target_sigma": a} for a in LASSO_PENALTIES]
         else:
             self.grid = [{"sensors": p, "speed": p * r} for r in ratios for p in PENALTIES]
+            if not structure.speed_powers:  # no speed term: no speed penalty to report
+                self.grid = [{"sensors": p} for p in PENALTIES]
         self._ratios = ratios
 
     @property
@@ -406,6 +408,7 @@ class CandidatePaths:
                 alphas=sigma * np.asarray(LASSO_PENALTIES) * n / z.shape[0],
                 max_iter=5000,
                 precompute=True,
+                check_input=False,  # z, y made contiguous float64 above (square_root_rows)
             )
         path = []
         for w in coefs.T:
@@ -438,7 +441,7 @@ class CandidatePaths:
         point = self.grid[k]
         if "l1_over_target_sigma" in point:
             return (point["l1_over_target_sigma"], 0.0)
-        return (point["sensors"], point["speed"])
+        return (point["sensors"], point.get("speed", 0.0))
 
     def nested_sse(self, members: frozenset[int]) -> float:
         """Pooled squared error of each group of ``members`` predicted by this structure fitted

@@ -102,7 +102,12 @@ def _held_out(
     from joblib import Parallel, delayed
 
     jobs = (delayed(_fold_one_thread)(factory, prepared, labels == fold) for fold in folds)
-    return list(Parallel(n_jobs=workers)(jobs))
+    results = Parallel(n_jobs=workers, return_as="generator")(jobs)  # in order, as they end
+    bar = tqdm(
+        results, total=len(folds), desc="held-out folds", disable=not progress, leave=False,
+        mininterval=0,  # every fold shown as it ends, however fast
+    )  # fmt: skip
+    return list(bar)
 
 
 def _fold(factory: ModelFactory, prepared: Prepared, test: np.ndarray) -> np.ndarray:

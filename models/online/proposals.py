@@ -75,6 +75,10 @@ PROPOSALS_FOLDER = "proposals"
 VERSIONS_FOLDER = "versions"
 CURRENT_FILE = "current.json"
 LOCK_FILE = ".lock"
+#: how often a busy ``versions/.lock`` is tried again while a writer waits for it, s
+LOCK_RETRY_S = 0.05
+#: a publication tries this many free ids (each taken meanwhile, or its file removed)
+PUBLISH_TRIES = 100
 #: temporary files of writers (models.json_files; ``tmp*.tmp``: before they were dot-named)
 TEMPORARIES = (".*.tmp", "tmp*.tmp")
 
@@ -97,6 +101,19 @@ _ID_PATTERN = re.compile(r"^P(\d{4,})$")
 
 class ProposalError(StoreError):
     """A proposal or version file that cannot be used, or a change that is not allowed."""
+
+
+class StoreBusyError(ProposalError):
+    """Another process holds ``versions/.lock`` (a change under way, or a stopped writer)."""
+
+    def __init__(self, path: Path, holder: str, waited_s: float) -> None:
+        self.path = path
+        who = f"process {holder}" if holder.isdigit() else "another process"
+        waited = f" for {waited_s:g} s" if waited_s > 0 else ""
+        super().__init__(
+            f"{path} is held by {who}{waited}: another change of the promoted set is under way "
+            "(or its writer is stopped); nothing was changed, try again when it is done"
+        )
 
 
 # -- records --------------------------------------------------------------------------------
@@ -354,23 +371,29 @@ class ProposalStore:
         self.folder.mkdir(parents=True, exist_ok=True)
         figures = {name: float(value) for name, value in figures.items()}
         published = {"status": PROPOSED, "time_s": created, "note": "published"}
-        with self.versions.locked():  # a recovery removes temporary files under it
-            while True:
-                proposal = Proposal(
-                    self._next_id(),
-                    str(machine_id),
-                    created,
-                    str(effect),
-                    params_json,
-                    probe_rows=int(probe_rows),
-                    document=sealed,
-                    replaces=replaces,
-                    note=note,
-                    history=(published,),
-                    **figures,
-                )
+        # No lock: the running loop publishes, and must never wait for a writer of versions.
+        # The file is linked to a free id (exclusive); a recovery that removed its temporary
+        # file mid-write (FileNotFoundError at the link) only costs another try.
+        for _ in range(PUBLISH_TRIES):
+            proposal = Proposal(
+                self._next_id(),
+                str(machine_id),
+                created,
+                str(effect),
+                params_json,
+                probe_rows=int(probe_rows),
+                document=sealed,
+                replaces=replaces,
+                note=note,
+                history=(published,),
+                **figures,
+            )
+            with contextlib.suppress(FileNotFoundError):
                 if _write_new(self._path(proposal.id), proposal.to_json()):
                     return proposal
+        raise ProposalError(
+            f"{self.folder}: no proposal file could be written in {PUBLISH_TRIES} tries"
+        )
 
     def list(self, machine_id: str | None = None, status: str | None = None) -> list[Proposal]:
         """Every proposal (of ``machine_id``, with ``status``), oldest first."""
@@ -402,9 +425,12 @@ class ProposalStore:
             )
         return self._read(path)
 
-    def reject(self, proposal_id: str, note: str = "", time_s: float | None = None) -> Proposal:
-        """Mark an open proposal rejected (a promoted one is rolled back instead)."""
-        with self.versions.locked():
+    def reject(
+        self, proposal_id: str, note: str = "", time_s: float | None = None, wait_s: float = 0.0
+    ) -> Proposal:
+        """Mark an open proposal rejected (a promoted one is rolled back instead). ``wait_s``:
+        how long to wait for a busy lock (:meth:`ModelVersions.locked`)."""
+        with self.versions.locked(wait_s):
             proposal = self.get(proposal_id)
             if not proposal.open:
                 raise ProposalError(
@@ -533,15 +559,18 @@ class ModelVersions:
             return proposal.status, ""
         return PROPOSED, "never in force"
 
-    def promote(self, proposal_id: str, by: str = "", time_s: float | None = None) -> Version:
+    def promote(
+        self, proposal_id: str, by: str = "", time_s: float | None = None, wait_s: float = 0.0
+    ) -> Version:
         """Put the proposal's model in force: a new version, the proposal ``promoted``.
 
         A promoted entry of the same machine in the same place (``replaces``) is
         superseded. Refused for a proposal that is not open (already promoted,
         rejected or superseded: publish it again to reconsider it), and for a model of
         an unsupported format version or, with a signing key, not signed with it.
+        StoreBusyError if another process holds the lock after ``wait_s`` (:meth:`locked`).
         """
-        with self.locked():
+        with self.locked(wait_s):
             proposal = self.proposals.get(proposal_id)
             if not proposal.open:
                 raise ProposalError(
@@ -572,9 +601,10 @@ class ModelVersions:
             self.reconcile(version.created_s)
             return version
 
-    def rollback(self, by: str = "", time_s: float | None = None) -> Version:
-        """Restore the set in force before the current version, as a new version."""
-        with self.locked():
+    def rollback(self, by: str = "", time_s: float | None = None, wait_s: float = 0.0) -> Version:
+        """Restore the set in force before the current version, as a new version (StoreBusyError:
+        as :meth:`promote`)."""
+        with self.locked(wait_s):
             current = self.current()
             if current.previous is None:
                 raise ProposalError(
@@ -619,13 +649,15 @@ class ModelVersions:
                 note = f"machine {machine_id} still runs it: it refused {proposal_id}"
                 self.proposals.set_status(kept, PROMOTED, note, time_s, about)
 
-    def recover(self) -> list[str]:
+    def recover(self, wait_s: float = 0.0) -> list[str]:
         """Clean up after a writer killed mid-change (at the start of ``run`` and of the
         ``models`` commands): remove temporary files and version files never in force, and
-        bring each proposal file's status in line with the versions. Returns what was done."""
+        bring each proposal file's status in line with the versions. Returns what was done.
+        StoreBusyError while another process holds the lock (its change is under way): readers
+        need no recovery (they read through ``current.json``), a writer tries again later."""
         if not self.folder.is_dir() and not self.proposals.folder.is_dir():
             return []
-        with self.locked():
+        with self.locked(wait_s):
             done: list[str] = []
             for folder in (self.folder, self.proposals.folder):
                 done += [f"removed {p}" for p in remove_temporaries(folder, TEMPORARIES)]
@@ -649,15 +681,27 @@ class ModelVersions:
         return changed
 
     @contextlib.contextmanager
-    def locked(self) -> Iterator[None]:
-        """Hold the store's change lock (one writer of versions and statuses at a time)."""
+    def locked(self, wait_s: float = 0.0) -> Iterator[None]:
+        """Hold the store's change lock (one writer of versions and statuses at a time).
+
+        Never a blocking ``flock``: the lock is tried (``LOCK_NB``) and tried again every
+        :data:`LOCK_RETRY_S` for up to ``wait_s`` (0: once), then :class:`StoreBusyError` naming
+        the lock file and the process holding it. A holder that is stopped (``SIGSTOP``) or
+        hung would otherwise stop every writer after it, the running loop included. The
+        holder's process id is written into the lock file for that message."""
         self.folder.mkdir(parents=True, exist_ok=True)
-        with open(self.folder / LOCK_FILE, "a", encoding="utf-8") as handle:
-            fcntl.flock(handle, fcntl.LOCK_EX)
+        path = self.folder / LOCK_FILE
+        handle = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            _acquire(handle, path, wait_s)
             try:
+                os.ftruncate(handle, 0)
+                os.pwrite(handle, f"{os.getpid()}\n".encode(), 0)
                 yield
             finally:
                 fcntl.flock(handle, fcntl.LOCK_UN)
+        finally:
+            os.close(handle)
 
     def _numbers(self) -> list[int]:
         return sorted(int(p.stem) for p in self.folder.glob("*.json") if p.stem.isdigit())
@@ -704,6 +748,27 @@ class ModelVersions:
 
 
 # -- helpers --------------------------------------------------------------------------------
+
+
+def _acquire(handle: int, path: Path, wait_s: float) -> None:
+    """``flock`` ``handle`` without ever blocking in the kernel; StoreBusyError after ``wait_s``."""
+    deadline = time.monotonic() + max(0.0, wait_s)
+    while True:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                raise StoreBusyError(path, _holder(handle), wait_s) from None
+            time.sleep(LOCK_RETRY_S)
+
+
+def _holder(handle: int) -> str:
+    """The process id the holder wrote into the lock file ("" if none can be read)."""
+    try:
+        return os.pread(handle, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return ""
 
 
 def check_format_version(data: Mapping[str, Any], where: str) -> None:

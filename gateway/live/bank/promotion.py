@@ -27,6 +27,12 @@ compensation moves to it no faster than the slew allows.
 With ``models.auto_promote: true`` the loop itself promotes a new proposal for
 its machine as soon as it sees it (one ``stat`` of the proposals folder per
 cycle); by default nothing is promoted without an operator.
+
+The loop never waits for the store's lock (``versions/.lock``): the recovery at start
+and an automatic promotion only *try* it (:meth:`models.online.proposals.ModelVersions.locked`);
+while another process holds it (a ``models promote`` under way, or stopped) they are
+tried again on each later cycle, and the cycles go on. Reading the version in force
+needs no lock: its commit is the atomic rename of ``versions/current.json``.
 """
 
 from __future__ import annotations
@@ -45,6 +51,7 @@ from models.online.proposals import (
     ActiveEntry,
     Proposal,
     ProposalStore,
+    StoreBusyError,
     Version,
 )
 
@@ -157,6 +164,9 @@ class Promotions:
         self._proposals_key: tuple[int, int] | None = None
         self._entries: dict[str | None, ActiveEntry] = {}  # what the bank holds, by place
         self._proposals_path = os.fspath(self.store.folder)  # stat-ed every cycle
+        self._recover_pending = False  # the recovery at start found the lock held
+        self._auto_pending = False  # an automatic promotion found the lock held
+        self._busy_logged = False  # the held lock is logged once per episode
 
     # -- at start ---------------------------------------------------------------------------
     def load(self, bank: ModelBank) -> SwapOutcome:
@@ -172,19 +182,34 @@ class Promotions:
         return outcome
 
     def _recover(self) -> None:
+        self._recover_pending = False
         try:
             for line in self.store.versions.recover():
                 log.warning("%s: model store recovered: %s", self.machine.id, line)
+        except StoreBusyError as exc:  # tried again next cycle: never wait on the loop
+            self._recover_pending = True
+            self._lock_busy("the recovery of the model store", exc)
+            return
         except OSError as exc:  # a read-only store: nothing can have been left half-written
             log.warning("%s: model store not checked for leftovers: %s", self.machine.id, exc)
+        self._busy_logged = False
+
+    def _lock_busy(self, what: str, exc: StoreBusyError) -> None:
+        """Log once per episode that ``what`` waits for a lock another process holds."""
+        if not self._busy_logged:
+            self._busy_logged = True
+            log.warning("%s: %s is tried again every cycle: %s", self.machine.id, what, exc)
 
     # -- every cycle ------------------------------------------------------------------------
     def poll(self, bank: ModelBank) -> SwapOutcome | None:
         """Between cycles: new proposals (auto-promoted if configured), then a new version."""
+        if self._recover_pending:
+            self._recover()
         if self._proposals_changed():
             self._refresh_proposals()
-            if self.auto_promote:
-                self._auto_promote()
+            self._auto_pending = self.auto_promote
+        if self._auto_pending:
+            self._auto_promote()
         key = self.store.versions.pointer_key()
         if key == self._version_key:
             return None
@@ -306,11 +331,16 @@ class Promotions:
         self.proposals_revision += 1
 
     def _auto_promote(self) -> None:
+        self._auto_pending = False
         newest = next((p for p in reversed(self.proposals) if p.open), None)
         if newest is None:
             return
         try:
             self.store.versions.promote(newest.id, by="auto_promote")
+        except StoreBusyError as exc:
+            self._auto_pending = True
+            self._lock_busy(f"the automatic promotion of {newest.id}", exc)
+            return
         except (KeyError, ValueError) as exc:
             log.error("%s: auto-promotion of %s failed: %s", self.machine.id, newest.id, exc)
             return
@@ -319,6 +349,7 @@ class Promotions:
             self.machine.id,
             newest.describe(),
         )
+        self._busy_logged = False
         self._refresh_proposals()
 
 

@@ -292,10 +292,27 @@ class ModelStore:
         return write_json_atomic(self.path_of(document["model_id"]), document, allow_nan=False)
 
     def load(self, model_id: str) -> tuple[ThermalModel, StoredModel]:
-        return load_file(self.path_of(model_id))
+        path = self.path_of(model_id)
+        model, document = load_file(path)
+        check_named_after(path, document.model_id)
+        return model, document
 
     def ids(self) -> list[str]:
         return sorted(p.stem for p in self.root.glob("*.json"))
+
+
+def check_named_after(path: Path, model_id: str) -> None:
+    """Raise StoreError unless the store's file ``path`` is named after the model it holds.
+
+    The regime rules, the promoted entries (``replaces``) and the logs name a model by
+    its id, and a store finds it by its file name: two files whose contents were
+    swapped (or a file copied in under another name) would serve one model in the
+    other's place, each checksum and signature still valid."""
+    if path.stem != model_id:
+        raise StoreError(
+            f"{path}: holds model '{model_id}', not '{path.stem}': a store's file is named "
+            f"after the model it holds ({model_id}.json); put the right file back, or rename it"
+        )
 
 
 def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:

@@ -32,7 +32,7 @@ from models.data.dataset import AMBIENT_COLUMN
 from models.estimators.sensor_relations import SensorRelations
 from models.fit.conditioning import bias_sensitivity
 from models.online.streaming import StreamingAugmented
-from models.store import StoredModel, load_file, probe_inputs
+from models.store import StoredModel, check_named_after, load_file, probe_inputs
 
 log = logging.getLogger(__name__)
 
@@ -266,16 +266,15 @@ class ModelBank:
         signing_key = signing.key_for_store(folder)
         for path in sorted(folder.glob("*.json")):
             model, document = load_checked(path, signing_key)
+            check_named_after(path, document.model_id)
             if callable(getattr(model, "stream", None)):  # its terms carry lag states
                 loaded.append(BankedAugmented.from_plain(model, document))
             else:
                 loaded.append(BankedModel(document.model_id, model, document))
         for path in sorted((folder / augmented.FOLDER).glob("*.json")):
-            loaded.append(
-                BankedAugmented.from_document(
-                    augmented.load(path), ambient_sensor or AMBIENT_COLUMN
-                )
-            )
+            document = augmented.load(path)
+            check_named_after(path, str(document.get("model_id")))
+            loaded.append(BankedAugmented.from_document(document, ambient_sensor or AMBIENT_COLUMN))
         if not loaded:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"

@@ -32,7 +32,10 @@ The loop never waits for the store's lock (``versions/.lock``): the recovery at 
 and an automatic promotion only *try* it (:meth:`models.online.proposals.ModelVersions.locked`);
 while another process holds it (a ``models promote`` under way, or stopped) they are
 tried again on each later cycle, and the cycles go on. Reading the version in force
-needs no lock: its commit is the atomic rename of ``versions/current.json``.
+needs no lock: its commit is the atomic rename of ``versions/current.json``. The running
+loop also runs that recovery whenever it sees a new version (once the lock is free): a
+writer killed between its commit and the proposal files' update leaves them behind the
+version in force, and nothing else would bring them in line until the next command.
 """
 
 from __future__ import annotations
@@ -164,7 +167,8 @@ class Promotions:
         self._proposals_key: tuple[int, int] | None = None
         self._entries: dict[str | None, ActiveEntry] = {}  # what the bank holds, by place
         self._proposals_path = os.fspath(self.store.folder)  # stat-ed every cycle
-        self._recover_pending = False  # the recovery at start found the lock held
+        self._recover_pending = False  # a recovery found the lock held: tried next cycle
+        self._recover_quiet = False  # ... and says so only if it is the one at start
         self._auto_pending = False  # an automatic promotion found the lock held
         self._busy_logged = False  # the held lock is logged once per episode
 
@@ -181,14 +185,18 @@ class Promotions:
         self._refresh_proposals()
         return outcome
 
-    def _recover(self) -> None:
+    def _recover(self, quiet: bool = False) -> None:
+        """Clean up after a writer killed mid-change; tried again next cycle while another
+        process holds the lock (``quiet``: without saying so, as after every new version,
+        whose writer is still bringing the proposal files in line)."""
         self._recover_pending = False
         try:
             for line in self.store.versions.recover():
                 log.warning("%s: model store recovered: %s", self.machine.id, line)
         except StoreBusyError as exc:  # tried again next cycle: never wait on the loop
-            self._recover_pending = True
-            self._lock_busy("the recovery of the model store", exc)
+            self._recover_pending, self._recover_quiet = True, quiet
+            if not quiet:
+                self._lock_busy("the recovery of the model store", exc)
             return
         except OSError as exc:  # a read-only store: nothing can have been left half-written
             log.warning("%s: model store not checked for leftovers: %s", self.machine.id, exc)
@@ -204,7 +212,7 @@ class Promotions:
     def poll(self, bank: ModelBank) -> SwapOutcome | None:
         """Between cycles: new proposals (auto-promoted if configured), then a new version."""
         if self._recover_pending:
-            self._recover()
+            self._recover(quiet=self._recover_quiet)
         if self._proposals_changed():
             self._refresh_proposals()
             self._auto_pending = self.auto_promote
@@ -225,6 +233,9 @@ class Promotions:
             )
             return None
         outcome = self._apply(version, bank)
+        if self.running:
+            # A writer killed after its commit leaves the proposal files behind this version.
+            self._recover(quiet=True)
         self._refresh_proposals()  # promotion changes statuses
         return outcome
 

@@ -10,9 +10,9 @@ gateway takes every change within a cycle (it watches ``versions/current.json``)
 Every command first cleans up after a change killed mid-write (temporary files,
 a version file never put in force, proposal statuses behind the versions:
 :meth:`models.online.proposals.ModelVersions.recover`) and says what it did on stderr.
-With a signing key (``models.signing_key_file`` of the configuration, or the
-environment variable ``SPINDLE_MODEL_KEY_FILE``) ``promote`` refuses a model that
-is not signed with it.
+Models are signed (:mod:`models.signing`: the key of ``models.signing_key_file``,
+``SPINDLE_MODEL_KEY_FILE`` or the default place); ``promote`` refuses a model that
+is not signed with it, and ``sign`` signs a store written before that.
 
 The commands never wait on ``versions/.lock`` without end: ``proposals`` and
 ``versions`` only read (through the atomic ``versions/current.json``) and skip the
@@ -165,6 +165,43 @@ def versions(store_dir: Path | None, config_path: Path | None, machine_id: str |
             )
 
 
+@models_group.command("sign")
+@STORE_OPTION
+@CONFIG_OPTION
+@MACHINE_OPTION
+@input_errors_exit
+def sign(store_dir: Path | None, config_path: Path | None, machine_id: str | None) -> None:
+    """Sign a store's unsigned models with its key, made if there is none yet.
+
+    For a store written before models were signed by default: its model files,
+    augmented models, open proposals and the version in force (followed by a new
+    version holding the same models, signed). Each is checked whole first; a model
+    whose signature is wrong is refused, never signed again. Sign only models you
+    know to be yours.
+    """
+    from models import signing
+    from models.analysis import augmented
+    from models.online.proposals import ProposalStore
+    from models.store import sign_unsigned_models
+
+    for store_path, _ in _stores(store_dir, config_path, machine_id):
+        key_file = signing.key_file_for_store(store_path)
+        if key_file is None:
+            raise ValueError(f"{store_path}: models.signing is false (an unsigned store)")
+        made = not key_file.exists()
+        key = signing.key_for_store(store_path, create=True)
+        assert key is not None
+        if made:
+            click.echo(f"made the model signing key {key_file} (mode 600)")
+        files = sign_unsigned_models(store_path, key) + augmented.sign_unsigned(store_path, key)
+        for path in files:
+            click.echo(f"signed {path}")
+        by = f"command line, {_who()}"
+        for line in ProposalStore(store_path).versions.sign_unsigned(key, by, LOCK_WAIT_S):
+            click.echo(f"{store_path}: {line}")
+        click.echo(f"{store_path}: every model signed with the key {key_file}")
+
+
 # -- finding the store --------------------------------------------------------------------
 
 
@@ -245,7 +282,9 @@ def _machines(config_path: Path | None, machine_id: str | None) -> list[Any]:
 
     config = load_config(config_path or Path("config.yaml"))
     for machine in config.machines:
-        signing.configure(machine.models.store, machine.models.signing_key_file)
+        signing.configure(
+            machine.models.store, machine.models.signing_key_file, machine.models.signing
+        )
     machines = list(config.machines)
     if machine_id is not None:
         machines = [m for m in machines if m.id == machine_id]

@@ -283,6 +283,7 @@ class Version:
             "start": "the store's own models",
             "promote": f"promoted {self.proposal_id}",
             "rollback": f"rolled back to the set of version {self.restores}",
+            "sign": f"the set of version {self.number - 1}, its models signed",
         }.get(self.action, self.action)
         return f"version {self.number}: {what}; promoted models: {models}"
 
@@ -364,7 +365,7 @@ class ProposalStore:
                 raise ProposalError(f"proposal {name} must be a finite number ≥ 0, got {value!r}")
         if int(probe_rows) < 1:
             raise ProposalError(f"proposal probe_rows must be at least 1, got {probe_rows!r}")
-        key = signing.key_for_store(self.store_dir)
+        key = signing.key_for_store(self.store_dir, create=True)
         sealed = checked_document(document, "proposal document", key, sign_unsigned=True)
         created = time.time() if created_s is None else float(created_s)
         params_json = json.loads(json.dumps(dict(params)))
@@ -648,6 +649,48 @@ class ModelVersions:
                 kept = self.proposals.read_file(kept_proposal_id)
                 note = f"machine {machine_id} still runs it: it refused {proposal_id}"
                 self.proposals.set_status(kept, PROMOTED, note, time_s, about)
+
+    def sign_unsigned(self, key: bytes, by: str = "", wait_s: float = 0.0) -> list[str]:
+        """Sign the unsigned models of the open proposals and of the version in force
+        (``models sign``, for a store written before models were signed by default).
+
+        A proposal file is rewritten with its model signed; the version in force, never
+        rewritten, is followed by a new version (action ``sign``) holding the same models,
+        signed. A model with a wrong signature is refused (ProposalError). Returns what
+        was done, one line each."""
+        done: list[str] = []
+        with self.locked(wait_s):
+            for proposal in self.proposals.list(status=PROPOSED):
+                if signing.FIELD in proposal.document:
+                    continue
+                where = f"{self.proposals.folder / f'{proposal.id}.json'}, its model"
+                raw = self.proposals.read_file(proposal.id)
+                signed = checked_document(raw.document, where, key, sign_unsigned=True)
+                write_json_atomic(
+                    self.proposals._path(raw.id), replace(raw, document=signed).to_json()
+                )
+                done.append(f"signed the model of proposal {proposal.id}")
+            current = self.get(self.current_number())
+            if any(signing.FIELD not in e.document for e in current.active):
+                where = f"{self.folder / f'{current.number}.json'}"
+                active = tuple(
+                    replace(
+                        e, document=checked_document(e.document, where, key, sign_unsigned=True)
+                    )
+                    for e in current.active
+                )
+                version = self._write(
+                    action="sign",
+                    current=current,
+                    previous=current.previous,
+                    active=active,
+                    by=by,
+                    time_s=None,
+                )
+                done.append(
+                    f"version {version.number}: the models of version {current.number}, signed"
+                )
+        return done
 
     def recover(self, wait_s: float = 0.0) -> list[str]:
         """Clean up after a writer killed mid-change (at the start of ``run`` and of the

@@ -8,11 +8,17 @@ from __future__ import annotations
 
 import json
 import signal
+import stat
 from pathlib import Path
 
+import pytest
+import yaml
+
+from models import signing
 from models.online.proposals import PROMOTED, PROPOSED, SUPERSEDED, ModelVersions, ProposalStore
+from models.store import _checksum, load_file
 from tests import served_bench as bench
-from tests.cli import gateway
+from tests.cli import gateway, gateway_in_process
 from tests.ports import free_tcp_port
 from tests.served_bench import wait_until
 from tests.test_promotion_kill import KilledCommands, publish_offsets
@@ -82,3 +88,78 @@ def test_proposal_files_left_behind_by_a_killed_promote_are_repaired(tmp_path: P
             assert gateway.poll() is None
     finally:
         commands.close()
+
+
+def test_models_are_signed_by_default_with_a_key_made_on_first_use(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No key configured anywhere: a store written before signing (unsigned) is refused by
+    check-config and run, naming what to run; ``models sign`` makes the key where SSH-like
+    defaults put it (outside the store, mode 600) and signs the store; check-config says
+    where the key is; ``fit`` signs with it; a forged model (checksum recomputed) is then
+    refused for its signature, naming the file."""
+    config = bench_config(tmp_path, free_tcp_port(), free_tcp_port())
+    store = tmp_path / "models"
+    monkeypatch.delenv(signing.KEY_ENV)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    key = tmp_path / "xdg" / "spindle-gateway" / "model-signing.key"
+    for path in store.glob("*.json"):  # as an older version wrote them: unsigned
+        document = json.loads(path.read_text())
+        del document["signature"]
+        path.write_text(json.dumps(document))
+
+    for command in ("check-config", "run"):
+        refused = gateway(command, "--config", config, timeout_s=120)
+        assert refused.returncode == 2, (command, refused.stdout)
+        assert f"model signing key {key} does not exist" in refused.stderr
+        assert f"python -m gateway models sign --store {store}" in refused.stderr
+    assert not key.exists()  # a reader never makes a key
+
+    signed = gateway("models", "sign", "--store", store, timeout_s=120)
+    assert signed.returncode == 0, signed.stderr
+    assert f"made the model signing key {key} (mode 600)" in signed.stdout
+    assert stat.S_IMODE(key.stat().st_mode) == 0o600
+    assert stat.S_IMODE(key.parent.stat().st_mode) == 0o700
+    assert all("signature" in json.loads(p.read_text()) for p in store.glob("*.json"))
+    checked = gateway("check-config", "--config", config, timeout_s=120)
+    assert checked.returncode == 0, checked.stderr
+    assert f"machine bench-1: models signed, signing key {key}" in checked.stdout
+
+    refit = tmp_path / "refit"
+    fitted = gateway_in_process("fit", tmp_path / "training.csv", "--store", refit)
+    assert fitted.returncode == 0, fitted.stderr
+    for path in refit.glob("*.json"):
+        assert load_file(path)[1].signature is not None  # the same key
+
+    path = store / f"{FALLBACK}.json"
+    forged = json.loads(path.read_text())
+    forged["params"]["intercept_um"] += 30.0
+    forged["sha256"] = _checksum(forged)
+    path.write_text(json.dumps(forged))
+    for command in ("check-config", "run"):
+        refused = gateway(command, "--config", config, timeout_s=120)
+        assert refused.returncode == 2, (command, refused.stdout)
+        assert f"{path}: the model's signature does not match the signing key" in refused.stderr
+        assert "probe" not in refused.stderr
+    again = gateway("models", "sign", "--store", store, timeout_s=120)
+    assert again.returncode == 2 and "not signed again" in again.stderr  # never whitewashed
+
+
+def test_a_store_declared_unsigned_is_neither_signed_nor_checked(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    config = bench_config(tmp_path, free_tcp_port(), free_tcp_port())
+    store = tmp_path / "models"
+    monkeypatch.delenv(signing.KEY_ENV)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    for path in store.glob("*.json"):
+        document = json.loads(path.read_text())
+        del document["signature"]
+        path.write_text(json.dumps(document))
+    document = yaml.safe_load(config.read_text())
+    document["machines"][0]["models"]["signing"] = False
+    bench.write_config(document, config)
+    checked = gateway("check-config", "--config", config, timeout_s=120)
+    assert checked.returncode == 0, checked.stderr
+    assert f"models of {store} unsigned (models.signing: false)" in checked.stdout
+    assert not (tmp_path / "xdg").exists()

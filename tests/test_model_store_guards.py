@@ -123,7 +123,7 @@ def test_models_are_signed_by_default_with_a_key_made_on_first_use(
     assert all("signature" in json.loads(p.read_text()) for p in store.glob("*.json"))
     checked = gateway("check-config", "--config", config, timeout_s=120)
     assert checked.returncode == 0, checked.stderr
-    assert f"machine bench-1: models signed, signing key {key}" in checked.stdout
+    assert f"models signed, signing key {key}" in checked.stdout
 
     refit = tmp_path / "refit"
     fitted = gateway_in_process("fit", tmp_path / "training.csv", "--store", refit)

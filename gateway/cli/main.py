@@ -364,9 +364,8 @@ def check_config(config_path: Path, connect: bool) -> None:
             f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
             f"{len(bank.models)} models in {machine.models.store} (target {bank.target}), "
             f"compensation → #{machine.compensation.macro} ({machine.compensation.unit}), "
-            f"{promotion_summary(machine)}"
+            f"{promotion_summary(machine)}, {signing_summary(machine)}"
         )
-        click.echo(f"machine {machine.id}: {signing_summary(machine)}")
     if connect:
         problems = event_loop.run(check_connections(config), config.event_loop)
         if problems:

@@ -128,9 +128,7 @@ def load_bank(machine: MachineSection) -> ModelBank:
     signatures, with ``models.signing_key_file``)."""
     from models import signing
 
-    signing.configure(
-        machine.models.store, machine.models.signing_key_file, machine.models.signing
-    )
+    signing.configure(machine.models.store, machine.models.signing_key_file, machine.models.signing)
     bank = ModelBank.from_store(
         machine.models.store, ambient_sensor=ambient_sensor_of(machine.sensor_names)
     )

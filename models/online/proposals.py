@@ -37,8 +37,8 @@ the version in force, wherever a writer was killed.
 
 Every file read is checked for its ``format`` and a supported ``format_version``,
 naming the file; so are the augmented models inside proposals and versions
-(:func:`models.analysis.augmented.check`), and their signatures when the store has a
-signing key (:mod:`models.signing`).
+(:func:`models.analysis.augmented.check`), and their signatures (:mod:`models.signing`;
+not in a store declared unsigned).
 
 A promoted entry names the model it takes the place of (``replaces``, a model
 id of the store, or None: every regime). Promoting a proposal for the same
@@ -48,7 +48,10 @@ The running gateway watches ``versions/current.json`` (a ``stat`` per cycle,
 :meth:`ModelVersions.pointer_key`) and swaps the set in between cycles after its
 own checks (:mod:`gateway.live.bank.promotion`). Writers take ``versions/.lock`` (an
 advisory ``flock``), so the command line and the gateway's SCADA method can
-change the set at the same time without losing a version.
+change the set at the same time without losing a version. The lock is only ever
+tried, never waited on in the kernel (:meth:`ModelVersions.locked`): a holder that
+is stopped stops no one else; readers need no lock, the rename of
+``versions/current.json`` being the commit; publishing a proposal takes none.
 """
 
 from __future__ import annotations

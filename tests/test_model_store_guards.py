@@ -163,3 +163,40 @@ def test_a_store_declared_unsigned_is_neither_signed_nor_checked(
     assert checked.returncode == 0, checked.stderr
     assert f"models of {store} unsigned (models.signing: false)" in checked.stdout
     assert not (tmp_path / "xdg").exists()
+
+
+def test_models_sign_signs_open_proposals_and_the_version_in_force(tmp_path: Path) -> None:
+    """A store whose promoted and proposed models were written unsigned (an older version):
+    check-config refuses the version in force; ``models sign`` follows it with a version of
+    the same models, signed (the version files are never rewritten), and signs the open
+    proposal's model, which can then be promoted."""
+    config = bench_config(tmp_path, free_tcp_port(), free_tcp_port())
+    store = tmp_path / "models"
+    publish_offsets(store, 2)
+    ModelVersions(store).promote("P0001")
+    version_file = store / "versions" / "1.json"
+    written = json.loads(version_file.read_text())
+    for entry in written["active"]:
+        del entry["document"]["signature"]
+    version_file.write_text(json.dumps(written))
+    proposal_file = store / "proposals" / "P0002.json"
+    proposal = json.loads(proposal_file.read_text())
+    del proposal["document"]["signature"]
+    proposal_file.write_text(json.dumps(proposal))
+
+    refused = gateway("check-config", "--config", config, timeout_s=120)
+    assert refused.returncode == 2
+    assert f"{version_file}, model of P0001: the model is not signed" in refused.stderr
+
+    signed = gateway("models", "sign", "--config", config, timeout_s=120)
+    assert signed.returncode == 0, signed.stderr
+    assert "signed the model of proposal P0002" in signed.stdout
+    assert "version 2: the models of version 1, signed" in signed.stdout
+    assert json.loads(version_file.read_text()) == written  # never rewritten
+    assert ModelVersions(store).current().action == "sign"
+    assert ProposalStore(store).get("P0001").status == PROMOTED
+    checked = gateway("check-config", "--config", config, timeout_s=120)
+    assert checked.returncode == 0, checked.stderr
+    assert "models version 2" in checked.stdout
+    promoted = gateway("models", "promote", "P0002", "--config", config, timeout_s=120)
+    assert promoted.returncode == 0, promoted.stderr

@@ -125,7 +125,7 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
 
 def load_bank(machine: MachineSection) -> ModelBank:
     """The machine's models, checked against its sensors and its regime rules (and their
-    signatures, with ``models.signing_key_file``)."""
+    signatures: ``models.signing``, ``models.signing_key_file``)."""
     from models import signing
 
     signing.configure(machine.models.store, machine.models.signing_key_file, machine.models.signing)

@@ -1,8 +1,9 @@
 """The fitted models a machine can use, loaded and checked once at start-up.
 
 Every file of the store is loaded through :func:`models.store.load_file` (which
-refuses damaged or incompatible files, and, with a signing key for the store, an
-unsigned or wrongly signed one: :mod:`models.signing`). Augmented models (a declared model plus
+refuses damaged or incompatible files, and an unsigned or wrongly signed one unless the
+store is declared unsigned: :mod:`models.signing`), and a file whose model id is not
+its file name (:func:`models.store.check_named_after`). Augmented models (a declared model plus
 the effects residual analysis added, ``<store>/augmented/*.json``) are loaded
 through :func:`models.analysis.augmented.load` (format and checksum) and checked by
 building their sample-by-sample form (:mod:`models.online.streaming`); their lag

@@ -517,12 +517,21 @@ class ModelsSection(Strict):
     #: promote a new proposal of the residual monitor without an operator
     #: (gateway.live.bank.promotion)
     auto_promote: bool = False
-    #: HMAC key the store's models must be signed with (models.signing); outside the store
+    #: HMAC key the store's models must be signed with (models.signing); outside the store.
+    #: Default: $SPINDLE_MODEL_KEY_FILE, else $XDG_CONFIG_HOME/spindle-gateway/model-signing.key
     signing_key_file: Path | None = None
+    #: the store's models are signed and checked; false: an unsigned store (nothing checked)
+    signing: bool = True
 
     @model_validator(mode="after")
     def _key_outside_the_store(self) -> ModelsSection:
         key = self.signing_key_file
+        if key is not None and not self.signing:
+            raise KeyPathError(
+                ("signing_key_file",),
+                f"{key} is named, but models.signing is false (an unsigned store): "
+                "remove one of the two",
+            )
         if key is not None and key.resolve().is_relative_to(self.store.resolve()):
             raise KeyPathError(
                 ("signing_key_file",),
@@ -973,20 +982,17 @@ class GatewayConfig(Strict):
         """A store's models are checked with one key (models.signing keys it by store): a
         machine naming none, or another one, would silently replace the key of a machine
         sharing its store, whose promotions would then go unchecked."""
-        keys: dict[Path, tuple[int, str, Path | None]] = {}
+        keys: dict[Path, tuple[int, str, str]] = {}
         for index, machine in enumerate(self.machines):
             store = machine.models.store.resolve()
-            key = machine.models.signing_key_file
-            resolved = None if key is None else key.resolve()
-            first = keys.setdefault(store, (index, machine.id, resolved))
-            if first[2] != resolved:
-                named = "none" if key is None else f"signing key {key}"
-                other = "none" if first[2] is None else f"signing key {first[2]}"
+            named = _signing_named(machine.models)
+            first = keys.setdefault(store, (index, machine.id, named))
+            if first[2] != named:
                 raise KeyPathError(
                     ("machines", index, "models", "signing_key_file"),
                     f"machine '{machine.id}' names {named}, but shares the model store "
                     f"{machine.models.store} with machine '{first[1]}' (machines[{first[0]}]), "
-                    f"which names {other}; machines sharing a store name the same key",
+                    f"which names {first[2]}; machines sharing a store name the same key",
                 )
         return self
 
@@ -1000,6 +1006,14 @@ def login_limits(section: ScadaSection | WebSection) -> LoginLimits:
         lockout_s=section.login_lockout_s,
         max_lockout_s=section.login_max_lockout_s,
     )
+
+
+def _signing_named(models: ModelsSection) -> str:
+    """How a machine's ``models`` section names its store's signing, to compare machines."""
+    if not models.signing:
+        return "models.signing: false"
+    key = models.signing_key_file
+    return "none" if key is None else f"signing key {key.resolve()}"
 
 
 def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:

@@ -138,10 +138,10 @@ def load_located_bank(config: GatewayConfig, index: int) -> ModelBank:
 
 def load_bank(machine: MachineSection) -> ModelBank:
     """The machine's models, checked against its sensors and its regime rules (and their
-    signatures, with ``models.signing_key_file``)."""
+    signatures: ``models.signing``, ``models.signing_key_file``)."""
     from models import signing
 
-    signing.configure(machine.models.store, machine.models.signing_key_file)
+    signing.configure(machine.models.store, machine.models.signing_key_file, machine.models.signing)
     bank = ModelBank.from_store(
         machine.models.store, ambient_sensor=ambient_sensor_of(machine.sensor_names)
     )

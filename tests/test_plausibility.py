@@ -21,7 +21,8 @@ from gateway.live.quality import Quality, QualityMonitor
 from models.base import ModelInputs
 from models.estimators.mlr import MlrModel
 from models.estimators.sensor_relations import SensorRelations, fit_relations
-from models.store import StoredModel, _checksum, build_document
+from models.store import StoredModel, build_document
+from tests.test_store import resealed
 
 SENSORS = ("A", "B", "C", "D", "E")
 NOISE_C = 0.05
@@ -202,14 +203,12 @@ def test_an_old_model_file_without_relations_still_loads(tmp_path: Path) -> None
     document = json.loads(banked.document.model_dump_json(exclude_none=True))
     path = ModelStore(tmp_path).save(document)
     assert load_file(path)[1].relations() is not None
-    old = {k: v for k, v in document.items() if k != "sensor_relations"}
-    old["sha256"] = _checksum(old)
+    old = resealed({k: v for k, v in document.items() if k != "sensor_relations"}, tmp_path)
     path.write_text(json.dumps(old), encoding="utf-8")
     assert load_file(path)[1].relations() is None
     damaged = dict(document)
     damaged["sensor_relations"] = {"sensors": ["A"]}
-    damaged["sha256"] = _checksum(damaged)
-    path.write_text(json.dumps(damaged), encoding="utf-8")
+    path.write_text(json.dumps(resealed(damaged, tmp_path)), encoding="utf-8")
     with pytest.raises(StoreError, match="field 'sensor_relations': sensor_relations: missing"):
         load_file(path)
 

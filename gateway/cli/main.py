@@ -385,7 +385,7 @@ def check_config(config_path: Path, connect: bool) -> None:
             f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
             f"{len(bank.models)} models in {machine.models.store} (target {bank.target}), "
             f"compensation → #{machine.compensation.macro} ({machine.compensation.unit}), "
-            f"{promotion_summary(machine)}"
+            f"{promotion_summary(machine)}, {signing_summary(machine)}"
         )
     if connect:
         problems = event_loop.run(check_connections(config), config.event_loop)
@@ -393,6 +393,16 @@ def check_config(config_path: Path, connect: bool) -> None:
             raise ValueError("; ".join(problems))
         click.echo("every CNC and transmitter answered")
     click.echo(f"{config_path}: ok")
+
+
+def signing_summary(machine) -> str:
+    """Where the key the machine's models are checked with is (models.signing)."""
+    from models import signing
+
+    key_file = signing.key_file_for_store(machine.models.store)
+    if key_file is None:
+        return f"models of {machine.models.store} unsigned (models.signing: false)"
+    return f"models signed, signing key {key_file}"
 
 
 def promotion_summary(machine) -> str:

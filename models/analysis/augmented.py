@@ -144,10 +144,11 @@ def build_augmented_document(
 
 
 def save(document: dict[str, Any], store_dir: str | Path) -> Path:
-    """Write ``document`` into the store's augmented folder, signed if the store has a key."""
+    """Write ``document`` into the store's augmented folder, signed (the key made on first use)
+    unless the store is declared unsigned."""
     refuse_non_finite(document)
     path = Path(store_dir) / FOLDER / f"{document['model_id']}.json"
-    document = sign(document, signing.key_for_store(store_dir))
+    document = sign(document, signing.key_for_store(store_dir, create=True))
     return write_json_atomic(path, document)
 
 
@@ -162,7 +163,10 @@ def load(path: str | Path, key: bytes | None = None) -> dict[str, Any]:
     if not isinstance(document, dict):
         raise StoreError(f"{path}: a JSON object was expected at the top level")
     if key is None:
-        key = signing.key_for_store(path.parent.parent)
+        try:
+            key = signing.key_for_store(path.parent.parent)
+        except signing.SigningError as exc:
+            raise StoreError(str(exc)) from None
     check(document, str(path), key)
     return document
 
@@ -184,6 +188,34 @@ def check(document: dict[str, Any], where: str, key: bytes | None) -> None:
         signing.verify(document, key, canonical_bytes(document), where)
     except signing.SigningError as exc:
         raise StoreError(str(exc)) from None
+
+
+def sign_unsigned(store_dir: str | Path, key: bytes) -> list[Path]:
+    """Sign every unsigned augmented model of the store (``models sign``), each checked whole
+    first; one with a wrong signature is refused (StoreError). Returns the files signed."""
+    signed = []
+    for path in sorted((Path(store_dir) / FOLDER).glob("*.json")):
+        document = _read_unsigned(path, key)
+        if document is not None:
+            write_json_atomic(path, sign(document, key))
+            signed.append(path)
+    return signed
+
+
+def _read_unsigned(path: Path, key: bytes) -> dict[str, Any] | None:
+    """The augmented model in ``path`` if it is unsigned and whole; None if it is validly
+    signed with ``key``; StoreError otherwise."""
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as err:
+        raise StoreError(f"{path}: cannot read an augmented model: {err}") from None
+    if not isinstance(document, dict):
+        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    if signing.FIELD in document:
+        check(document, str(path), key)
+        return None
+    check(document, str(path), None)
+    return document
 
 
 def sign(document: dict[str, Any], key: bytes | None) -> dict[str, Any]:

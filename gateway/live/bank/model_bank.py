@@ -1,8 +1,9 @@
 """The fitted models a machine can use, loaded and checked once at start-up.
 
 Every file of the store is loaded through :func:`models.store.load_file` (which
-refuses damaged or incompatible files, and, with a signing key for the store, an
-unsigned or wrongly signed one: :mod:`models.signing`). Augmented models (a declared model plus
+refuses damaged or incompatible files, and an unsigned or wrongly signed one unless the
+store is declared unsigned: :mod:`models.signing`), and a file whose model id is not
+its file name (:func:`models.store.check_named_after`). Augmented models (a declared model plus
 the effects residual analysis added, ``<store>/augmented/*.json``) are loaded
 through :func:`models.analysis.augmented.load` (format and checksum) and checked by
 building their sample-by-sample form (:mod:`models.online.streaming`); their lag
@@ -32,7 +33,7 @@ from models.data.dataset import AMBIENT_COLUMN
 from models.estimators.sensor_relations import SensorRelations
 from models.fit.conditioning import bias_sensitivity
 from models.online.streaming import StreamingAugmented
-from models.store import StoredModel, load_file, probe_inputs
+from models.store import StoredModel, check_named_after, load_file, probe_inputs
 
 log = logging.getLogger(__name__)
 
@@ -266,16 +267,15 @@ class ModelBank:
         signing_key = signing.key_for_store(folder)
         for path in sorted(folder.glob("*.json")):
             model, document = load_checked(path, signing_key)
+            check_named_after(path, document.model_id)
             if callable(getattr(model, "stream", None)):  # its terms carry lag states
                 loaded.append(BankedAugmented.from_plain(model, document))
             else:
                 loaded.append(BankedModel(document.model_id, model, document))
         for path in sorted((folder / augmented.FOLDER).glob("*.json")):
-            loaded.append(
-                BankedAugmented.from_document(
-                    augmented.load(path), ambient_sensor or AMBIENT_COLUMN
-                )
-            )
+            stored = augmented.load(path)
+            check_named_after(path, str(stored.get("model_id")))
+            loaded.append(BankedAugmented.from_document(stored, ambient_sensor or AMBIENT_COLUMN))
         if not loaded:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"

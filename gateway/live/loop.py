@@ -46,6 +46,7 @@ from gateway.config import MachineSection
 from gateway.live.bank.lag_state import EffectStates, WarmLags
 from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.live.bank.promotion import Promotions
+from gateway.live.interval import assess
 from gateway.live.plausibility import Plausibility
 from gateway.live.quality import Quality, QualityMonitor
 from gateway.live.record import CycleRecord, Sink, sink_name
@@ -196,6 +197,13 @@ class MachineLoop:
             write_status="",
             link_errors=errors,
         )
+        bad = sum(1 for c in checks.values() if c.quality is not Quality.GOOD)
+        interval = assess(
+            banked, predicted, self.reference.available_rises_C(good_values), speed_rpm, bad
+        )
+        record.interval_um = interval.half_width_um
+        record.training_span = interval.span
+        record.outside_inputs = interval.outside_inputs
         corrected = self._corrected(now, banked, predicted, record)
         await self._compensate(now, corrected, record)
         await self._write_alive(record)

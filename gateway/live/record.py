@@ -31,6 +31,12 @@ class CycleRecord:
     probe_error_um: float | None = None  # a new probe measurement of the real error, µm
     correction_um: float | None = None  # online correction added to predicted_um, µm
     probe_refused: bool = False  # the online correction refused this cycle's probe value
+    #: half-width of the calibrated interval around predicted_um, µm (None: unknown);
+    #: see gateway/live/interval.py
+    interval_um: float | None = None
+    #: "inside" / "outside" the model's training span, None when unknown
+    training_span: str | None = None
+    outside_inputs: list[str] = field(default_factory=list)  # inputs outside the span
 
 
 Sink = Callable[[CycleRecord], None]

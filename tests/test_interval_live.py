@@ -1,0 +1,119 @@
+"""The interval and the training-span state, live: a simulated machine over Modbus TCP
+(transmitters) and OPC UA (CNC), the gateway's own loop on a manual clock.
+
+The machine runs on a model fitted on constant speeds up to 6000 r/min; taken to
+8000 r/min, the span state turns "outside" (naming the speed) within two cycles and
+the interval widens. A transmitter open circuit widens the interval while the sensor
+is held bad, and the width returns once it recovers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from pathlib import Path
+
+import pytest
+
+from drivers.clock import ManualClock
+from gateway.config import MachineSection
+from gateway.demo.compensate import open_loop
+from gateway.live.record import CycleRecord
+from simulator.faults import SensorFault
+from simulator.programs import SpeedProgram
+from simulator.serve import SimulatedPlant, SimulatorConfig
+from tests import gateway_rig as rig
+from tests.ports import free_tcp_port
+
+CYCLE_S = 30.0
+TRAINED_MODEL = "mlr-error_um-constant"  # fitted on the constant-speed runs, 0…6000 r/min
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return rig.fit_store(tmp_path_factory.mktemp("interval-live"))
+
+
+def served_plant(clock: ManualClock, program: SpeedProgram) -> SimulatedPlant:
+    plant = SimulatedPlant(
+        SimulatorConfig.model_validate(
+            {
+                "seed": 3,
+                "publish_period_s": 1e6,  # publish only when a cycle steps the machine
+                "transmitters": {"tcp": {"port": free_tcp_port(), "devices": rig.DEVICES}},
+                "cnc": {"opcua": {"port": free_tcp_port()}},
+            }
+        ),
+        clock=clock,
+    )
+    plant.machine.program = program
+    plant.machine.schedule_program(0.0)
+    return plant
+
+
+def machine(plant: SimulatedPlant, store: Path) -> MachineSection:
+    entry = rig.machine_entry("m1", plant, store, cnc="opcua", cycle_s=CYCLE_S, stale_s=1e6)
+    entry["models"]["regimes"] = {"models": {}, "fallback_model": TRAINED_MODEL}
+    return MachineSection.model_validate(entry)
+
+
+async def run(plant: SimulatedPlant, store: Path, clock: ManualClock, cycles: int, fault=None):
+    closed = await open_loop(plant, machine(plant, store), clock)
+    records: list[CycleRecord] = []
+    async with rig.closing(closed, plant):
+        for k in range(cycles):
+            if fault is not None and k == fault[0]:
+                plant.machine.add_fault(fault[1](clock.now()))
+            records.append(await closed.step(clock))
+    return records
+
+
+def test_above_training_speed_turns_outside_within_two_cycles_and_widens(store: Path) -> None:
+    change_s = 40 * CYCLE_S
+    program = SpeedProgram("up", ((change_s, 4000.0), (3600.0, 8000.0)))
+    clock = ManualClock()
+    records = asyncio.run(run(served_plant(clock, program), store, clock, 50))
+
+    before = [r for r in records if 20 * CYCLE_S <= r.time_s < change_s]
+    assert before and all(r.training_span == "inside" for r in before), [
+        (r.time_s, r.speed_rpm, r.training_span, r.outside_inputs) for r in before
+    ]
+    assert all(r.interval_um is not None and r.interval_um > 0 for r in before)
+    fast = [r for r in records if r.speed_rpm is not None and r.speed_rpm > 7000]
+    assert fast, "the machine never reached 8000 r/min"
+    first_fast = records.index(fast[0])
+    outside = records[first_fast : first_fast + 2]
+    assert any(r.training_span == "outside" for r in outside), [
+        (r.time_s, r.speed_rpm, r.training_span) for r in outside
+    ]
+    flagged = next(r for r in outside if r.training_span == "outside")
+    assert "speed" in flagged.outside_inputs
+    assert flagged.model_id == TRAINED_MODEL
+    assert flagged.interval_um is not None
+    assert flagged.interval_um > 1.3 * before[-1].interval_um  # type: ignore[operator]
+
+
+def test_sensor_fault_widens_while_held_and_width_returns(store: Path) -> None:
+    program = SpeedProgram("steady", ((6 * 3600.0, 4000.0),))
+    clock = ManualClock()
+    fault_at, fault_cycles = 60, 30
+    plant = served_plant(clock, program)
+
+    def fault(now: float) -> SensorFault:
+        return SensorFault("T1", "open_circuit", start_s=now, end_s=now + fault_cycles * CYCLE_S)
+
+    records = asyncio.run(run(plant, store, clock, 120, fault=(fault_at, fault)))
+    before = records[fault_at - 5 : fault_at]
+    during = [r for r in records[fault_at : fault_at + fault_cycles] if r.quality["T1"] == "bad"]
+    after = records[-5:]
+    assert during, "the open circuit was never flagged"
+    assert all(r.quality["T1"] == "good" for r in before + after)
+    widths_before = [r.interval_um for r in before]
+    widths_during = [r.interval_um for r in during if r.interval_um is not None]
+    widths_after = [r.interval_um for r in after]
+    assert all(w is not None for w in widths_before + widths_after)
+    assert widths_during and min(widths_during) > 1.2 * max(widths_before)  # type: ignore[type-var]
+    assert all(math.isclose(a, widths_before[-1], rel_tol=0.02) for a in widths_after), (
+        widths_before,
+        widths_after,
+    )

@@ -10,6 +10,9 @@ is held bad, and the width returns once it recovers.
 from __future__ import annotations
 
 import asyncio
+import itertools
+import json
+import logging
 import math
 from pathlib import Path
 
@@ -51,14 +54,22 @@ def served_plant(clock: ManualClock, program: SpeedProgram) -> SimulatedPlant:
     return plant
 
 
-def machine(plant: SimulatedPlant, store: Path) -> MachineSection:
+def machine(plant: SimulatedPlant, store: Path, compensation: dict | None) -> MachineSection:
     entry = rig.machine_entry("m1", plant, store, cnc="opcua", cycle_s=CYCLE_S, stale_s=1e6)
     entry["models"]["regimes"] = {"models": {}, "fallback_model": TRAINED_MODEL}
+    entry["compensation"].update(compensation or {})
     return MachineSection.model_validate(entry)
 
 
-async def run(plant: SimulatedPlant, store: Path, clock: ManualClock, cycles: int, fault=None):
-    closed = await open_loop(plant, machine(plant, store), clock)
+async def run(
+    plant: SimulatedPlant,
+    store: Path,
+    clock: ManualClock,
+    cycles: int,
+    fault=None,
+    compensation: dict | None = None,
+):
+    closed = await open_loop(plant, machine(plant, store, compensation), clock)
     records: list[CycleRecord] = []
     async with rig.closing(closed, plant):
         for k in range(cycles):
@@ -116,4 +127,60 @@ def test_sensor_fault_widens_while_held_and_width_returns(store: Path) -> None:
     assert all(math.isclose(a, widths_before[-1], rel_tol=0.02) for a in widths_after), (
         widths_before,
         widths_after,
+    )
+
+
+SLEW_UM_PER_MIN = 3.0
+CHANGE_S = 40 * CYCLE_S
+UP = SpeedProgram("up", ((CHANGE_S, 4000.0), (3600.0, 8000.0)))
+
+
+def gated_run(store: Path, gate: dict | None) -> list[CycleRecord]:
+    clock = ManualClock()
+    compensation = {"slew_um_per_min": SLEW_UM_PER_MIN, "deadband_um": 0.1}
+    if gate is not None:
+        compensation["when_uncertain"] = gate
+    return asyncio.run(run(served_plant(clock, UP), store, clock, 70, compensation=compensation))
+
+
+def stored_half_width(store: Path) -> float:
+    document = json.loads((store / f"{TRAINED_MODEL}.json").read_text(encoding="utf-8"))
+    return float(document["interval"]["half_width_um"])
+
+
+def assert_slew_limited(records: list[CycleRecord]) -> None:
+    applied = [(r.time_s, r.applied_um) for r in records if r.applied_um is not None]
+    for (t0, a0), (t1, a1) in itertools.pairwise(applied):
+        assert abs(a1 - a0) <= SLEW_UM_PER_MIN * (t1 - t0) / 60.0 + 0.1 + 1e-6, (t1, a0, a1)
+
+
+def test_gate_hold_and_scale_ramp_and_gate_off_changes_only_the_flag(
+    store: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    above_um = 1.2 * stored_half_width(store)  # inside the span the width is the stored one
+    off = gated_run(store, None)
+    never = gated_run(store, {"above_um": 1e6})
+    assert [r.applied_um for r in off] == [r.applied_um for r in never]
+    assert not any(r.uncertain for r in off + never)
+    assert any(r.training_span == "outside" for r in off)  # the flag, without the gate
+
+    with caplog.at_level(logging.INFO, logger="gateway.live.uncertainty_gate"):
+        held = gated_run(store, {"above_um": above_um, "action": "hold"})
+    gated = [i for i, r in enumerate(held) if r.uncertain]
+    assert gated, [(r.time_s, r.interval_um) for r in held[35:45]]
+    first = gated[0]
+    assert held[first].training_span == "outside"
+    assert all(r.uncertain for r in held[first:])
+    values = {r.applied_um for r in held[first + 1 :]}
+    assert len(values) == 1, values  # held where it was
+    assert off[-1].applied_um != held[-1].applied_um
+    episodes = [m for m in caplog.messages if "prediction unsure" in m]
+    assert len(episodes) == 1, caplog.messages
+
+    scaled = gated_run(store, {"above_um": above_um, "action": "scale", "scale": 0.5})
+    assert_slew_limited(scaled)
+    last = scaled[-1]
+    assert last.uncertain and last.predicted_um is not None and last.applied_um is not None
+    assert abs(last.applied_um - 0.5 * last.predicted_um) < abs(
+        off[-1].applied_um - 0.5 * last.predicted_um  # type: ignore[operator]
     )

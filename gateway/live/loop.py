@@ -52,6 +52,7 @@ from gateway.live.quality import Quality, QualityMonitor
 from gateway.live.record import CycleRecord, Sink, sink_name
 from gateway.live.reference import TemperatureReference
 from gateway.live.scheduler import CycleScheduler, after_cycle
+from gateway.live.uncertainty_gate import UncertaintyGate
 from gateway.live.writeback import CompensationPolicy, Decision
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
@@ -113,6 +114,7 @@ class MachineLoop:
         self.effects = EffectStates(bank.augmented(), effect_file, warm=warm, writer=STATE)
         self.policy: CompensationPolicy | None = None
         self.compensation_enabled = config.compensation.enabled
+        self.uncertainty_gate = UncertaintyGate(config.id, config.compensation.when_uncertain)
         self.handshake = 0
         self.failed_writes = 0
         self.external_changes = 0
@@ -357,6 +359,8 @@ class MachineLoop:
             record.write_status = self._status(f"disabled: #{comp.macro} held at {held_text}")
             return
         write_s = self.clock.now()
+        predicted = self.uncertainty_gate.aim(predicted, record.interval_um, policy.applied_um)
+        record.uncertain = self.uncertainty_gate.active
         decision = policy.decide(write_s, predicted, enabled=self.compensation_enabled)
         record.target_um = decision.target_um
         if not decision.write:

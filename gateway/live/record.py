@@ -37,6 +37,8 @@ class CycleRecord:
     #: "inside" / "outside" the model's training span, None when unknown
     training_span: str | None = None
     outside_inputs: list[str] = field(default_factory=list)  # inputs outside the span
+    #: compensation.when_uncertain held or scaled this cycle's aim
+    uncertain: bool = False
 
 
 Sink = Callable[[CycleRecord], None]

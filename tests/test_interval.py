@@ -63,6 +63,20 @@ def test_widening_beyond_the_span_and_per_bad_sensor() -> None:
     assert math.isclose(widened_um(cal, 0.5, 1), 2.0 * 2.0 * 1.5)
 
 
+def test_live_span_check_gives_the_offline_figures() -> None:
+    """The loop's precomputed bounds (gateway/live/interval.py) agree with score's check."""
+    from gateway.live.interval import excess_of
+
+    stored = {"rise_C": {"T1": [0.0, 10.0], "T2": [-1.0, 0.2]}, "speed_rpm": [0.0, 6000.0]}
+    rng = np.random.default_rng(1)
+    for _ in range(500):
+        rises = {"T1": float(rng.uniform(-5, 20)), "T2": float(rng.uniform(-3, 3))}
+        speed = float(rng.uniform(0, 9000))
+        live = excess_of(stored, rises, speed)
+        offline = span_excess(stored, rises, speed)
+        assert live[1] == offline[1] and math.isclose(live[0], offline[0], abs_tol=1e-12)
+
+
 def test_calibration_is_normalised_by_the_folds_span() -> None:
     """A held-out run beyond the others' span counts as the extrapolation it was."""
     from models.base import ModelInputs

@@ -187,3 +187,20 @@ def test_model_without_calibration_loads_and_has_no_interval(
     assert done.returncode == 0, done.stderr
     assert json.loads(out.read_text())["interval"] is None
     assert "no calibrated interval" in done.stdout
+
+
+def test_replay_reports_the_interval_coverage_per_run_and_pooled(tmp_path: Path) -> None:
+    out = tmp_path / "replay.json"
+    done = gateway_in_process("replay", FL, "--target", "ch1_um", "--model", "mlr", "--json", out)
+    assert done.returncode == 0, done.stderr
+    interval = json.loads(out.read_text())["offline"]["interval"]
+    assert set(interval["per_run_coverage"]) == {
+        "c1_1250rpm",
+        "c2_2500rpm",
+        "c3_3750rpm",
+        "c4_5000rpm",
+        "c5_3500rpm",
+        "c6_steps",
+    }
+    assert BAND[0] <= interval["heldout_coverage"] <= BAND[1], interval
+    assert "coverage" in done.stdout and "pooled over the held-out runs" in done.stdout

@@ -184,3 +184,57 @@ def test_gate_hold_and_scale_ramp_and_gate_off_changes_only_the_flag(
     assert abs(last.applied_um - 0.5 * last.predicted_um) < abs(
         off[-1].applied_um - 0.5 * last.predicted_um  # type: ignore[operator]
     )
+
+
+def test_scada_shows_outside_and_the_wider_interval_over_opc_ua(
+    tmp_path: Path, store: Path
+) -> None:
+    """The whole gateway as ``run`` builds it (transmitters over an RTU pty pair, the CNC
+    over OPC UA, SCADA on): a SCADA client reads the span state and the width."""
+    from asyncua import ua
+
+    from tests.test_closed_loop import CYCLE_S as RIG_CYCLE_S
+    from tests.test_closed_loop import closed_loop
+    from tests.test_monitor_loop import SCADA_WAIT_S, GatewayOpener, eventually
+    from tests.test_promotion import VIEWER, scada_client, scada_gateway
+
+    change_s = 40 * RIG_CYCLE_S
+    program = SpeedProgram("up", ((change_s, 4000.0), (3600.0, 8000.0)))
+    opener = GatewayOpener(scada_gateway(tmp_path))
+    regimes = {"models": {}, "fallback_model": TRAINED_MODEL}
+
+    async def scenario() -> tuple[list[CycleRecord], list[object]]:
+        (tmp_path / "rig").mkdir()
+        async with closed_loop(
+            tmp_path / "rig", store, program, regimes=regimes, opener=opener
+        ) as (closed, clock):
+            app = opener.app
+            assert app is not None and app.scada is not None
+            pki = app.config.scada.pki_dir  # type: ignore[union-attr]
+            viewer = await scada_client(app.scada.endpoint, pki, tmp_path / "v", VIEWER)
+            ns, machine_id = app.scada.namespace_index, closed.loop.config.id
+            try:
+
+                def node(name: str):
+                    return viewer.get_node(ua.NodeId(f"{machine_id}.{name}", ns))
+
+                records = [await closed.step(clock) for _ in range(36)]
+                span = await eventually(node("TrainingSpan").read_value, "inside")
+                before = await node("IntervalUm").read_value()
+                while len(records) < 60 and not (records[-1].speed_rpm or 0) > 7000:
+                    records.append(await closed.step(clock))
+                records.append(await closed.step(clock))
+                after = await eventually(node("TrainingSpan").read_value, "outside")
+                seen = [span, before, after, await node("IntervalUm").read_value()]
+                seen.append(await node("OutsideInputs").read_value())
+                return records, seen
+            finally:
+                await viewer.disconnect()
+
+    assert SCADA_WAIT_S > 0
+    records, (span, before, after, wider, names) = asyncio.run(scenario())
+    fast = next(i for i, r in enumerate(records) if r.speed_rpm and r.speed_rpm > 7000)
+    assert any(r.training_span == "outside" for r in records[fast : fast + 2])
+    assert (span, after) == ("inside", "outside")
+    assert "speed" in str(names).split(",")
+    assert wider > 1.3 * before  # type: ignore[operator]

@@ -327,6 +327,25 @@ class CncSection(Strict):
         return self
 
 
+class WhenUncertainSection(Strict):
+    """What to do when the prediction is unsure (:mod:`gateway.live.uncertainty_gate`):
+    above ``above_um`` of interval half-width, hold the compensation where it is, or
+    scale the prediction by ``scale``; either way the change goes through the clamp and
+    the slew limit like every other."""
+
+    above_um: float = Field(gt=0, allow_inf_nan=False)
+    action: Literal["hold", "scale"] = "hold"
+    scale: float = Field(default=0.5, ge=0, le=1)
+
+    @model_validator(mode="after")
+    def _scale_with_scale(self) -> WhenUncertainSection:
+        if self.action == "hold" and "scale" in self.model_fields_set:
+            raise KeyPathError(
+                ("scale",), "applies to action 'scale' only; with 'hold' leave it out"
+            )
+        return self
+
+
 class CompensationSection(Strict):
     enabled: bool = True
     macro: int = Field(default=500, ge=500, le=999)
@@ -345,6 +364,8 @@ class CompensationSection(Strict):
     fallback_ramp_um_per_min: float | None = Field(default=None, gt=0, allow_inf_nan=False)
     # Switched off (here or from SCADA): ramp #macro to 0 at the slew limit, or hold it.
     on_disable: Literal["ramp", "hold"] = "ramp"
+    # Above this interval half-width, hold or scale the compensation (off: None).
+    when_uncertain: WhenUncertainSection | None = None
 
     def limits(self) -> CompensationLimits:
         return CompensationLimits(

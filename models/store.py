@@ -111,6 +111,9 @@ class StoredModel(BaseModel):
     #: the span of each input in the training rows (:mod:`models.training_range`), for
     #: ``score``; absent in files written before it was recorded.
     training_range: dict[str, Any] | None = None
+    #: the calibrated prediction interval (:mod:`models.fit.interval`); absent in files
+    #: written before it was recorded (interval unknown) or with too few held-out samples.
+    interval: dict[str, Any] | None = None
     #: HMAC of the checksummed content (:mod:`models.signing`); absent in an unsigned store.
     signature: dict[str, Any] | None = None
 
@@ -177,11 +180,13 @@ def build_document(
     software_version: str,
     conditioning: dict[str, Any] | None = None,
     sensor_relations: dict[str, Any] | None = None,
+    interval: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The JSON document for a fitted model (checksum included).
 
     ``sensor_relations``: :meth:`models.estimators.sensor_relations.SensorRelations.as_document`
-    of the training rises, stored for the runtime's plausibility check.
+    of the training rises, stored for the runtime's plausibility check. ``interval``:
+    :func:`models.fit.interval.calibrate` of the held-out residuals.
     """
     document: dict[str, Any] = {
         "format": FORMAT,
@@ -216,6 +221,8 @@ def build_document(
     if sensor_relations is not None:
         document["sensor_relations"] = sensor_relations
     document["error_reference"] = error_reference_record(model, inputs.sensors, reference)
+    if interval is not None:
+        document["interval"] = interval
     # Round-trip through JSON so the checksum covers exactly what is written.
     document = json.loads(json.dumps(document, ensure_ascii=False))
     document["sha256"] = _checksum(document)

@@ -46,11 +46,13 @@ from gateway.config import MachineSection
 from gateway.live.bank.lag_state import EffectStates, WarmLags
 from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.live.bank.promotion import Promotions
+from gateway.live.interval import assess
 from gateway.live.plausibility import Plausibility
 from gateway.live.quality import Quality, QualityMonitor
 from gateway.live.record import CycleRecord, Sink, sink_name
 from gateway.live.reference import TemperatureReference
 from gateway.live.scheduler import CycleScheduler, after_cycle
+from gateway.live.uncertainty_gate import UncertaintyGate
 from gateway.live.writeback import CompensationPolicy, Decision
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
@@ -114,6 +116,7 @@ class MachineLoop:
         self.effects = EffectStates(bank.augmented(), effect_file, warm=warm, writer=STATE)
         self.policy: CompensationPolicy | None = None
         self.compensation_enabled = config.compensation.enabled
+        self.uncertainty_gate = UncertaintyGate(config.id, config.compensation.when_uncertain)
         self.handshake = 0
         self.failed_writes = 0
         self.external_changes = 0
@@ -200,6 +203,13 @@ class MachineLoop:
             link_errors=errors,
             stamp_s=stamp_s,
         )
+        bad = sum(1 for c in checks.values() if c.quality is not Quality.GOOD)
+        interval = assess(
+            banked, predicted, self.reference.available_rises_C(good_values), speed_rpm, bad
+        )
+        record.interval_um = interval.half_width_um
+        record.training_span = interval.span
+        record.outside_inputs = interval.outside_inputs
         corrected = self._corrected(now, banked, predicted, record)
         await self._compensate(now, corrected, record)
         await self._write_alive(record)
@@ -352,6 +362,8 @@ class MachineLoop:
             record.write_status = self._status(f"disabled: #{comp.macro} held at {held_text}")
             return
         write_s = self.clock.now()
+        predicted = self.uncertainty_gate.aim(predicted, record.interval_um, policy.applied_um)
+        record.uncertain = self.uncertainty_gate.active
         decision = policy.decide(write_s, predicted, enabled=self.compensation_enabled)
         record.target_um = decision.target_um
         if not decision.write:

@@ -36,6 +36,14 @@ class CycleRecord:
     probe_error_um: float | None = None  # a new probe measurement of the real error, µm
     correction_um: float | None = None  # online correction added to predicted_um, µm
     probe_refused: bool = False  # the online correction refused this cycle's probe value
+    #: half-width of the calibrated interval around predicted_um, µm (None: unknown);
+    #: see gateway/live/interval.py
+    interval_um: float | None = None
+    #: "inside" / "outside" the model's training span, None when unknown
+    training_span: str | None = None
+    outside_inputs: list[str] = field(default_factory=list)  # inputs outside the span
+    #: compensation.when_uncertain held or scaled this cycle's aim
+    uncertain: bool = False
     #: The wall time of the cycle's start (Unix s, :meth:`drivers.clock.Clock.stamp`), taken
     #: once: every output stamps the cycle with it. None: a record made without one, whose
     #: outputs take ``time_s``.

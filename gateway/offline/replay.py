@@ -106,6 +106,7 @@ def run_replay(
     ]
     rows = [r.as_dict() for r in online]
     _say_table(method, offline, rows, say)
+    _say_interval(offline.get("interval"), say)
     stored = None
     if store_dir is not None:
         if base != "lagged":
@@ -182,6 +183,22 @@ def _say_table(
         say(f"chosen without the held-out run, probe every {row['probe_interval_min']:g} min:")
         for run, figures in row["per_run"].items():
             say(f"  {run:<14} {figures['rmse_um']:6.2f} µm  {describe_choice(figures['chosen'])}")
+
+
+def _say_interval(interval: dict[str, Any] | None, say: Callable[[str], None]) -> None:
+    """The declared model's interval: coverage of each held-out run (width calibrated on the
+    other runs) and pooled."""
+    if interval is None:
+        say("interval: too few held-out rows to calibrate one")
+        return
+    pooled = interval["heldout_coverage"]
+    covered = "n/a" if pooled is None else f"{pooled:.1%}"
+    say(
+        f"interval {interval['nominal_coverage']:.0%} (no probes): ±{interval['half_width_um']:.2f}"
+        f" µm, coverage {covered} pooled over the held-out runs"
+    )
+    for run, row in interval["per_run_coverage"].items():
+        say(f"  {run:<14} coverage {row['coverage']:6.1%}  width {row['mean_width_um']:6.2f} µm")
 
 
 def store_lagged(

@@ -36,6 +36,7 @@ from models.data.dataset import AMBIENT_COLUMN, HEADER_LINE, DataError, load_run
 from models.data.features import Prepared, prepare
 from models.data.references import first_rows
 from models.data.unit_ranges import SENSOR_PATTERN
+from models.fit.interval import coverage, span_excess, widened_um
 from models.fit.metrics import accuracy
 from models.store import FORMAT as PLAIN_FORMAT
 from models.store import ModelStore, StoreError, load_file
@@ -55,6 +56,8 @@ class ScoredModel:
     training_range: dict[str, Any] | None
     fitted_on: str  # the training file and runs, for the header line
     heldout_rmse_um: float | None  # the held-out figure stored at fit time
+    #: the calibrated interval stored at fit time (:mod:`models.fit.interval`); None: unknown
+    interval: dict[str, Any] | None = None
 
 
 def find_model(spec: str, store_dir: Path | None) -> Path:
@@ -117,6 +120,7 @@ def _plain(path: Path) -> ScoredModel:
         training_range=document.training_range,
         fitted_on=f"{training.file} (runs {', '.join(training.runs)})",
         heldout_rmse_um=pooled.get("rmse_um"),
+        interval=document.interval,
     )
 
 
@@ -214,6 +218,42 @@ def run_figures(prepared: Prepared, predicted: np.ndarray) -> dict[str, dict[str
     return figures
 
 
+def half_widths(scored: ScoredModel, prepared: Prepared) -> np.ndarray | None:
+    """The interval's half-width at every row (µm), widened as the live loop widens it for
+    inputs outside the training span; None when the model holds no calibration."""
+    if scored.interval is None:
+        return None
+    inputs = prepared.inputs
+    stored = scored.training_range or {}
+    out = np.empty(inputs.n_samples)
+    for k in range(inputs.n_samples):
+        rises = dict(zip(inputs.sensors, map(float, inputs.rise_C[k]), strict=True))
+        excess, _ = span_excess(stored, rises, float(inputs.speed_rpm[k]))
+        out[k] = widened_um(scored.interval, excess, 0)
+    return out
+
+
+def interval_figures(
+    scored: ScoredModel, prepared: Prepared, predicted: np.ndarray
+) -> dict[str, Any] | None:
+    """Coverage (share of rows inside predicted ± half-width) and mean width, µm, per run
+    and pooled; None when the model holds no calibration (interval unknown)."""
+    widths = half_widths(scored, prepared)
+    if widths is None or scored.interval is None:
+        return None
+    measured = prepared.error_um
+    per_run = {
+        run_id: coverage(measured[rows], predicted[rows], widths[rows])
+        for run_id, rows in prepared.data.run_slices()
+    }
+    return {
+        "nominal_coverage": scored.interval.get("nominal_coverage"),
+        "half_width_um_stored": scored.interval.get("half_width_um"),
+        "per_run": per_run,
+        "pooled": coverage(measured, predicted, widths),
+    }
+
+
 def excursions(scored: ScoredModel, prepared: Prepared) -> list[Excursion]:
     """Inputs of this file outside the model's training span ([] when none is stored)."""
     if scored.training_range is None:
@@ -245,9 +285,11 @@ def score(
     for text in data.notes:
         note(f"note: {data.source}: {text}")
     prepared = prepare(data, needed_sensors(scored), scored.policy)
-    figures = run_figures(prepared, predictions(scored, prepared))
+    predicted = predictions(scored, prepared)
+    figures = run_figures(prepared, predicted)
     found = excursions(scored, prepared)
-    for line in report_lines(scored, prepared, figures, found):
+    interval = interval_figures(scored, prepared, predicted)
+    for line in report_lines(scored, prepared, figures, found) + interval_lines(interval):
         (note if line.startswith("note:") else say)(line)
     return {
         "model_id": scored.banked.model_id,
@@ -263,7 +305,23 @@ def score(
         "heldout_rmse_um_at_fit": scored.heldout_rmse_um,
         "training_range_stored": scored.training_range is not None,
         "outside_training": [e.as_dict() for e in found],
+        "interval": interval,
     }
+
+
+def interval_lines(interval: dict[str, Any] | None) -> list[str]:
+    """The interval's coverage per run and pooled, or a note that the model holds none."""
+    if interval is None:
+        return ["note: the model file holds no calibrated interval: its width is unknown"]
+    nominal = float(interval["nominal_coverage"])
+    header = f"{'interval':<16} {'rows':>6} {'coverage':>8} {'width µm':>9}"
+    lines = [f"{header}  (nominal {nominal:.0%})"]
+    rows = {**interval["per_run"], "pooled": interval["pooled"]}
+    for name, row in rows.items():
+        lines.append(
+            f"{name:<16} {row['n_samples']:>6} {row['coverage']:8.1%} {row['mean_width_um']:9.2f}"
+        )
+    return lines
 
 
 def report_lines(

@@ -5,6 +5,9 @@ Every :class:`~gateway.live.loop.CycleRecord` becomes:
 * one ``spindle_cycle`` point — tags ``machine`` (+ ``regime``, ``model_id`` when
   known); fields ``speed_rpm``, ``predicted_um``, ``target_um``, ``applied_um``,
   ``written_cnc`` (the value written to the CNC macro, in the CNC's unit),
+  ``interval_um`` (half-width of the calibrated interval around ``predicted_um``, when
+  known), ``training_span`` (text: inside / outside) with ``outside_inputs`` (text: the
+  inputs outside the model's training span, comma-separated, empty when inside),
   ``write_status`` (text) and ``link_errors`` (how many sources failed);
 * one ``spindle_temperature`` point per sensor — tags ``machine``, ``sensor``,
   ``quality``; field ``value_C``, and for a sensor that is not good, field ``reason``
@@ -118,7 +121,11 @@ def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]
         applied_um=record.applied_um,
         written_cnc=record.written_cnc,
         correction_um=record.correction_um,
+        interval_um=record.interval_um,
     )
+    if record.training_span is not None:
+        fields["training_span"] = record.training_span
+        fields["outside_inputs"] = ",".join(record.outside_inputs)
     fields["write_status"] = record.write_status
     fields["link_errors"] = len(record.link_errors)
     points = [Point(CYCLE_MEASUREMENT, tags, fields, time_ns)]

@@ -44,6 +44,9 @@ _RECORD_METRICS = (
     ("Probe/Residual", DOUBLE, "µm"),
     (PROMOTE, STRING, ""),
     (ROLLBACK, BOOLEAN, ""),
+    ("Prediction/Interval", DOUBLE, "µm"),
+    ("Prediction/Training Span", STRING, ""),
+    ("Prediction/Outside Inputs", STRING, ""),
 )
 
 
@@ -105,6 +108,9 @@ def snapshot(record: CycleRecord, health: Mapping[str, Any]) -> dict[str, Value]
             "Probe/Residual": residual,
             PROMOTE: "",
             ROLLBACK: False,
+            "Prediction/Interval": record.interval_um,
+            "Prediction/Training Span": record.training_span,
+            "Prediction/Outside Inputs": ",".join(record.outside_inputs),
         }
     )
     values.update({f"Health/{k}": v for k, v in health_counters(health).items()})

@@ -25,8 +25,9 @@ from models.data.features import Prepared
 from models.estimators.registry import make_model
 from models.estimators.sensor_relations import fit_relations
 from models.fit.conditioning import DEFAULT_SENSOR_ACCURACY_C, Conditioning, assess
-from models.fit.crossval import Validation, cross_evaluate, cross_validate
+from models.fit.crossval import Validation, cross_evaluate, cross_validate, fold_labels
 from models.fit.forward import Disagreement, Forward, disagreement, forward_validate
+from models.fit.interval import calibrate
 from models.fit.ranking import RegimeReport, SigmaRow, rank_regimes
 from models.store import ModelStore, build_document
 
@@ -120,6 +121,7 @@ def fit_and_store(
             software_version=software_version,
             conditioning=conditioning.as_dict(),
             sensor_relations=relations_document(part.inputs),
+            interval=interval_record(validation, part),
         )
         outcome.saved[document["model_id"]] = store.save(document)
     return outcome
@@ -195,6 +197,7 @@ def fit_sensor_fallbacks(
             software_version=software_version,
             conditioning=assess(model, prepared.inputs).as_dict(),
             sensor_relations=relations_document(prepared.inputs),
+            interval=interval_record(validation, prepared),
         )
         saved[document["model_id"]] = store.save(document)
     return saved
@@ -213,3 +216,12 @@ def relations_document(inputs: ModelInputs) -> dict[str, object] | None:
         return fit_relations(inputs.rise_C, inputs.sensors, inputs.run_index).as_document()
     except ValueError:
         return None
+
+
+def interval_record(validation: Validation | None, prepared: Prepared) -> dict[str, object] | None:
+    """The calibrated interval (:mod:`models.fit.interval`) from the held-out predictions,
+    each row labelled by the run (or block) it was held out with; None without them."""
+    if validation is None:
+        return None
+    labels = fold_labels(prepared)[1]
+    return calibrate(prepared.error_um, validation.predicted_um, labels, prepared.inputs)

@@ -65,6 +65,7 @@ from models.data.lag_terms import first_order_lag
 from models.estimators.lag_ridge import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, lag_terms
 from models.estimators.registry import make_model
 from models.estimators.ridge_pls import grouped_runs
+from models.fit.interval import calibrate
 from models.fit.metrics import accuracy
 from models.online import declared_fits
 from models.online.correction import CorrectionParams, OnlineCorrection
@@ -546,14 +547,17 @@ def _choose_lagged(
 
 def offline_accuracy(
     prepared: Prepared, method: str, sensors: Sequence[str] | None
-) -> dict[str, float]:
-    """The declared model as ``fit`` validates it (leave-one-run-out, no probes)."""
+) -> dict[str, Any]:
+    """The declared model as ``fit`` validates it (leave-one-run-out, no probes), with
+    its calibrated interval's coverage, each run against the width calibrated on the
+    others (:func:`models.fit.interval.calibrate`; ``interval`` None with too few rows)."""
     predicted = np.empty(prepared.data.n_samples)
     for run in prepared.data.run_ids:
         test = prepared.data.run == run
         predicted[test] = declared_fits.prediction(prepared, method, sensors, ~test)[test]
     acc = accuracy(prepared.error_um, predicted)
-    return {"rmse_um": acc.rmse_um, "max_abs_um": acc.max_abs_um}
+    calibration = calibrate(prepared.error_um, predicted, prepared.data.run, prepared.inputs)
+    return {"rmse_um": acc.rmse_um, "max_abs_um": acc.max_abs_um, "interval": calibration}
 
 
 # --- the model to store -----------------------------------------------------------------

@@ -138,6 +138,10 @@ class BankedAugmented:
     #: µm per °C of bias per sensor, for a plain model stepped with lag states
     #: (:meth:`from_plain`); None for an ``analyze`` result (judged by its analysis).
     sensitivity_um_per_C: dict[str, float] | None = None
+    #: the calibrated interval and the training span of a stored plain model
+    #: (:mod:`gateway.live.interval`); None for an ``analyze`` result or a file without them.
+    interval: dict[str, Any] | None = None
+    training_range: dict[str, Any] | None = None
 
     @classmethod
     def from_plain(cls, model: ThermalModel, document: StoredModel) -> BankedAugmented:
@@ -169,6 +173,8 @@ class BankedAugmented:
             ambient_sensor=None,
             regime=document.regime,
             sensitivity_um_per_C=bias_sensitivity(model, probe_inputs(document)),
+            interval=document.interval,
+            training_range=document.training_range,
         )
 
     @classmethod

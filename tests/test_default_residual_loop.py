@@ -12,13 +12,17 @@ no effect stays ``none``.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from models.analysis.augmented import augmented_prediction
 from models.analysis.search import analyze
 from models.data.dataset import load_runs
 from models.data.features import prepare
+from tests.cli import gateway
 from tests.test_analyze import PARAMS, simulated
 
 NOISE_LIMIT_UM = 1.3 * PARAMS.probe.noise_um
@@ -48,3 +52,30 @@ def test_default_base_without_an_effect_stays_none(tmp_path: Path, seed: int) ->
     result = analysed_by_default(simulated(tmp_path, "none", seed))
     assert result.effect == "none", [c.as_dict() for c in result.steps[0].candidates]
     assert result.after == result.before
+
+
+def test_an_effect_found_inside_lag_ridge_predicts_with_it(tmp_path: Path) -> None:
+    """The model an inside step stands for (what ``--nested`` scores each fold with) is
+    lag-ridge refitted with the effect's input; fitted on every run it reproduces the drift
+    at least as well as the held-out figure says."""
+    prepared = prepare(load_runs(simulated(tmp_path, "drift", 1), target="error_um"))
+    result, accepted, analysis = analyze(prepared, "lag-ridge")
+    assert result.effect == "drift" and accepted == []
+    fitted = augmented_prediction(analysis, accepted)
+    in_sample = float(np.sqrt(np.mean((prepared.error_um - fitted) ** 2)))
+    assert in_sample <= result.after.rmse_um < 0.7 * result.before.rmse_um
+
+
+def test_cli_default_names_the_drift_and_does_not_store_what_it_cannot_hold(
+    tmp_path: Path,
+) -> None:
+    out, store = tmp_path / "out.json", tmp_path / "store"
+    done = gateway("analyze", simulated(tmp_path, "drift", 1), "--json", out, "--store", store)
+    assert done.returncode == 0, done.stderr
+    payload = json.loads(out.read_text(encoding="utf-8"))
+    assert payload["model"] == "lag-ridge"
+    assert payload["effect"] == "drift"
+    assert payload["after"]["rmse_um"] <= 0.7 * payload["before"]["rmse_um"]
+    assert "not saved: drift" in done.stdout
+    assert payload.get("stored_model") is None
+    assert not list(store.glob("**/*.json"))

@@ -41,7 +41,8 @@ from models.estimators.registry import make_model
 
 if TYPE_CHECKING:
     from models.analysis.search import ResidualAnalysis
-    from models.data.lag_terms import EffectFamily
+    from models.base import ModelInputs
+    from models.data.lag_terms import EffectFamily, Variant
 
 #: The families whose terms are inputs lag-ridge does not have (the others it holds).
 INPUT_FAMILIES = ("drift", "ambient", "unused_sensor")
@@ -72,9 +73,30 @@ def input_families(analysis: ResidualAnalysis) -> list[EffectFamily]:
     return [f for f in families if f.variants]
 
 
+def with_input(analysis: ResidualAnalysis, variant: Variant) -> tuple[ModelInputs, list[str]]:
+    """The analysis's inputs with the variant's first column as one more input, and the
+    sensors lag-ridge is then given (the base's own and that column)."""
+    prepared = analysis.prepared
+    column = np.asarray(variant.build(), dtype=float)[:, :1]
+    inputs = replace(
+        prepared.inputs,
+        rise_C=np.column_stack([prepared.inputs.rise_C, column]),
+        sensors=(*prepared.inputs.sensors, INSIDE_COLUMN),
+    )
+    return inputs, [*analysis.base.used_sensors, INSIDE_COLUMN]
+
+
+def fitted_inside_prediction(analysis: ResidualAnalysis, variant: Variant) -> np.ndarray:
+    """Lag-ridge refitted with the variant's input on the analysis's rows, predicting every
+    row (the rows it was not fitted on included): the model an inside step stands for."""
+    inputs, sensors = with_input(analysis, variant)
+    model = make_model("lag-ridge", sensors).fit_rows(inputs, analysis.y, analysis.fit_rows)
+    return model.predict(inputs)
+
+
 def evaluate_inside(analysis: ResidualAnalysis, family: EffectFamily) -> InsideEvaluation:
     """Held-out predictions of lag-ridge refitted with the family's input, per fold."""
-    prepared, y = analysis.prepared, analysis.y
+    y = analysis.y
     predicted = np.zeros(y.size)
     chosen = []
     for rows in analysis.folds.rows:
@@ -82,14 +104,8 @@ def evaluate_inside(analysis: ResidualAnalysis, family: EffectFamily) -> InsideE
         train[rows] = False
         best: tuple[float, int, np.ndarray] | None = None
         for vi, variant in enumerate(family.variants):
-            column = np.asarray(variant.build(), dtype=float)[:, :1]
-            inputs = replace(
-                prepared.inputs,
-                rise_C=np.column_stack([prepared.inputs.rise_C, column]),
-                sensors=(*prepared.inputs.sensors, INSIDE_COLUMN),
-            )
-            sensors = (*analysis.base.used_sensors, INSIDE_COLUMN)
-            model = make_model("lag-ridge", list(sensors)).fit_rows(inputs, y, train)
+            inputs, sensors = with_input(analysis, variant)
+            model = make_model("lag-ridge", sensors).fit_rows(inputs, y, train)
             score = _inner_score(model)
             if best is None or score < best[0]:
                 best = (score, vi, model.predict(inputs)[rows])
@@ -118,6 +134,7 @@ def inside_step(
     best = min(believed, key=lambda i: candidates[i].rmse_um)
     ev = evaluations[best]
     variant = ev.family.variants[_most_chosen(ev.chosen)]
+    analysis.inside = variant
     return StepResult(
         1,
         ev.family.effect,

@@ -217,6 +217,8 @@ class ResidualAnalysis:
         self.progress = progress
         self.base = BaseDesigns(method, sensors, prepared, self.folds, fit_rows)
         self.families = candidate_families(prepared, self.base.used_sensors)
+        # An input effect found inside a lag-ridge base (models.analysis.inside), if any.
+        self.inside: Variant | None = None
 
     # ---- the loop -----------------------------------------------------------------
 

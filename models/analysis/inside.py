@@ -39,8 +39,11 @@ from models.analysis.format import change_text, p_text
 from models.analysis.result import CandidateResult, StepResult, gain_pct
 from models.estimators.registry import make_model
 
+#: A :class:`models.analysis.search.ResidualAnalysis` (not imported: the search calls this
+#: module, and the import layers allow no cycle).
+ResidualAnalysis = Any
+
 if TYPE_CHECKING:
-    from models.analysis.search import ResidualAnalysis
     from models.base import ModelInputs
     from models.data.lag_terms import EffectFamily, Variant
 
@@ -207,8 +210,6 @@ def heldout_p_value(
 ) -> float:
     """p of the F-test of r ~ 1 + d on prewhitened rows (r the base's held-out residual, d
     the candidate's held-out change of the prediction), pairs taken within folds."""
-    from models.analysis.search import _lag1_autocorrelation
-
     usable = analysis.folds.index >= 0
     r = (analysis.y - base_predicted)[usable]
     d = (with_predicted - base_predicted)[usable]
@@ -216,7 +217,7 @@ def heldout_p_value(
     if np.ptp(d) == 0:
         return 1.0
     slope = float(np.polyfit(d, r, 1)[0])
-    rho = _lag1_autocorrelation(r - slope * d, fold)
+    rho = _lag1_within(r - slope * d, fold)
     same = fold[1:] == fold[:-1]
     rw = (r[1:] - rho * r[:-1])[same]
     dw = (d[1:] - rho * d[:-1])[same]
@@ -229,6 +230,15 @@ def heldout_p_value(
         return 1.0
     statistic = max(sse0 - sse1, 0.0) / (sse1 / df2)
     return float(stats.f.sf(statistic, 1, df2))
+
+
+def _lag1_within(residual: np.ndarray, fold: np.ndarray) -> float:
+    """Lag-1 autocorrelation of the residual, pairs taken within folds only, in [0, 1)."""
+    same = fold[1:] == fold[:-1]
+    a, b = residual[1:][same], residual[:-1][same]
+    if a.size < 3 or np.std(a) == 0 or np.std(b) == 0:
+        return 0.0
+    return min(max(float(np.corrcoef(a, b)[0, 1]), 0.0), 0.999)
 
 
 def _inner_score(model: Any) -> float:

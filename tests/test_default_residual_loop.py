@@ -22,6 +22,7 @@ from models.analysis.augmented import augmented_prediction
 from models.analysis.search import analyze
 from models.data.dataset import load_runs
 from models.data.features import prepare
+from tests import independent_machine
 from tests.cli import gateway
 from tests.test_analyze import PARAMS, simulated
 
@@ -52,6 +53,33 @@ def test_default_base_without_an_effect_stays_none(tmp_path: Path, seed: int) ->
     result = analysed_by_default(simulated(tmp_path, "none", seed))
     assert result.effect == "none", [c.as_dict() for c in result.steps[0].candidates]
     assert result.after == result.before
+
+
+@pytest.mark.parametrize("effect", ["drift", "ambient", "thermal_lag", "speed_direct"])
+def test_independent_generator_default_base_names_the_effect_or_holds_it(
+    tmp_path: Path, effect: str
+) -> None:
+    """Other physics, parameters and 6 sensors (probe noise 0.2 µm). A cut cannot go below
+    the noise: an effect whose error starts near the floor counts as removed when the error
+    after is within 1.3 × the noise (ambient: 0.298 → 0.236 µm, 21 %)."""
+    path = independent_machine.write_csv(tmp_path / "indep.csv", effect=effect, seed=0)
+    result = analysed_by_default(path)
+    noise_limit_um = 1.3 * independent_machine.ERROR_NOISE_UM
+    evidence = [c.as_dict() for c in result.steps[0].candidates]
+    if result.before.rmse_um <= noise_limit_um:
+        assert result.effect in (effect, "none"), evidence
+    else:
+        assert result.effect == effect, (result.before.rmse_um, evidence)
+        after = result.after.rmse_um
+        assert after <= 0.7 * result.before.rmse_um or after <= noise_limit_um
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_independent_generator_default_base_without_an_effect_stays_none(
+    tmp_path: Path, seed: int
+) -> None:
+    path = independent_machine.write_csv(tmp_path / "indep.csv", effect="none", seed=seed)
+    assert analysed_by_default(path).effect == "none"
 
 
 def test_an_effect_found_inside_lag_ridge_predicts_with_it(tmp_path: Path) -> None:

@@ -69,10 +69,11 @@ def augmented_prediction(analysis: ResidualAnalysis, accepted: list[Accepted]) -
     """The fitted augmented model's prediction (µm) on every row of the analysis's data,
     the rows it was not fitted on included (a held-out run). An effect found inside a
     lag-ridge base is that base refitted with the effect as an input."""
-    if getattr(analysis, "inside", None) is not None:
+    inside = getattr(analysis, "inside", None)
+    if inside is not None:
         from models.analysis.inside import fitted_inside_prediction
 
-        return fitted_inside_prediction(analysis, analysis.inside)
+        return fitted_inside_prediction(analysis, inside)
     _, design, _ = _augmented_design(analysis, accepted)
     return design @ _coefficients(analysis, design)
 

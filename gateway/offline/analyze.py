@@ -79,7 +79,14 @@ def run_analyze(
     say(text_report(result))
     if result.forward is not None:
         say(_forward_text(result.forward))
-    if request.store_dir is not None:
+    if request.store_dir is not None and result.effects and not accepted:
+        # Found by refitting lag-ridge with the effect as an input (models.analysis.inside):
+        # the stored form (a base's prediction plus effect terms) cannot hold that model.
+        say(
+            f"not saved: {', '.join(result.effects)} was found inside the lag-ridge base, "
+            "which the augmented-model store cannot hold yet; analyze --model mlr stores one"
+        )
+    elif request.store_dir is not None:
         model_id = f"{method}-{request.target}-" + ("-".join(result.effects) or "none")
         document = augmented.build_augmented_document(
             analysis, accepted, result, model_id, __version__

@@ -67,7 +67,13 @@ def fit_augmented(
 
 def augmented_prediction(analysis: ResidualAnalysis, accepted: list[Accepted]) -> np.ndarray:
     """The fitted augmented model's prediction (µm) on every row of the analysis's data,
-    the rows it was not fitted on included (a held-out run)."""
+    the rows it was not fitted on included (a held-out run). An effect found inside a
+    lag-ridge base is that base refitted with the effect as an input."""
+    inside = getattr(analysis, "inside", None)
+    if inside is not None:
+        from models.analysis.inside import fitted_inside_prediction
+
+        return fitted_inside_prediction(analysis, inside)
     _, design, _ = _augmented_design(analysis, accepted)
     return design @ _coefficients(analysis, design)
 

@@ -218,6 +218,8 @@ class ResidualAnalysis:
         self.progress = progress
         self.base = BaseDesigns(method, sensors, prepared, self.folds, fit_rows)
         self.families = candidate_families(prepared, self.base.used_sensors)
+        # An input effect found inside a lag-ridge base (models.analysis.inside), if any.
+        self.inside: Variant | None = None
 
     # ---- the loop -----------------------------------------------------------------
 
@@ -720,6 +722,22 @@ def _refuse_constant_error(data: MeasuredRuns, fit_rows: np.ndarray | None) -> N
     )
 
 
+def _inside_or_run(analysis: ResidualAnalysis) -> tuple[list[StepResult], list[Accepted]]:
+    """On a lag-ridge base, the input effects refitted inside it first
+    (:mod:`models.analysis.inside`); the loop of this module when none is believed.
+
+    An effect found inside lag-ridge is part of the refitted base, not a term beside it:
+    it is returned with no :class:`Accepted` (nothing to add to the scaled prediction)."""
+    if analysis.method == "lag-ridge":
+        from models.analysis.inside import inside_step
+
+        base = analysis.evaluate([], None).predicted_um
+        step = inside_step(analysis, base, ALPHA, MIN_GAIN_PCT)
+        if step is not None:
+            return [step], []
+    return analysis.run()
+
+
 def analyze(
     prepared: Prepared,
     method: str = "mlr",
@@ -733,7 +751,7 @@ def analyze(
     the effect terms still run over every row."""
     _refuse_constant_error(prepared.data, fit_rows)
     analysis = ResidualAnalysis(prepared, method, sensors, progress, fit_rows)
-    steps, accepted = analysis.run()
+    steps, accepted = _inside_or_run(analysis)
     first = steps[0]
     last = steps[-1]
     return (

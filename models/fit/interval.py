@@ -90,6 +90,7 @@ def calibrate(
     run_labels: np.ndarray,
     inputs: ModelInputs,
     nominal: float = NOMINAL_COVERAGE,
+    forward_abs_residuals_um: np.ndarray | None = None,
 ) -> dict[str, Any] | None:
     """The calibration stored with a model (field ``interval``), or None with too few samples.
 
@@ -99,13 +100,23 @@ def calibrate(
     against the span of the runs its model was fitted on, so a held-out run beyond the
     others (the fastest run, say) counts as the extrapolation it was and the width inside
     the span is not inflated by it (normalised conformal).
+
+    ``forward_abs_residuals_um``: the |residuals| of the fit's forward figure (later runs
+    predicted from earlier ones, each started as a new recording), normalised the same way
+    (:func:`forward_scaled_residuals`). A plant meets its model that way, and inside one
+    recording leave-one-run-out flatters the model; the stored half-width is the larger of
+    the two quantiles, so it holds forward too.
     """
     labels = np.asarray(run_labels)
     abs_res = np.abs(np.asarray(measured_um, float) - np.asarray(heldout_predicted_um, float))
     scale = 1.0 + OUTSIDE_GAIN * _fold_excess(inputs, labels)
-    q = conformal_half_width(abs_res / scale, nominal)
-    if q is None:
+    q_loro = conformal_half_width(abs_res / scale, nominal)
+    if q_loro is None:
         return None
+    q_forward = None
+    if forward_abs_residuals_um is not None:
+        q_forward = conformal_half_width(forward_abs_residuals_um, nominal)
+    q = max(q_loro, q_forward or 0.0)
     per_run = _per_run_coverage(abs_res, scale, labels, nominal)
     checked = [v for v in per_run.values() if v["n_samples"] > 0]
     total = sum(int(v["n_samples"]) for v in checked)
@@ -113,9 +124,14 @@ def calibrate(
         sum(float(v["coverage"]) * int(v["n_samples"]) for v in checked) / total if total else None
     )
     return {
-        "method": "split-conformal on leave-one-run-out residuals, normalised by the widening",
+        "method": (
+            "split-conformal on leave-one-run-out residuals, normalised by the widening, "
+            "and on the forward residuals: the larger half-width"
+        ),
         "nominal_coverage": nominal,
         "half_width_um": q,
+        "half_width_um_loro": q_loro,
+        "half_width_um_forward": q_forward,
         "n_samples": int(np.isfinite(abs_res).sum()),
         "heldout_coverage": pooled,
         "per_run_coverage": per_run,
@@ -128,6 +144,35 @@ def calibrate(
             "beyond the training span and by bad_sensor_factor per sensor flagged bad"
         ),
     }
+
+
+def forward_scaled_residuals(
+    measured_um: np.ndarray,
+    predicted_um: np.ndarray,
+    inputs: ModelInputs,
+    unit_rows: Iterable[tuple[np.ndarray, np.ndarray]],
+) -> np.ndarray | None:
+    """The forward figure's |residuals|, each divided by the widening its row had against
+    the span of the runs its model was fitted on (as the leave-one-run-out ones are).
+
+    ``unit_rows``: per predicted unit in order, (its rows, its model's training rows) of
+    ``inputs``; None when they do not add up to the forward figure's rows.
+    """
+    parts = list(unit_rows)
+    order = np.concatenate([rows for rows, _ in parts]) if parts else np.array([], int)
+    if order.size != np.asarray(measured_um).size:
+        return None
+    scale = np.ones(order.size)
+    at = 0
+    for rows, trained in parts:
+        stored = training_range(inputs.take(trained))
+        for j, k in enumerate(rows):
+            rises = dict(zip(inputs.sensors, map(float, inputs.rise_C[k]), strict=True))
+            scale[at + j] = (
+                1.0 + OUTSIDE_GAIN * span_excess(stored, rises, float(inputs.speed_rpm[k]))[0]
+            )
+        at += rows.size
+    return np.abs(np.asarray(measured_um, float) - np.asarray(predicted_um, float)) / scale
 
 
 def _fold_excess(inputs: ModelInputs, labels: np.ndarray) -> np.ndarray:

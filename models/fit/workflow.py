@@ -27,7 +27,7 @@ from models.estimators.sensor_relations import fit_relations
 from models.fit.conditioning import DEFAULT_SENSOR_ACCURACY_C, Conditioning, assess
 from models.fit.crossval import Validation, cross_evaluate, cross_validate, fold_labels
 from models.fit.forward import Disagreement, Forward, disagreement, forward_validate
-from models.fit.interval import calibrate
+from models.fit.interval import calibrate, forward_scaled_residuals
 from models.fit.ranking import RegimeReport, SigmaRow, rank_regimes
 from models.store import ModelStore, build_document
 
@@ -121,7 +121,7 @@ def fit_and_store(
             software_version=software_version,
             conditioning=conditioning.as_dict(),
             sensor_relations=relations_document(part.inputs),
-            interval=interval_record(validation, part),
+            interval=interval_record(validation, part, outcome.forward.get(group)),
         )
         outcome.saved[document["model_id"]] = store.save(document)
     return outcome
@@ -218,10 +218,32 @@ def relations_document(inputs: ModelInputs) -> dict[str, object] | None:
         return None
 
 
-def interval_record(validation: Validation | None, prepared: Prepared) -> dict[str, object] | None:
+def interval_record(
+    validation: Validation | None, prepared: Prepared, forward: Forward | None = None
+) -> dict[str, object] | None:
     """The calibrated interval (:mod:`models.fit.interval`) from the held-out predictions,
-    each row labelled by the run (or block) it was held out with; None without them."""
+    each row labelled by the run (or block) it was held out with, and from the forward
+    figure's where there is one; None without held-out predictions."""
     if validation is None:
         return None
     labels = fold_labels(prepared)[1]
-    return calibrate(prepared.error_um, validation.predicted_um, labels, prepared.inputs)
+    forward_res = None
+    if forward is not None:
+        run = prepared.data.run
+        units = [
+            (
+                np.flatnonzero(np.isin(run, forward.runs[unit])),
+                np.flatnonzero(np.isin(run, forward.trained_on[unit])),
+            )
+            for unit in forward.folds
+        ]
+        forward_res = forward_scaled_residuals(
+            forward.measured_um, forward.predicted_um, prepared.inputs, units
+        )
+    return calibrate(
+        prepared.error_um,
+        validation.predicted_um,
+        labels,
+        prepared.inputs,
+        forward_abs_residuals_um=forward_res,
+    )

@@ -25,6 +25,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -79,9 +80,10 @@ async def longest_hold_s(cycle: Callable[[int], None]) -> float:
     return max(holds)
 
 
-def first_cycles(state_dir: Path, background: bool) -> float:
+def first_cycles(state_dir: Path, background: bool) -> tuple[float, int]:
     """Two cycles of every machine (lag states saved at each, heartbeat at each, the cold
-    reference taken and saved at the first); the event loop's longest hold in the first."""
+    reference taken and saved at the first): the event loop's longest hold in the first,
+    and how many ``fsync`` and ``replace`` calls the event loop's thread made in it."""
     effects = machines(state_dir, STATE if background else None)
     references = [
         TemperatureReference(
@@ -104,14 +106,33 @@ def first_cycles(state_dir: Path, background: bool) -> float:
 
         return one
 
-    async def body() -> float:
-        held_s = await longest_hold_s(cycle(1.0))
+    loop_thread = threading.get_ident()
+    on_loop: list[str] = []
+    real_fsync, real_replace = os.fsync, os.replace
+
+    def fsync(fd: int) -> None:
+        if threading.get_ident() == loop_thread:
+            on_loop.append("fsync")
+        real_fsync(fd)
+
+    def replace(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> None:
+        if threading.get_ident() == loop_thread:
+            on_loop.append("replace")
+        real_replace(src, dst)
+
+    async def body() -> tuple[float, int]:
+        os.fsync, os.replace = fsync, replace
+        try:
+            held_s = await longest_hold_s(cycle(1.0))
+        finally:
+            os.fsync, os.replace = real_fsync, real_replace
+        calls = len(on_loop)
         for states in effects:
             states.save_every_s = 0.0  # the second cycle saves again
         await longest_hold_s(cycle(2.0))
         await asyncio.wait_for(STATE.drain(), 60)
         await asyncio.wait_for(HEARTBEATS.drain(), 60)
-        return held_s
+        return held_s, calls
 
     return asyncio.run(body())
 
@@ -135,16 +156,22 @@ def test_first_cycles_do_not_hold_the_event_loop_for_the_disk(tmp_path: Path) ->
     load = subprocess.Popen([sys.executable, "-c", DISK_LOAD, str(tmp_path / "load.bin")])
     try:
         time.sleep(0.5)  # the first blocks are on their way
-        on_loop_s = first_cycles(tmp_path / "on-loop", background=False)
-        off_loop_s = first_cycles(tmp_path / "off-loop", background=True)
+        on_loop_s, on_loop_calls = first_cycles(tmp_path / "on-loop", background=False)
+        off_loop_s, off_loop_calls = first_cycles(tmp_path / "off-loop", background=True)
     finally:
         load.kill()
         load.wait()
     print(
         f"{MACHINES} first cycles: loop held {on_loop_s * 1e3:.0f} ms at a stretch with "
-        f"the writes on it, {off_loop_s * 1e3:.0f} ms with the writer threads"
+        f"the writes on it ({on_loop_calls} fsync/replace on its thread), "
+        f"{off_loop_s * 1e3:.0f} ms with the writer threads ({off_loop_calls})"
     )
-    assert off_loop_s < on_loop_s / 3
+    # What holds the loop for the disk is a sync or a rename on its thread: none with the
+    # writer threads (the control, in the same run, shows the count sees them). The held
+    # times are printed: with the disk busy they differ by 3-25x, but on a busy 2-core
+    # machine the cycles' own CPU makes both long, so they are not what is asserted.
+    assert on_loop_calls >= 3 * MACHINES
+    assert off_loop_calls == 0
     # Every file was written, with the newest state (the second cycle's).
     for i in range(MACHINES):
         saved = json.loads((tmp_path / "off-loop" / f"m{i:03d}-effect-state.json").read_text())

@@ -7,7 +7,7 @@ Every :class:`~gateway.live.loop.CycleRecord` becomes:
   ``written_cnc`` (the value written to the CNC macro, in the CNC's unit),
   ``interval_um`` (half-width of the calibrated interval around ``predicted_um``, when
   known), ``training_span`` (text: inside / outside) with ``outside_inputs`` (text: the
-  inputs outside the model's training span, comma-separated, empty when inside),
+  inputs outside the model's training span, comma-separated; absent when inside),
   ``write_status`` (text) and ``link_errors`` (how many sources failed);
 * one ``spindle_temperature`` point per sensor — tags ``machine``, ``sensor``,
   ``quality``; field ``value_C``, and for a sensor that is not good, field ``reason``
@@ -125,6 +125,7 @@ def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]
     )
     if record.training_span is not None:
         fields["training_span"] = record.training_span
+    if record.outside_inputs:  # InfluxDB keeps no empty string field: none when inside
         fields["outside_inputs"] = ",".join(record.outside_inputs)
     fields["write_status"] = record.write_status
     fields["link_errors"] = len(record.link_errors)

@@ -1,0 +1,149 @@
+"""The local store's closed periods: immutable Parquet (zstd) files, written and read by DuckDB.
+
+A part holds the typed rows (:mod:`gateway.outputs.store_rows`) of one closed period,
+sorted by measurement, machine, sensor and time, so each column compresses to a few
+bytes per value and a machine's rows are contiguous (DuckDB skips the row groups of
+the others from their statistics). A part is written to a temporary name, flushed to
+the disk and renamed, so a reader never sees half a file and a crash leaves at most a
+temporary file, which the next start removes. Any process may read the parts while
+the gateway writes new ones: they never change once named.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import duckdb
+import numpy as np
+
+from gateway.outputs.store_rows import COLUMNS, FLOAT_FIELDS, INT_FIELDS, Row
+
+#: Rows per Parquet row group: a machine-day at 1 Hz spans a few groups.
+ROW_GROUP_ROWS = 100_000
+_FLOATS = frozenset(FLOAT_FIELDS)
+_INTS = frozenset(INT_FIELDS)
+
+
+def _typed(column: str) -> str:
+    """The SQL that turns a scanned numpy column back into its typed, nullable column."""
+    if column in _FLOATS:
+        return f"CASE WHEN isnan({column}) THEN NULL ELSE {column} END AS {column}"
+    if column in _INTS:
+        return f"CAST(CASE WHEN isnan({column}) THEN NULL ELSE {column} END AS BIGINT) AS {column}"
+    if column == "time_ns":
+        return "CAST(time_ns AS BIGINT) AS time_ns"
+    return f"CAST({column} AS VARCHAR) AS {column}"
+
+
+TYPED_SELECT = ", ".join(_typed(c) for c in COLUMNS)
+SORT = "measurement, machine, sensor, quality, regime, model_id, tags_extra, time_ns"
+
+
+def arrays_of(rows: Sequence[Row]) -> dict[str, np.ndarray]:
+    """Rows as one numpy array per column (NULL numbers as NaN), for DuckDB to scan."""
+    columns = list(zip(*rows, strict=True)) if rows else [()] * len(COLUMNS)
+    arrays = {}
+    for name, values in zip(COLUMNS, columns, strict=True):
+        if name == "time_ns":
+            arrays[name] = np.array(values, dtype=np.int64)
+        elif name in _FLOATS or name in _INTS:
+            arrays[name] = np.array(values, dtype=float)
+        else:
+            arrays[name] = np.array(values, dtype=object)
+    return arrays
+
+
+def write_part(rows: Sequence[Row], path: Path) -> int:
+    """Write ``rows`` as the Parquet file ``path`` (atomically, flushed); its size in bytes."""
+    batch = arrays_of(rows)  # noqa: F841  (scanned by name in the SQL below)
+    tmp = path.with_name(path.name + ".tmp")
+    db = duckdb.connect()
+    try:
+        db.execute("SET threads = 1")
+        db.execute(
+            f"COPY (SELECT {TYPED_SELECT} FROM batch ORDER BY {SORT}) TO '{tmp}' "
+            f"(FORMAT parquet, COMPRESSION zstd, ROW_GROUP_SIZE {ROW_GROUP_ROWS})"
+        )
+    finally:
+        db.close()
+    with tmp.open("rb+") as stream:
+        os.fsync(stream.fileno())
+    tmp.replace(path)
+    sync_folder(path.parent)
+    return path.stat().st_size
+
+
+def sync_folder(folder: Path) -> None:
+    """Flush a folder's entries (a rename or removal) to the disk."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def remove_strays(folder: Path, named: set[str]) -> int:
+    """Delete files in ``folder`` no registry names (a crash's leftovers); how many."""
+    removed = 0
+    for path in folder.glob("*"):
+        if path.name not in named:
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+            removed += 1
+    return removed
+
+
+def scan(
+    files: Sequence[Path],
+    staged: Sequence[Row],
+    where: str,
+    params: Sequence[object],
+    select: str,
+    order: str,
+) -> duckdb.DuckDBPyConnection:
+    """``SELECT select`` over the parts ``files`` and the ``staged`` rows, filtered and
+    ordered; an executed DuckDB connection to fetch from (the caller closes it)."""
+    staged_batch = arrays_of(staged)  # noqa: F841  (scanned by name)
+    sources = [f"SELECT {TYPED_SELECT} FROM staged_batch"]
+    if files:
+        listed = ", ".join("'" + str(f).replace("'", "''") + "'" for f in files)
+        sources.append(f"SELECT {', '.join(COLUMNS)} FROM read_parquet([{listed}])")
+    union = " UNION ALL ".join(sources)
+    db = duckdb.connect()
+    db.execute("SET threads = 1")
+    sql = f"SELECT {select} FROM ({union}) WHERE {where}"
+    if order:
+        sql += f" ORDER BY {order}"
+    try:
+        db.execute(sql, list(params))
+    except BaseException:
+        db.close()
+        raise
+    return db
+
+
+def trim_part(source: Path, path: Path, from_ns: int) -> tuple[int, int, int, int]:
+    """Write the rows of part ``source`` at or after ``from_ns`` as the part ``path``
+    (atomically, flushed): its rows, first and last time, and size in bytes."""
+    tmp = path.with_name(path.name + ".tmp")
+    db = duckdb.connect()
+    try:
+        db.execute("SET threads = 1")
+        db.execute(
+            f"COPY (SELECT * FROM read_parquet('{source}') WHERE time_ns >= {int(from_ns)} "
+            f"ORDER BY {SORT}) TO '{tmp}' "
+            f"(FORMAT parquet, COMPRESSION zstd, ROW_GROUP_SIZE {ROW_GROUP_ROWS})"
+        )
+        rows, first, last = db.execute(
+            f"SELECT count(*), min(time_ns), max(time_ns) FROM read_parquet('{tmp}')"
+        ).fetchone()
+    finally:
+        db.close()
+    with tmp.open("rb+") as stream:
+        os.fsync(stream.fileno())
+    tmp.replace(path)
+    sync_folder(path.parent)
+    return int(rows), int(first), int(last), path.stat().st_size

@@ -59,26 +59,41 @@ def _json(data: dict) -> str | None:
     return json.dumps(data, separators=(",", ":"), ensure_ascii=False) if data else None
 
 
+_SLOT = {name: i for i, name in enumerate(COLUMNS)}
+_FLOAT_SLOT = {name: _SLOT[name] for name in FLOAT_FIELDS}
+_EMPTY = ["", *[""] * len(TAGS), "", 0, *[None] * len(FIELDS), None]
+
+
 def row_of(point: Point) -> Row:
-    """The typed row of ``point`` (in :data:`COLUMNS` order); tags are ``""`` when absent."""
-    tags = point.tags
-    extra_tags = {k: v for k, v in tags.items() if k not in _TAG_SET and v != ""}
-    values: dict[str, FieldValue] = {}
-    extra_fields: dict[str, FieldValue] = {}
+    """The typed row of ``point`` (in :data:`COLUMNS` order); tags are ``""`` when absent.
+
+    Written for speed (it runs for every point the gateway logs): one list filled by
+    column slot, the JSON rest only made when a point has one."""
+    row = _EMPTY.copy()
+    row[0] = point.measurement
+    row[TIME_INDEX] = point.time_ns
+    extra_tags = None
+    for name, value in point.tags.items():
+        if name in _TAG_SET:
+            row[_SLOT[name]] = value
+        elif value != "":
+            extra_tags = extra_tags or {}
+            extra_tags[name] = value
+    if extra_tags:
+        row[TIME_INDEX - 1] = _json(dict(sorted(extra_tags.items())))
+    extra_fields = None
     for name, value in point.fields.items():
-        kind = _KIND.get(name)
-        if kind is not None and _fits(kind, value):
-            values[name] = value
+        slot = _FLOAT_SLOT.get(name)
+        if slot is not None and type(value) is float and value - value == 0.0:  # finite
+            row[slot] = value
+        elif name in _KIND and slot is None and _fits(_KIND[name], value):
+            row[_SLOT[name]] = value
         else:
+            extra_fields = extra_fields or {}
             extra_fields[name] = value
-    return (
-        point.measurement,
-        *(tags.get(t, "") for t in TAGS),
-        _json(dict(sorted(extra_tags.items()))) or "",
-        point.time_ns,
-        *(values.get(f) for f in FIELDS),
-        _json(extra_fields),
-    )
+    if extra_fields:
+        row[-1] = _json(extra_fields)
+    return tuple(row)
 
 
 def point_of(row: Sequence[object]) -> Point:

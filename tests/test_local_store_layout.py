@@ -122,3 +122,33 @@ def test_retention_keeps_exactly_the_points_after_the_cutoff(tmp_path: Path) -> 
         store.enforce_retention(now_ns)
         seconds = Counter(_second_of(p) for p in store.query("spindle_cycle"))
         assert min(seconds) == 1000 and max(seconds) == 1999 and len(seconds) == 1000
+
+
+def test_the_minute_history_outlives_the_seconds_and_goes_last_at_the_cap(
+    tmp_path: Path,
+) -> None:
+    """Per-minute min/mean/max from the 1-s points; kept after the points age out; at the
+    size cap the 1-s parts go first, then the oldest minutes."""
+    path = tmp_path / "points.sqlite"
+    with LocalStore(path, retention_s=100 * STEP_S) as store:
+        for second in range(400):  # 400 × 30 s: 200 minutes, 20 parts
+            store.write(second_points(second))
+        store.compact(second_points(440)[0].time_ns)  # every period closed
+        cycles = store.query("spindle_cycle", machine="vmc-2")
+        minute = store.history("spindle_cycle", machine="vmc-2")
+        assert len(minute) == len({p.time_ns // 60_000_000_000 for p in cycles})
+        first = [p.fields["applied_um"] for p in cycles[:2]]  # two cycles in the first minute
+        assert minute[0]["samples"] == 2
+        assert minute[0]["applied_um_min"] == min(first)
+        assert minute[0]["applied_um_max"] == max(first)
+        assert abs(minute[0]["applied_um_mean"] - sum(first) / 2) < 1e-12
+        store.enforce_retention(second_points(400)[0].time_ns)
+        assert len(store.query("spindle_cycle")) == 100 * 3  # the last 100 seconds only
+        assert len(store.history("spindle_cycle", machine="vmc-2")) == len(minute)
+        minutes_bytes = store.used_bytes()
+    with LocalStore(path, max_bytes=minutes_bytes // 2) as small:
+        small.enforce_retention(second_points(400)[0].time_ns, budget_s=10.0)
+        assert small.query("spindle_cycle") == []  # the 1-s points went first
+        kept = small.history("spindle_cycle", machine="vmc-2")
+        assert 0 < len(kept) < len(minute) and kept[-1] == minute[-1]  # then the oldest minutes
+        assert small.used_bytes() <= 0.98 * small.max_bytes

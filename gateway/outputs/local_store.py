@@ -78,6 +78,13 @@ CREATE TABLE IF NOT EXISTS parts (
     rows INTEGER NOT NULL,
     bytes INTEGER NOT NULL
 );
+CREATE TABLE IF NOT EXISTS history (
+    name TEXT PRIMARY KEY,
+    first_ns INTEGER NOT NULL,
+    last_ns INTEGER NOT NULL,
+    rows INTEGER NOT NULL,
+    bytes INTEGER NOT NULL
+);
 CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 """
 _INSERT = (
@@ -94,6 +101,11 @@ def parts_folder(path: Path) -> Path:
     return path.with_name(path.name + ".parts")
 
 
+def history_folder(path: Path) -> Path:
+    """Where the per-minute history parts of the store file ``path`` live."""
+    return path.with_name(path.name + ".history")
+
+
 class LocalStore:
     """Typed points: the open period in SQLite, closed periods in Parquet parts.
 
@@ -104,6 +116,8 @@ class LocalStore:
         max_bytes: the most the store may hold (None: unbounded); the oldest parts
             make room for the newest.
         retention_s: the oldest point :meth:`enforce_retention` keeps, s (None: all).
+        history_retention_s: the oldest minute of the per-minute history it keeps, s
+            (None: all).
         set_aside_damaged: a file SQLite cannot read is renamed aside and a new one
             started (the gateway); False refuses it with a ``ValueError`` (``export``).
         commit_interval_s: None: each :meth:`write` commits before it returns;
@@ -119,6 +133,7 @@ class LocalStore:
         retention_s: float | None = None,
         set_aside_damaged: bool = True,
         commit_interval_s: float | None = None,
+        history_retention_s: float | None = None,
     ) -> None:
         self._ring = SqliteRing(
             path,
@@ -132,6 +147,9 @@ class LocalStore:
         self.path = self._ring.path
         self.parts = parts_folder(self.path)
         self.parts.mkdir(exist_ok=True)
+        self.history_parts = history_folder(self.path)
+        self.history_parts.mkdir(exist_ok=True)
+        self.history_retention_s = history_retention_s
         self.set_aside_as = self._ring.set_aside_as
         self.max_bytes = max_bytes
         self.retention_s = retention_s
@@ -142,6 +160,8 @@ class LocalStore:
         with self._lock:
             named = {n for (n,) in self._db.execute("SELECT name FROM parts")}
             store_parts.remove_strays(self.parts, named)
+            named = {n for (n,) in self._db.execute("SELECT name FROM history")}
+            store_parts.remove_strays(self.history_parts, named)
             self.migrated = migrate_json_points(self._db, self._write_part)
         self.dropped = self._counter("dropped")  # points not stored (full disk)
         self._queue: list[Row] = []
@@ -214,8 +234,12 @@ class LocalStore:
             db.executemany(_INSERT, rows)
 
     def _evict_oldest(self) -> int:
-        """Make room at the cap (lock held): the oldest part, else the oldest open rows."""
+        """Make room at the cap (lock held): the oldest part of 1-s points, else the
+        oldest history part, else the oldest open rows. The points deleted (a history
+        part counts as 1: room was made)."""
         removed = self._drop_oldest_part()
+        if removed == 0 and self._drop_oldest_history():
+            return 1
         if removed == 0:
             removed = self._db.execute(
                 "DELETE FROM samples WHERE time_ns IN (SELECT time_ns FROM samples "
@@ -235,6 +259,10 @@ class LocalStore:
         size = store_parts.write_part(rows, self.parts / name)
         self._db.execute(
             "INSERT INTO parts VALUES (?, ?, ?, ?, ?)", (name, first, last, len(rows), size)
+        )
+        minutes, size = store_parts.write_history(self.parts / name, self.history_parts / name)
+        self._db.execute(
+            "INSERT INTO history VALUES (?, ?, ?, ?, ?)", (name, first, last, minutes, size)
         )
 
     def compact(self, now_ns: int | None = None) -> int:
@@ -336,6 +364,43 @@ class LocalStore:
         with contextlib.suppress(FileNotFoundError):
             (self.parts / name).unlink()
 
+    def _drop_oldest_history(self) -> bool:
+        """Drop the oldest history part when no 1-s part is left; whether one went."""
+        row = self._db.execute("SELECT name FROM history ORDER BY first_ns LIMIT 1").fetchone()
+        if row is None:
+            return False
+        self._drop_history(row[0])
+        return True
+
+    def _drop_history(self, name: str) -> None:
+        self._db.execute("DELETE FROM history WHERE name = ?", (name,))
+        with contextlib.suppress(FileNotFoundError):
+            (self.history_parts / name).unlink()
+
+    def _expire_history(self, now_ns: int) -> None:
+        if self.history_retention_s is None:
+            return
+        cutoff = now_ns - round(self.history_retention_s * 1e9)
+        old = self._db.execute("SELECT name FROM history WHERE last_ns < ?", (cutoff,))
+        for (name,) in old.fetchall():
+            self._drop_history(name)
+
+    def history(
+        self,
+        measurement: str,
+        machine: str | None = None,
+        start_ns: int | None = None,
+        stop_ns: int | None = None,
+    ) -> list[dict[str, object]]:
+        """The per-minute history of ``measurement`` (of ``machine``): one dict per
+        minute and series, with ``time_ns`` (the minute's start), ``samples`` and
+        ``<field>_min``, ``_mean``, ``_max`` of every numeric field, by time."""
+        self.flush()
+        with self._lock:
+            names = [n for (n,) in self._db.execute("SELECT name FROM history ORDER BY first_ns")]
+        files = [self.history_parts / n for n in names]
+        return store_parts.read_history(files, measurement, machine, start_ns, stop_ns)
+
     def _drop_oldest_part(self) -> int:
         row = self._db.execute("SELECT name, rows FROM parts ORDER BY first_ns LIMIT 1").fetchone()
         if row is None:
@@ -363,6 +428,7 @@ class LocalStore:
                     n = self._delete_before(cutoff, DELETE_CHUNK_ROWS)
                     self.expired += n
                     deleted += n
+                self._expire_history(now_ns)
                 while self._over_cap() and time.monotonic() < deadline:
                     n = self._evict_oldest()
                     deleted += n
@@ -380,7 +446,10 @@ class LocalStore:
     def _used_bytes(self) -> int:
         from gateway.outputs.sqlite_ring import used_bytes
 
-        parts = self._db.execute("SELECT coalesce(sum(bytes), 0) FROM parts").fetchone()[0]
+        parts = self._db.execute(
+            "SELECT (SELECT coalesce(sum(bytes), 0) FROM parts) "
+            "+ (SELECT coalesce(sum(bytes), 0) FROM history)"
+        ).fetchone()[0]
         return used_bytes(self._db) + int(parts)
 
     def used_bytes(self) -> int:

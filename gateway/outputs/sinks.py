@@ -100,6 +100,7 @@ class Outputs:
                 retention_s=section.local_store_retention_days * SECONDS_PER_DAY,
                 synchronous="FULL",
                 commit_interval_s=STORE_COMMIT_S,
+                history_retention_s=section.local_store_history_days * SECONDS_PER_DAY,
             )
         self.state_dir = Path(config.state_dir)
         self._cycles: dict[str, int] = {}

@@ -147,3 +147,69 @@ def trim_part(source: Path, path: Path, from_ns: int) -> tuple[int, int, int, in
     tmp.replace(path)
     sync_folder(path.parent)
     return int(rows), int(first), int(last), path.stat().st_size
+
+
+#: The per-minute history of a part: count, lowest, mean and highest of every number.
+MINUTE_NS = 60_000_000_000
+_KEYS = "measurement, machine, sensor, quality, regime, model_id, tags_extra"
+_AGGREGATES = ", ".join(
+    f"min({f}) AS {f}_min, avg({f}) AS {f}_mean, max({f}) AS {f}_max"
+    for f in (*FLOAT_FIELDS, *INT_FIELDS)
+)
+HISTORY_SELECT = (
+    f"SELECT {_KEYS}, time_ns // {MINUTE_NS} * {MINUTE_NS} AS time_ns, "
+    f"count(*) AS samples, {_AGGREGATES}"
+)
+
+
+def write_history(part: Path, path: Path) -> tuple[int, int]:
+    """Write the per-minute history of part ``part`` as the Parquet file ``path``
+    (atomically, flushed): its rows and size in bytes."""
+    tmp = path.with_name(path.name + ".tmp")
+    db = duckdb.connect()
+    try:
+        db.execute("SET threads = 1")
+        db.execute(
+            f"COPY ({HISTORY_SELECT} FROM read_parquet('{part}') GROUP BY ALL "
+            f"ORDER BY {SORT}) TO '{tmp}' (FORMAT parquet, COMPRESSION zstd)"
+        )
+        (rows,) = db.execute(f"SELECT count(*) FROM read_parquet('{tmp}')").fetchone()
+    finally:
+        db.close()
+    with tmp.open("rb+") as stream:
+        os.fsync(stream.fileno())
+    tmp.replace(path)
+    sync_folder(path.parent)
+    return int(rows), path.stat().st_size
+
+
+def read_history(
+    files: Sequence[Path],
+    measurement: str,
+    machine: str | None,
+    start_ns: int | None,
+    stop_ns: int | None,
+) -> list[dict[str, object]]:
+    """The history rows of ``files`` for one measurement (and machine), by time."""
+    if not files:
+        return []
+    where, params = ["measurement = ?"], [measurement]
+    for clause, value in (("machine = ?", machine), ("time_ns >= ?", start_ns)):
+        if value is not None:
+            where.append(clause)
+            params.append(value)
+    if stop_ns is not None:
+        where.append("time_ns < ?")
+        params.append(stop_ns)
+    listed = ", ".join("'" + str(f).replace("'", "''") + "'" for f in files)
+    db = duckdb.connect()
+    try:
+        found = db.execute(
+            f"SELECT * FROM read_parquet([{listed}]) WHERE {' AND '.join(where)} "
+            "ORDER BY time_ns, machine, sensor, quality",
+            params,
+        )
+        names = [d[0] for d in found.description]
+        return [dict(zip(names, row, strict=True)) for row in found.fetchall()]
+    finally:
+        db.close()

@@ -207,12 +207,23 @@ class LocalStore:
         return self._commit(rows) if rows else True
 
     def _run(self, interval_s: float) -> None:
+        """The commit thread: commit, then close any period due; a compaction that fails
+        (a full disk) leaves the rows where they are, says so once, and is retried."""
+        failing = False
         while not self._stop.wait(interval_s):
             try:
                 self.flush()
                 self.compact()
-            except Exception:  # a bug must not end the thread silently: log, go on
-                log.exception("local store %s: commit failed", self.path)
+            except Exception as exc:
+                if not failing:
+                    log.error(
+                        "local store %s: cannot close a period (%s); retrying", self.path, exc
+                    )
+                failing = True
+            else:
+                if failing:
+                    log.warning("local store %s: periods close again", self.path)
+                failing = False
 
     def _count_dropped(self, n: int) -> int:
         self.dropped += n
@@ -417,6 +428,7 @@ class LocalStore:
         """
         now_ns = time.time_ns() if now_ns is None else now_ns
         self._newest_ns = max(self._newest_ns, now_ns)
+        self.flush()  # the queued points count too (at most a second of them)
         if self._thread is None:
             self.compact()
         deadline = time.monotonic() + budget_s
@@ -491,8 +503,9 @@ def read_window(
 ) -> duckdb.DuckDBPyConnection:
     """The rows of a window from one snapshot of the store: the parts that overlap it
     and the open rows, read in one SQLite read transaction; a DuckDB connection with the
-    result of ``SELECT select`` ordered by time (the caller fetches and closes it)."""
-    where, args = ["TRUE"], []
+    result of ``SELECT select`` ordered by time (``select`` empty: none), and the
+    window as the view ``w`` for further queries (the caller fetches and closes it)."""
+    where, args, literals = ["TRUE"], [], ["TRUE"]
     for column, value, op in (
         ("measurement", measurement, "="),
         ("machine", machine, "="),
@@ -502,6 +515,7 @@ def read_window(
         if value is not None:
             where.append(f"{column} {op} ?")
             args.append(value)
+            literals.append(f"{column} {op} {store_parts.literal(value)}")
     clause = " AND ".join(where)
     lo = -(2**63) if start_ns is None else start_ns
     hi = 2**63 - 1 if stop_ns is None else stop_ns
@@ -522,4 +536,4 @@ def read_window(
             "" if select.startswith("DISTINCT") else "time_ns, " + ", ".join((*TAGS, "tags_extra"))
         )
     files = [parts / n for (n,) in names]
-    return store_parts.scan(files, staged, clause, args, select, order)
+    return store_parts.scan(files, staged, " AND ".join(literals), select, order)

@@ -57,23 +57,44 @@ def arrays_of(rows: Sequence[Row]) -> dict[str, np.ndarray]:
 
 
 def write_part(rows: Sequence[Row], path: Path) -> int:
-    """Write ``rows`` as the Parquet file ``path`` (atomically, flushed); its size in bytes."""
-    batch = arrays_of(rows)  # noqa: F841  (scanned by name in the SQL below)
+    """Write ``rows`` as the Parquet file ``path`` (atomically, flushed); its size in bytes.
+    On failure (a full disk) nothing is left behind."""
+    sql = f"SELECT {TYPED_SELECT} FROM batch ORDER BY {SORT}"
+    _copy(sql, path, f"ROW_GROUP_SIZE {ROW_GROUP_ROWS}", arrays_of(rows))
+    return path.stat().st_size
+
+
+def _copy(sql: str, path: Path, options: str, batch: dict[str, np.ndarray] | None = None) -> None:
+    """``COPY (sql) TO`` a temporary file, flushed and renamed ``path``; ``batch`` is the
+    table the SQL may name (DuckDB finds it by name among this frame's locals). A
+    failure (a full disk) removes the temporary file, so none piles up."""
     tmp = path.with_name(path.name + ".tmp")
     db = duckdb.connect()
     try:
         db.execute("SET threads = 1")
-        db.execute(
-            f"COPY (SELECT {TYPED_SELECT} FROM batch ORDER BY {SORT}) TO '{tmp}' "
-            f"(FORMAT parquet, COMPRESSION zstd, ROW_GROUP_SIZE {ROW_GROUP_ROWS})"
-        )
+        db.execute(f"COPY ({sql}) TO '{tmp}' (FORMAT parquet, COMPRESSION zstd, {options})")
+        with tmp.open("rb+") as stream:
+            os.fsync(stream.fileno())
+        tmp.replace(path)
+        sync_folder(path.parent)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
     finally:
         db.close()
-    with tmp.open("rb+") as stream:
-        os.fsync(stream.fileno())
-    tmp.replace(path)
-    sync_folder(path.parent)
-    return path.stat().st_size
+
+
+def _summary(path: Path) -> tuple[int, int | None, int | None]:
+    """Rows, first and last time of a written part."""
+    db = duckdb.connect()
+    try:
+        rows, first, last = db.execute(
+            f"SELECT count(*), min(time_ns), max(time_ns) FROM read_parquet('{path}')"
+        ).fetchone()
+    finally:
+        db.close()
+    return int(rows), first, last
 
 
 def sync_folder(folder: Path) -> None:
@@ -96,29 +117,33 @@ def remove_strays(folder: Path, named: set[str]) -> int:
     return removed
 
 
+def literal(value: object) -> str:
+    """``value`` (text or integer) as an SQL literal."""
+    if isinstance(value, int):
+        return str(int(value))
+    return "'" + str(value).replace("'", "''") + "'"
+
+
 def scan(
-    files: Sequence[Path],
-    staged: Sequence[Row],
-    where: str,
-    params: Sequence[object],
-    select: str,
-    order: str,
+    files: Sequence[Path], staged: Sequence[Row], where: str, select: str, order: str
 ) -> duckdb.DuckDBPyConnection:
-    """``SELECT select`` over the parts ``files`` and the ``staged`` rows, filtered and
-    ordered; an executed DuckDB connection to fetch from (the caller closes it)."""
+    """A DuckDB connection holding the view ``w``: the rows of the parts ``files`` and
+    the ``staged`` rows that meet ``where`` (SQL with literals). With ``select`` it has
+    also executed ``SELECT select FROM w`` ordered by ``order``, to fetch from; the
+    caller runs any other query on ``w`` and closes it."""
     staged_batch = arrays_of(staged)  # noqa: F841  (scanned by name)
-    sources = [f"SELECT {TYPED_SELECT} FROM staged_batch"]
-    if files:
-        listed = ", ".join("'" + str(f).replace("'", "''") + "'" for f in files)
-        sources.append(f"SELECT {', '.join(COLUMNS)} FROM read_parquet([{listed}])")
-    union = " UNION ALL ".join(sources)
     db = duckdb.connect()
-    db.execute("SET threads = 1")
-    sql = f"SELECT {select} FROM ({union}) WHERE {where}"
-    if order:
-        sql += f" ORDER BY {order}"
     try:
-        db.execute(sql, list(params))
+        db.execute("SET threads = 1")
+        db.execute(f"CREATE TEMP TABLE staged AS SELECT {TYPED_SELECT} FROM staged_batch")
+        sources = ["SELECT * FROM staged"]
+        if files:
+            listed = ", ".join(literal(str(f)) for f in files)
+            sources.append(f"SELECT {', '.join(COLUMNS)} FROM read_parquet([{listed}])")
+        union = " UNION ALL ".join(sources)
+        db.execute(f"CREATE TEMP VIEW w AS SELECT * FROM ({union}) WHERE {where}")
+        if select:
+            db.execute(f"SELECT {select} FROM w" + (f" ORDER BY {order}" if order else ""))
     except BaseException:
         db.close()
         raise
@@ -128,25 +153,10 @@ def scan(
 def trim_part(source: Path, path: Path, from_ns: int) -> tuple[int, int, int, int]:
     """Write the rows of part ``source`` at or after ``from_ns`` as the part ``path``
     (atomically, flushed): its rows, first and last time, and size in bytes."""
-    tmp = path.with_name(path.name + ".tmp")
-    db = duckdb.connect()
-    try:
-        db.execute("SET threads = 1")
-        db.execute(
-            f"COPY (SELECT * FROM read_parquet('{source}') WHERE time_ns >= {int(from_ns)} "
-            f"ORDER BY {SORT}) TO '{tmp}' "
-            f"(FORMAT parquet, COMPRESSION zstd, ROW_GROUP_SIZE {ROW_GROUP_ROWS})"
-        )
-        rows, first, last = db.execute(
-            f"SELECT count(*), min(time_ns), max(time_ns) FROM read_parquet('{tmp}')"
-        ).fetchone()
-    finally:
-        db.close()
-    with tmp.open("rb+") as stream:
-        os.fsync(stream.fileno())
-    tmp.replace(path)
-    sync_folder(path.parent)
-    return int(rows), int(first), int(last), path.stat().st_size
+    sql = f"SELECT * FROM read_parquet('{source}') WHERE time_ns >= {int(from_ns)} ORDER BY {SORT}"
+    _copy(sql, path, f"ROW_GROUP_SIZE {ROW_GROUP_ROWS}")
+    rows, first, last = _summary(path)
+    return rows, int(first or 0), int(last or 0), path.stat().st_size
 
 
 #: The per-minute history of a part: count, lowest, mean and highest of every number.
@@ -165,22 +175,9 @@ HISTORY_SELECT = (
 def write_history(part: Path, path: Path) -> tuple[int, int]:
     """Write the per-minute history of part ``part`` as the Parquet file ``path``
     (atomically, flushed): its rows and size in bytes."""
-    tmp = path.with_name(path.name + ".tmp")
-    db = duckdb.connect()
-    try:
-        db.execute("SET threads = 1")
-        db.execute(
-            f"COPY ({HISTORY_SELECT} FROM read_parquet('{part}') GROUP BY ALL "
-            f"ORDER BY {SORT}) TO '{tmp}' (FORMAT parquet, COMPRESSION zstd)"
-        )
-        (rows,) = db.execute(f"SELECT count(*) FROM read_parquet('{tmp}')").fetchone()
-    finally:
-        db.close()
-    with tmp.open("rb+") as stream:
-        os.fsync(stream.fileno())
-    tmp.replace(path)
-    sync_folder(path.parent)
-    return int(rows), path.stat().st_size
+    sql = f"{HISTORY_SELECT} FROM read_parquet('{part}') GROUP BY ALL ORDER BY {SORT}"
+    _copy(sql, path, f"ROW_GROUP_SIZE {ROW_GROUP_ROWS}")
+    return _summary(path)[0], path.stat().st_size
 
 
 def read_history(

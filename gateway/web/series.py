@@ -7,7 +7,7 @@ temperature rows, handed over as numpy arrays); InfluxDB is read through
 
 The machine page draws :func:`machine_view`: every line cut to a min/max envelope
 per pixel column of the window (:func:`window_envelope`), the temperatures of the
-local store cut per column from its column arrays (:mod:`gateway.web.store_window`), the events
+local store grouped per column in DuckDB (:mod:`gateway.web.store_window`), the events
 from the full rows. :func:`read_machine` gives the whole window, row by row.
 """
 
@@ -283,15 +283,13 @@ def machine_view(
     aggregate: bool = True,
 ) -> MachineView:
     """The window ``start_s ≤ t < stop_s`` as the machine page draws it. ``aggregate``:
-    the local store's temperatures are cut per column from numpy arrays (the same result as
+    the local store's temperatures are cut per column in DuckDB (the same result as
     reading every row, which ``aggregate=False`` does)."""
     start_ns, stop_ns = int(start_s * NS_PER_S), int(stop_s * NS_PER_S)
     if spec[0] == "local" and aggregate:
         path = Path(spec[1])
         rows = _local_rows(path, machine, start_ns, stop_ns, ("cycles", "probes"))
-        temps, changes = temperature_envelopes(
-            path, machine, start_ns, stop_ns, columns, window_envelope
-        )
+        temps, changes = temperature_envelopes(path, machine, start_ns, stop_ns, columns)
     else:
         rows = _rows(spec, machine, start_ns, stop_ns)
         temps, changes = _full_temperatures(rows["temps"], start_ns, stop_ns, columns)

@@ -1,37 +1,30 @@
 """A machine's window from the local store as column arrays, temperatures cut per column.
 
 A day of one machine at 1 Hz holds 777 600 temperature rows: moving each into
-Python as a tuple costs seconds. DuckDB hands the typed columns over as numpy
-arrays (sorted by sensor, then time) and each sensor is cut to the window's column
-envelope with :func:`envelope` and its quality flips found by comparing neighbours,
-so the result is exactly that of reading every row
-(:func:`gateway.web.series.machine_view` without aggregation).
+Python costs seconds. DuckDB groups them per sensor and plot column (first and last
+time, lowest and highest value) and finds each quality flip with a window function,
+so a few thousand rows come back, and the result is exactly that of reading every
+row (:func:`gateway.web.series.machine_view` without aggregation).
 """
 
 from __future__ import annotations
 
 import sqlite3
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from gateway.outputs.local_store import parts_folder, read_window
 from gateway.outputs.points import NS_PER_S, TEMPERATURE_MEASUREMENT
+from gateway.outputs.store_parts import literal
 
 Series = tuple[np.ndarray, np.ndarray]
 Change = tuple[float, str, str]
-Envelope = Callable[[np.ndarray, np.ndarray, int, int, int], Series]
 
 
 def connect(path: Path) -> sqlite3.Connection:
     """A read-only connection to the store file (the gateway may be writing it)."""
     return sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
-
-
-def _numbers(column: np.ndarray) -> np.ndarray:
-    """A fetched numeric column as floats, NULL as NaN."""
-    return np.ma.filled(np.ma.asarray(column).astype(float), np.nan)
 
 
 def window_rows(
@@ -49,42 +42,65 @@ def window_rows(
         found.close()
 
 
+#: Valued rows per sensor; the envelope's columns; a few sensors' every row.
+_VALUED = "SELECT sensor, count(value_C) FROM w GROUP BY sensor"
+_COLUMNS = (
+    "SELECT sensor, min(time_ns), max(time_ns), min(value_C), max(value_C) FROM w "
+    "WHERE value_C IS NOT NULL AND sensor IN ({names}) "
+    "GROUP BY sensor, (time_ns - {start}) * {columns} // {span} "
+    "ORDER BY sensor, (time_ns - {start}) * {columns} // {span}"
+)
+_WHOLE = (
+    "SELECT sensor, time_ns, value_C FROM w WHERE value_C IS NOT NULL "
+    "AND sensor IN ({names}) ORDER BY sensor, time_ns"
+)
+#: A quality that differs from the sensor's row before: the flips.
+_FLIPS = (
+    "SELECT time_ns, sensor, before, quality FROM (SELECT time_ns, sensor, quality, "
+    "lag(quality) OVER (PARTITION BY sensor ORDER BY time_ns) AS before FROM w) "
+    "WHERE before IS NOT NULL AND before <> quality ORDER BY time_ns, sensor"
+)
+
+
+def _names(sensors: list[str]) -> str:
+    return ", ".join(literal(s) for s in sensors) or "NULL"
+
+
 def temperature_envelopes(
-    path: Path, machine: str, start_ns: int, stop_ns: int, columns: int, envelope: Envelope
+    path: Path, machine: str, start_ns: int, stop_ns: int, columns: int
 ) -> tuple[dict[str, Series], list[Change]]:
-    """Per sensor ``(t_ns, value_C)`` cut to the window's column envelope, and the
-    quality changes ``(Unix s, sensor, "before → after")`` in time order."""
+    """Per sensor ``(t_ns, value_C)`` cut to the window's column envelope — each
+    column's first time with its lowest value and last time with its highest; a sensor
+    of at most ``2 × columns`` valued rows whole — and the quality changes
+    ``(Unix s, sensor, "before → after")`` in time order, all grouped in DuckDB."""
     db = connect(path)
     try:
+        window = (start_ns, stop_ns)
         found = read_window(
-            db,
-            parts_folder(path),
-            TEMPERATURE_MEASUREMENT,
-            machine,
-            start_ns,
-            stop_ns,
-            "time_ns, sensor, quality, value_C",
-            "sensor, time_ns",
+            db, parts_folder(path), TEMPERATURE_MEASUREMENT, machine, *window, "", ""
         )
     finally:
         db.close()
     try:
-        arrays = found.fetchnumpy()
+        valued = dict(found.execute(_VALUED).fetchall())
+        big = sorted(s for s, n in valued.items() if n > 2 * columns)
+        small = sorted(s for s, n in valued.items() if n <= 2 * columns)
+        shape = {"start": start_ns, "columns": columns, "span": stop_ns - start_ns}
+        grouped = found.execute(_COLUMNS.format(names=_names(big), **shape)).fetchall()
+        whole = found.execute(_WHOLE.format(names=_names(small))).fetchall()
+        flips = found.execute(_FLIPS).fetchall()
     finally:
         found.close()
-    t = np.asarray(arrays["time_ns"], dtype=np.int64)
-    sensors = np.asarray(arrays["sensor"], dtype=object)
-    qualities = np.asarray(arrays["quality"], dtype=object)
-    values = _numbers(arrays["value_C"])
     series: dict[str, Series] = {}
-    changes: list[Change] = []
-    starts = np.flatnonzero(np.r_[True, sensors[1:] != sensors[:-1]]) if len(t) else []
-    ends = [*list(starts[1:]), len(t)]
-    for a, b in zip(starts, ends, strict=True):
-        name = str(sensors[a])
-        series[name] = envelope(t[a:b], values[a:b], start_ns, stop_ns, columns)
-        q = qualities[a:b]
-        for i in np.flatnonzero(q[1:] != q[:-1]) + 1:
-            changes.append((int(t[a + i]) / NS_PER_S, name, f"{q[i - 1]} → {q[i]}"))
-    changes.sort(key=lambda c: (c[0], c[1]))
+    for sensor in valued:
+        t = [(a, b) for s, a, b, _, _ in grouped if s == sensor]
+        y = [(lo, hi) for s, _, _, lo, hi in grouped if s == sensor]
+        if sensor in small:
+            t = [(r[1],) for r in whole if r[0] == sensor]
+            y = [(r[2],) for r in whole if r[0] == sensor]
+        series[str(sensor)] = (
+            np.array([x for pair in t for x in pair], dtype=np.int64),
+            np.array([x for pair in y for x in pair], dtype=float),
+        )
+    changes = [(t / NS_PER_S, str(s), f"{before} → {after}") for t, s, before, after in flips]
     return series, changes

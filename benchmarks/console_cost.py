@@ -18,8 +18,8 @@
    headless Chromium (navigation start until the plot image is complete) when it is
    installed; and the read and the drawing timed alone in this process (wall and CPU
    seconds). ``--only-page`` measures this part only. The store is written in the
-   earlier JSON layout and converted on opening (``converted_s``); with ``--days 30``
-   it holds 30 days and the 30-day page is measured too.
+   earlier JSON layout and converted on opening (``converted_s``); ``--days`` fills
+   more days before the last 24 h (the page still shows 24 h).
 
 Prints one JSON document.
 
@@ -280,11 +280,7 @@ async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     try:
         if args.only_page:
             page = await machine_page(console, url, machines[0], store)
-            result = {"converted_s": converted_s, "machine_page_24h_1hz": page}
-            if args.days >= 30:
-                month = await machine_page(console, url, machines[0], store, 720)
-                result["machine_page_30d_1hz"] = month
-            return result
+            return {"converted_s": converted_s, "machine_page_24h_1hz": page}
         await measure(console, machines, 3.0)  # warm-up
         alone = [await measure(console, machines, args.window_s)]
         watched = []
@@ -376,9 +372,7 @@ def main() -> None:
     parser.add_argument("--window-s", type=float, default=30.0)
     parser.add_argument("--rounds", type=int, default=3, help="windows with browsers")
     parser.add_argument("--only-page", action="store_true", help="the machine page part only")
-    parser.add_argument(
-        "--days", type=int, default=1, help="days in the store (30 or more: the 30-day page too)"
-    )
+    parser.add_argument("--days", type=int, default=1, help="days of 1 Hz points in the store")
     args = parser.parse_args()
     import uvloop
 

@@ -25,7 +25,7 @@ from gateway.outputs.points import (
     PROBE_MEASUREMENT,
     TEMPERATURE_MEASUREMENT,
 )
-from gateway.web.store_window import temperature_envelopes, window_rows
+from gateway.web.store_window import temperature_envelopes, window_columns, window_rows
 
 #: ("local", path) or ("influx", url, token, org, bucket, timeout_s): picklable for the worker.
 SourceSpec = tuple
@@ -181,7 +181,11 @@ def _split_temperatures(rows: list) -> tuple[dict[str, tuple[list, list]], list]
 
 
 def _cycles(rows: list) -> _Cycles:
-    columns = list(zip(*rows, strict=True)) if rows else [()] * (len(CYCLE_FIELDS) + 3)
+    return _cycles_of(list(zip(*rows, strict=True)) if rows else [()] * (len(CYCLE_FIELDS) + 3))
+
+
+def _cycles_of(columns: list) -> _Cycles:
+    """The cycles from their columns: time, the fields, write status, link errors."""
     return _Cycles(
         t_ns=np.array(columns[0], dtype=np.int64),
         t_s=np.array(columns[0], dtype=float) / NS_PER_S,
@@ -288,12 +292,16 @@ def machine_view(
     start_ns, stop_ns = int(start_s * NS_PER_S), int(stop_s * NS_PER_S)
     if spec[0] == "local" and aggregate:
         path = Path(spec[1])
-        rows = _local_rows(path, machine, start_ns, stop_ns, ("cycles", "probes"))
+        rows = _local_rows(path, machine, start_ns, stop_ns, ("probes",))
+        cycle_columns = window_columns(
+            path, CYCLE_MEASUREMENT, machine, (start_ns, stop_ns), _LOCAL_SQL["cycles"][1]
+        )
         temps, changes = temperature_envelopes(path, machine, start_ns, stop_ns, columns)
+        cycles = _cycles_of(cycle_columns)
     else:
         rows = _rows(spec, machine, start_ns, stop_ns)
         temps, changes = _full_temperatures(rows["temps"], start_ns, stop_ns, columns)
-    cycles = _cycles(rows["cycles"])
+        cycles = _cycles(rows["cycles"])
     probe_t, probe_err, residual = _probes(rows["probes"], cycles)
     values = dict(cycles.values, cnc_um=cycles.values["written_cnc"] * cnc_um_per_unit)
     names = ("speed_rpm", "predicted_um", "applied_um", "cnc_um", "correction_um")

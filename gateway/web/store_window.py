@@ -42,22 +42,44 @@ def window_rows(
         found.close()
 
 
+def window_columns(
+    path: Path, measurement: str, machine: str, window: tuple[int, int], select: str
+) -> list[list]:
+    """Columns ``select`` of one machine's measurement in ``start ≤ t < stop``, by time:
+    one list per column (NULL as None), fetched as arrays, never row by row."""
+    db = connect(path)
+    try:
+        found = read_window(
+            db, parts_folder(path), measurement, machine, *window, select, "time_ns"
+        )
+    finally:
+        db.close()
+    try:
+        arrays = found.fetchnumpy()
+    finally:
+        found.close()
+    return [np.ma.asarray(a).tolist() for a in arrays.values()]
+
+
 #: Valued rows per sensor; the envelope's columns; a few sensors' every row.
-_VALUED = "SELECT sensor, count(value_C) FROM w GROUP BY sensor"
+_READ = "CREATE TEMP TABLE t AS SELECT time_ns, sensor, quality, value_C FROM w"
+_VALUED = "SELECT sensor, count(value_C), count(DISTINCT quality) FROM t GROUP BY sensor"
 _COLUMNS = (
-    "SELECT sensor, min(time_ns), max(time_ns), min(value_C), max(value_C) FROM w "
+    "SELECT sensor, min(time_ns), max(time_ns), min(value_C), max(value_C) FROM t "
     "WHERE value_C IS NOT NULL AND sensor IN ({names}) "
     "GROUP BY sensor, (time_ns - {start}) * {columns} // {span} "
     "ORDER BY sensor, (time_ns - {start}) * {columns} // {span}"
 )
 _WHOLE = (
-    "SELECT sensor, time_ns, value_C FROM w WHERE value_C IS NOT NULL "
+    "SELECT sensor, time_ns, value_C FROM t WHERE value_C IS NOT NULL "
     "AND sensor IN ({names}) ORDER BY sensor, time_ns"
 )
-#: A quality that differs from the sensor's row before: the flips.
+#: A quality that differs from the sensor's row before: the flips (only sensors that
+#: show more than one quality in the window can have any).
 _FLIPS = (
     "SELECT time_ns, sensor, before, quality FROM (SELECT time_ns, sensor, quality, "
-    "lag(quality) OVER (PARTITION BY sensor ORDER BY time_ns) AS before FROM w) "
+    "lag(quality) OVER (PARTITION BY sensor ORDER BY time_ns) AS before FROM t "
+    "WHERE sensor IN ({names})) "
     "WHERE before IS NOT NULL AND before <> quality ORDER BY time_ns, sensor"
 )
 
@@ -82,13 +104,16 @@ def temperature_envelopes(
     finally:
         db.close()
     try:
-        valued = dict(found.execute(_VALUED).fetchall())
+        found.execute(_READ)  # the window read once, then grouped
+        counts = found.execute(_VALUED).fetchall()
+        valued = {s: n for s, n, _ in counts}
+        flipping = sorted(s for s, _, qualities in counts if qualities > 1)
         big = sorted(s for s, n in valued.items() if n > 2 * columns)
         small = sorted(s for s, n in valued.items() if n <= 2 * columns)
         shape = {"start": start_ns, "columns": columns, "span": stop_ns - start_ns}
         grouped = found.execute(_COLUMNS.format(names=_names(big), **shape)).fetchall()
         whole = found.execute(_WHOLE.format(names=_names(small))).fetchall()
-        flips = found.execute(_FLIPS).fetchall()
+        flips = found.execute(_FLIPS.format(names=_names(flipping))).fetchall() if flipping else []
     finally:
         found.close()
     series: dict[str, Series] = {}

@@ -15,9 +15,10 @@ to each candidate in turn, in a folder of its own:
   to open a file that is written), which ``export`` and the console's worker need.
 
 The stream: temperatures, ambient and speed of the simulator's recorded programmes
-(``simulator.record``, 0.1 °C transmitter resolution, 5-s steps held for 1 s cycles;
-each machine starts at another row), and the model outputs a cycle logs
-(prediction and target at full double precision, the macro value in 0.1 µm).
+(``simulator.record``, 5-s steps interpolated to 1-s cycles, each machine starting at
+another row) with each machine's own transmitter noise (σ 0.03 °C read to 0.01 °C,
+speed σ 2 r/min read to 0.1), and the model outputs a cycle logs (prediction and
+target at full double precision, the applied value in 0.1 µm, the macro in 0.1 µm).
 
 Reported per candidate: bytes on disk per stored value and per point (every file,
 indexes and WAL included, after the writer closed), bytes the process passed to
@@ -49,6 +50,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 import duckdb  # noqa: E402
+import numpy as np  # noqa: E402
 
 from gateway.offline.export import export_runs  # noqa: E402
 from gateway.outputs.local_store import LocalStore  # noqa: E402
@@ -83,11 +85,26 @@ class Stream:
         self.rows = simulator_rows()
         self.machines = machines
         self.sensors = [k for k in self.rows[0] if k.startswith("T") or k == "ambient_C"]
+        self.noise = [np.random.default_rng(m) for m in range(machines)]
+
+    def _row(self, s: int, m: int) -> dict[str, float]:
+        """Machine ``m`` at second ``s``: its programme row (each machine starts at another),
+        interpolated between the 5-s rows, with the machine's own transmitter noise
+        (σ 0.03 °C, read to 0.01 °C) and speed jitter (σ 2 r/min, read to 0.1)."""
+        k, frac = divmod(s + 4985 * m, 5)
+        a = self.rows[k % len(self.rows)]
+        b = self.rows[(k + 1) % len(self.rows)]
+        rng = self.noise[m]
+        row = {c: a[c] + (b[c] - a[c]) * frac / 5 for c in self.sensors}
+        row = {c: round(v + rng.normal(0, 0.03), 2) for c, v in row.items()}
+        speed = a["speed_rpm"]
+        row["speed_rpm"] = round(speed + rng.normal(0, 2.0), 1) if speed else 0.0
+        return row
 
     def second(self, s: int) -> list[list[Point]]:
         batches = []
         for m in range(self.machines):
-            row = self.rows[(s // 5 + 997 * m) % len(self.rows)]
+            row = self._row(s, m)
             temps = {k: row[k] for k in self.sensors}
             predicted = 0.37 * (temps["T1"] - temps["ambient_C"]) + 0.011 * row["speed_rpm"] / 7
             applied = round(predicted, 1)

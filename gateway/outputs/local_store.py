@@ -158,10 +158,8 @@ class LocalStore:
         self._db = self._ring.db
         self._lock = self._ring.lock
         with self._lock:
-            named = {n for (n,) in self._db.execute("SELECT name FROM parts")}
-            store_parts.remove_strays(self.parts, named)
-            named = {n for (n,) in self._db.execute("SELECT name FROM history")}
-            store_parts.remove_strays(self.history_parts, named)
+            if set_aside_damaged:  # the writer; a reader must not touch a part being made
+                self._remove_strays()
             self.migrated = migrate_json_points(self._db, self._write_part)
         self.dropped = self._counter("dropped")  # points not stored (full disk)
         self._queue: list[Row] = []
@@ -174,6 +172,13 @@ class LocalStore:
                 target=self._run, args=(commit_interval_s,), name="local-store", daemon=True
             )
             self._thread.start()
+
+    def _remove_strays(self) -> None:
+        """Delete the files of parts a crash left unregistered (lock held)."""
+        named = {n for (n,) in self._db.execute("SELECT name FROM parts")}
+        store_parts.remove_strays(self.parts, named)
+        named = {n for (n,) in self._db.execute("SELECT name FROM history")}
+        store_parts.remove_strays(self.history_parts, named)
 
     # --- writing ----------------------------------------------------------------------
     def write(self, points: Iterable[Point]) -> bool:

@@ -67,6 +67,10 @@ def migrate_json_points(db: sqlite3.Connection, write_part: Callable[[list[Row]]
             db.execute("ROLLBACK")
             raise
     db.execute("DROP TABLE points")
+    try:
+        db.execute("VACUUM")  # give the old rows' pages back to the disk (a small copy now)
+    except sqlite3.OperationalError as exc:  # a full disk: the pages are reused instead
+        log.warning("local store: the converted file keeps its size (%s)", exc)
     migrated = _count(db, "migrated")
     log.warning("local store: %d point(s) converted to typed parts", migrated)
     return migrated

@@ -24,7 +24,8 @@ Reported per candidate: bytes on disk per stored value and per point (every file
 indexes and WAL included, after the writer closed), bytes the process passed to
 ``write()`` per byte stored (``wchar`` of /proc/self/io: WAL, checkpoints, parts),
 the process CPU per machine-cycle spent in the store (its threads included; the
-making of the points is timed apart and left out), and the wall time of the
+making of the points is timed apart and left out) and the part of it the caller's
+thread spends in ``write`` (the event loop's share in the gateway), and the wall time of the
 console's 1-h window of one machine (``machine_view``) and of ``export`` of one
 machine (typed-parquet and json-sqlite only: the console reads the store's layout).
 Then the projection of ``--project-machines`` machines × one year at 1 s from the
@@ -173,16 +174,18 @@ def run(name: str, folder: Path, stream: Stream, seconds: int) -> dict:
     else:
         store = DuckFile(folder / "points.duckdb")
     points = values = 0
-    making = 0.0
+    making = caller = 0.0
     c0, w0 = time.process_time(), wchar()
     for s in range(seconds):
         m0 = time.thread_time()
         batches = stream.second(s)
         making += time.thread_time() - m0
+        w0 = time.thread_time()
         for batch_points in batches:
             store.write(batch_points)  # type: ignore[attr-defined]
             points += len(batch_points)
             values += sum(len(p.fields) for p in batch_points)
+        caller += time.thread_time() - w0  # what the sink's thread (the event loop) spends
         if isinstance(store, DuckFile):
             store.commit()
         elif isinstance(store, LocalStore):
@@ -208,6 +211,7 @@ def run(name: str, folder: Path, stream: Stream, seconds: int) -> dict:
         "parts_bytes_per_value": None if parts is None else round(parts / values, 2),
         "parts_bytes_per_machine_s": None if parts is None else round(parts / cycles, 1),
         "cpu_us_per_machine_cycle": round(1e6 * cpu / cycles, 1),
+        "caller_us_per_machine_cycle": round(1e6 * caller / cycles, 1),
     }
 
 

@@ -162,7 +162,7 @@ class LocalStore:
                 self._remove_strays()
             self.migrated = migrate_json_points(self._db, self._write_part)
         self.dropped = self._counter("dropped")  # points not stored (full disk)
-        self._queue: list[Row] = []
+        self._queue: list[Point] = []
         self._queue_lock = threading.Lock()
         self._newest_ns = 0
         self._stop = threading.Event()
@@ -188,17 +188,17 @@ class LocalStore:
         failed). Otherwise one transaction; False when the points could not be stored
         (disk full): they are counted in :attr:`dropped` and logged, nothing raised.
         """
-        rows = [row_of(p) for p in points]
-        if not rows:
+        points = list(points)
+        if not points:
             return True
-        newest = max(r[COLUMNS.index("time_ns")] for r in rows)
-        if self._thread is not None:
+        newest = max(p.time_ns for p in points)
+        if self._thread is not None:  # made into rows by the commit thread, not the caller
             with self._queue_lock:
-                self._queue.extend(rows)
-                self._newest_ns = max(self._newest_ns, newest)  # type: ignore[call-overload]
+                self._queue.extend(points)
+                self._newest_ns = max(self._newest_ns, newest)
             return not self._ring.failing
-        self._newest_ns = max(self._newest_ns, newest)  # type: ignore[call-overload]
-        return self._commit(rows)
+        self._newest_ns = max(self._newest_ns, newest)
+        return self._commit([row_of(p) for p in points])
 
     def _commit(self, rows: list[Row]) -> bool:
         return self._ring.write(
@@ -208,8 +208,8 @@ class LocalStore:
     def flush(self) -> bool:
         """Commit the queued points now (the commit thread does it every interval)."""
         with self._queue_lock:
-            rows, self._queue = self._queue, []
-        return self._commit(rows) if rows else True
+            points, self._queue = self._queue, []
+        return self._commit([row_of(p) for p in points]) if points else True
 
     def _run(self, interval_s: float) -> None:
         """The commit thread: commit, then close any period due; a compaction that fails

@@ -195,7 +195,10 @@ def run(name: str, folder: Path, stream: Stream, seconds: int) -> dict:
         store.compact(stream_ns(seconds + 700))  # the last closed period, as later cycles would
     store.close()  # type: ignore[attr-defined]
     cpu = time.process_time() - c0 - making
-    parts = disk_bytes(folder / "points.sqlite.parts") if isinstance(store, LocalStore) else None
+    parts = history = None
+    if isinstance(store, LocalStore):
+        parts = disk_bytes(folder / "points.sqlite.parts")
+        history = disk_bytes(folder / "points.sqlite.history")
     written = wchar() - w0
     stored = disk_bytes(folder)
     cycles = stream.machines * seconds
@@ -210,6 +213,8 @@ def run(name: str, folder: Path, stream: Stream, seconds: int) -> dict:
         "bytes_per_machine_s": round(stored / cycles, 1),
         "parts_bytes_per_value": None if parts is None else round(parts / values, 2),
         "parts_bytes_per_machine_s": None if parts is None else round(parts / cycles, 1),
+        "history_bytes_per_machine_s": None if history is None else round(history / cycles, 2),
+        "written_per_parts": None if parts is None else round(written / (parts + history), 1),
         "cpu_us_per_machine_cycle": round(1e6 * cpu / cycles, 1),
         "caller_us_per_machine_cycle": round(1e6 * caller / cycles, 1),
     }
@@ -268,7 +273,9 @@ def main() -> None:
             if name != "duckdb-file":
                 result.update(reads(name, folder, args.seconds))
             # The store's lasting growth: its parts (the SQLite file holds one open period).
-            per_s = result["parts_bytes_per_machine_s"] or result["bytes_per_machine_s"]
+            per_s = result["bytes_per_machine_s"]
+            if result["parts_bytes_per_machine_s"] is not None:
+                per_s = result["parts_bytes_per_machine_s"] + result["history_bytes_per_machine_s"]
             per_year = per_s * SECONDS_PER_YEAR
             result["projection_bytes"] = round(args.project_machines * per_year)
             result["projection_within_cap"] = result["projection_bytes"] <= DEFAULT_CAP_BYTES

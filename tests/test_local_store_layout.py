@@ -153,3 +153,31 @@ def test_the_minute_history_outlives_the_seconds_and_goes_last_at_the_cap(
         kept = small.history("spindle_cycle", machine="vmc-2")
         assert 0 < len(kept) < len(minute) and kept[-1] == minute[-1]  # then the oldest minutes
         assert small.used_bytes() <= 0.98 * small.max_bytes
+
+
+def test_another_process_reads_while_the_writer_closes_periods(tmp_path: Path) -> None:
+    """``export`` runs beside the gateway: every read sees whole seconds, never fewer
+    points than the read before, while the writer compacts periods into parts."""
+    path = tmp_path / "points.sqlite"
+    writer = subprocess.Popen(
+        [sys.executable, "-m", "tests.store_writer", str(path), "0"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert writer.stdout is not None
+    try:
+        writer.stdout.readline()
+        seen = []
+        expected = Counter(p.measurement for p in second_points(0))
+        for _ in range(15):
+            with LocalStore(path, set_aside_damaged=False) as store:
+                for measurement, n in expected.items():  # each read is one snapshot
+                    stored = Counter(_second_of(p) for p in store.query(measurement))
+                    assert set(stored.values()) == {n}, (measurement, stored)
+                seen.append(sum(stored.values()))
+            time.sleep(0.1)
+    finally:
+        writer.send_signal(signal.SIGKILL)
+        writer.communicate(timeout=30)
+    assert seen == sorted(seen) and seen[-1] > seen[0]
+    assert len(list(parts_folder(path).glob("*.parquet"))) > 2  # periods closed meanwhile

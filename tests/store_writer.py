@@ -4,7 +4,8 @@
 30 machine-seconds apart, so a 10-minute period closes every 20 seconds and parts are
 compacted while it runs): 3 machines' cycle and temperature points, one
 :meth:`~gateway.outputs.local_store.LocalStore.flush` (the commit the gateway's thread
-makes every second) and one compaction per second, then the second's number on stdout
+makes every second) and one compaction per second (with the merge of a closed day's
+parts, as the thread does), then the second's number on stdout
 (flushed): that line is the acknowledgement. A parent SIGKILLs it at a random moment.
 """
 
@@ -39,7 +40,8 @@ def main() -> None:
     while True:
         store.write(second_points(second))
         store.flush()
-        store.compact()
+        if store.compact():
+            store.merge_days()
         print(second, flush=True)
         second += 1
 

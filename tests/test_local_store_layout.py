@@ -20,7 +20,7 @@ from collections import Counter
 from pathlib import Path
 
 from gateway.offline.export import export_runs
-from gateway.outputs.local_store import LocalStore, parts_folder
+from gateway.outputs.local_store import DAY_NS, LocalStore, parts_folder
 from gateway.outputs.points import Point, probe_point
 from tests.json_layout_store import JsonLocalStore
 from tests.store_writer import EPOCH_S, STEP_S, second_points
@@ -181,3 +181,21 @@ def test_another_process_reads_while_the_writer_closes_periods(tmp_path: Path) -
         writer.communicate(timeout=30)
     assert seen == sorted(seen) and seen[-1] > seen[0]
     assert len(list(parts_folder(path).glob("*.parquet"))) > 2  # periods closed meanwhile
+
+
+def test_a_closed_day_is_merged_into_one_part_with_every_point(tmp_path: Path) -> None:
+    with LocalStore(tmp_path / "points.sqlite") as store:
+        for second in range(0, 6300, 3):  # 6300 × 30 s: two days and more
+            store.write(second_points(second))
+        now_ns = second_points(6300)[0].time_ns
+        store.compact(now_ns)
+        before = store.query("spindle_temperature")
+        parts = len(list(parts_folder(store.path).iterdir()))
+        assert store.merge_days(now_ns) > 0
+        days = Counter(
+            int(p.name.split("-")[0]) // DAY_NS for p in parts_folder(store.path).iterdir()
+        )
+        closed = [n for day, n in days.items() if day < (now_ns - 60 * 10**9) // DAY_NS]
+        assert len(closed) >= 2 and set(closed) == {1}  # a closed day: one part
+        assert sum(days.values()) < parts / 10
+        assert store.query("spindle_temperature") == before and len(store) == 2100 * 12

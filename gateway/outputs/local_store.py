@@ -57,6 +57,8 @@ DELETE_CHUNK_ROWS = 5000  # rows per DELETE: keeps one retention step short (ms)
 PART_S = 600  # seconds of points per Parquet part
 LATE_S = 60  # a period is closed this long after its end (points of slower machines)
 NS = 1_000_000_000
+DAY_NS = 86_400 * NS  # the parts of a closed (UTC) day are merged into one
+READ_ATTEMPTS = 3  # a reader whose parts were merged or aged out meanwhile reads again
 
 _KEY = ("time_ns", "measurement", *TAGS, "tags_extra")
 _MERGE = ", ".join(f"{f} = coalesce(excluded.{f}, {f})" for f in FIELDS)
@@ -218,7 +220,8 @@ class LocalStore:
         while not self._stop.wait(interval_s):
             try:
                 self.flush()
-                self.compact()
+                if self.compact():
+                    self.merge_days()
             except Exception as exc:
                 if not failing:
                     log.error(
@@ -294,6 +297,45 @@ class LocalStore:
                     return moved
                 end = min(cut, (oldest // (PART_S * NS) + 1) * (PART_S * NS))
                 moved += self._compact_period(end)
+
+    def merge_days(self, now_ns: int | None = None) -> int:
+        """Merge the parts (and history parts) of each day closed before ``now_ns`` into
+        one each (better compression, fewer files to open); the files merged."""
+        now_ns = self._newest_ns if now_ns is None else now_ns
+        before = (now_ns - LATE_S * NS) // DAY_NS * DAY_NS
+        merged = 0
+        with self._lock:
+            for table, folder in (("parts", self.parts), ("history", self.history_parts)):
+                merged += self._merge_table(table, folder, before)
+        return merged
+
+    def _merge_table(self, table: str, folder: Path, before_ns: int) -> int:
+        found = self._db.execute(
+            f"SELECT name, first_ns, last_ns, rows FROM {table} WHERE last_ns < ? "
+            "ORDER BY first_ns",
+            (before_ns,),
+        ).fetchall()
+        days: dict[int, list[tuple]] = {}
+        for part in found:
+            days.setdefault(part[1] // DAY_NS, []).append(part)
+        merged = 0
+        for parts in days.values():
+            if len(parts) < 2:
+                continue
+            first, last = parts[0][1], max(p[2] for p in parts)
+            name = f"{first}-{last}-{time.time_ns()}.parquet"
+            size = store_parts.merge_parts([folder / p[0] for p in parts], folder / name)
+            with self._ring.transaction() as db:
+                db.executemany(f"DELETE FROM {table} WHERE name = ?", [(p[0],) for p in parts])
+                db.execute(
+                    f"INSERT INTO {table} VALUES (?, ?, ?, ?, ?)",
+                    (name, first, last, sum(p[3] for p in parts), size),
+                )
+            for part in parts:  # unregistered now: a crash here leaves strays, removed later
+                with contextlib.suppress(FileNotFoundError):
+                    (folder / part[0]).unlink()
+            merged += len(parts)
+        return merged
 
     def _compact_period(self, end_ns: int) -> int:
         rows = self._db.execute(f"{_STAGED} WHERE time_ns < ?", (end_ns,)).fetchall()
@@ -434,8 +476,8 @@ class LocalStore:
         now_ns = time.time_ns() if now_ns is None else now_ns
         self._newest_ns = max(self._newest_ns, now_ns)
         self.flush()  # the queued points count too (at most a second of them)
-        if self._thread is None:
-            self.compact()
+        if self._thread is None and self.compact():
+            self.merge_days()
         deadline = time.monotonic() + budget_s
         deleted = 0
         with self._lock:
@@ -524,21 +566,36 @@ def read_window(
     clause = " AND ".join(where)
     lo = -(2**63) if start_ns is None else start_ns
     hi = 2**63 - 1 if stop_ns is None else stop_ns
+    if order is None:
+        order = (
+            "" if select.startswith("DISTINCT") else "time_ns, " + ", ".join((*TAGS, "tags_extra"))
+        )
+    for attempt in range(READ_ATTEMPTS):
+        names, staged = _snapshot(db, clause, args, (lo, hi))
+        files = [parts / n for (n,) in names]
+        try:
+            return store_parts.scan(files, staged, " AND ".join(literals), select, order)
+        except duckdb.IOException:  # a part merged or aged out since the snapshot
+            if attempt == READ_ATTEMPTS - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _snapshot(
+    db: sqlite3.Connection, clause: str, args: list, span: tuple[int, int]
+) -> tuple[list, list]:
+    """The parts overlapping ``span`` and the open rows meeting ``clause``, read in one
+    SQLite read transaction (one consistent state of the store)."""
     in_transaction = db.in_transaction
     if not in_transaction:
         db.execute("BEGIN")
     try:
         names = db.execute(
             "SELECT name FROM parts WHERE last_ns >= ? AND first_ns < ? ORDER BY first_ns",
-            (lo, hi),
+            span,
         ).fetchall()
         staged = db.execute(f"{_STAGED} WHERE {clause}", args).fetchall()
     finally:
         if not in_transaction:
             db.execute("COMMIT")
-    if order is None:
-        order = (
-            "" if select.startswith("DISTINCT") else "time_ns, " + ", ".join((*TAGS, "tags_extra"))
-        )
-    files = [parts / n for (n,) in names]
-    return store_parts.scan(files, staged, " AND ".join(literals), select, order)
+    return names, staged

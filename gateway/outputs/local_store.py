@@ -15,10 +15,13 @@ Layout (one row per point, typed columns: :mod:`gateway.outputs.store_rows`):
   points not yet committed (the gateway commits once a second, off the event loop:
   ``commit_interval_s``), and it never leaves a half-written store;
 * each **closed period** is compacted into one immutable Parquet (zstd) file in
-  ``<file>.parts/`` (:mod:`gateway.outputs.store_parts`), about 2 bytes per value,
+  ``<file>.parts/`` (:mod:`gateway.outputs.store_parts`), 1.3–1.8 bytes a value measured,
   registered in the same SQLite file in the transaction that deletes its rows there;
   a crash between the two leaves an unregistered file, removed at the next start.
-  Readers (``export``, the console's worker process) take the list of parts and the
+  The parts of a closed day are merged into one (:meth:`LocalStore.merge_days`);
+  each part has its per-minute history beside it (``<file>.history/``: count, min,
+  mean and max of every number), kept ``history_retention_s`` and dropped last at
+  the size cap. Readers (``export``, the console's worker process) take the list of parts and the
   open rows from one SQLite snapshot and read the parts with DuckDB: any process may
   read while the gateway writes;
 * a store written in the earlier JSON-per-point layout is converted on first open,

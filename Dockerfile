@@ -37,7 +37,8 @@ FROM ${BASE}
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
-    MPLCONFIGDIR=/tmp/matplotlib
+    MPLCONFIGDIR=/tmp/matplotlib \
+    SPINDLE_MODEL_KEY_FILE=/data/keys/model-signing.key
 
 # A fixed uid/gid, so a bind-mounted /data can be chowned to it (chown -R 10001:10001 DIR).
 RUN groupadd --system --gid 10001 gateway \
@@ -53,10 +54,13 @@ COPY gateway ./gateway
 COPY drivers ./drivers
 COPY models ./models
 COPY simulator ./simulator
+# The model signing key (models/signing.py): made by the first `fit` or `models sign` in the
+# persisted /data volume, outside every model store (/data/models/...), mode 600.
 # Compiled once here, so a read-only root needs no __pycache__ at run time.
 RUN python -m compileall -q gateway drivers models simulator /opt/venv/lib \
-    && mkdir -p /data/state /data/models /config \
-    && chown -R gateway:gateway /data /config
+    && mkdir -p /data/state /data/models /data/keys /config \
+    && chown -R gateway:gateway /data /config \
+    && chmod 700 /data/keys
 
 # An example configuration (edit or mount your own) and the bundled measured runs
 # (data/fl_thermal.csv), e.g. to try `fit` inside the container.

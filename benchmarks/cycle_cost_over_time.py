@@ -92,22 +92,30 @@ class PlainPlausibility(Plausibility):
 
     def _fastest_move(self, now_s, banked, sensors, now_x, speed_rpm):
         earlier = [
-            (past.time_s, row)
+            (past, row)
             for past in self.kept
             if now_s - past.time_s <= RATE_HORIZON_S and (row := past.row(sensors)) is not None
         ]
         if not earlier:
-            return None
+            return []
         rows = np.array([now_x, *(then for _, then in earlier)])
         predicted = _predict(banked, sensors, rows, speed_rpm)
-        spans_s = now_s - np.array([then_s for then_s, _ in earlier])
+        spans_s = now_s - np.array([past.time_s for past, _ in earlier])
         moved = predicted[0] - predicted[1:]
         excess = np.abs(moved) - self._allowed_um(spans_s)
         excess[np.isnan(excess)] = -np.inf
         worst = int(np.argmax(excess))
         if not excess[worst] > 0:
-            return None
-        return float(moved[worst]), float(spans_s[worst]), rows[worst + 1]
+            return []
+        latest = int(np.flatnonzero(excess > 0)[-1])
+        return [
+            (float(moved[k]), float(spans_s[k]), earlier[k][0].rises_C)
+            for k in dict.fromkeys((latest, worst))
+        ]
+
+    def _re_reference(self, *args) -> None:
+        self.kept.clear()
+        super()._re_reference(*args)
 
 
 class PlainQualityMonitor(QualityMonitor):

@@ -85,6 +85,7 @@ def _gateway_main(index: int, ports: list[int], store: Path, folder: Path, broke
             "brokers": [f"mqtt://127.0.0.1:{broker_port}"],
             "group_id": GROUP,
             "edge_node_id": f"edge{index}",
+            "qos": 1,  # as measured in docs/fleet.md: every point acknowledged by the broker
             "startup_delay_max_s": 2.0,
             "reconnect_max_s": 2.0,
             "buffer_path": str(state / "spb.sqlite"),

@@ -344,9 +344,9 @@ async def _poll_only(section, clock, stop: asyncio.Event, stats: Stats, schedule
 
 
 async def poll_once(buses, cnc, now: float, late_s: float, stats: Stats) -> None:
-    outcomes = await read_together([bus.read_all(now) for bus in buses], cnc.read_speed())
-    failed = any(isinstance(o, BaseException) for o in outcomes) or any(
-        r.error for o in outcomes[:-1] if isinstance(o, dict) for r in o.values()
+    outcomes, speed = await read_together([bus.read_all(now) for bus in buses], cnc.read_speed())
+    failed = any(isinstance(o, BaseException) for o in [*outcomes, speed]) or any(
+        r.error for o in outcomes if isinstance(o, dict) for r in o.values()
     )
     try:
         await cnc.read_macro(MACRO)

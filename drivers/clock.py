@@ -6,6 +6,17 @@ an accelerated clock runs machine time ``speedup`` times faster than the wall
 so a test never has to sleep for real. The gateway and the simulated machine
 share one clock object, so they agree on what "now" is.
 
+Two times, each for one job. ``now`` is machine time, and on the wall clock it
+follows ``time.monotonic()``: the cycles are scheduled on it and every rate (slew,
+lags, quality) is computed from it, so a step of the system clock (an NTP step, an
+operator's ``date -s``) neither bunches nor stalls the cycles. ``stamp`` is the time
+every output stamps a cycle with (the log's points, Sparkplug, the heartbeat): on the
+wall clock the system's wall time (``time.time()``), taken once per cycle, so the
+outputs agree with each other and with the rest of the plant even after a step, or
+after a pause of the host that the monotonic clock did not count (a suspended virtual
+machine: its wall clock is set right on resume, its monotonic clock stays behind).
+A simulated clock stamps with machine time.
+
 Every ``sleep`` takes an optional ``stop`` event and returns as soon as it is set:
 a gateway asked to stop (SIGTERM) must not wait out a cycle of minutes first.
 """
@@ -25,6 +36,10 @@ class Clock(Protocol):
 
     async def sleep(self, seconds: float, stop: asyncio.Event | None = None) -> None:
         """Wait ``seconds`` of machine time, or less when ``stop`` is set meanwhile."""
+        ...
+
+    def stamp(self) -> float:
+        """The time outputs stamp a cycle with, s (wall time on the wall clock)."""
         ...
 
 
@@ -57,6 +72,10 @@ class WallClock:
     async def sleep(self, seconds: float, stop: asyncio.Event | None = None) -> None:
         await wait_or_stop(seconds, stop)
 
+    def stamp(self) -> float:
+        """The system's wall time (Unix s): it follows NTP and steps, ``now`` does not."""
+        return time.time()
+
 
 class AcceleratedClock:
     """Machine time runs ``speedup`` × faster than the wall (speedup 3600: an hour a second)."""
@@ -74,6 +93,9 @@ class AcceleratedClock:
     async def sleep(self, seconds: float, stop: asyncio.Event | None = None) -> None:
         await wait_or_stop(max(0.0, seconds) / self.speedup, stop)
 
+    def stamp(self) -> float:
+        return self.now()
+
 
 class ManualClock:
     """Machine time that moves only through ``advance``; ``sleep`` advances it at once
@@ -83,6 +105,9 @@ class ManualClock:
         self._now = origin_s
 
     def now(self) -> float:
+        return self._now
+
+    def stamp(self) -> float:
         return self._now
 
     def advance(self, seconds: float) -> float:

@@ -20,6 +20,7 @@ pymodbus client, with a life cycle the gateway owns); the reconnect policy is
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections.abc import Awaitable, Callable
@@ -165,7 +166,8 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         register = self.macro_register(number)
 
         return await self._call(
-            f"reading macro #{number} (register {register})", self._read_macro, register
+            f"reading macro #{number} (register {register})",
+            functools.partial(self._read_macro, register=register),
         )
 
     async def _read_macro(self, link: ModbusConnection, register: int) -> float:
@@ -196,9 +198,7 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
             return await self._chained(link, self._speed_chain)
         registers: list[int] = []
         for request in self.registers.requests:
-            registers += await self._paced(
-                lambda request=request: link.read(request, self.device_id)
-            )
+            registers += await self._paced(functools.partial(link.read, request, self.device_id))
         return registers
 
     def _chains_on(self, link: ModbusConnection) -> bool:

@@ -28,6 +28,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.backoff import Backoff
 from drivers.cnc import CncRefusedError, GuardedWrite, ReconnectingSession, SpeedReading
+from drivers.opcua_common import node_id
 
 T = TypeVar("T")
 
@@ -54,7 +55,12 @@ _REFUSALS = frozenset(
 
 
 #: The security policies the CNC link offers, by the name the configuration uses.
-SECURITY_POLICIES = {
+_Policy = (
+    type[security_policies.SecurityPolicyBasic256Sha256]
+    | type[security_policies.SecurityPolicyAes128Sha256RsaOaep]
+    | type[security_policies.SecurityPolicyAes256Sha256RsaPss]
+)
+SECURITY_POLICIES: dict[str, _Policy] = {
     "Basic256Sha256": security_policies.SecurityPolicyBasic256Sha256,
     "Aes128_Sha256_RsaOaep": security_policies.SecurityPolicyAes128Sha256RsaOaep,
     "Aes256_Sha256_RsaPss": security_policies.SecurityPolicyAes256Sha256RsaPss,
@@ -262,7 +268,7 @@ class OpcUaCnc(ReconnectingSession[_Session]):
             raise
 
         def node(identifier: str) -> Node:
-            return client.get_node(ua.NodeId(identifier, ns))
+            return client.get_node(node_id(identifier, ns))
 
         return _Session(
             client=client,
@@ -282,7 +288,7 @@ class OpcUaCnc(ReconnectingSession[_Session]):
     def _macro(self, session: _Session, number: int) -> Node:
         node = session.macros.get(number)
         if node is None:
-            nodeid = ua.NodeId(self._macro_id(number), session.namespace_index)
+            nodeid = node_id(self._macro_id(number), session.namespace_index)
             node = session.macros[number] = session.client.get_node(nodeid)
         return node
 
@@ -338,8 +344,10 @@ def _check_finite(number: int, value: float) -> None:
 def _learn_type(session: _Session, number: int, datavalue: ua.DataValue) -> None:
     """Remember the variant type of macro #number's value (Double when it has none)."""
     variant = datavalue.Value
-    known = variant is not None and variant.Value is not None
-    session.macro_types[number] = variant.VariantType if known else ua.VariantType.Double
+    if variant is not None and variant.Value is not None:
+        session.macro_types[number] = variant.VariantType
+    else:
+        session.macro_types[number] = ua.VariantType.Double
 
 
 def _number(datavalue: ua.DataValue, node: str) -> float:

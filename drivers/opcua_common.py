@@ -9,10 +9,41 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Awaitable, Callable
+from datetime import UTC, datetime
 from types import TracebackType
-from typing import Self
+from typing import Any, Self, cast
 
 from asyncua import Server, ua
+
+# asyncua types a node id's parts, a status code and a timestamp as its own subclasses of
+# int, str and datetime, and a DataValue's value as a Variant, where its constructors take
+# the plain values too; these helpers say so once, with the values the wire carries.
+
+
+def node_id(identifier: int | str, namespace: int = 0) -> ua.NodeId:
+    """A numeric or string node id in ``namespace``."""
+    ident = ua.Int32(identifier) if isinstance(identifier, int) else ua.String(identifier)
+    return ua.NodeId(ident, ua.Int16(namespace))
+
+
+def ua_datetime(value: datetime) -> ua.DateTime:
+    """A timestamp as asyncua types it (its DateTime adds nothing to a datetime)."""
+    return cast(ua.DateTime, value)
+
+
+def status_code(code: int) -> ua.StatusCode:
+    return ua.StatusCode(ua.UInt32(code))
+
+
+def data_value(value: Any, status: int = ua.StatusCodes.Good, stamped: bool = True) -> ua.DataValue:
+    """``value`` (a Variant, or what a Variant holds) with a status and, when
+    ``stamped``, the source and server time of now."""
+    variant = value if isinstance(value, ua.Variant) else ua.Variant(value)
+    now = ua_datetime(datetime.now(UTC)) if stamped else None
+    return ua.DataValue(
+        variant, StatusCode=status_code(status), SourceTimestamp=now, ServerTimestamp=now
+    )
+
 
 # UNECE Recommendation 20 unit codes, encoded as OPC UA EUInformation.UnitId
 # (OPC UA Part 8, 5.6.3: the code's ASCII bytes packed into an Int32).

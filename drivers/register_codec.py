@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 import struct
 from collections.abc import Sequence
-from typing import cast
+from typing import Any, cast
 
 from pymodbus.client.mixin import ModbusClientMixin
 
@@ -25,9 +25,8 @@ SHORT_CIRCUIT_CODE = -32768  # 0x8000 as an unsigned register
 INT16_MIN = -32768
 INT16_MAX = 32767
 
-_DATATYPE = ModbusClientMixin.DATATYPE
-DATATYPES: dict[str, ModbusClientMixin.DATATYPE] = {
-    name: _DATATYPE[name.upper()]
+DATATYPES: dict[str, Any] = {
+    name: ModbusClientMixin.DATATYPE[name.upper()]
     for name in ("int16", "uint16", "int32", "uint32", "float32", "int64", "uint64", "float64")
 }
 

@@ -336,6 +336,8 @@ def load_register_map(source: str, base_dir: Path | None = None) -> RegisterMap:
         path = Path(source)
         if not path.is_absolute() and base_dir is not None:
             path = base_dir / path
+        if path.is_dir():
+            raise ValueError(f"register map file {path} is a folder; a YAML file was expected")
         if not path.is_file():
             raise ValueError(f"register map file {path} does not exist")
     return _load_map_file(path)

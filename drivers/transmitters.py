@@ -21,6 +21,7 @@ slave on the bus down with one dead one (#1654).
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import struct
 from collections.abc import Awaitable, Sequence
@@ -328,7 +329,8 @@ class ModbusConnection:
             return ModbusNoResponseError(
                 f"device {device_id} on {self.where}: unexpected reply {outcome.pdu.hex()}"
             )
-        return ModbusNoResponseError(f"device {device_id} on {self.where}: {outcome}")
+        detail = f"unexpected reply {outcome.hex()}" if isinstance(outcome, bytes) else outcome
+        return ModbusNoResponseError(f"device {device_id} on {self.where}: {detail}")
 
     def _check_reply(self, reply: bytes, device_id: int) -> None:
         """A reply other than registers: decoded by pymodbus; an exception reply raises."""
@@ -346,7 +348,7 @@ class ModbusConnection:
                 f"device {device_id} on {self.where}: {len(registers)} registers in the "
                 f"reply, {count} asked"
             )
-        return registers
+        return list(registers)
 
     def _usable_client(self) -> AsyncModbusSerialClient:
         client = self._client
@@ -761,7 +763,7 @@ class TransmitterBus:
             request = requests[read.index]
             try:
                 read.registers += await self._hub.request(
-                    lambda request=request: link.read(request, device_id), pause_s=pause_s
+                    functools.partial(link.read, request, device_id), pause_s=pause_s
                 )
             except ModbusRefusedError as exc:
                 # TCP's own wire has asked again already (drivers.modbus_tcp).

@@ -26,16 +26,15 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ValidationError
 from yaml.composer import Composer
 
-try:
-    from yaml import CSafeLoader
-except ImportError:  # PyYAML built without libyaml: every file takes the Python path
-    CSafeLoader = None
+#: PyYAML built without libyaml takes the Python path for every file.
+HAVE_LIBYAML = yaml.__with_libyaml__
+CSafeLoader = yaml.CSafeLoader if HAVE_LIBYAML else yaml.SafeLoader
 
 MAX_BYTES = 1_000_000
 """Largest file read: a configuration of many machines is a few tens of kilobytes."""
@@ -124,13 +123,18 @@ class _AliasCounting(Composer):
 
     aliases = 0
 
-    def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node:
+    if TYPE_CHECKING:  # the parser's, which every loader this is mixed into has
+
+        def check_event(self, *choices: Any) -> bool: ...
+        def peek_event(self) -> Any: ...
+
+    def compose_node(self, parent: yaml.Node | None, index: int) -> yaml.Node | None:
         if self.check_event(yaml.AliasEvent):
             self.aliases += 1
             if self.aliases > MAX_ALIASES:
                 line = self.peek_event().start_mark.line + 1
                 raise _RefusedError(line, f"more than {MAX_ALIASES} YAML aliases (*name)")
-        return super().compose_node(parent, index)  # type: ignore[arg-type]
+        return super().compose_node(parent, index)
 
 
 class _Loader(_AliasCounting, yaml.SafeLoader):
@@ -175,7 +179,7 @@ def load_yaml(path: str | Path) -> YamlDocument:
 
 def _load_fast(path: Path, text: str) -> YamlDocument | None:
     """The document through libyaml's parser, or ``None`` on any problem (or no libyaml)."""
-    if CSafeLoader is None or yaml.reader.Reader.NON_PRINTABLE.search(text):
+    if not HAVE_LIBYAML or yaml.reader.Reader.NON_PRINTABLE.search(text):
         return None  # the Python reader refuses characters libyaml lets through
     try:
         loader = _FastLoader(text)

@@ -57,7 +57,7 @@ from drivers.yaml_loader import (
     load_yaml,
 )
 from drivers.yaml_loader import validate as validate_section
-from gateway.limits import CompensationLimits, QualityLimits
+from gateway.limits import CompensationLimits, LoginLimits, QualityLimits
 from gateway.process.event_loop import DEFAULT as DEFAULT_EVENT_LOOP
 from gateway.process.event_loop import EventLoopName
 from models.fit.conditioning import DEFAULT_MAX_BIAS_ERROR_UM, DEFAULT_SENSOR_ACCURACY_C
@@ -327,6 +327,25 @@ class CncSection(Strict):
         return self
 
 
+class WhenUncertainSection(Strict):
+    """What to do when the prediction is unsure (:mod:`gateway.live.uncertainty_gate`):
+    above ``above_um`` of interval half-width, hold the compensation where it is, or
+    scale the prediction by ``scale``; either way the change goes through the clamp and
+    the slew limit like every other."""
+
+    above_um: float = Field(gt=0, allow_inf_nan=False)
+    action: Literal["hold", "scale"] = "hold"
+    scale: float = Field(default=0.5, ge=0, le=1)
+
+    @model_validator(mode="after")
+    def _scale_with_scale(self) -> WhenUncertainSection:
+        if self.action == "hold" and "scale" in self.model_fields_set:
+            raise KeyPathError(
+                ("scale",), "applies to action 'scale' only; with 'hold' leave it out"
+            )
+        return self
+
+
 class CompensationSection(Strict):
     enabled: bool = True
     macro: int = Field(default=500, ge=500, le=999)
@@ -345,6 +364,8 @@ class CompensationSection(Strict):
     fallback_ramp_um_per_min: float | None = Field(default=None, gt=0, allow_inf_nan=False)
     # Switched off (here or from SCADA): ramp #macro to 0 at the slew limit, or hold it.
     on_disable: Literal["ramp", "hold"] = "ramp"
+    # Above this interval half-width, hold or scale the compensation (off: None).
+    when_uncertain: WhenUncertainSection | None = None
 
     def limits(self) -> CompensationLimits:
         return CompensationLimits(
@@ -517,12 +538,21 @@ class ModelsSection(Strict):
     #: promote a new proposal of the residual monitor without an operator
     #: (gateway.live.bank.promotion)
     auto_promote: bool = False
-    #: HMAC key the store's models must be signed with (models.signing); outside the store
+    #: HMAC key the store's models must be signed with (models.signing); outside the store.
+    #: Default: $SPINDLE_MODEL_KEY_FILE, else $XDG_CONFIG_HOME/spindle-gateway/model-signing.key
     signing_key_file: Path | None = None
+    #: the store's models are signed and checked; false: an unsigned store (nothing checked)
+    signing: bool = True
 
     @model_validator(mode="after")
     def _key_outside_the_store(self) -> ModelsSection:
         key = self.signing_key_file
+        if key is not None and not self.signing:
+            raise KeyPathError(
+                ("signing_key_file",),
+                f"{key} is named, but models.signing is false (an unsigned store): "
+                "remove one of the two",
+            )
         if key is not None and key.resolve().is_relative_to(self.store.resolve()):
             raise KeyPathError(
                 ("signing_key_file",),
@@ -579,8 +609,9 @@ class MachineSection(Strict):
         """One missed read must not make a sensor stale; a fixed reference covers every sensor."""
         for name in self.sensor_names:
             sensor = self.sensors.get(name)
-            explicit = sensor is not None and "stale_s" in sensor.model_fields_set
-            if explicit and sensor.stale_s < self.cycle_s:
+            if sensor is None or "stale_s" not in sensor.model_fields_set:
+                continue
+            if sensor.stale_s < self.cycle_s:
                 raise KeyPathError(
                     ("sensors", name, "stale_s"),
                     f"{sensor.stale_s:g} s is shorter than cycle_s ({self.cycle_s:g} s): "
@@ -694,7 +725,10 @@ class InfluxSection(Strict):
         if variable is not None:
             return from_environment(variable, f"{key}_env")
         literal = getattr(self, key)
-        return default if literal is None else literal
+        value = default if literal is None else literal
+        if value is None:  # the section's validator refuses this before any value is read
+            raise ConfigError(f"give '{key}' or '{key}_env' (an environment variable)")
+        return value
 
     def url_value(self) -> str:
         url = self._setting("url")
@@ -765,7 +799,7 @@ class LoggingSection(Strict):
 
 
 class ScadaUserSection(Credentials):
-    username: str  # type: ignore[assignment]
+    username: str  # the login name  # type: ignore[assignment]
     role: Literal["operator", "viewer"] = "viewer"
 
 
@@ -850,7 +884,7 @@ class SparkplugSection(Credentials):
     edge_node_id: str
     primary_host_id: str | None = None
     client_id: str | None = None
-    qos: Literal[0, 1] = 1
+    qos: Literal[0, 1] = 0  # births and data; Sparkplug 3.0 asks QoS 0 (docs/fleet.md)
     keepalive_s: int = Field(default=30, ge=5, le=3600)
     ca_file: Path | None = None
     cert_file: Path | None = None
@@ -890,6 +924,8 @@ class GatewayConfig(Strict):
     machines: list[MachineSection] = Field(min_length=1)
     #: One line per old key name the file still uses (file, line, the new name).
     _deprecations: list[str] = PrivateAttr(default_factory=list)
+    #: The file it was read from, to locate later refusals (a model store's) on its lines.
+    _document: YamlDocument | None = PrivateAttr(default=None)
     state_dir: Path = Path(".cache/state")
     logging: LoggingSection = LoggingSection()
     scada: ScadaSection | None = None
@@ -903,6 +939,13 @@ class GatewayConfig(Strict):
     def deprecations(self) -> list[str]:
         """Old key names the file used, one located line each (empty for a current file)."""
         return list(self._deprecations)
+
+    def error_at(self, loc: Loc, message: str) -> ConfigError:
+        """``message`` located at ``loc`` of the file this configuration was read from
+        (``file:line: key.path: message``); unlocated for one built in code."""
+        if self._document is None:
+            return ConfigError(message)
+        return ConfigError(str(self._document.error(loc, message)))
 
     @model_validator(mode="after")
     def _unique_ids(self) -> GatewayConfig:
@@ -947,8 +990,10 @@ class GatewayConfig(Strict):
         }
         for index, machine in enumerate(self.machines):
             number = machine.compensation.alive_macro
+            if number is None:
+                continue
             reader = probes.get((*machine.cnc_address(), number))
-            if number is None or reader is None or reader[0] == index:
+            if reader is None or reader[0] == index:
                 continue
             host, port, _ = machine.cnc_address()
             raise KeyPathError(
@@ -963,22 +1008,38 @@ class GatewayConfig(Strict):
         """A store's models are checked with one key (models.signing keys it by store): a
         machine naming none, or another one, would silently replace the key of a machine
         sharing its store, whose promotions would then go unchecked."""
-        keys: dict[Path, tuple[int, str, Path | None]] = {}
+        keys: dict[Path, tuple[int, str, str]] = {}
         for index, machine in enumerate(self.machines):
             store = machine.models.store.resolve()
-            key = machine.models.signing_key_file
-            resolved = None if key is None else key.resolve()
-            first = keys.setdefault(store, (index, machine.id, resolved))
-            if first[2] != resolved:
-                named = "none" if key is None else f"signing key {key}"
-                other = "none" if first[2] is None else f"signing key {first[2]}"
+            named = _signing_named(machine.models)
+            first = keys.setdefault(store, (index, machine.id, named))
+            if first[2] != named:
                 raise KeyPathError(
                     ("machines", index, "models", "signing_key_file"),
                     f"machine '{machine.id}' names {named}, but shares the model store "
                     f"{machine.models.store} with machine '{first[1]}' (machines[{first[0]}]), "
-                    f"which names {other}; machines sharing a store name the same key",
+                    f"which names {first[2]}; machines sharing a store name the same key",
                 )
         return self
+
+
+def login_limits(section: ScadaSection | WebSection) -> LoginLimits:
+    """The lockout of repeated failed logins a section's ``login_*`` keys set (the SCADA
+    server's or the console's), built here once for both, like the other limits."""
+    return LoginLimits(
+        max_failures=section.login_max_failures,
+        window_s=section.login_window_s,
+        lockout_s=section.login_lockout_s,
+        max_lockout_s=section.login_max_lockout_s,
+    )
+
+
+def _signing_named(models: ModelsSection) -> str:
+    """How a machine's ``models`` section names its store's signing, to compare machines."""
+    if not models.signing:
+        return "models.signing: false"
+    key = models.signing_key_file
+    return "none" if key is None else f"signing key {key.resolve()}"
 
 
 def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
@@ -1004,6 +1065,7 @@ def load_config(path: str | Path, *, check_host: bool = False) -> GatewayConfig:
         deprecations = rename_old_keys(document)
         config = validate_section(document, GatewayConfig)
         config._deprecations = deprecations
+        config._document = document
         if config.simulator is not None:
             from simulator.serve import SimulatorConfig
 
@@ -1028,9 +1090,11 @@ def rename_old_keys(document: YamlDocument) -> list[str]:
     line of its first use and the new name. Both names in one machine are refused.
     """
     machines = document.data.get("machines") if isinstance(document.data, dict) else None
+    if not isinstance(machines, list):
+        machines = []
     notes: list[str] = []
     for old, new in RENAMED_MACHINE_KEYS.items():
-        used = [i for i, m in enumerate(machines or []) if isinstance(m, dict) and old in m]
+        used = [i for i, m in enumerate(machines) if isinstance(m, dict) and old in m]
         for i in used:
             if new in machines[i]:
                 raise document.error(
@@ -1051,31 +1115,48 @@ def rename_old_keys(document: YamlDocument) -> list[str]:
 
 def check_host_of(config: GatewayConfig, document: YamlDocument) -> None:
     """Secrets and folders, as ``run`` will use them; the first problem, located."""
-    problems: list[tuple[Loc, str]] = []
+    problems = _secret_reference_problems(config)
     for index, machine in enumerate(config.machines):
-        if machine.cnc.opcua is not None:
-            problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
-            if machine.cnc.opcua.security is not None:
-                loc = ("machines", index, "cnc", "opcua", "security")
-                problems += _security_problems(machine.cnc.opcua.security, loc)
+        if machine.cnc.opcua is not None and machine.cnc.opcua.security is not None:
+            security = ("machines", index, "cnc", "opcua", "security")
+            problems += _security_problems(machine.cnc.opcua.security, security)
     if config.scada is not None:
-        for index, user in enumerate(config.scada.users):
-            problems += _secret_problems(user, ("scada", "users", index))
         problems += _folder_problems(config.scada.pki_dir, ("scada", "pki_dir"))
     problems += _folder_problems(Path(config.state_dir), ("state_dir",))
     logging = config.logging
     if logging.influxdb is not None:
-        try:
-            logging.influxdb.token()
-        except ConfigError as exc:
-            key = "token_env" if logging.influxdb.token_env else "token_file"
-            problems.append((("logging", "influxdb", key), str(exc)))
         problems += _file_problems(logging.buffer_path, ("logging", "buffer_path"))
     else:
         problems += _file_problems(logging.local_store, ("logging", "local_store"))
+    problems += _named_path_problems(config)
     if problems:
         loc, message = problems[0]
         raise document.error(loc, message)
+
+
+def _secret_reference_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
+    """Every secret the configuration names, read as ``run`` will read it: each
+    ``*_env`` set and not empty, each secret or key file there, readable and not empty,
+    each account with a password (a user without one would log in with an empty one), and
+    each certificate, key and model signing key file readable."""
+    problems: list[tuple[Loc, str]] = []
+    for index, machine in enumerate(config.machines):
+        if machine.cnc.opcua is not None:
+            problems += _secret_problems(machine.cnc.opcua, ("machines", index, "cnc", "opcua"))
+        keys: tuple[str, ...] = ("signing_key_file",)
+        problems += _key_file_problems(machine.models, ("machines", index, "models"), keys)
+    if config.scada is not None:
+        problems += _account_problems(config.scada.users, ("scada", "users"))
+    if config.web is not None:
+        problems += _account_problems(config.web.users or [], ("web", "users"))
+        problems += _key_file_problems(config.web, ("web",), ("tls_cert", "tls_key"))
+    if config.sparkplug is not None:
+        problems += _secret_problems(config.sparkplug, ("sparkplug",))
+        keys = ("ca_file", "cert_file", "key_file")
+        problems += _key_file_problems(config.sparkplug, ("sparkplug",), keys)
+    if config.logging.influxdb is not None:
+        problems += _token_problems(config.logging.influxdb, ("logging", "influxdb"))
+    return problems
 
 
 def _secret_problems(credentials: Credentials, loc: Loc) -> list[tuple[Loc, str]]:
@@ -1086,7 +1167,50 @@ def _secret_problems(credentials: Credentials, loc: Loc) -> list[tuple[Loc, str]
         return [((*loc, key), str(exc))]
     if secret == "" and credentials.password_file is not None:
         return [((*loc, key), f"password_file {credentials.password_file} is empty")]
+    if secret == "" and credentials.password_env:
+        message = f"environment variable {credentials.password_env} (password_env) is empty"
+        return [((*loc, key), message)]
     return []
+
+
+def _account_problems(users: Sequence[ScadaUserSection], loc: Loc) -> list[tuple[Loc, str]]:
+    """Each login account's password: named, and there."""
+    problems: list[tuple[Loc, str]] = []
+    for index, user in enumerate(users):
+        if not user.password_env and user.password_file is None:
+            message = f"user '{user.username}' has no password: give password_env or password_file"
+            problems.append(((*loc, index, "username"), message))
+        else:
+            problems += _secret_problems(user, (*loc, index))
+    return problems
+
+
+def _token_problems(influxdb: InfluxSection, loc: Loc) -> list[tuple[Loc, str]]:
+    key = "token_env" if influxdb.token_env else "token_file"
+    try:
+        token = influxdb.token()
+    except ConfigError as exc:
+        return [((*loc, key), str(exc))]
+    if token == "" and influxdb.token_env:
+        return [((*loc, key), f"environment variable {influxdb.token_env} (token_env) is empty")]
+    if token == "" and influxdb.token_file is not None:
+        return [((*loc, key), f"token_file {influxdb.token_file} is empty")]
+    return []
+
+
+def _key_file_problems(section: object, loc: Loc, keys: Sequence[str]) -> list[tuple[Loc, str]]:
+    """Certificates and keys the section names: files there and readable."""
+    problems: list[tuple[Loc, str]] = []
+    for key in keys:
+        path: Path | None = getattr(section, key)
+        if path is None:
+            continue
+        try:
+            with path.open("rb") as file:
+                file.read(1)
+        except OSError as exc:
+            problems.append(((*loc, key), f"{path}: {exc.strerror or exc}"))
+    return problems
 
 
 def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[Loc, str]]:
@@ -1096,11 +1220,16 @@ def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[L
     present = {key: path.is_file() for key, path in pair.items()}
     if present["certificate"] != present["private_key"]:
         missing = next(key for key, there in present.items() if not there)
+        other = pair["private_key" if missing == "certificate" else "certificate"]
+        there = (
+            "is a folder, but {} is a file"
+            if pair[missing].is_dir()
+            else "does not exist, but {} does"
+        )
         return [
             (
                 (*loc, missing),
-                f"{pair[missing]} does not exist, but "
-                f"{pair['private_key' if missing == 'certificate' else 'certificate']} does: "
+                f"{pair[missing]} {there.format(other)}: "
                 "give both, or neither to have them made on the first connect",
             )
         ]
@@ -1110,8 +1239,13 @@ def _security_problems(security: OpcUaSecuritySection, loc: Loc) -> list[tuple[L
             problems += _file_problems(path, (*loc, key))
     pinned = security.server_certificate
     if pinned is not None and not pinned.is_file():
-        problems.append(((*loc, "server_certificate"), f"{pinned} does not exist"))
+        problems.append(((*loc, "server_certificate"), f"{pinned} {_absent(pinned)}"))
     return problems
+
+
+def _absent(path: Path) -> str:
+    """Why a file the configuration names is not one: a folder there, or nothing."""
+    return "is a folder, not a file" if path.is_dir() else "does not exist"
 
 
 def _folder_problems(folder: Path, loc: Loc, subject: Path | None = None) -> list[tuple[Loc, str]]:
@@ -1138,6 +1272,37 @@ def _file_problems(path: Path, loc: Loc) -> list[tuple[Loc, str]]:
     if path.exists() and not os.access(path, os.W_OK):
         return [(loc, f"{path} is not writable")]
     return _folder_problems(path.parent, loc, subject=path)
+
+
+def _named_path_problems(config: GatewayConfig) -> list[tuple[Loc, str]]:
+    """The signing keys, folders and buffers the sections name, as ``run`` will open them:
+    each refused here on its own line rather than by ``run`` later, unlocated. (The model
+    stores are refused, located, by :func:`gateway.wiring.load_located_bank`.)"""
+    problems: list[tuple[Loc, str]] = []
+    for index, machine in enumerate(config.machines):
+        key = machine.models.signing_key_file
+        if key is not None:
+            loc = ("machines", index, "models", "signing_key_file")
+            problems += _readable_problems(key, loc, "key")
+    reports = None if config.web is None else config.web.reports_dir
+    if reports is not None and reports.exists() and not reports.is_dir():
+        problems.append(
+            (("web", "reports_dir"), f"{reports} is a file; a folder of reports was expected")
+        )
+    if config.sparkplug is not None:
+        problems += _file_problems(config.sparkplug.buffer_path, ("sparkplug", "buffer_path"))
+    return problems
+
+
+def _readable_problems(path: Path, loc: Loc, kind: str) -> list[tuple[Loc, str]]:
+    """A file the gateway reads at start (a key, a certificate), there and readable."""
+    if not path.exists():
+        return [(loc, f"{path} does not exist; a readable {kind} file was expected")]
+    if not path.is_file():
+        return [(loc, f"{path} is a folder; a readable {kind} file was expected")]
+    if not os.access(path, os.R_OK):
+        return [(loc, f"{path} is not readable by this user; a readable {kind} file was expected")]
+    return []
 
 
 # --------------------------------------------------------------------------- RS-485 lines

@@ -177,3 +177,29 @@ class PlausibilityLimits:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
                 raise ValueError(f"PlausibilityLimits.{name} must be finite and ≥ 0, got {value}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LoginLimits:
+    """When a login key is locked, and for how long (:mod:`gateway.scada.login_throttle`):
+    the SCADA server's and the console's ``login_*`` settings."""
+
+    max_failures: int = 5
+    window_s: float = 60.0
+    lockout_s: float = 30.0
+    max_lockout_s: float = 900.0
+    forget_s: float = 3600.0
+
+    def __post_init__(self) -> None:
+        if self.max_failures < 1:
+            raise ValueError(f"max_failures must be at least 1, got {self.max_failures}")
+        if not 0 < self.lockout_s <= self.max_lockout_s:
+            raise ValueError(
+                f"need 0 < lockout_s ({self.lockout_s}) <= max_lockout_s ({self.max_lockout_s})"
+            )
+        if self.window_s <= 0 or self.forget_s <= 0:
+            raise ValueError("window_s and forget_s must be positive")
+
+    def lockout_for(self, previous_lockouts: int) -> float:
+        """The length of a key's next lockout after ``previous_lockouts`` earlier ones."""
+        return min(self.lockout_s * 2.0 ** min(previous_lockouts, 64), self.max_lockout_s)

@@ -26,18 +26,17 @@ from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.register_map import DeviceRegisters
 from drivers.transmitters import DeviceMap, ModbusConnection, TransmitterBus
-from gateway.config import GatewayConfig, MachineSection, rtu_buses
+from gateway.config import GatewayConfig, MachineSection, login_limits, rtu_buses
 from gateway.live.bank.model_bank import ModelBank
 from gateway.live.bank.promotion import Promotions, proposals_view
 from gateway.live.loop import MachineLoop
 from gateway.live.proposal_monitor import MonitorSink, build_monitor
 from gateway.live.record import CycleRecord, Sink
 from gateway.live.scheduler import CycleScheduler
-from gateway.outputs.health import Health, machine_health, scalar_counters
+from gateway.outputs.health import Health, gateway_counters, machine_health, scalar_counters
 from gateway.outputs.sinks import Outputs
 from gateway.process.gc_tuning import frozen_startup_heap
 from gateway.process.supervision import Supervised
-from gateway.scada.login_throttle import ThrottlePolicy
 from gateway.scada.server import ScadaServer, ScadaSettings, ScadaUser
 from gateway.web.server import WebConsole, build_web
 from models.data.dataset import ambient_sensor_of
@@ -123,22 +122,37 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
     )
 
 
+def load_located_bank(config: GatewayConfig, index: int) -> ModelBank:
+    """:func:`load_bank` for ``config.machines[index]``; a refusal (no such store, no models,
+    a bad signature, a regime naming a missing model) names the file and the line of that
+    machine's ``models.store``."""
+    loc = ("machines", index, "models", "store")
+    store = config.machines[index].models.store
+    if store.exists() and not store.is_dir():
+        raise config.error_at(loc, f"{store} is a file; the model store folder was expected")
+    try:
+        return load_bank(config.machines[index])
+    except (ValueError, OSError) as exc:
+        raise config.error_at(loc, str(exc)) from None
+
+
 def load_bank(machine: MachineSection) -> ModelBank:
     """The machine's models, checked against its sensors and its regime rules (and their
-    signatures, with ``models.signing_key_file``)."""
+    signatures: ``models.signing``, ``models.signing_key_file``)."""
     from models import signing
 
-    signing.configure(machine.models.store, machine.models.signing_key_file)
+    signing.configure(machine.models.store, machine.models.signing_key_file, machine.models.signing)
     bank = ModelBank.from_store(
         machine.models.store, ambient_sensor=ambient_sensor_of(machine.sensor_names)
     )
     bank.check_sensors(machine.sensor_names)
     limits = machine.models
     refused = bank.refuse_sensitive(limits.sensor_accuracy_C, limits.max_bias_error_um)
-    for model_id, reason in refused.items():
-        log.warning("machine %s: model %s refused: %s", machine.id, model_id, reason)
+    for refused_id, reason in refused.items():
+        log.warning("machine %s: model %s refused: %s", machine.id, refused_id, reason)
     rules = machine.models.regimes
-    for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
+    named: dict[str, str | None] = {**rules.models, "fallback": rules.fallback_model}
+    for regime, model_id in named.items():
         if model_id in refused:
             raise ValueError(
                 f"machine {machine.id}: regime '{regime}' names model '{model_id}', which is "
@@ -148,7 +162,7 @@ def load_bank(machine: MachineSection) -> ModelBank:
     if not bank.models:
         raise ValueError(f"machine {machine.id}: every model in {machine.models.store} is refused")
     Promotions(machine).load(bank)  # the promoted set in force, checked like the rest
-    for regime, model_id in {**rules.models, "fallback": rules.fallback_model}.items():
+    for regime, model_id in named.items():
         if model_id is not None and model_id not in bank:
             raise ValueError(
                 f"machine {machine.id}: regime '{regime}' names model '{model_id}', "
@@ -165,12 +179,11 @@ class Gateway:
         sinks: Sequence[Sink] = (),
     ) -> None:
         self.config = config
-        # In the plant machine time is Unix time, so logged points carry real timestamps;
-        # Outputs stamps them with time.time_ns() (NTP followed), the loops stay monotonic.
+        # In the plant machine time starts at Unix time and runs on the monotonic clock
+        # (the loops schedule on it); each cycle's record also carries the wall time of
+        # its start (NTP and steps followed), which every output stamps it with.
         self.clock = clock or WallClock(origin_s=time.time())
-        self.outputs = Outputs(
-            config, health=self.health, wall_clock=self.clock if clock is None else None
-        )
+        self.outputs = Outputs(config, health=self.health)
         # The heartbeat last: it carries the counts of this cycle's sink failures too.
         sinks = [self.outputs.log_points, *sinks]
         self._proposals_shown: dict[str, tuple[int, int]] = {}  # machine → what SCADA shows
@@ -188,11 +201,11 @@ class Gateway:
                 self.clock,
                 build_buses(machine, hubs),
                 build_cnc(machine, self.clock),
-                load_bank(machine),
+                load_located_bank(config, index),
                 state_dir=Path(config.state_dir),
                 sinks=sinks,
             )
-            for machine in config.machines
+            for index, machine in enumerate(config.machines)
         ]
         # One timer for every loop, and each loop's polls at its own phase of the cycle.
         self.scheduler = CycleScheduler(self.clock)
@@ -224,6 +237,11 @@ class Gateway:
             self._loop_of(machine_id), self.supervisors[machine_id], self.outputs.forwarder
         )
 
+    def gateway_health(self) -> dict[str, int]:
+        """The process's own counters, which belong to no one machine (the Sparkplug
+        node's ``Health/…`` metrics of NBIRTH and NDATA)."""
+        return gateway_counters(self.outputs.forwarder)
+
     def _build_scada(self) -> ScadaServer | None:
         section = self.config.scada
         if section is None:
@@ -236,12 +254,7 @@ class Gateway:
             host=section.host,
             allow_anonymous=section.allow_anonymous,
             rejected_keep=section.rejected_keep,
-            login_throttle=ThrottlePolicy(
-                max_failures=section.login_max_failures,
-                window_s=section.login_window_s,
-                lockout_s=section.login_lockout_s,
-                max_lockout_s=section.login_max_lockout_s,
-            ),
+            login_throttle=login_limits(section),
         )
         machines = {m.id: m.sensor_names for m in self.config.machines}
         return ScadaServer(
@@ -262,12 +275,12 @@ class Gateway:
 
         by = "Sparkplug host"
         actions = Actions(
-            set_enabled=self._set_enabled,
+            set_enabled=lambda machine, on: self._set_enabled(machine, on, by=by),
             promote=lambda machine, proposal: self.promote(machine, proposal, by=by),
             rollback=lambda machine: self.rollback(machine, by=by),
             rebirth=lambda: node.rebirth(),
         )
-        node = build_node(self.config, self.health, actions)
+        node = build_node(self.config, self.health, actions, self.gateway_health)
         for loop in self.loops:
             loop.sinks.insert(max(len(loop.sinks) - 1, 0), node.sink)
             self.supervisors[loop.config.id].on_failure = functools.partial(
@@ -278,12 +291,13 @@ class Gateway:
     def _loop_of(self, machine_id: str) -> MachineLoop:
         return next(loop for loop in self.loops if loop.config.id == machine_id)
 
-    def _set_enabled(self, machine_id: str, enabled: bool) -> None:
-        """An authorised SCADA user switched compensation on or off."""
+    def _set_enabled(self, machine_id: str, enabled: bool, by: str = "SCADA") -> None:
+        """An authorised SCADA user (or a Sparkplug host, ``by``) switched compensation on
+        or off."""
         loop = self._loop_of(machine_id)
         if loop.compensation_enabled != enabled:
             log.warning(
-                "%s: compensation %s from SCADA", machine_id, "enabled" if enabled else "disabled"
+                "%s: compensation %s from %s", machine_id, "enabled" if enabled else "disabled", by
             )
         loop.compensation_enabled = enabled
 

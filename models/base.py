@@ -15,6 +15,7 @@ model's intercept.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Self
 
@@ -116,6 +117,10 @@ class ThermalModel(ABC):
     fixed_design: ClassVar[bool] = False
 
     sensors_used_: tuple[str, ...]
+
+    @abstractmethod
+    def __init__(self, sensors: Sequence[str] | None = None) -> None:
+        """Every method is made from the sensors it may use (None: all the data's)."""
 
     def fit(self, inputs: ModelInputs, error_um: np.ndarray) -> Self:
         y = np.asarray(error_um, dtype=float)

@@ -26,10 +26,12 @@ every other field and validated on load.
 Writes go to a temporary file that is then renamed, so a crash mid-write never
 leaves half a model behind.
 
-``signature`` (:mod:`models.signing`): with a signing key configured, an HMAC of
-the bytes the checksum covers, written by :meth:`ModelStore.save` and required by
-:func:`load_file`; the checksum proves the file is whole, the signature that it
-was written by a holder of the key. Without a key, nothing is signed or checked.
+``signature`` (:mod:`models.signing`): an HMAC of the bytes the checksum covers,
+written by :meth:`ModelStore.save` (the key made on first use) and required by
+:func:`load_file`, checked before the probe so that a forged model is refused for
+its signature; the checksum proves the file is whole, the signature that it was
+written by a holder of the key. Only a store declared unsigned
+(``models.signing: false``) is neither signed nor checked.
 """
 
 from __future__ import annotations
@@ -109,7 +111,10 @@ class StoredModel(BaseModel):
     #: the span of each input in the training rows (:mod:`models.training_range`), for
     #: ``score``; absent in files written before it was recorded.
     training_range: dict[str, Any] | None = None
-    #: HMAC of the checksummed content (:mod:`models.signing`); absent without a key.
+    #: the calibrated prediction interval (:mod:`models.fit.interval`); absent in files
+    #: written before it was recorded (interval unknown) or with too few held-out samples.
+    interval: dict[str, Any] | None = None
+    #: HMAC of the checksummed content (:mod:`models.signing`); absent in an unsigned store.
     signature: dict[str, Any] | None = None
 
     def relations(self) -> SensorRelations | None:
@@ -124,7 +129,8 @@ def data_fingerprint(inputs: ModelInputs, error_um: np.ndarray) -> str:
     digest = hashlib.sha256()
     digest.update(json.dumps(list(inputs.sensors)).encode())
     for array in (inputs.rise_C, inputs.speed_rpm, np.asarray(error_um, dtype=float)):
-        digest.update(np.ascontiguousarray(array, dtype="<f8"))  # the buffer itself, no copy
+        values = np.ascontiguousarray(array, dtype="<f8")
+        digest.update(values.data.cast("B") if values.size else b"")  # no copy
     return digest.hexdigest()
 
 
@@ -174,11 +180,13 @@ def build_document(
     software_version: str,
     conditioning: dict[str, Any] | None = None,
     sensor_relations: dict[str, Any] | None = None,
+    interval: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The JSON document for a fitted model (checksum included).
 
     ``sensor_relations``: :meth:`models.estimators.sensor_relations.SensorRelations.as_document`
-    of the training rises, stored for the runtime's plausibility check.
+    of the training rises, stored for the runtime's plausibility check. ``interval``:
+    :func:`models.fit.interval.calibrate` of the held-out residuals.
     """
     document: dict[str, Any] = {
         "format": FORMAT,
@@ -213,6 +221,8 @@ def build_document(
     if sensor_relations is not None:
         document["sensor_relations"] = sensor_relations
     document["error_reference"] = error_reference_record(model, inputs.sensors, reference)
+    if interval is not None:
+        document["interval"] = interval
     # Round-trip through JSON so the checksum covers exactly what is written.
     document = json.loads(json.dumps(document, ensure_ascii=False))
     document["sha256"] = _checksum(document)
@@ -287,20 +297,40 @@ class ModelStore:
         """
         refuse_non_finite(document)
         StoredModel.model_validate(document)
-        key = signing.key_for_store(self.root)
+        key = signing.key_for_store(self.root, create=True)
         document = signing.sign(document, key, canonical_bytes(document))
         return write_json_atomic(self.path_of(document["model_id"]), document, allow_nan=False)
 
     def load(self, model_id: str) -> tuple[ThermalModel, StoredModel]:
-        return load_file(self.path_of(model_id))
+        path = self.path_of(model_id)
+        model, document = load_file(path)
+        check_named_after(path, document.model_id)
+        return model, document
 
     def ids(self) -> list[str]:
         return sorted(p.stem for p in self.root.glob("*.json"))
 
 
-def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
-    """Load, validate and self-check one model file (and its signature, with a key for its
-    store: :func:`models.signing.key_for_store`)."""
+def check_named_after(path: Path, model_id: str) -> None:
+    """Raise StoreError unless the store's file ``path`` is named after the model it holds.
+
+    The regime rules, the promoted entries (``replaces``) and the logs name a model by
+    its id, and a store finds it by its file name: two files whose contents were
+    swapped (or a file copied in under another name) would serve one model in the
+    other's place, each checksum and signature still valid."""
+    if path.stem != model_id:
+        raise StoreError(
+            f"{path}: holds model '{model_id}', not '{path.stem}': a store's file is named "
+            f"after the model it holds ({model_id}.json); put the right file back, or rename it"
+        )
+
+
+def load_file(
+    path: str | Path, *, check_signature: bool = True
+) -> tuple[ThermalModel, StoredModel]:
+    """Load, validate and self-check one model file (and its signature, with the key of its
+    store: :func:`models.signing.key_for_store`; ``check_signature`` False only to sign an
+    unsigned file, :func:`sign_unsigned_models`)."""
     path = Path(path)
     raw = _read_model_json(path)
     try:
@@ -314,7 +344,9 @@ def load_file(path: str | Path) -> tuple[ThermalModel, StoredModel]:
             f"{path}: checksum mismatch — the file was changed or damaged since it was saved"
         )
     try:
-        signing.verify(raw, signing.key_for_store(path.parent), canonical_bytes(raw), str(path))
+        if check_signature:
+            key = signing.key_for_store(path.parent)
+            signing.verify(raw, key, canonical_bytes(raw), str(path))
     except signing.SigningError as exc:
         raise StoreError(str(exc)) from None
     try:
@@ -358,6 +390,27 @@ def _read_model_json(path: Path) -> dict[str, Any]:
             f"(this software reads version {FORMAT_VERSION})"
         )
     return raw
+
+
+def sign_unsigned_models(store_dir: Path, key: bytes) -> list[Path]:
+    """Sign every unsigned model file of the store with ``key`` (``models sign``): each must
+    be whole, named after its model and reproduce its probe first. A file carrying a
+    signature is left as it is, and one whose signature is wrong for ``key`` is refused
+    (StoreError): signing it again would make a forged model valid. Returns the files signed."""
+    signed = []
+    for path in sorted(Path(store_dir).glob("*.json")):
+        raw = _read_model_json(path)
+        if signing.FIELD in raw:
+            try:
+                signing.verify(raw, key, canonical_bytes(raw), str(path))
+            except signing.SigningError as exc:
+                raise StoreError(f"{exc}; not signed again") from None
+            continue
+        _, document = load_file(path, check_signature=False)
+        check_named_after(path, document.model_id)
+        write_json_atomic(path, signing.sign(raw, key, canonical_bytes(raw)), allow_nan=False)
+        signed.append(path)
+    return signed
 
 
 def probe_inputs(document: StoredModel) -> ModelInputs:

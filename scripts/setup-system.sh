@@ -2,6 +2,7 @@
 # System packages the tests need, installed only when missing:
 #   socat  (a serial pty pair for Modbus RTU without hardware)
 #   mbpoll (an independent libmodbus-based Modbus master)
+#   libfaketime (a process's wall clock stepped by a test: tests/test_clock_step.py)
 #   chromium, chromium-driver (headless browser tests of the web console)
 #   node-opcua (an independent OPC UA client, pinned in tests/node/package-lock.json)
 #   influxd 2.7.12 (a real time-series server; built once with Go and Rust into .cache/bin)
@@ -14,6 +15,7 @@ missing=()
 for tool in socat mbpoll; do
     command -v "$tool" >/dev/null 2>&1 || missing+=("$tool")
 done
+[ -f /usr/lib/x86_64-linux-gnu/faketime/libfaketimeMT.so.1 ] || missing+=(libfaketime)
 # Mosquitto 2 and its clients: the broker the Sparkplug B tests start themselves.
 command -v mosquitto >/dev/null 2>&1 || [ -x /usr/sbin/mosquitto ] || missing+=(mosquitto mosquitto-clients)
 # Headless Chromium and its WebDriver for the web console's browser tests.

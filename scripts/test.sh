@@ -1,11 +1,14 @@
 #!/usr/bin/env bash
-# The whole test suite: lint first (a style error is a red CI), then pytest.
+# The whole test suite: lint, format and types first (any error is a red CI), then pytest.
 # Called by `make test` after .venv/ exists; installs nothing by hand.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 VENV=.venv
 bash scripts/setup-system.sh
 "$VENV/bin/ruff" check .
+"$VENV/bin/ruff" format --check .
+# The type hints are checked too (the packages and options in pyproject.toml [tool.mypy]).
+"$VENV/bin/mypy"
 # Four workers on two cores: most end-to-end tests spend their time waiting on protocol
 # time (outages, back-offs, cycles in real time), so two per core keep both cores busy;
 # each test file stays on one worker (its servers start once), the longest files first

@@ -86,11 +86,13 @@ class SensorFault:
             if self._held_C is None:
                 self._held_C = reading.value_C
             return ChannelReading(self._held_C, reading.status)
+        magnitude_C = self.magnitude_C
+        assert magnitude_C is not None  # every kind's default is set in __post_init__
         if self.kind in ("spike", "offset"):
-            return ChannelReading(reading.value_C + self.magnitude_C, reading.status)
+            return ChannelReading(reading.value_C + magnitude_C, reading.status)
         if self.kind == "bias":
             assert self.ramp_s is not None
             share = min(1.0, (time_s - self.start_s) / self.ramp_s)
-            return ChannelReading(reading.value_C + self.magnitude_C * share, reading.status)
+            return ChannelReading(reading.value_C + magnitude_C * share, reading.status)
         hours = (time_s - self.start_s) / 3600.0
-        return ChannelReading(reading.value_C + self.magnitude_C * hours, reading.status)
+        return ChannelReading(reading.value_C + magnitude_C * hours, reading.status)

@@ -26,8 +26,14 @@ DOCS_IMG = ROOT / "docs" / "img"
 UPDATE_DOCS_IMAGES = "SPINDLE_UPDATE_DOCS_IMAGES"
 
 
-def chromium(width: int = 1500, height: int = 1000) -> webdriver.Chrome:
+def chromium(
+    width: int = 1500, height: int = 1000, capabilities: dict[str, object] | None = None
+) -> webdriver.Chrome:
+    """Headless Chromium; ``capabilities`` such as ``{"goog:loggingPrefs": {"performance":
+    "ALL"}}`` (the DevTools network events, read with ``driver.get_log("performance")``)."""
     options = webdriver.ChromeOptions()
+    for name, value in (capabilities or {}).items():
+        options.set_capability(name, value)
     options.binary_location = shutil.which("chromium") or "/usr/bin/chromium"
     for argument in (
         "--headless=new",

@@ -13,11 +13,15 @@ time. They carry the ``slow`` mark so that a newcomer can run the rest first
 from __future__ import annotations
 
 import asyncio
+import os
+import tempfile
+from pathlib import Path
 
 import pytest
 import uvloop
 
 from gateway.process.event_loop import DEFAULT
+from models import signing
 from tests import gateway_rig as rig
 from tests import opcua_template
 
@@ -26,6 +30,19 @@ if DEFAULT == "uvloop":
 
 # Each in-process OPC UA server starts from a copy of one standard address space.
 opcua_template.install()
+
+
+def _test_signing_key() -> Path:
+    """Models are signed by default (models/signing.py): every model the tests fit, in this
+    process or in the commands they start, is signed with one key of this test run, named
+    by SPINDLE_MODEL_KEY_FILE; never the key of the user running the tests. Shared by
+    pytest-xdist's workers (the same run id), which share one fitted store."""
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID") or str(os.getpid())
+    folder = Path(tempfile.gettempdir()) / f"spindle-test-keys-{os.getuid()}"
+    return signing.create_key(folder / f"{run}.key")
+
+
+os.environ[signing.KEY_ENV] = str(_test_signing_key())
 
 #: Test files whose every test is an end-to-end run (measured as the slowest files).
 SLOW_FILES = frozenset(

@@ -12,6 +12,9 @@ for each JSON line ``{"step", "folder", "args", "output"}`` on stdin, forks a ch
 that runs the command (its stdout and stderr into ``output``) and answers a JSON
 line ``{"returncode": …}`` (negative: killed by that signal): many killed commands
 without an interpreter's start-up each.
+
+``KILL_AT_WRITE_SIGNAL=SIGSTOP`` (any signal name) sends that signal instead of
+``SIGKILL``: a writer stopped mid-change, holding what it holds.
 """
 
 from __future__ import annotations
@@ -40,8 +43,10 @@ def is_change(event: str, args: tuple[Any, ...]) -> str | None:
 
 
 def kill_at(limit: int, folder: str) -> None:
-    """SIGKILL this process as its ``limit``-th change under ``folder`` begins."""
+    """SIGKILL this process (or ``$KILL_AT_WRITE_SIGNAL``) as its ``limit``-th change under
+    ``folder`` begins."""
     folder = os.path.realpath(folder)
+    sent = signal.Signals[os.environ.get("KILL_AT_WRITE_SIGNAL", "SIGKILL")]
     seen = [0]
 
     def hook(event: str, args: tuple[Any, ...]) -> None:
@@ -49,8 +54,8 @@ def kill_at(limit: int, folder: str) -> None:
         if path is None or not os.path.realpath(path).startswith(folder + os.sep):
             return
         seen[0] += 1
-        if seen[0] >= limit:
-            os.kill(os.getpid(), signal.SIGKILL)
+        if seen[0] == limit or (seen[0] > limit and sent == signal.SIGKILL):
+            os.kill(os.getpid(), sent)
 
     sys.addaudithook(hook)
 

@@ -27,7 +27,14 @@ from tests.synthetic import stored_document, write_runs_csv
 CASES = Path(__file__).resolve().parent / "cases" / "data"
 CASE_NAMES = sorted(p.stem for p in CASES.glob("*.csv"))
 # analyze reads through the same loader; these cases prove it refuses just as fit does.
-ANALYZE_CASES = ("temperature_1e308", "latin1_byte", "nul_byte", "too_few_fields", "text_cell")
+ANALYZE_CASES = (
+    "temperature_1e308",
+    "latin1_byte",
+    "nul_byte",
+    "too_few_fields",
+    "text_cell",
+    "one_short_run",
+)
 
 
 def expected_message(name: str, path: Path) -> str:
@@ -58,6 +65,44 @@ def test_bad_file_is_refused_with_one_located_message(
     assert result.stderr.splitlines() == [expected_message(name, path)]
     assert "Traceback" not in result.stdout + result.stderr
     assert not store.exists() or not any(store.rglob("*.json"))
+
+
+def test_copied_sensor_columns_and_a_spindle_at_rest_are_fitted_with_a_located_warning(
+    tmp_path: Path,
+) -> None:
+    """Sensor columns equal on every row (one reading exported to several columns) and a
+    speed of 0 on every row still make a model, with one warning each naming the file,
+    the columns and the rows."""
+    good = write_runs_csv(tmp_path / "good.csv", seed=3).read_text(encoding="utf-8")
+    header, *rows = [line.split(",") for line in good.splitlines()]
+    speed, first, error = header.index("speed_rpm"), header.index("T1"), header.index("error_um")
+    copied = [[*r[:first], *[r[first]] * (error - first), *r[error:]] for r in rows]
+    at_rest = [[*r[:speed], "0", *r[speed + 1 :]] for r in rows]
+    lines = f"lines 2–{len(rows) + 1}"
+    for name, table, expected in (
+        (
+            "copied",
+            copied,
+            f"every sensor column 'T1', 'T2', 'T3', 'T4', 'T5', 'T6', 'T7' "
+            f"read the same on every row ({lines})",
+        ),
+        ("at_rest", at_rest, f"column 'speed_rpm' is 0 r/min on every row ({lines})"),
+    ):
+        path = tmp_path / f"{name}.csv"
+        path.write_text("\n".join(",".join(r) for r in [header, *table]) + "\n", "utf-8")
+        store = tmp_path / f"store-{name}"
+        result = gateway_in_process(
+            "fit", path, "--method", "mlr", "--store", store, "--no-progress"
+        )
+        assert result.returncode == 0, result.stderr
+        warnings = [line for line in result.stderr.splitlines() if line.startswith("warning: ")]
+        assert warnings[0].startswith(f"warning: {path}:1: {expected}: "), warnings
+        assert len([w for w in warnings if str(path) in w and "every row" in w]) == 1
+        assert any(store.glob("*.json"))
+    result = gateway_in_process(
+        "fit", write_runs_csv(tmp_path / "plain.csv", seed=3), "--store", tmp_path / "s"
+    )
+    assert "every row" not in result.stderr
 
 
 def test_a_utf8_byte_order_mark_is_accepted(tmp_path: Path) -> None:

@@ -64,3 +64,12 @@ def test_manual_clock_does_not_move_for_a_stopped_sleeper() -> None:
     stop.set()
     asyncio.run(clock.sleep(30.0, stop))
     assert clock.now() == 30.0
+
+
+def test_outputs_stamp_wall_time_on_the_wall_clock_and_machine_time_in_a_simulation() -> None:
+    wall = WallClock(origin_s=0.0)  # machine time from 0: far from the wall's Unix time
+    before, stamp, after = time.time(), wall.stamp(), time.time()
+    assert before <= stamp <= after and wall.now() < 1e6
+    accelerated, manual = AcceleratedClock(speedup=100.0, origin_s=50.0), ManualClock(7.0)
+    assert accelerated.stamp() == pytest.approx(accelerated.now(), abs=0.5)
+    assert manual.stamp() == manual.now() == 7.0

@@ -18,6 +18,7 @@ from models.fit.conditioning import assess, bias_sensitivity, condition_number, 
 from models.fit.workflow import fit_and_store
 from models.store import ModelStore
 from tests.cli import ROOT, gateway_in_process
+from tests.synthetic import write_runs_csv
 
 
 def test_vif_and_condition_number_match_a_hand_computed_pair() -> None:
@@ -178,3 +179,59 @@ def test_runtime_refuses_a_model_that_a_small_bias_would_move_too_far(tmp_path: 
     assert "ridge-error_um-all" in bank and "mlr-error_um-all" not in bank
     # With the limit raised knowingly, the fragile model is usable again.
     assert "mlr-error_um-all" in load_bank(machine(store, "mlr-error_um-all", limit_um=500.0))
+
+
+def test_vif_of_exact_combinations_is_unbounded_never_negative() -> None:
+    # a, b, a + b (+ 1e-9 noise) and a − b span two directions: a plain inverse of their
+    # correlation matrix gave VIFs of −1e15 … +1e15 here; t is separable, its VIF the
+    # textbook 1 / (1 − R²) of t on the others.
+    t = np.linspace(0, 10, 500)
+    a, b = 1 - np.exp(-t / 3), 1 - np.exp(-t / 4)
+    for seed in range(5):
+        noise = np.random.default_rng(seed).normal(0, 1e-9, t.size)
+        X = np.column_stack([a, b, a + b + noise, a - b, t])
+        vif = variance_inflation(X)
+        assert np.all(vif >= 1.0)
+        assert np.all(np.isinf(vif[:4]))
+        others = np.column_stack([np.ones(t.size), a, b])
+        residual = t - others @ np.linalg.lstsq(others, t, rcond=None)[0]
+        assert vif[4] == pytest.approx(np.sum((t - t.mean()) ** 2) / np.sum(residual**2))
+
+
+def test_constant_and_collinear_inputs_are_named_not_given_a_figure() -> None:
+    inputs, error = exact_inputs()
+    zero_speed = ModelInputs(inputs.rise_C, inputs.sensors, np.zeros(inputs.n_samples))
+    doubled = np.column_stack([inputs.rise_C, 2.0 * inputs.rise_C[:, 0]])
+    model = make_model("mlr").fit(zero_speed, error)
+    figures = assess(model, zero_speed)
+    assert figures.constant == () and figures.collinear == ()
+    X = np.column_stack([doubled, np.zeros(inputs.n_samples)])
+    assert list(np.isinf(variance_inflation(X))) == [True, False, True, True]
+    text = figures.table()
+    assert "inf" not in text and "nan" not in text
+
+
+def test_fit_shows_the_worst_vifs_by_default_and_every_input_behind_a_flag(
+    tmp_path: Path,
+) -> None:
+    csv = write_runs_csv(tmp_path / "runs.csv", n_runs=4, n=200)
+    runs = []
+    for shown in ("short", "full"):
+        out = tmp_path / f"{shown}.json"
+        result = gateway_in_process(
+            "fit", csv, "--store", tmp_path / shown, "--json", out, "--no-progress",
+            "--collinearity", shown,
+        )  # fmt: skip
+        assert result.returncode == 0, result.stderr
+        section = result.stdout.split("conditioning:", 1)[1].split("bias of ±")[0]
+        record = next(iter(json.loads(out.read_text())["conditioning"].values()))
+        runs.append((section, record))
+    (short, record), (full, full_record) = runs
+    assert record == full_record  # the JSON holds every input either way
+    terms = list(record["vif"])
+    assert len(terms) > 10
+    assert all(v is None or v >= 1.0 for v in record["vif"].values())
+    assert len(short.strip().splitlines()) <= 4 and "--collinearity full" in short
+    assert "inf" not in short
+    for term in terms:
+        assert any(line.split()[:1] == [term] for line in full.splitlines()), term

@@ -97,12 +97,37 @@ def test_a_default_stale_s_follows_a_long_cycle(tmp_path: Path) -> None:
     assert load_config(ROOT / "config.yaml").machines[0].quality_limits()["T2"].stale_s == 10.0
 
 
-def test_run_refuses_what_check_config_refuses_with_the_same_line() -> None:
-    case = CASES.relative_to(ROOT) / "password-env-unset.yaml"
-    expected = (CASES / "password-env-unset.expected").read_text(encoding="utf-8").rstrip("\n")
+@pytest.mark.parametrize(
+    "name", ["password-env-unset", "sparkplug-password-env-unset", "web-user-password-file-missing"]
+)
+def test_run_refuses_what_check_config_refuses_with_the_same_line(name: str) -> None:
+    case = CASES.relative_to(ROOT) / f"{name}.yaml"
+    expected = (CASES / f"{name}.expected").read_text(encoding="utf-8").rstrip("\n")
     result = gateway("run", "--config", case, timeout_s=120)
     assert result.returncode == 2
     assert result.stderr.splitlines() == [expected]
+
+
+@pytest.mark.parametrize(
+    ("name", "key"),
+    [
+        ("sparkplug-password-env-unset", "sparkplug.password_env"),
+        ("web-user-password-env-unset", "web.users[0].password_env"),
+        ("password-env-unset", "machines[0].cnc.opcua.password_env"),
+    ],
+)
+def test_a_password_env_set_but_empty_is_refused(
+    name: str, key: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("SPINDLE_GATEWAY_CASE_UNSET_PASSWORD", "")
+    case = CASES.relative_to(ROOT) / f"{name}.yaml"
+    result = gateway_in_process("check-config", "--config", case)
+    assert result.returncode == 2, result.stdout
+    assert re.fullmatch(
+        rf"error: {re.escape(str(case))}:\d+: {re.escape(key)}: environment variable "
+        r"SPINDLE_GATEWAY_CASE_UNSET_PASSWORD \(password_env\) is empty\n",
+        result.stderr,
+    ), result.stderr
 
 
 def refused(load: Callable[[Path], object], path: Path, text: str, message: str) -> None:

@@ -34,6 +34,19 @@ def test_demo_compensates_an_unseen_programme_and_reports_the_contract(tmp_path:
     assert report["reduction_pct"] >= 80.0
     assert report["failed_writes"] == 0
     assert "without compensation" in result.stdout and "with compensation" in result.stdout
+    # The next day: with no hidden effect the online correction has nothing to take out,
+    # and the demo says why, with the figures that show it.
+    monitor = report["monitor"]
+    none, online = monitor["without_probes"], monitor["online_correction"]
+    exact = monitor["online_correction_exact_probes"]
+    worse = online["peak_um"] > none["peak_um"] or online["rmse_um"] > none["rmse_um"]
+    assert worse, monitor  # the default demo (seed 1) is that case
+    assert "why the online correction does not gain here" in result.stdout
+    assert f"(σ {monitor['probe_noise_um']:.2f} µm" in result.stdout
+    assert f"peak {exact['peak_um']:.2f} / RMSE {exact['rmse_um']:.2f} µm" in result.stdout
+    assert none["rmse_um"] < 2 * monitor["probe_noise_um"]  # a residual at the probe's noise
+    assert exact["rmse_um"] < none["rmse_um"]  # noise-free probes: the correction gains
+    assert abs(online["mean_um"]) < abs(none["mean_um"])  # it does take out the mean
     # The training data it recorded passes the loader; every cycle was logged.
     assert load_runs(workdir / "training.csv").run_ids[0] == "iso230-spectrum"
     with LocalStore(workdir / "points.sqlite", set_aside_damaged=False) as store:

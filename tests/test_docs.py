@@ -12,9 +12,11 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import click
 import pytest
+import yaml
 from pydantic import BaseModel
 
 from gateway.cli.main import main as cli_main
@@ -26,19 +28,56 @@ SCHEMA_FILE = ROOT / "docs" / "config.schema.json"
 REGENERATE = ".venv/bin/python -m gateway.config_schema > docs/config.schema.json"
 
 
-@pytest.fixture(scope="module")
-def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The manual built once into a temporary folder, strict."""
-    out = tmp_path_factory.mktemp("site")
-    done = subprocess.run(
-        [sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet", "-d", str(out)],
+def build(config: Path, out: Path) -> subprocess.CompletedProcess[str]:
+    """``mkdocs build --strict`` of ``config`` into ``out``, at its normal log level: with
+    ``--quiet`` mkdocs drops its warnings before strict mode counts them, and a page
+    missing from the nav passed."""
+    return subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(config), "-d", str(out)],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=300,
     )
-    assert done.returncode == 0, f"mkdocs build --strict failed:\n{done.stdout}{done.stderr}"
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The manual built once into a temporary folder, strict, without a single warning."""
+    out = tmp_path_factory.mktemp("site")
+    done = build(ROOT / "mkdocs.yml", out)
+    log = done.stdout + done.stderr
+    assert done.returncode == 0, f"mkdocs build --strict failed:\n{log}"
+    assert "WARNING" not in log, f"mkdocs build warned:\n{log}"
     return out
+
+
+def test_a_page_left_out_of_the_nav_fails_the_build(tmp_path: Path) -> None:
+    """The same build with the console page's nav entry removed is refused, naming it."""
+    config = yaml.safe_load((ROOT / "mkdocs.yml").read_text(encoding="utf-8"))
+    config["docs_dir"] = str(ROOT / "docs")
+    config["hooks"] = [str(ROOT / hook) for hook in config["hooks"]]
+    config["nav"] = without_page(config["nav"], "console.md")
+    assert config["nav"] != yaml.safe_load((ROOT / "mkdocs.yml").read_text())["nav"]
+    trimmed = tmp_path / "mkdocs.yml"
+    trimmed.write_text(yaml.safe_dump(config), encoding="utf-8")
+    done = build(trimmed, tmp_path / "site")
+    log = done.stdout + done.stderr
+    assert done.returncode != 0, log
+    assert 'not included in the "nav"' in log and "console.md" in log, log
+
+
+def without_page(nav: Any, page: str) -> Any:
+    """``nav`` with every entry pointing at ``page`` removed."""
+    if isinstance(nav, list):
+        return [without_page(entry, page) for entry in nav if not points_at(entry, page)]
+    if isinstance(nav, dict):
+        return {title: without_page(entry, page) for title, entry in nav.items()}
+    return nav
+
+
+def points_at(entry: Any, page: str) -> bool:
+    return entry == page or (isinstance(entry, dict) and list(entry.values()) == [page])
 
 
 def page_text(site: Path, name: str) -> str:
@@ -77,6 +116,9 @@ def test_configuration_reference_lists_every_section_and_key(site: Path) -> None
         for name, field in model.model_fields.items():
             assert (field.alias or name) in text, f"{path}.{name} missing"
     assert "clamp_um" in text and "50.0" in text  # a key with its default
+    for directive in ("type: ignore", "noqa", "pragma"):  # comments for tools, not readers
+        assert directive not in text, f"{directive!r} in the configuration reference"
+    assert "the login name" in text  # web.users[].username's own words instead
 
 
 def test_cli_reference_lists_every_command_and_option(site: Path) -> None:

@@ -18,6 +18,7 @@ import pytest
 
 from gateway.outputs.disk_buffer import PointBuffer
 from gateway.outputs.influx import Forwarder, retry_after_s
+from gateway.outputs.oversized import OversizedPoints, line_bytes
 from gateway.outputs.points import CYCLE_MEASUREMENT, Point, points_from_record
 from tests.influx_proxy import AnsweringProxy
 from tests.influx_server import InfluxServer
@@ -138,6 +139,66 @@ def test_too_large_halves_the_batch_drops_a_lone_oversized_point_and_loses_nothi
     assert_stored_exactly(server, bucket, points)
 
 
+def test_oversized_point_every_few_cycles_is_one_error_episode_without_a_request_storm(
+    server: InfluxServer, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """87 cycles each carry one point over the server's limit: the first is found by
+    halving, the others are known by their size and dropped without a request, and
+    the episode is one ERROR line (each point used to cost ~10 refused requests and
+    one ERROR line)."""
+    bucket = server.create_database("answers_413_many")
+    points = cycle_points(600)
+    huge_cycles = {100 + 5 * k for k in range(87)}  # up to cycle 530 of 600
+    cycles = 0
+    sent_points: list[Point] = []
+    buffered: list[Point] = []
+    for point in points:
+        if point.measurement == CYCLE_MEASUREMENT:
+            cycles += 1
+            if cycles in huge_cycles:
+                big = {**point.fields, "write_status": "x" * 30_000}
+                buffered.append(dataclasses.replace(point, fields=big))
+                continue
+        buffered.append(point)
+        sent_points.append(point)
+    limit_bytes = 20_000
+
+    async def scenario() -> tuple[AnsweringProxy, dict, RecordingWriter]:
+        async with AnsweringProxy(server.url, max_body_bytes=limit_bytes) as proxy:
+            buffer = PointBuffer(tmp_path / "buffer.sqlite")
+            writer = RecordingWriter(proxy.url, server.token, server.org, bucket, timeout_s=5.0)
+            forwarder = Forwarder(buffer, writer, batch=5000, retry_s=0.1, max_retry_s=0.5)
+            buffer.append(buffered)
+            forwarder.start()
+            assert await forwarder.flush(timeout=60)
+            health = forwarder.health()
+            await forwarder.stop()
+            writer.close()
+            buffer.close()
+            return proxy, health, writer
+
+    with caplog.at_level(logging.DEBUG, logger=WRITER_LOG):
+        proxy, health, writer = asyncio.run(scenario())
+
+    refused = [w for w in proxy.writes if w.status == 413]
+    print(
+        f"{len(huge_cycles)} oversized points: {len(refused)} answers 413, "
+        f"{len(proxy.writes)} requests in all, batch_limit {health['batch_limit']}"
+    )
+    assert health["too_large"] == len(huge_cycles) == len(buffered) - len(sent_points)
+    assert health["rejected"] == len(huge_cycles)
+    assert health["buffered"] == 0 and health["sent"] == len(sent_points)
+    # the first oversized point: 5 halvings and a search of ~8; none for the other 86
+    assert len(refused) <= 2 * 13
+    # every write the server took carried ~batch_limit points, none wasted on a lone point
+    assert len(proxy.writes) - len(refused) <= 2 * len(sent_points) / health["batch_limit"] + 2
+    errors = [r for r in caplog.records if r.name == WRITER_LOG and r.levelno >= logging.ERROR]
+    assert len(errors) == 1, [r.getMessage()[:120] for r in errors]
+    assert "too large" in errors[0].getMessage() and "HTTP 413" in errors[0].getMessage()
+    assert writer.sent() == sent_points  # in order, each once, without the oversized points
+    assert_stored_exactly(server, bucket, sent_points)
+
+
 def test_retry_after_header_forms() -> None:
     now_s = 1_767_225_600.0
     assert retry_after_s("10") == 10.0
@@ -149,3 +210,40 @@ def test_retry_after_header_forms() -> None:
     assert retry_after_s(None) is None
     assert retry_after_s("soon") is None
     assert retry_after_s("nan") is None
+
+
+def test_oversized_episode_ends_after_a_quiet_minute_and_the_size_is_rechecked(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The episode's bookkeeping on a hand-moved clock: one ERROR per episode, INFO at its
+    end, and the learned size forgotten after ``recheck_s`` (so a raised limit is seen)."""
+    now = [0.0]
+    tracker = OversizedPoints(quiet_s=60.0, recheck_s=600.0, clock=lambda: now[0])
+    small, *_ = cycle_points(1)
+    big = dataclasses.replace(small, fields={"write_status": "x" * 5000})
+    rows = [(1, small), (2, big), (3, small)]
+    assert tracker.split(rows) == (rows, [])  # nothing known yet: everything is sent
+    tracker.refused_alone(big, "HTTP 413: too large")
+    assert tracker.limit_bytes == line_bytes(big) > line_bytes(small)
+    with caplog.at_level(logging.DEBUG, logger=WRITER_LOG):
+        for _ in range(3):  # three drops 10 s apart: one episode
+            send, drop = tracker.split(rows)
+            assert send == [rows[0], rows[2]] and drop == [rows[1]]
+            tracker.dropped(drop)
+            now[0] += 10.0
+        tracker.write_acknowledged()  # 10 s after the last drop: still the episode
+        now[0] += 60.0
+        tracker.write_acknowledged()  # a quiet minute: the episode ends
+        tracker.dropped(tracker.split(rows)[1])  # a new episode, logged again
+    levels = [(r.levelno, r.getMessage()) for r in caplog.records if r.name == WRITER_LOG]
+    assert [level for level, _ in levels] == [
+        logging.ERROR,
+        logging.DEBUG,
+        logging.DEBUG,
+        logging.INFO,
+        logging.ERROR,
+    ]
+    assert "HTTP 413" in levels[0][1] and "refused 3 point(s)" in levels[3][1]
+    now[0] += 601.0
+    assert tracker.split(rows) == (rows, [])  # rechecked: the big point is sent again
+    assert tracker.limit_bytes is None

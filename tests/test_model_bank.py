@@ -12,10 +12,11 @@ from gateway.live.bank.model_bank import ModelBank
 from models.data.dataset import load_runs
 from models.data.features import prepare
 from models.fit.workflow import fit_sensor_fallbacks
-from models.store import ModelStore, _checksum
+from models.store import ModelStore
 from tests.cli import gateway_in_process
 from tests.synthetic import write_runs_csv
 from tests.test_config import GOOD, write_config
+from tests.test_store import resealed
 
 
 def two_target_csv(path: Path) -> Path:
@@ -105,7 +106,7 @@ def test_a_store_mixing_units_of_one_target_is_refused(
     document = json.loads((store / "mlr-error_um-all.json").read_text(encoding="utf-8"))
     document["model_id"] = "mlr-error_um-all-in-mm"
     document["target"]["unit"] = "mm"
-    document["sha256"] = _checksum(document)  # a consistent file, not a damaged one
+    document = resealed(document, store)  # a consistent file, not a damaged one
     (store / "mlr-error_um-all-in-mm.json").write_text(json.dumps(document), encoding="utf-8")
     with pytest.raises(ValueError) as caught:
         ModelBank.from_store(store)

@@ -84,13 +84,21 @@ def test_a_forged_or_unsigned_model_is_refused_by_check_config_and_run(tmp_path:
     path.write_text(json.dumps(unsigned))
     refused = gateway_in_process("check-config", "--config", config)
     assert refused.returncode == 2
-    assert f"{path}: the model is not signed and a signing key is configured" in refused.stderr
+    assert f"{path}: the model is not signed" in refused.stderr
+    assert "python -m gateway models sign --store" in refused.stderr
 
-    # Without a key nothing is checked: the same unsigned file loads as before.
+    # Only a store declared unsigned is not checked: the same unsigned file loads there.
     data = yaml.safe_load(config.read_text())
     del data["machines"][0]["models"]["signing_key_file"]
     config.write_text(yaml.safe_dump(data))
-    assert gateway_in_process("check-config", "--config", config).returncode == 0
+    refused = gateway_in_process("check-config", "--config", config)  # the default key
+    assert refused.returncode == 2, refused.stdout
+    assert "signature does not match the signing key" in refused.stderr  # not that key
+    data["machines"][0]["models"]["signing"] = False
+    config.write_text(yaml.safe_dump(data))
+    checked = gateway_in_process("check-config", "--config", config)
+    assert checked.returncode == 0, checked.stderr
+    assert "unsigned (models.signing: false)" in checked.stdout
 
 
 def test_a_key_others_can_read_or_inside_the_store_is_refused(tmp_path: Path) -> None:

@@ -21,7 +21,8 @@ from gateway.live.quality import Quality, QualityMonitor
 from models.base import ModelInputs
 from models.estimators.mlr import MlrModel
 from models.estimators.sensor_relations import SensorRelations, fit_relations
-from models.store import StoredModel, _checksum, build_document
+from models.store import StoredModel, build_document
+from tests.test_store import resealed
 
 SENSORS = ("A", "B", "C", "D", "E")
 NOISE_C = 0.05
@@ -202,14 +203,12 @@ def test_an_old_model_file_without_relations_still_loads(tmp_path: Path) -> None
     document = json.loads(banked.document.model_dump_json(exclude_none=True))
     path = ModelStore(tmp_path).save(document)
     assert load_file(path)[1].relations() is not None
-    old = {k: v for k, v in document.items() if k != "sensor_relations"}
-    old["sha256"] = _checksum(old)
+    old = resealed({k: v for k, v in document.items() if k != "sensor_relations"}, tmp_path)
     path.write_text(json.dumps(old), encoding="utf-8")
     assert load_file(path)[1].relations() is None
     damaged = dict(document)
     damaged["sensor_relations"] = {"sensors": ["A"]}
-    damaged["sha256"] = _checksum(damaged)
-    path.write_text(json.dumps(damaged), encoding="utf-8")
+    path.write_text(json.dumps(resealed(damaged, tmp_path)), encoding="utf-8")
     with pytest.raises(StoreError, match="field 'sensor_relations': sensor_relations: missing"):
         load_file(path)
 
@@ -287,3 +286,99 @@ def test_a_reference_taken_at_rest_or_kept_from_before_arms_rule_1(
     kept.accept(0.0, {}, 8000.0)
     kept.accept(30.0, rises_at(8.0, 4.0), 8000.0)  # a cold reference from an earlier start
     assert at_rest.armed and kept.armed
+
+
+def fitted_mlr(tmp_path: Path, sensors: list[str], error_um: np.ndarray, model_id: str):
+    x = training_rises()
+    inputs = ModelInputs(rise_C=x, sensors=SENSORS, speed_rpm=np.zeros(x.shape[0]))
+    model = MlrModel(sensors).fit(inputs, error_um)
+    return as_banked(model, model_id, inputs, error_um, tmp_path)
+
+
+def heating(k: int, rng: np.random.Generator) -> dict[str, float]:
+    """Rises at second k of a slow warm-up (0.002 °C/s), read to 0.1 °C with noise."""
+    rises = rises_at(8.0 + 0.002 * k, 4.0 + 0.001 * k)
+    return {s: round(v + float(rng.normal(0, 0.03)), 1) for s, v in rises.items()}
+
+
+def test_a_switch_to_the_model_without_a_sensor_is_never_a_step(tmp_path: Path) -> None:
+    """Every 20 cycles of 1 s the model switches between e = 2 A + E and its fallback
+    without A (a different intercept and coefficients: several µm apart)."""
+    x = training_rises()
+    error = 2 * x[:, 0] + x[:, 4]
+    full = fitted_mlr(tmp_path, ["A", "E"], error, "full")
+    fallback = fitted_mlr(tmp_path, ["B", "C", "E"], error + 4.0, "without-A")
+    check = Plausibility(None, PlausibilityLimits())
+    rng = np.random.default_rng(1)
+    for k in range(300):
+        banked = full if (k // 20) % 2 == 0 else fallback
+        rises = heating(k, rng)
+        assert check.check_prediction(float(k), banked, rises, 0.0) is None, k
+        check.accept(float(k), rises)
+    assert check.flags == 0
+
+
+def test_one_register_step_through_large_coefficients_holds_nobody(
+    tmp_path: Path, relations: SensorRelations
+) -> None:
+    """e = 12 C − 10 B: a 0.1 °C step on C moves it 1.2 µm in 1 s, past the 1.1 µm bound;
+    C itself did nothing a transmitter's last digit does not do."""
+    x = training_rises()
+    banked = fitted_mlr(tmp_path, ["B", "C"], 12 * x[:, 2] - 10 * x[:, 1], "large")
+    for judged_by in (None, relations):
+        check = Plausibility(judged_by, PlausibilityLimits())
+        rises = rises_at(8.0, 4.0)
+        check.accept(0.0, rises)
+        stepped = rises | {"C": rises["C"] + 0.1}
+        assert check.check_prediction(1.0, banked, stepped, 0.0) is None
+        assert check.holds == {} and check.re_references == 1
+        check.accept(1.0, stepped)
+        assert check.check_prediction(2.0, banked, stepped, 0.0) is None  # counts from there
+
+
+def test_a_step_every_sensor_shares_re_references_and_one_of_its_own_is_held(
+    tmp_path: Path, relations: SensorRelations
+) -> None:
+    banked = stored_mlr(tmp_path, None)  # e = 2 A + E
+    # A restart whose machine comes back cooler (-16 µm in 16 s), and a re-zero that
+    # takes 2 °C off every transmitter.
+    cooler = rises_at(2.0, 1.0)
+    re_zeroed = {s: v - 2.0 for s, v in rises_at(8.0, 4.0).items()}
+    for judged_by in (None, relations):
+        for after in (cooler, re_zeroed):
+            check = Plausibility(judged_by, PlausibilityLimits())
+            check.accept(0.0, rises_at(8.0, 4.0))
+            assert check.check_prediction(16.0, banked, after, 0.0) is None
+            assert check.holds == {} and check.re_references == 1
+            check.accept(16.0, after)
+            # From the new level, one sensor's own jump is still caught.
+            jumped = after | {"A": after["A"] + 3.0}
+            suspect = check.check_prediction(17.0, banked, jumped, 0.0)
+            assert suspect is not None and suspect.sensor == "A", judged_by
+
+
+def test_a_sensor_held_for_a_step_its_neighbours_then_share_is_trusted_again(
+    tmp_path: Path, relations: SensorRelations
+) -> None:
+    """A stepped first (held by the rate bound); a cycle later the others follow: without
+    relations every sensor 3 °C up (the transmitters re-zeroed one after the other), with
+    them the body A sits on 3 °C warmer. A's step was theirs too."""
+    banked = stored_mlr(tmp_path, None)
+    start = rises_at(8.0, 4.0)
+    uniform = {s: v + 3.0 for s, v in start.items()}
+    for judged_by, followed in ((None, uniform), (relations, rises_at(11.0, 4.0))):
+        check = Plausibility(judged_by, PlausibilityLimits())
+        check.accept(0.0, start)
+        first = start | {"A": followed["A"]}
+        suspect = check.check_prediction(1.0, banked, first, 0.0)
+        assert suspect is not None and suspect.sensor == "A"
+        check.accept(1.0, first)
+        check.judge(2.0, followed)
+        assert check.holds == {}, (judged_by, check.reasons())
+        # A spike that went away is not a shared step: it waits for recover_s.
+        check.judge(3.0, followed)
+        check.accept(3.0, followed)
+        spiked = followed | {"A": followed["A"] + 3.0}
+        assert check.check_prediction(4.0, banked, spiked, 0.0) is not None
+        check.judge(5.0, followed)
+        assert "A" in check.holds, judged_by

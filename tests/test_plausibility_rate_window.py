@@ -46,13 +46,13 @@ class PlainPlausibility(Plausibility):
 
     def _fastest_move(self, now_s, banked, sensors, now_x, speed_rpm):
         earlier = [
-            (then_s, [rises[s] for s in sensors])
+            (then_s, rises)
             for then_s, rises in self.kept
             if now_s - then_s <= RATE_HORIZON_S and all(s in rises for s in sensors)
         ]
         if not earlier:
-            return None
-        rows = np.array([now_x, *(row for _, row in earlier)])
+            return []
+        rows = np.array([now_x, *([rises[s] for s in sensors] for _, rises in earlier)])
         predicted = _predict(banked, sensors, rows, speed_rpm)
         spans_s = now_s - np.array([then_s for then_s, _ in earlier])
         moved = predicted[0] - predicted[1:]
@@ -60,8 +60,16 @@ class PlainPlausibility(Plausibility):
         excess[np.isnan(excess)] = -np.inf
         worst = int(np.argmax(excess))
         if not excess[worst] > 0:
-            return None
-        return float(moved[worst]), float(spans_s[worst]), rows[worst + 1]
+            return []
+        past = [k for k in range(len(earlier)) if excess[k] > 0]
+        return [
+            (float(moved[k]), float(spans_s[k]), earlier[k][1])
+            for k in dict.fromkeys((past[-1], worst))
+        ]
+
+    def _re_reference(self, *args) -> None:
+        self.kept.clear()  # the plain scan forgets its earlier cycles too
+        super()._re_reference(*args)
 
 
 def _training() -> tuple[ModelInputs, np.ndarray]:

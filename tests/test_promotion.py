@@ -109,6 +109,7 @@ def needing(document: dict[str, Any], sensor: str, model_id: str) -> dict[str, A
     changed = json.loads(json.dumps(document))
     changed["effect_sensors"][-1] = sensor
     changed["model_id"] = model_id
+    changed.pop("signature", None)  # a new model: signed when it is published
     return augmented.sealed(changed)
 
 

@@ -19,7 +19,8 @@ from models.data.references import (
     rises,
 )
 from models.fit.workflow import fit_and_store
-from models.store import ModelStore, _checksum, load_file
+from models.store import ModelStore, load_file
+from tests.test_store import resealed
 
 DATA = Path(__file__).resolve().parent.parent / "data"
 
@@ -167,7 +168,7 @@ def test_stored_models_carry_the_error_reference_and_old_files_without_it_load(
     # A file written before the field existed: the same document without it, re-checksummed.
     raw = json.loads(Path(saved.saved[document.model_id]).read_text(encoding="utf-8"))
     del raw["error_reference"]
-    raw["sha256"] = _checksum(raw)
+    raw = resealed(raw, tmp_path)  # its checksum and signature made again
     old = tmp_path / "old.json"
     old.write_text(json.dumps(raw), encoding="utf-8")
     reloaded, old_document = load_file(old)

@@ -231,7 +231,7 @@ def test_replay_an_analyze_result_refits_its_coefficients_per_held_out_run(tmp_p
         "replay", FL_THERMAL, "--target", "ch1_um", "--augmented", model_file, "--json", out
     )
     assert done.returncode == 0, done.stderr
-    assert "chosen on this file" in done.stdout  # says that its structure saw every run
+    assert "chosen on this file" in done.stderr  # a note (stderr): its structure saw every run
     result = json.loads(out.read_text(encoding="utf-8"))
     assert result["base"]["kind"] == "augmented"
     assert result["augmented_model"] == augmented.load(model_file)["model_id"]

@@ -8,6 +8,7 @@ with a filler file until the kernel answers ENOSPC, then freed again.
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import signal
 import subprocess
@@ -18,13 +19,14 @@ from pathlib import Path
 
 import pytest
 
-from drivers.clock import ManualClock
 from gateway.config import GatewayConfig
 from gateway.live.record import CycleRecord
 from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.heartbeat import heartbeat_path
 from gateway.outputs.local_store import LocalStore
 from gateway.outputs.points import Point
 from gateway.outputs.sinks import Outputs
+from gateway.process.file_writer import HEARTBEATS
 from tests import gateway_rig as rig
 from tests import served_bench as bench
 from tests.ports import free_tcp_port
@@ -249,26 +251,27 @@ def record_at(time_s: float) -> CycleRecord:
     return written_record("vmc-1", time_s, {"T1": 21.5}, 2.0, model_id="mlr-error_um-variable")
 
 
-def test_points_carry_the_wall_clock_of_the_cycle_start_through_an_ntp_step(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    clock = ManualClock(origin_s=5000.0)  # the loops' monotonic machine time
-    outputs = Outputs(outputs_config(tmp_path), wall_clock=clock)
-    wall_ns = [T0_NS]
-    monkeypatch.setattr("gateway.outputs.sinks.time.time_ns", lambda: wall_ns[0])
+def test_points_carry_the_cycles_wall_stamp_not_its_machine_time(tmp_path: Path) -> None:
+    """In the plant a record's machine time runs on the monotonic clock and its stamp is
+    the wall time of the cycle's start; the points carry the stamp (and so follow an NTP
+    step that machine time does not), and the heartbeat the same time."""
+    outputs = Outputs(outputs_config(tmp_path))
+    first, second = record_at(5000.0), record_at(5001.0)  # machine time: 1 s apart
+    first.stamp_s = T0_NS / NS
+    second.stamp_s = T0_NS / NS + 3_601.0  # NTP stepped the system clock by an hour
     try:
-        clock.advance(0.25)  # the cycle began 0.25 s before its record is logged
-        outputs.sink(record_at(5000.0))
-        clock.advance(0.75)
-        wall_ns[0] = T0_NS + 3_600 * NS + NS  # NTP stepped the system clock by an hour
-        outputs.sink(record_at(5001.0))
+        outputs.sink(first)
+        outputs.sink(second)
     finally:
         assert outputs.store is not None
         stamps = [p.time_ns for p in outputs.store.query("spindle_cycle", "vmc-1")]
+        temperatures = [p.time_ns for p in outputs.store.query("spindle_temperature", "vmc-1")]
         outputs.store.close()
-    # The first point: wall time minus the 0.25 s since the cycle began; the second
-    # follows the corrected wall clock, not start + monotonic time (which says +1 s).
-    assert stamps == [T0_NS - NS // 4, T0_NS + 3_601 * NS]
+    assert stamps == [T0_NS, T0_NS + 3_601 * NS]
+    assert temperatures == stamps
+    HEARTBEATS.flush(5.0)
+    beat = json.loads(heartbeat_path(tmp_path / "state", "vmc-1").read_text())
+    assert beat["time_s"] == T0_NS / NS + 3_601.0 and beat["cycles"] == 2
 
 
 def test_outputs_run_retention_every_interval(tmp_path: Path) -> None:

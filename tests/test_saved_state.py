@@ -97,23 +97,33 @@ def test_the_heartbeat_rewritten_every_cycle_is_not_synced(
     assert calls == [] and json.loads(path.read_text(encoding="utf-8"))["machine"] == "bench-1"
 
 
+@pytest.mark.parametrize("threaded", [False, True], ids=["in-place", "writer-thread"])
 def test_a_full_disk_keeps_the_cold_reference_in_memory_and_saves_it_once_space_returns(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, threaded: bool
 ) -> None:
+    """Saved in place, or by a writer thread as in a running gateway (each cycle's save
+    waited for here, so the test knows its outcome before the next cycle)."""
+    from gateway.process.file_writer import FileWriter
     from tests.test_retention import fill, small_disk
+
+    writer = FileWriter("test-state-writer", durable=True) if threaded else None
+
+    def cycle(readings: dict[str, float]) -> None:
+        reference.observe(readings)
+        assert writer is None or writer.flush(10.0)
 
     with small_disk(tmp_path / "disk", "1m") as disk:
         state = disk / "bench-1-reference.json"
         filler = fill(disk)
-        reference = TemperatureReference("first-reading", {}, state)
+        reference = TemperatureReference("first-reading", {}, state, writer=writer)
         with caplog.at_level(logging.INFO, logger="gateway.live.reference"):
-            for cycle in range(5):  # the loop goes on: nothing is raised
-                reference.observe({"T1": 20.5 + cycle, "T2": 21.0})
+            for n in range(5):  # the loop goes on: nothing is raised
+                cycle({"T1": 20.5 + n, "T2": 21.0})
             assert reference.values_C == {"T1": 20.5, "T2": 21.0} and not state.exists()
             failed = [r for r in caplog.records if "cannot save the cold reference" in r.message]
             assert len(failed) == 1 and "No space left on device" in failed[0].message
             filler.unlink()
-            reference.observe({"T1": 30.0, "T2": 31.0})
+            cycle({"T1": 30.0, "T2": 31.0})
         assert read_saved_reference(state) == {"T1": 20.5, "T2": 21.0}
         assert "the cold reference is saved now" in caplog.text
 

@@ -72,6 +72,10 @@ def settings(pki_dir: Path, **changes: object) -> ScadaSettings:
     return ScadaSettings(**values)  # type: ignore[arg-type]
 
 
+#: The wall time of the known cycle's start (Unix s): its values' source timestamp.
+STAMP_S = 1_780_000_000.25
+
+
 def known_record() -> CycleRecord:
     return CycleRecord(
         machine=MACHINE,
@@ -88,6 +92,7 @@ def known_record() -> CycleRecord:
         written_cnc=0.01175,
         write_status="ok",
         link_errors=["bus-a: timeout", "bus-b: timeout"],
+        stamp_s=STAMP_S,
     )
 
 
@@ -240,6 +245,10 @@ def test_reads_live_values_over_sign_and_encrypt(tmp_path: Path, node_pki: Path)
         got = results[name]
         assert (got["status"], got["dataType"], got["value"]) == (status, data_type, value), name
     assert results["Temperatures.spindle_rear"]["status"] == "BadSensorFailure"
+    # Every value carries the time its cycle started, as its logged points and Sparkplug do.
+    assert {r["sourceTimestampMs"] for n, r in results.items() if n != "CompensationEnabled"} == {
+        STAMP_S * 1000
+    }
     # A machine with nothing published yet says so rather than showing a fake zero.
     assert waiting["status"] == "BadWaitingForInitialData"
     assert (column["status"], column["value"]) == ("Good", 22.5)

@@ -120,3 +120,43 @@ def test_warm_starts_of_many_machines_are_one_line(caplog: pytest.LogCaptureFixt
     assert len(lines) == 1, lines
     assert lines[0].startswith("1000 machine(s)") and "and 995 more" in lines[0]
     assert math.isfinite(notes.delay_s) and notes.machines == []
+
+
+def test_warm_starts_spread_wider_than_the_delay_are_still_one_line(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A thousand first cycles under load come over seconds, not at once: the machines
+    are named together once none has been noted for the delay (a fixed delay after the
+    first said them as several lines of a few hundred)."""
+    notes = WarmStarts(delay_s=0.2, max_wait_s=5.0)
+
+    async def start_spread() -> None:
+        for k in range(1000):
+            notes.note(f"vmc-{k}")
+            if k % 100 == 99:
+                await asyncio.sleep(0.1)  # 1 s of first cycles in all: 5 delays long
+        await asyncio.sleep(0.4)
+
+    with caplog.at_level(logging.WARNING, logger="gateway.live.plausibility"):
+        asyncio.run(start_spread())
+    lines = [r.getMessage() for r in caplog.records if "spindle turned" in r.getMessage()]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("1000 machine(s)")
+
+
+def test_warm_starts_that_never_pause_are_said_by_the_longest_wait(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    notes = WarmStarts(delay_s=0.2, max_wait_s=0.5)
+
+    async def start_steadily() -> None:
+        for k in range(20):
+            notes.note(f"vmc-{k}")
+            await asyncio.sleep(0.05)  # never quiet for the delay: the longest wait says it
+        await asyncio.sleep(0.4)
+
+    with caplog.at_level(logging.WARNING, logger="gateway.live.plausibility"):
+        asyncio.run(start_steadily())
+    lines = [r.getMessage() for r in caplog.records if "spindle turned" in r.getMessage()]
+    assert 2 <= len(lines) <= 3, lines
+    assert sum(int(line.split(" ", 1)[0]) for line in lines) == 20

@@ -8,6 +8,13 @@ delivery run on wall time and count points, not minutes; the points carry machin
 stamps. Every cycle's point must arrive once, in order (by its cycle counter and its
 timestamp), those held back marked historical, and every cycle must have run on its due
 time (the scheduler's own ``due_s`` of each cycle, judged at production speed).
+The node runs at QoS 1 (``sparkplug.qos: 1``, the broker acknowledges every point):
+at Sparkplug's QoS 0 a broker killed mid-run loses the points in flight.
+
+bdSeq counts the MQTT CONNECTs that went out (Sparkplug 3.0): the attempts refused at
+TCP while the broker is down send none, so the NBIRTH after the restart carries the
+previous bdSeq + 1; the host's offline STATE ends the session (NDEATH, disconnect), so
+the NBIRTH after the outage carries one more.
 """
 
 from __future__ import annotations
@@ -27,6 +34,8 @@ from tests.test_sparkplug_host import (
     MACHINES,
     Run,
     assert_every_cycle_once_in_order,
+    bd_seq_of,
+    logged,
     store,  # noqa: F401 - the module's fixture
 )
 
@@ -75,10 +84,12 @@ def assert_on_time(run: Run) -> dict[str, float]:
     }
 
 
-async def broker_restart(run: Run) -> None:
+async def broker_restart(run: Run, caplog: pytest.LogCaptureFixture) -> None:
     host = run.host
     await asyncio.to_thread(run.broker.kill)  # off the loop the gateway runs on
     await asyncio.sleep(BROKER_DOWN_S)
+    refused = logged(caplog, "Sparkplug: cannot connect to")
+    assert len(refused) >= 2, refused  # attempts without a CONNECT: no bdSeq used
     await asyncio.to_thread(run.broker.start)
     await host.wait(lambda: host.count("NBIRTH") == 2, 30, "births after restart")
     ran = cycles_ran(run)
@@ -127,17 +138,18 @@ def test_broker_restart_and_ten_minute_host_outage_lose_and_repeat_nothing(
     memory_dir: Path,
     store: Path,  # noqa: F811
     monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     monkeypatch.setenv("SPB_TEST_PASSWORD", PASSWORD)
 
     async def scenario() -> tuple[Run, dict[str, int], dict[str, int]]:
-        accelerated = {"cycle_s": CYCLE_S, "speedup": SPEEDUP, "state_dir": memory_dir}
+        accelerated = {"cycle_s": CYCLE_S, "speedup": SPEEDUP, "state_dir": memory_dir, "qos": 1}
         async with Run(tmp_path, store, {}, **accelerated) as run:  # type: ignore[arg-type]
             host = run.host
             await host.wait(
                 lambda: all(host.count("DDATA", m) >= 5 for m in MACHINES), 60, "5 DDATA each"
             )
-            await broker_restart(run)
+            await broker_restart(run, caplog)
             offline, online = await host_outage(run)
             await run.stop_gateway()
         return run, offline, online
@@ -147,6 +159,9 @@ def test_broker_restart_and_ten_minute_host_outage_lose_and_repeat_nothing(
     assert not [e for e in events if e["event"] == "undecodable"]
     assert not [e for e in events if e["event"] == "message" and e["gap"]]
     assert_every_cycle_once_in_order(run.host, run.records)
+    births = [bd_seq_of(e) for e in run.host.messages("NBIRTH")]
+    first = births[0]
+    assert births == [first, (first + 1) % 256, (first + 2) % 256], births
     for machine in MACHINES:
         held = set(range(offline[machine] + 1, online[machine] + 1))
         assert len(held) >= OUTAGE_CYCLES

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import time
 from pathlib import Path
 from typing import Any
@@ -42,6 +43,7 @@ def gateway_config(
     commands: dict[str, bool],
     cycle_s: float = CYCLE_S,
     state_dir: Path | None = None,
+    qos: int | None = None,
 ) -> GatewayConfig:
     return GatewayConfig.model_validate(
         {
@@ -63,6 +65,7 @@ def gateway_config(
                 "reconnect_max_s": 2.0,
                 "buffer_path": str(tmp_path / "spb.sqlite"),
                 "commands": commands,
+                **({} if qos is None else {"qos": qos}),
             },
         }
     )
@@ -142,9 +145,11 @@ class Run:
         cycle_s: float = CYCLE_S,
         speedup: float | None = None,
         state_dir: Path | None = None,
+        qos: int | None = None,
     ) -> None:
         self.tmp_path, self.store, self.commands = tmp_path, store, commands
         self.cycle_s, self.speedup, self.state_dir = cycle_s, speedup, state_dir
+        self.qos = qos
         self.records: list[CycleRecord] = []
         self.late_s: dict[str, list[float]] = {m: [] for m in MACHINES}  # machine time
         self.due_s: dict[str, list[float]] = {m: [] for m in MACHINES}
@@ -171,6 +176,7 @@ class Run:
             self.commands,
             self.cycle_s,
             self.state_dir,
+            self.qos,
         )
         self.gateway = Gateway(config, clock=clock, sinks=[self.records.append, self._lateness])
         self.stop = asyncio.Event()
@@ -222,6 +228,44 @@ def sent_count(run: Run) -> int:
     return len([e for e in run.host.snapshot() if e["event"] == "sent"])
 
 
+def bd_seq_of(message: dict[str, Any]) -> int:
+    """The bdSeq of an NBIRTH or NDEATH, found by the name the node sent (not the alias)."""
+    return next(m["value"] for m in message["metrics"] if m["sentName"] == "bdSeq")
+
+
+def logged(caplog: pytest.LogCaptureFixture, *parts: str) -> list[str]:
+    """The log lines that contain every one of ``parts``."""
+    lines = [r.getMessage() for r in caplog.records]
+    return [line for line in lines if all(p in line for p in parts)]
+
+
+def assert_spec_qos(host: TahuHost) -> None:
+    """Sparkplug 3.0: births, data and device deaths at QoS 0, NDEATH at QoS 1, none
+    retained (the host subscribes at QoS 1, so it receives each at the QoS it was sent)."""
+    messages = host.messages()
+    kinds = {e["kind"] for e in messages}
+    assert {"NBIRTH", "DBIRTH", "DDATA", "NDATA", "DDEATH", "NDEATH"} <= kinds, kinds
+    wrong = [(e["kind"], e["qos"]) for e in messages if e["qos"] != (e["kind"] == "NDEATH")]
+    assert not wrong, wrong[:5]
+    assert not [e for e in messages if e["retain"]]
+
+
+def assert_node_data(host: TahuHost) -> None:
+    """The node's own counters: declared in NBIRTH by name, sent in NDATA by alias when
+    they change (the host names them from the NBIRTH); the published count grows."""
+    birth = {m["sentName"]: m for m in host.messages("NBIRTH")[0]["metrics"]}
+    for key in ("sparkplug_published", "sparkplug_backlog", "forwarder_backlog"):
+        assert birth[f"Health/{key}"]["type"] == "UInt64", birth.keys()
+    published = [
+        m["value"]
+        for e in host.messages("NDATA")
+        for m in e["metrics"]
+        if m["name"] == "Health/sparkplug_published"
+    ]
+    assert len(published) >= 3 and published == sorted(published) and published[-1] > 0
+    assert not [m for e in host.messages("NDATA") for m in e["metrics"] if m["sentName"]]
+
+
 async def promote_unknown_proposal(
     run: Run, allowed: bool, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -231,7 +275,7 @@ async def promote_unknown_proposal(
     assert node is not None
     refused, n = node.commands.refused, sent_count(run)
     metric = {"name": PROMOTE, "type": "String", "value": "no-such-proposal"}
-    dcmd(run, "m1", metric, 5000, 5)
+    dcmd(run, "m1", metric, 6000, 6)
     await settle(run, n)
     assert node.commands.refused == refused + 1
     said = [r.getMessage() for r in caplog.records if "Promote Proposal" in r.getMessage()]
@@ -260,7 +304,9 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
             )
             births = host.messages("NBIRTH")
             assert len(births) == 1 and births[0]["seq"] == 0
-            bd_seq = next(m["value"] for m in births[0]["metrics"] if m["name"] == "bdSeq")
+            bd_seq = bd_seq_of(births[0])
+            rebirth = [m for m in births[0]["metrics"] if m["sentName"] == "Node Control/Rebirth"]
+            assert rebirth[0]["type"] == "Boolean" and rebirth[0].get("alias") is None
             dbirth = host.messages("DBIRTH", "m1")[0]
             units = {m["name"]: m.get("unit") for m in dbirth["metrics"]}
             assert units["Temperature/T1"] == "°C" and units["Spindle/Speed"] == "r/min"
@@ -274,7 +320,7 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
                 lambda: all(len(host.messages("DBIRTH", m)) == 2 for m in MACHINES), 10, "DBIRTHs"
             )
             again = host.messages("NBIRTH")[1]
-            assert next(m["value"] for m in again["metrics"] if m["name"] == "bdSeq") == bd_seq
+            assert bd_seq_of(again) == bd_seq
 
             enabled = run.alias("m2", "Compensation/Enabled")
             assert run.enabled("m2")
@@ -283,6 +329,8 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
             await settle(run, n)
             assert run.enabled("m2") is (not allowed)
             assert run.enabled("m1") and run.enabled("m3")
+            assert bool(logged(caplog, "compensation disabled from Sparkplug host")) is allowed
+            assert not logged(caplog, "from SCADA")
             accepted = run.gateway.sparkplug.commands.accepted  # type: ignore[union-attr]
             assert accepted == (2 if allowed else 1)  # the rebirth, and the DCMD if allowed
             if allowed:
@@ -295,6 +343,7 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
                 ({"alias": enabled, "type": "String", "value": "false"}, 3000, 3),  # datatype
                 ({"alias": 987654, "type": "Boolean", "value": False}, 4000, 4),  # alias
                 ({"alias": enabled, "type": "Boolean", "value": False}, 1000, 1),  # replay
+                ({"name": "Compensation/Applied", "type": "Double", "value": 1000.0}, 5000, 5),
             ]
             for metric, timestamp, seq in bad:
                 n = sent_count(run)
@@ -305,20 +354,138 @@ def test_tahu_host_decodes_births_data_rebirth_and_commands(
             await settle(run, n)
             node = run.gateway.sparkplug
             assert node is not None
-            assert node.commands.refused == refused + 4
+            assert node.commands.refused == refused + 5
             assert run.enabled("m2")  # nothing refused was acted on
+            said = logged(caplog, "Compensation/Applied")
+            assert len(said) == 1 and "is read-only" in said[0], said
+            assert "Compensation/Enabled (Boolean)" in said[0], said
             await promote_unknown_proposal(run, allowed, caplog)
             if not allowed:  # one parametrization is enough for a loop's restart
                 await fail_one_cycle(run, "m3")
             await run.stop_gateway()
             await host.wait(lambda: len(host.messages("NDEATH")) == 1, 10, "NDEATH at the stop")
             assert {e["device"] for e in host.messages("DDEATH")} == set(MACHINES)
+            death = host.messages("NDEATH")[0]
+            assert bd_seq_of(death) == bd_seq and death["seq"] is None
+            assert [m["type"] for m in death["metrics"]] == ["Int64"]
 
         events = host.snapshot()
         assert not [e for e in events if e["event"] == "undecodable"]
         assert not [e for e in events if e["event"] == "message" and e["gap"]]
         assert_every_cycle_once_in_order(host, run.records)
         assert_on_time(run.records, restarted=() if allowed else ("m3",))
+        assert_spec_qos(host)
+        assert_node_data(host)
         assert len(host.messages("DDEATH", "m3")) == (1 if allowed else 2)  # + the stop's
 
     asyncio.run(scenario())
+
+
+def test_primary_host_state_offline_disconnects_and_old_or_malformed_state_is_ignored(
+    tmp_path: Path, store: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Sparkplug 3.0 on the primary host's STATE, seen from the independent host: a
+    malformed STATE is ignored (logged) and data goes on; a valid ``offline`` makes the
+    node publish NDEATH and disconnect, then connect again (a new bdSeq) and wait; an
+    ``online`` older than that ``offline`` is ignored; the real ``online`` brings births."""
+    monkeypatch.setenv("SPB_TEST_PASSWORD", PASSWORD)
+    topic = f"spBv1.0/STATE/{HOST}"
+
+    async def scenario() -> None:
+        async with Run(tmp_path, store, {}) as run:
+            host, node = run.host, run.gateway.sparkplug
+            assert node is not None
+            await host.wait(
+                lambda: all(len(cycles_of(host, m)) >= 3 for m in MACHINES), 60, "3 DDATA each"
+            )
+            bd_seq = bd_seq_of(host.messages("NBIRTH")[0])
+
+            host.send(op="rawstate", text='{"online": "yes"}')
+            await host.wait(lambda: bool(logged(caplog, topic, "ignored")), 10, "the warning")
+            seen = {m: len(cycles_of(host, m)) for m in MACHINES}
+            await host.wait(
+                lambda: all(len(cycles_of(host, m)) >= seen[m] + 5 for m in MACHINES),
+                20,
+                "data going on after a malformed STATE",
+            )
+            said = logged(caplog, topic, "ignored")
+            assert "online is 'yes', not a boolean" in said[0], said
+            assert node.sessions == 1 and host.count("NDEATH") == 0
+
+            host.send(op="state", online=False)
+            await host.wait(lambda: host.count("NDEATH") == 1, 10, "NDEATH at the host's offline")
+            assert bd_seq_of(host.messages("NDEATH")[0]) == bd_seq
+            await host.wait(
+                lambda: node.sessions == 2 and node.link is not None, 10, "a new connection"
+            )
+            assert node.bd_seq == (bd_seq + 1) % 256
+
+            host.send(op="rawstate", text='{"online": true, "timestamp": 1000}')
+            await host.wait(lambda: bool(logged(caplog, topic, "older")), 10, "the old STATE")
+            await asyncio.sleep(2.0)  # births would follow at once: none may come
+            assert host.count("NBIRTH") == 1 and not node.born
+
+            host.send(op="state", online=True)
+            await host.wait(lambda: host.count("NBIRTH") == 2, 10, "births when back online")
+            assert bd_seq_of(host.messages("NBIRTH")[1]) == (bd_seq + 1) % 256
+            seen = {m: len(cycles_of(host, m)) for m in MACHINES}
+            await host.wait(
+                lambda: all(len(cycles_of(host, m)) >= seen[m] + 3 for m in MACHINES),
+                20,
+                "data again",
+            )
+            assert node.sessions == 2  # one disconnect: the offline STATE's
+
+        events = host.snapshot()
+        assert not [e for e in events if e["event"] == "message" and e["gap"]]
+        assert_every_cycle_once_in_order(host, run.records)
+
+    asyncio.run(scenario())
+
+
+def test_primary_host_crash_its_will_ends_the_session_and_a_new_host_gets_births(
+    tmp_path: Path, store: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The host SIGKILLed: the broker publishes its will (offline, with the timestamp of
+    its online STATE, as Sparkplug 3.0 has it), which the node takes: NDEATH, a new
+    connection that waits; a host started afterwards gets births with bdSeq + 1."""
+    monkeypatch.setenv("SPB_TEST_PASSWORD", PASSWORD)
+
+    async def scenario() -> None:
+        async with Run(tmp_path, store, {}) as run:
+            node = run.gateway.sparkplug
+            assert node is not None
+            await run.host.wait(lambda: run.host.count("DDATA") >= 3, 60, "data")
+            bd_seq = bd_seq_of(run.host.messages("NBIRTH")[0])
+            run.host.close()  # SIGKILL
+            deadline = time.monotonic() + 30  # the broker sees the dead socket at once
+            while not (node.sessions == 2 and node.link is not None and not node.born):
+                assert time.monotonic() < deadline, "no new connection after the host's will"
+                await asyncio.sleep(0.05)
+            run.host = TahuHost(run.broker, GROUP, HOST)
+            await run.host.wait(lambda: run.host.count("NBIRTH") == 1, 20, "births")
+            assert bd_seq_of(run.host.messages("NBIRTH")[0]) == (bd_seq + 1) % 256
+            await run.host.wait(lambda: run.host.count("DDATA") >= 3, 20, "data again")
+
+    asyncio.run(scenario())
+
+
+def test_bd_seq_counts_every_connect_sent_those_the_broker_refused_too(
+    tmp_path: Path, store: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A wrong password: every CONNECT carries a will with a new bdSeq (Sparkplug 3.0),
+    so the saved bdSeq counts the refusals (from 0); no births."""
+    monkeypatch.setenv("SPB_TEST_PASSWORD", "not-the-password")
+
+    async def scenario() -> Run:
+        async with Run(tmp_path, store, {}) as run:
+            await run.host.wait(lambda: len(logged(caplog, "Sparkplug:", " refused: ")) >= 3,
+                                30, "three refused CONNECTs")  # fmt: skip
+            await run.stop_gateway()
+        return run
+
+    run = asyncio.run(scenario())
+    refused = logged(caplog, "Sparkplug:", " refused: ")
+    saved = json.loads((tmp_path / "state" / "sparkplug-bdseq.json").read_text())["bdSeq"]
+    assert saved == len(refused) - 1, (saved, refused)
+    assert run.host.count("NBIRTH") == 0

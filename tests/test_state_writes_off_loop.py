@@ -1,12 +1,14 @@
-"""The heartbeat and the lag states are written off the event loop, whole or not at all.
+"""The heartbeat, the lag states and the cold reference are written off the event loop,
+whole or not at all.
 
-Every machine writes its heartbeat each cycle and its lag states (two ``fsync``) on
-its first cycle. Written on the event loop, a thousand machines' first cycles held it
-for seconds, and every other machine's cycle waited. Here 300 machines run their first
-cycle as tasks, on this machine's real disk kept busy by another process (8 MB blocks,
-each synced), while a probe task measures how long the event loop was held at a
-stretch: with the writer threads, and (as a control in the same run, showing the probe
-sees what it must) with the same files written on the loop.
+Every machine writes its heartbeat each cycle, and its lag states and, at a first start,
+its cold reference (two ``fsync`` each) on its first cycle. Written on the event loop, a
+thousand machines' first cycles held it for seconds, and every other machine's cycle
+waited. Here 300 machines run their first cycle as tasks, on this machine's real disk
+kept busy by another process (8 MB blocks, each synced), while a probe task measures
+how long the event loop was held at a stretch: with the writer threads, and (as a
+control in the same run, showing the probe sees what it must) with the same files
+written on the loop.
 
 A gateway process killed (SIGKILL) right after a cycle leaves every heartbeat and
 lag-state file readable: the old state or the new one, never a torn one. And on a full
@@ -30,6 +32,7 @@ from pathlib import Path
 import pytest
 
 from gateway.live.bank.lag_state import EffectStates, WarmLags
+from gateway.live.reference import TemperatureReference
 from gateway.outputs.heartbeat import heartbeat_path, submit_heartbeat, write_heartbeat
 from gateway.process.file_writer import HEARTBEATS, STATE, FileWriter
 from tests.cli import ROOT
@@ -77,12 +80,22 @@ async def longest_hold_s(cycle: Callable[[int], None]) -> float:
 
 
 def first_cycles(state_dir: Path, background: bool) -> float:
-    """Two cycles of every machine (lag states saved at each, heartbeat at each); the
-    event loop's longest hold in the first."""
+    """Two cycles of every machine (lag states saved at each, heartbeat at each, the cold
+    reference taken and saved at the first); the event loop's longest hold in the first."""
     effects = machines(state_dir, STATE if background else None)
+    references = [
+        TemperatureReference(
+            "first-reading",
+            {},
+            state_dir / f"m{i:03d}-reference.json",
+            writer=STATE if background else None,
+        )
+        for i in range(MACHINES)
+    ]
 
     def cycle(time_s: float) -> Callable[[int], None]:
         def one(i: int) -> None:
+            references[i].observe({name: 20.0 + rise for name, rise in RISES_C.items()}, 0.0)
             effects[i].advance(time_s, RISES_C, 4000.0)
             if background:
                 submit_heartbeat(state_dir, f"m{i:03d}", time_s, cycles=int(time_s))
@@ -138,6 +151,9 @@ def test_first_cycles_do_not_hold_the_event_loop_for_the_disk(tmp_path: Path) ->
         assert saved["warm_lags"]["time_s"] == 2.0
         beat = json.loads(heartbeat_path(tmp_path / "off-loop", f"m{i:03d}").read_text())
         assert beat["time_s"] == 2.0 and beat["cycles"] == 2
+        reference = json.loads((tmp_path / "off-loop" / f"m{i:03d}-reference.json").read_text())
+        assert reference == {"reference_C": {n: 20.0 + r for n, r in RISES_C.items()},
+                             "taken_turning": False}  # fmt: skip
 
 
 #: A gateway's saving pattern at full speed: 40 machines, a lag-state save and a heartbeat

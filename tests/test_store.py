@@ -8,10 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from models import signing
 from models.data.dataset import load_runs
 from models.data.features import prepare
 from models.estimators.registry import METHODS, make_model
-from models.store import ModelStore, StoreError, _checksum, load_file
+from models.store import ModelStore, StoreError, _checksum, canonical_bytes, load_file
 from tests.synthetic import stored_document, write_runs_csv
 
 
@@ -56,11 +57,21 @@ def test_same_data_same_fingerprint_other_data_other(prepared, tmp_path: Path) -
 
 
 def rewrite(path: Path, change, fix_checksum: bool) -> None:
+    """``change`` the file; ``fix_checksum``: its checksum and signature made again, as a
+    holder of the key would write it (the checks after the signature's are tested)."""
     document = json.loads(path.read_text())
     change(document)
     if fix_checksum:
-        document["sha256"] = _checksum(document)
+        document = resealed(document, path.parent)
     path.write_text(json.dumps(document))
+
+
+def resealed(document: dict, store_dir: Path) -> dict:
+    """``document`` with its checksum and its signature (the store's key) made again."""
+    document = {k: v for k, v in document.items() if k != signing.FIELD}
+    document["sha256"] = _checksum(document)
+    key = signing.key_for_store(store_dir)
+    return signing.sign(document, key, canonical_bytes(document))
 
 
 def refusal(path: Path) -> str:

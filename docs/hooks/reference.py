@@ -129,8 +129,14 @@ def source_comments(model: type[BaseModel]) -> dict[str, str]:
         line = lines[tok.start[0] - 1]
         match = re.match(r"\s+(\w+)\s*:", line)
         if match and line.strip()[0] != "#":
-            comments[match.group(1)] = tok.string.lstrip("# ").strip()
+            text = TOOL_DIRECTIVE.split(tok.string, maxsplit=1)[0]
+            comments[match.group(1)] = text.lstrip("# ").strip()
     return comments
+
+
+#: Where a comment turns into an instruction to a type checker, linter or formatter
+#: (type-ignore, noqa, pragma, fmt markers): for tools, not for the reader of the reference.
+TOOL_DIRECTIVE = re.compile(r"#\s*(?:type:|noqa\b|pragma\b|fmt:)")
 
 
 def field_row(name: str, field: FieldInfo, comments: dict[str, str]) -> str:

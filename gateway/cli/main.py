@@ -23,10 +23,18 @@ import click
 from gateway import __version__
 from gateway.cli.options import (
     FiniteFloatRange,
+    config_option,
     input_errors_exit,
+    json_option,
+    log_level_option,
     parse_sensors,
+    progress_option,
     quantity_option,
+    reference_option,
     report_skipped,
+    sensors_option,
+    store_option,
+    target_option,
     write_json,
 )
 from models.catalogue import (
@@ -51,29 +59,32 @@ def main() -> None:
     """Spindle thermal-error gateway: fit, rank and store compensation models."""
 
 
+def method_option(flag: str, help: str, also: tuple[str, ...] = ()) -> Callable[..., Any]:
+    """``--method`` (fit) or ``--model`` (analyze, replay): a fitting method by name, into
+    the command's ``method`` parameter; ``also``: choices the command adds (``auto``)."""
+    return click.option(
+        flag,
+        "method",
+        type=click.Choice((*METHOD_NAMES, *also)),
+        default=DEFAULT_METHOD,
+        show_default=True,
+        help=help,
+    )
+
+
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@click.option(
-    "--method",
-    type=click.Choice(METHOD_NAMES),
-    default=DEFAULT_METHOD,
-    show_default=True,
-    help="The fitting method; the papers' methods (mlr, grey-mlr, pca-quadratic) by name.",
+@method_option(
+    "--method", "The fitting method; the papers' methods (mlr, grey-mlr, pca-quadratic) by name."
 )
-@click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
-@click.option("--sensors", help="Declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
+@target_option()
+@sensors_option()
 @click.option("--per-run", is_flag=True, help="One model per run, cross-evaluated on every run.")
 @click.option("--regime-column", help="Column that labels each run's speed regime.")
-@click.option(
-    "--reference",
-    type=click.Choice(POLICIES),
-    default="auto",
-    show_default=True,
-    help="Where rises are measured from (see models/data/references.py).",
-)
-@click.option("--store", "store_dir", type=click.Path(path_type=Path), required=True)
-@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
-@click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
+@reference_option(POLICIES)
+@store_option("The model store the fitted models are saved to.", required=True)
+@json_option()
+@progress_option()
 @quantity_option(
     "--sensor-accuracy-C",
     DEFAULT_SENSOR_ACCURACY_C,
@@ -84,6 +95,14 @@ def main() -> None:
     "--max-bias-error-um",
     DEFAULT_MAX_BIAS_ERROR_UM,
     "Warn when one sensor off by its accuracy moves the compensation by more (µm).",
+)
+@click.option(
+    "--collinearity",
+    type=click.Choice(["short", "full"]),
+    default="short",
+    show_default=True,
+    help="short: the condition number and the worst VIFs; full: every input's VIF and bias "
+    "sensitivity (the JSON always holds every input).",
 )
 @input_errors_exit
 def fit(
@@ -99,11 +118,15 @@ def fit(
     progress: bool | None,
     sensor_accuracy_C: float,
     max_bias_error_um: float,
+    collinearity: str,
 ) -> None:
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
     data, sensor_list = _load_reported(data_csv, target, sensors)
+    from models.data.recording_checks import refuse_constant_target
+
+    refuse_constant_target(data)
     # The fitting stack (scipy, scikit-learn) only once the file is known good.
     from gateway.offline.fit import FitRequest, run_fit
 
@@ -115,6 +138,7 @@ def fit(
         regime_column=regime_column,
         sensor_accuracy_C=sensor_accuracy_C,
         max_bias_error_um=max_bias_error_um,
+        collinearity=collinearity,
     )
     write_json(json_out, run_fit(data, request, click.echo, _warn))
 
@@ -126,12 +150,16 @@ def _warn(text: str) -> None:
 def _load_reported(
     data_csv: Path, target: str, sensors: str | None, sparse_target: bool = False
 ) -> tuple[Any, list[str] | None]:
-    """The runs of DATA_CSV (skipped rows and notes said on stderr) and the --sensors list."""
+    """The runs of DATA_CSV (skipped rows, notes and remarks on the whole recording said on
+    stderr) and the --sensors list."""
     from models.data.dataset import load_runs
+    from models.data.recording_checks import recording_remarks
 
     sensor_list = parse_sensors(sensors)
     data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=sparse_target)
     report_skipped(data)
+    for remark in recording_remarks(data):
+        _warn(f"warning: {remark}")
     return data, sensor_list
 
 
@@ -144,7 +172,7 @@ def _request(make: Callable[..., T], common: tuple[Any, ...], **options: Any) ->
 
 @main.command()
 @click.argument("sigma_csv", type=click.Path(path_type=Path))
-@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write the ranking.")
+@json_option("Write the ranking.")
 @click.option(
     "--tolerance-pct",
     type=FiniteFloatRange(min=0.0),
@@ -164,11 +192,11 @@ def regimes(sigma_csv: Path, json_out: Path | None, tolerance_pct: float) -> Non
 
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@click.option("--sensors", help="Temperature columns to test (default: every T<n>).")
+@sensors_option("Temperature columns to test (default: every T<n>).")
 @click.option("--alpha", type=FiniteFloatRange(0.0, 1.0, min_open=True), default=0.05)
 @quantity_option("--band-rpm", 100.0, "Speeds are grouped to the nearest multiple of this, r/min.")
-@click.option("--target", default="error_um", show_default=True)
-@click.option("--json", "json_out", type=click.Path(path_type=Path))
+@target_option()
+@json_option()
 @input_errors_exit
 def significance(
     data_csv: Path,
@@ -217,13 +245,8 @@ def significance(
     type=click.Path(path_type=Path),
     help="YAML overriding the machine's default parameters (simulator/machine.yaml).",
 )
-@click.option(
-    "--config",
-    "config_path",
-    type=click.Path(path_type=Path),
-    default=Path("config.yaml"),
-    show_default=True,
-    help="Without --record: serve the machine its 'simulator' section describes.",
+@config_option(
+    show_default=True, help="Without --record: serve the machine its 'simulator' section describes."
 )
 @click.option(
     "--probe-period-s",
@@ -340,9 +363,7 @@ def quiet_protocol_libraries() -> None:
 
 
 @main.command("check-config")
-@click.option(
-    "--config", "config_path", type=click.Path(path_type=Path), default=Path("config.yaml")
-)
+@config_option()
 @click.option("--connect", is_flag=True, help="Also try every CNC and transmitter once.")
 @input_errors_exit
 def check_config(config_path: Path, connect: bool) -> None:
@@ -356,15 +377,15 @@ def check_config(config_path: Path, connect: bool) -> None:
         click.echo(f"warning: {line}", err=True)
     # The runtime (protocol clients, the model stack) only once the file is known good:
     # a bad file is refused in well under a second.
-    from gateway.wiring import check_connections, load_bank
+    from gateway.wiring import check_connections, load_located_bank
 
-    for machine in config.machines:
-        bank = load_bank(machine)
+    for index, machine in enumerate(config.machines):
+        bank = load_located_bank(config, index)
         click.echo(
             f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
             f"{len(bank.models)} models in {machine.models.store} (target {bank.target}), "
             f"compensation → #{machine.compensation.macro} ({machine.compensation.unit}), "
-            f"{promotion_summary(machine)}"
+            f"{promotion_summary(machine)}, {signing_summary(machine)}"
         )
     if connect:
         problems = event_loop.run(check_connections(config), config.event_loop)
@@ -372,6 +393,16 @@ def check_config(config_path: Path, connect: bool) -> None:
             raise ValueError("; ".join(problems))
         click.echo("every CNC and transmitter answered")
     click.echo(f"{config_path}: ok")
+
+
+def signing_summary(machine) -> str:
+    """Where the key the machine's models are checked with is (models.signing)."""
+    from models import signing
+
+    key_file = signing.key_file_for_store(machine.models.store)
+    if key_file is None:
+        return f"models of {machine.models.store} unsigned (models.signing: false)"
+    return f"models signed, signing key {key_file}"
 
 
 def promotion_summary(machine) -> str:
@@ -387,12 +418,8 @@ def promotion_summary(machine) -> str:
 
 
 @main.command()
-@click.option(
-    "--config", "config_path", type=click.Path(path_type=Path), default=Path("config.yaml")
-)
-@click.option(
-    "--log-level", default="info", type=click.Choice(["debug", "info", "warning", "error"])
-)
+@config_option()
+@log_level_option("info")
 @input_errors_exit
 def run(config_path: Path, log_level: str) -> None:
     """Run the compensation loop for every machine in the configuration."""
@@ -442,9 +469,7 @@ def serve_config(config: GatewayConfig) -> None:
 
 
 @main.command()
-@click.option(
-    "--json", "json_out", type=click.Path(path_type=Path), help="Write the figures as JSON."
-)
+@json_option("Write the figures as JSON.")
 @click.option("--program", default="production-7", show_default=True, help="The unseen programme.")
 @click.option("--seed", type=click.IntRange(min=0), default=1, show_default=True)
 @click.option("--speedup", type=FiniteFloatRange(min=1), default=400.0, show_default=True)
@@ -452,9 +477,7 @@ def serve_config(config: GatewayConfig) -> None:
 @click.option(
     "--workdir", type=click.Path(path_type=Path), default=Path(".cache/demo"), show_default=True
 )
-@click.option(
-    "--log-level", default="warning", type=click.Choice(["debug", "info", "warning", "error"])
-)
+@log_level_option("warning")
 @click.option(
     "--effect",
     type=click.Choice(["thermal_lag", "speed_direct", "ambient", "drift", "cooler"]),
@@ -516,16 +539,14 @@ def parse_time_s(value: str | None) -> float | None:
 @click.option("--from", "start", help="Start (ISO 8601 or Unix s); default: the beginning.")
 @click.option("--to", "stop", help="End, exclusive (ISO 8601 or Unix s); default: now.")
 @click.option("--machine", help="Machine id (default: the only machine in the config).")
-@click.option(
-    "--config", "config_path", type=click.Path(path_type=Path), default=Path("config.yaml")
-)
+@config_option()
 @input_errors_exit
 def export(
     out_csv: Path, start: str | None, stop: str | None, machine: str | None, config_path: Path
 ) -> None:
     """Write logged data as a measured-run CSV (for fit and analyze)."""
     from gateway.config import load_config
-    from gateway.offline.export import ExportError, export_runs
+    from gateway.offline.export import ExportError, PointSource, export_runs
     from gateway.outputs.influx import InfluxReader
     from gateway.outputs.local_store import LocalStore
 
@@ -540,6 +561,7 @@ def export(
             f"no machine '{machine}' in {config_path} (machines: {', '.join(ids)})"
         )
     influx = config.logging.influxdb
+    source: PointSource
     if influx is not None:
         source = InfluxReader(
             influx.url_value(),
@@ -566,50 +588,36 @@ def export(
     if result.implausible_values:
         click.echo(
             f"note: {result.implausible_values} logged value(s) were not plausible for their unit "
-            "(NaN, infinite or out of range) and were left empty"
+            "(NaN, infinite or out of range) and were left empty",
+            err=True,
         )
     if result.rows_without_probe:
         click.echo(
-            f"note: {result.rows_without_probe} cycles had no probe measurement and were left out"
+            f"note: {result.rows_without_probe} cycles had no probe measurement and were left out",
+            err=True,
         )
 
 
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@click.option(
+@method_option(
     "--model",
-    "method",
-    type=click.Choice((*METHOD_NAMES, "auto")),
-    default=DEFAULT_METHOD,
-    show_default=True,
-    help="The declared model whose residual is analysed; auto: every one, keeping the one "
+    "The declared model whose residual is analysed; auto: every one, keeping the one "
     "whose analysis leaves the lowest held-out RMSE (that figure is then optimistic by the "
     "choice: add --nested for one that is not).",
+    also=("auto",),
 )
-@click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
-@click.option(
-    "--sensors", help="The model's declared temperature inputs, e.g. T1,T7 (default: every T<n>)."
-)
-@click.option(
-    "--reference",
-    type=click.Choice(POLICIES),
-    default="auto",
-    show_default=True,
-    help="Where rises are taken from (see models/data/references.py).",
-)
-@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@target_option()
+@sensors_option("The model's declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
+@reference_option(POLICIES)
+@json_option()
 @click.option(
     "--report",
     "report_dir",
     type=click.Path(path_type=Path),
     help="Write an HTML report with plots into this folder.",
 )
-@click.option(
-    "--store",
-    "store_dir",
-    type=click.Path(path_type=Path),
-    help="Save the augmented model here (sub-folder augmented/).",
-)
+@store_option("Save the augmented model here (sub-folder augmented/).")
 @quantity_option(
     "--tolerance-um",
     2.5,
@@ -629,7 +637,7 @@ def export(
     "the base) by an outer leave-one-run-out: every choice made without the run scored. "
     "One analysis per base and run: about a minute on fl_thermal.csv with --model auto.",
 )
-@click.option("--progress/--no-progress", default=None, help="Progress bars (default: on a TTY).")
+@progress_option()
 @input_errors_exit
 def analyze(
     data_csv: Path,
@@ -668,16 +676,9 @@ def analyze(
 
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@click.option("--target", default="error_um", show_default=True, help="Measured error column, µm.")
-@click.option(
-    "--model",
-    "method",
-    type=click.Choice(METHOD_NAMES),
-    default=DEFAULT_METHOD,
-    show_default=True,
-    help="The declared model (its sensors feed the base).",
-)
-@click.option("--sensors", help="Declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
+@target_option()
+@method_option("--model", "The declared model (its sensors feed the base).")
+@sensors_option()
 @click.option(
     "--base",
     type=click.Choice(["lagged", "declared"]),
@@ -706,14 +707,12 @@ def analyze(
     multiple=True,
     help="Filter kinds the nested choice may pick from (repeatable; default bias).",
 )
-@click.option(
-    "--store",
-    "store_dir",
-    type=click.Path(path_type=Path),
-    help="Save the lagged base fitted on every run, with its online-correction parameters "
-    "for the first interval, as an augmented model (sub-folder augmented/).",
+@store_option(
+    "Save the lagged base fitted on every run, with its online-correction parameters "
+    "for the first interval, as an augmented model (sub-folder augmented/)."
 )
-@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@json_option()
+@progress_option()
 @input_errors_exit
 def replay(
     data_csv: Path,
@@ -726,6 +725,7 @@ def replay(
     filter_kinds: tuple[str, ...],
     store_dir: Path | None,
     json_out: Path | None,
+    progress: bool | None,
 ) -> None:
     """Replay measured runs causally through the online probe correction, leave-one-run-out."""
     from gateway.offline.replay import run_replay
@@ -742,6 +742,8 @@ def replay(
         store_dir=store_dir,
         version=__version__,
         filter_kinds=filter_kinds,
+        progress=sys.stderr.isatty() if progress is None else progress,
+        note=_warn,
     )
     write_json(json_out, result)
 
@@ -754,14 +756,9 @@ def replay(
     required=True,
     help="A model file (fit or analyze --store), or a model id looked up in --store.",
 )
-@click.option(
-    "--store",
-    "store_dir",
-    type=click.Path(path_type=Path),
-    help="The model store to look --model up in (its augmented/ folder too).",
-)
-@click.option("--target", help="Measured error column, µm (default: the model's target).")
-@click.option("--json", "json_out", type=click.Path(path_type=Path), help="Write results as JSON.")
+@store_option("The model store to look --model up in (its augmented/ folder too).")
+@target_option("Measured error column, µm (default: the model's target).", default=None)
+@json_option()
 @input_errors_exit
 def score(
     data_csv: Path,
@@ -773,7 +770,9 @@ def score(
     """Apply a stored model to measured runs as the gateway would, without refitting."""
     from gateway.offline.score import score as score_model
 
-    write_json(json_out, score_model(data_csv, model_spec, store_dir, target, click.echo))
+    write_json(
+        json_out, score_model(data_csv, model_spec, store_dir, target, click.echo, note=_warn)
+    )
 
 
 def _add_models_group() -> None:

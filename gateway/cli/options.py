@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import wraps
 from pathlib import Path
 from typing import Any
@@ -63,6 +63,76 @@ def quantity_option(
         show_default=True,
         help=help,
     )
+
+
+Decorator = Callable[[Callable[..., Any]], Callable[..., Any]]
+
+#: The log levels ``run`` and ``demo`` take.
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def config_option(**changes: Any) -> Decorator:
+    """``--config``, the gateway's configuration file (``config.yaml`` unless changed;
+    ``default=None``: none)."""
+    settings: dict[str, Any] = {"type": click.Path(path_type=Path), "default": Path("config.yaml")}
+    return click.option("--config", "config_path", **_given({**settings, **changes}))
+
+
+def target_option(help: str = "Measured error column, µm.", **changes: Any) -> Decorator:
+    """``--target``, the measured thermal-error column of a measured-run CSV (``default=None``:
+    the command chooses)."""
+    settings: dict[str, Any] = {"default": "error_um", "show_default": True, "help": help}
+    settings.update(changes)
+    if settings["default"] is None:
+        settings["show_default"] = False
+    return click.option("--target", **_given(settings))
+
+
+def _given(settings: dict[str, Any]) -> dict[str, Any]:
+    """The settings but those given as None (click's own default then)."""
+    return {key: value for key, value in settings.items() if value is not None}
+
+
+def sensors_option(
+    help: str = "Declared temperature inputs, e.g. T1,T7 (default: every T<n>).",
+) -> Decorator:
+    """``--sensors``, a comma-separated list of temperature columns (:func:`parse_sensors`)."""
+    return click.option("--sensors", help=help)
+
+
+def reference_option(policies: Sequence[str]) -> Decorator:
+    """``--reference``, where rises are taken from (models/data/references.py)."""
+    return click.option(
+        "--reference",
+        type=click.Choice(list(policies)),
+        default="auto",
+        show_default=True,
+        help="Where rises are taken from (see models/data/references.py).",
+    )
+
+
+def json_option(help: str = "Write results as JSON.") -> Decorator:
+    """``--json FILE``, the command's result as JSON (:func:`write_json`)."""
+    return click.option("--json", "json_out", type=click.Path(path_type=Path), help=help)
+
+
+def store_option(help: str, **changes: Any) -> Decorator:
+    """``--store``, a model store folder."""
+    return click.option(
+        "--store", "store_dir", type=click.Path(path_type=Path), help=help, **changes
+    )
+
+
+def progress_option() -> Decorator:
+    """``--progress/--no-progress``: progress bars, on a TTY unless said."""
+    return click.option(
+        "--progress/--no-progress", default=None, help="Progress bars (default: on a TTY)."
+    )
+
+
+def log_level_option(default: str) -> Decorator:
+    """``--log-level``, the least level logged."""
+    return click.option("--log-level", default=default, type=click.Choice(LOG_LEVELS))
 
 
 def parse_sensors(value: str | None) -> list[str] | None:

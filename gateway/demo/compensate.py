@@ -175,7 +175,7 @@ async def demo(
         f"{unseen.duration_s / speedup:.0f} s)"
     )
     closed = await _compensate(plant, machine, clock, workdir, unseen.duration_s)
-    result = closed.trace.summary()
+    result: dict[str, Any] = dict(closed.trace.summary())
     result.update(
         {
             "program": program,
@@ -320,7 +320,7 @@ def run_monitor_phase(
     """The residual monitor over days of machine time (physics in-process), its proposal
     promoted as an operator would, and the next day without probes, with the online
     correction, and with the promoted model (peak and RMSE of each)."""
-    from gateway.demo.monitor_phase import monitor_phase
+    from gateway.demo.monitor_phase import correction_note, monitor_phase
 
     hidden = effect or "no hidden effect"
     say(
@@ -347,6 +347,8 @@ def run_monitor_phase(
         if key in result:
             figures = result[key]
             say(f"    {label:22s} peak {figures['peak_um']:6.2f}   RMSE {figures['rmse_um']:6.2f}")
+    for line in correction_note(result):
+        say(line)
     return result
 
 

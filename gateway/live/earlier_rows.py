@@ -44,6 +44,7 @@ class Compared:
     then_um: np.ndarray
     spans_s: np.ndarray
     rows: np.ndarray  # (n, p) rises of the earlier cycles, the model's sensors in order
+    index: np.ndarray  # where each earlier cycle is kept (for :meth:`EarlierRows.rises_of`)
 
 
 class EarlierRows:
@@ -56,6 +57,12 @@ class EarlierRows:
         self._model: object = None  # the model (and speed) the kept predictions are from
         self._speed: float | None = None
         self._start = self._end = 0
+        # One row per kept cycle, from _start to _end (made by _allocate).
+        self._times: np.ndarray
+        self._rows: np.ndarray
+        self._ok: np.ndarray  # every sensor trusted
+        self._predicted: np.ndarray
+        self._have: np.ndarray  # predicted kept
         self._allocate(_INITIAL_ROWS, 0)
 
     def __len__(self) -> int:
@@ -114,7 +121,17 @@ class EarlierRows:
             then_um=self._predicted[index],
             spans_s=now_s - self._times[index],
             rows=rows,
+            index=index,
         )
+
+    def rises_of(self, index: int) -> Mapping[str, float]:
+        """Every trusted rise of the earlier cycle kept at ``index`` (from :class:`Compared`)."""
+        return self._rises[index - self._start]
+
+    def clear(self) -> None:
+        """Forget every earlier cycle: the next one kept is the new reference."""
+        self._start = self._end
+        self._rises.clear()
 
     def _use(self, sensors: tuple[str, ...], model: object, speed_rpm: float | None) -> None:
         """Rebuild the rows for new sensors; forget predictions of another model or speed."""

@@ -46,11 +46,13 @@ from gateway.config import MachineSection
 from gateway.live.bank.lag_state import EffectStates, WarmLags
 from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.live.bank.promotion import Promotions
+from gateway.live.interval import assess
 from gateway.live.plausibility import Plausibility
 from gateway.live.quality import Quality, QualityMonitor
 from gateway.live.record import CycleRecord, Sink, sink_name
 from gateway.live.reference import TemperatureReference
 from gateway.live.scheduler import CycleScheduler, after_cycle
+from gateway.live.uncertainty_gate import UncertaintyGate
 from gateway.live.writeback import CompensationPolicy, Decision
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
@@ -103,7 +105,9 @@ class MachineLoop:
         self.selector = RegimeSelector(config.models.regimes.rules())
         reference = config.models.reference
         state_file = None if state_dir is None else state_dir / f"{config.id}-reference.json"
-        self.reference = TemperatureReference(reference.mode, reference.values_C, state_file)
+        self.reference = TemperatureReference(
+            reference.mode, reference.values_C, state_file, writer=STATE
+        )
         effect_file = None if state_dir is None else state_dir / f"{config.id}-effect-state.json"
         #: The promoted set of the store, swapped into the bank between cycles.
         self.promotions = Promotions(config, running=True)
@@ -112,6 +116,7 @@ class MachineLoop:
         self.effects = EffectStates(bank.augmented(), effect_file, warm=warm, writer=STATE)
         self.policy: CompensationPolicy | None = None
         self.compensation_enabled = config.compensation.enabled
+        self.uncertainty_gate = UncertaintyGate(config.id, config.compensation.when_uncertain)
         self.handshake = 0
         self.failed_writes = 0
         self.external_changes = 0
@@ -144,6 +149,7 @@ class MachineLoop:
     async def run_cycle(self) -> CycleRecord:
         self._swap_promoted()
         now = self.clock.now()
+        stamp_s = self.clock.stamp()  # the one wall time every output gives this cycle
         results, speed_rpm, errors = await self._read_inputs(now)
         self.link_errors += len(errors)
         readings = {
@@ -152,7 +158,7 @@ class MachineLoop:
         }
         checks = self.quality.check(now, readings, self.reference.values_C)
         good = {n for n, c in checks.items() if c.quality is Quality.GOOD}
-        good_values = {n: readings[n][0] for n in good if readings[n][0] is not None}
+        good_values = {n: value for n in good if (value := readings[n][0]) is not None}
         self.reference.observe(good_values, speed_rpm)
         self.plausibility.reference_turning = self.reference.taken_turning
         augmented_um = self.effects.advance(
@@ -195,7 +201,15 @@ class MachineLoop:
             written_cnc=None,
             write_status="",
             link_errors=errors,
+            stamp_s=stamp_s,
         )
+        bad = sum(1 for c in checks.values() if c.quality is not Quality.GOOD)
+        interval = assess(
+            banked, predicted, self.reference.available_rises_C(good_values), speed_rpm, bad
+        )
+        record.interval_um = interval.half_width_um
+        record.training_span = interval.span
+        record.outside_inputs = interval.outside_inputs
         corrected = self._corrected(now, banked, predicted, record)
         await self._compensate(now, corrected, record)
         await self._write_alive(record)
@@ -260,16 +274,15 @@ class MachineLoop:
         self, now: float
     ) -> tuple[dict[str, ChannelResult], float | None, list[str]]:
         bus_reads = [bus.read_all(now) for bus in self.buses]
-        outcomes = await read_together(bus_reads, self.cnc.read_speed())
+        outcomes, speed = await read_together(bus_reads, self.cnc.read_speed())
         results: dict[str, ChannelResult] = {}
         failures: dict[str, str] = {}  # source → what failed
-        for bus_config, outcome in zip(self.config.transmitters, outcomes[:-1], strict=True):
+        for bus_config, outcome in zip(self.config.transmitters, outcomes, strict=True):
             if isinstance(outcome, BaseException):
                 failures[f"bus {bus_config.name}"] = str(outcome)
                 continue
             results.update(outcome)
             failures.update({f"sensor {r.sensor}": r.error for r in outcome.values() if r.error})
-        speed = outcomes[-1]
         speed_rpm = None
         if isinstance(speed, BaseException):
             failures["CNC"] = str(speed)
@@ -349,6 +362,8 @@ class MachineLoop:
             record.write_status = self._status(f"disabled: #{comp.macro} held at {held_text}")
             return
         write_s = self.clock.now()
+        predicted = self.uncertainty_gate.aim(predicted, record.interval_um, policy.applied_um)
+        record.uncertain = self.uncertainty_gate.active
         decision = policy.decide(write_s, predicted, enabled=self.compensation_enabled)
         record.target_um = decision.target_um
         if not decision.write:
@@ -695,13 +710,13 @@ class MachineLoop:
 
 async def read_together(
     bus_reads: Sequence[Awaitable[T]], speed_read: Awaitable[S]
-) -> list[T | S | BaseException]:
+) -> tuple[list[T | BaseException], S | BaseException]:
     """Await the reads concurrently, as ``gather(..., return_exceptions=True)`` does.
 
     The speed read runs in the calling task and only the bus reads get tasks of
     their own: one task fewer per machine and cycle than ``gather`` (which also
-    adds a gathering future and its callbacks). Outcomes come in the order given,
-    the speed last; an ``Exception`` is returned in its place, a cancellation
+    adds a gathering future and its callbacks). The buses' outcomes come in the order
+    given, then the speed's; an ``Exception`` is returned in its place, a cancellation
     cancels every read and propagates.
     """
     tasks = [asyncio.ensure_future(read) for read in bus_reads]
@@ -710,7 +725,7 @@ async def read_together(
             speed: S | BaseException = await speed_read
         except Exception as exc:
             speed = exc
-        outcomes: list[T | S | BaseException] = []
+        outcomes: list[T | BaseException] = []
         for task in tasks:
             try:
                 outcomes.append(await task)
@@ -719,8 +734,7 @@ async def read_together(
     finally:
         for task in tasks:
             task.cancel()  # a no-op on the finished ones
-    outcomes.append(speed)
-    return outcomes
+    return outcomes, speed
 
 
 class _StopGuard:

@@ -47,12 +47,31 @@ most::
 
     max_prediction_rate_um_per_s · Δt + prediction_noise_um
 
-A prediction that moves faster is not used. The sensor responsible is the one
-whose rise, put back to its earlier value, undoes most of the jump; it is held
-BAD as above ("implausible: moved the prediction …") and the cycle predicts with
-the model without it (so the policy does not fall back to hold-and-ramp). It is
-released by rule 1, or, where rule 1 cannot run, after ``plausibility_recover_s``
-of good per-sensor checks. The earlier cycles' rows and predictions are kept
+Both ends are predicted by the same model: every earlier cycle is predicted again
+with this cycle's model, so a switch between regimes' models, or to the fallback
+without a sensor, is never a move. A move past the bound is put on a sensor only
+for a step of its own (:mod:`gateway.live.step_blame`): its change over the span
+disagrees with what its neighbours' changes say (the relation without its
+intercept, at rule 1's threshold; without a relation, a change past
+``sigma × min_sigma_C`` that fewer than half of the others share), and with its
+rise put back to its earlier value the move is within the bound. The step is
+looked for against the latest earlier cycle past the bound, then the one most
+past it. Of the sensors meeting both, the one whose rise put back leaves the
+smallest move is held BAD as above ("implausible: moved the prediction …") and
+the cycle predicts with the model without it (so the policy does not fall back
+to hold-and-ramp).
+
+A move that is no sensor's own step (heat the sensors agree on, the noise of a
+fallback with large coefficients, a step most sensors share after a restart of
+the transmitters or a re-zero) holds nobody: the prediction is used, and the
+bound forgets the earlier cycles and counts from this one (logged, at most once
+per ``RATE_HORIZON_S``, with how many sensors moved together). A sensor held for
+a step that its neighbours have since shared (its change since the cycle it was
+judged from is still past the noise floor and now agrees with theirs) is
+trusted again at once; otherwise it is released by rule 1, or, where rule 1
+cannot run, after ``plausibility_recover_s`` of good per-sensor checks.
+
+The earlier cycles' rows and predictions are kept
 from cycle to cycle (:mod:`gateway.live.earlier_rows`): the rule's cost does not
 grow with the time the machine has run. Augmented models (lag states) are not
 bounded this way: their speed terms legitimately step with the speed. Rates are per second
@@ -101,6 +120,14 @@ import numpy as np
 from gateway.limits import PlausibilityLimits
 from gateway.live.bank.model_bank import Banked, BankedModel, ModelBank
 from gateway.live.earlier_rows import EarlierRows
+from gateway.live.step_blame import (
+    Attribution,
+    attribute,
+    changes,
+    is_own_step,
+    jump_floor_C,
+    own_step_z,
+)
 from models.base import ModelInputs
 from models.estimators.sensor_relations import SensorRelations
 
@@ -152,6 +179,9 @@ class _Hold:
     since_s: float
     reason: str
     agree_since_s: float | None = None
+    #: Held by the rate bound: the trusted rises of the earlier cycle its step was
+    #: measured from (the step is judged shared, or not, against them).
+    then_C: Mapping[str, float] | None = None
 
 
 class WarmStarts:
@@ -159,30 +189,39 @@ class WarmStarts:
 
     A gateway restarted mid-shift with a new state folder finds every machine
     warm: one line per machine would be a thousand at a thousand machines. The
-    machines noted within ``delay_s`` of the first (their first cycles run
-    together) are logged as one line with their count.
+    line is said once no machine has been noted for ``delay_s`` (a thousand first
+    cycles under load take longer than any fixed delay after the first), and at the
+    latest ``max_wait_s`` after the first, with the count of the machines noted.
     """
 
-    def __init__(self, delay_s: float = 2.0, shown: int = 5) -> None:
+    def __init__(self, delay_s: float = 2.0, shown: int = 5, max_wait_s: float = 60.0) -> None:
         self.delay_s = delay_s
         self.shown = shown
+        self.max_wait_s = max_wait_s
         self.machines: list[str] = []
-        self._pending = False
+        self._first_s: float | None = None
+        self._timer: asyncio.TimerHandle | None = None
 
     def note(self, machine: str) -> None:
         self.machines.append(machine)
-        if self._pending:
-            return
         try:
             loop = asyncio.get_running_loop()
         except RuntimeError:  # no event loop (plain calls): say it now
             self.flush()
             return
-        self._pending = True
-        loop.call_later(self.delay_s, self.flush)
+        now = loop.time()
+        if self._first_s is None:
+            self._first_s = now
+        if self._timer is not None:
+            self._timer.cancel()
+        self._timer = loop.call_at(
+            min(now + self.delay_s, self._first_s + self.max_wait_s), self.flush
+        )
 
     def flush(self) -> None:
-        self._pending = False
+        if self._timer is not None:
+            self._timer.cancel()
+        self._first_s, self._timer = None, None
         names, self.machines = self.machines, []
         if not names:
             return
@@ -242,6 +281,10 @@ class Plausibility:
         self.largest_sound_z = 0.0
         #: Rule 2's earlier cycles, their rows and predictions kept (cost flat in run time).
         self._earlier = EarlierRows(RATE_HORIZON_S)
+        #: Moves past the bound that were no sensor's own step (the bound re-referenced).
+        self.re_references = 0
+        self._re_references_logged = 0
+        self._re_referenced_s: float | None = None
 
     @classmethod
     def for_machine(
@@ -383,6 +426,9 @@ class Plausibility:
             hold.agree_since_s = None
             hold.reason = f"implausible: {z:+.1f}σ from its neighbours ({said})"
             return
+        if self._step_shared(sensor, {**others, sensor: value_C}):
+            self._release(sensor, "shares its step with its neighbours now")
+            return
         if hold.agree_since_s is None:
             hold.agree_since_s = now_s
         agreed_s = now_s - hold.agree_since_s
@@ -398,22 +444,52 @@ class Plausibility:
         """Without relations: a held sensor with good values is trusted after recover_s."""
         for sensor in [s for s in self.holds if s in rises_C]:
             hold = self.holds[sensor]
+            others = {s: v for s, v in rises_C.items() if s not in self.holds}
+            if self._step_shared(sensor, {**others, sensor: rises_C[sensor]}):
+                self._release(sensor, "shares its step with its neighbours now")
+                continue
             if hold.agree_since_s is None:
                 hold.agree_since_s = now_s
             if now_s - hold.agree_since_s >= self.limits.recover_s:
                 self._release(sensor)
 
-    def _hold(self, now_s: float, sensor: str, reason: str) -> None:
-        self.holds[sensor] = _Hold(since_s=now_s, reason=reason)
+    def _hold(
+        self,
+        now_s: float,
+        sensor: str,
+        reason: str,
+        then_C: Mapping[str, float] | None = None,
+    ) -> None:
+        self.holds[sensor] = _Hold(since_s=now_s, reason=reason, then_C=then_C)
         self.flags += 1
         log.warning("%s: sensor %s is bad: %s", self.machine, sensor, reason)
 
-    def _release(self, sensor: str) -> None:
+    def _step_shared(self, sensor: str, now_C: Mapping[str, float]) -> bool:
+        """Whether the step the rate bound held ``sensor`` for is its neighbours' too by now.
+
+        Its change since the earlier cycle it was judged from must still be a step
+        (past the noise floor: a spike that went away is not "shared", it waits for
+        ``recover_s``) and agree with its trusted neighbours' changes over the same
+        span: a restart or a re-zero they followed, never a fault of its own.
+        """
+        then_C = self.holds[sensor].then_C
+        if then_C is None or sensor not in then_C:
+            return False
+        moved_C = changes(now_C, then_C)
+        if abs(moved_C[sensor]) <= jump_floor_C(self.limits):
+            return False
+        z = own_step_z(self.relations, self.limits, sensor, moved_C)
+        if z is not None:
+            return abs(z) <= AGREE_SHARE * self.limits.sigma
+        return not is_own_step(None, self.limits, sensor, moved_C)[0]
+
+    def _release(self, sensor: str, why: str = "agrees again") -> None:
         hold = self.holds.pop(sensor)
         log.info(
-            "%s: sensor %s agrees again; trusted (held since %.0f s)",
+            "%s: sensor %s %s; trusted (held since %.0f s)",
             self.machine,
             sensor,
+            why,
             hold.since_s,
         )
 
@@ -425,7 +501,8 @@ class Plausibility:
         rises_C: Mapping[str, float],
         speed_rpm: float | None,
     ) -> Suspect | None:
-        """Blame (and hold) the sensor that moves a plain model's prediction too fast, if any."""
+        """Blame (and hold) the sensor whose own step moves a plain model's prediction too
+        fast, if any; a move that is no sensor's own step re-references the bound."""
         if not isinstance(banked, BankedModel):
             return None
         model = banked.model
@@ -433,24 +510,62 @@ class Plausibility:
         if any(s not in rises_C for s in sensors) or (model.uses_speed and speed_rpm is None):
             return None
         now_x = np.array([rises_C[s] for s in sensors])
-        found = self._fastest_move(now_s, banked, sensors, now_x, speed_rpm)
-        if found is None:
+        moves = self._fastest_move(now_s, banked, sensors, now_x, speed_rpm)
+        if not moves:
             return None
-        moved_um, span_s, then_x = found
-        # Put each sensor back to its earlier rise in turn: the one that undoes most is to blame.
-        rows = np.tile(now_x, (len(sensors), 1))
-        rows[np.arange(len(sensors)), np.arange(len(sensors))] = then_x
-        undone = _predict(banked, sensors, np.vstack([now_x, rows]), speed_rpm)
-        left_um = np.abs(undone[1:] - (undone[0] - moved_um))
-        sensor = sensors[int(np.argmin(left_um))]
+        verdict, move = Attribution(None, ""), moves[0]
+        for move in moves:
+            verdict = attribute(
+                self.relations,
+                self.limits,
+                sensors,
+                rises_C,
+                move[2],
+                self._allowed_um(move[1]),
+                lambda rows: _predict(banked, sensors, rows, speed_rpm),
+            )
+            if verdict.sensor is not None:
+                break
+        moved_um, span_s, then_C = move
+        if verdict.sensor is None:
+            self._re_reference(now_s, moved_um, span_s, verdict, len(changes(rises_C, then_C)))
+            return None
         reason = (
             f"implausible: moved the prediction {moved_um:+.1f} µm in {span_s:.0f} s "
             f"(bound {self._allowed_um(span_s):.1f} µm: "
             f"{self.limits.max_prediction_rate_um_per_s:g} µm/s + "
             f"{self.limits.prediction_noise_um:g} µm)"
         )
-        self._hold(now_s, sensor, reason)
-        return Suspect(sensor, reason)
+        self._hold(now_s, verdict.sensor, reason, then_C)
+        return Suspect(verdict.sensor, reason)
+
+    def _re_reference(
+        self, now_s: float, moved_um: float, span_s: float, verdict: Attribution, known: int
+    ) -> None:
+        """No sensor's own step: forget the earlier cycles, this one is the new reference.
+
+        Logged once per RATE_HORIZON_S at most (a model with large coefficients can
+        do it now and then from noise alone), with the count since the last line.
+        """
+        self._earlier.clear()
+        self.re_references += 1
+        if self._re_referenced_s is not None and now_s - self._re_referenced_s < RATE_HORIZON_S:
+            return
+        since = self.re_references - self._re_references_logged
+        self._re_referenced_s, self._re_references_logged = now_s, self.re_references
+        log.info(
+            "%s: the prediction moved %+.1f µm in %.0f s (bound %.1f µm) but no sensor stepped "
+            "on its own (%d of %d sensors moved together; %s): nobody held, the rate bound "
+            "counts from this cycle (%d such move(s) since the last line)",
+            self.machine,
+            moved_um,
+            span_s,
+            self._allowed_um(span_s),
+            verdict.together,
+            known,
+            verdict.account,
+            since,
+        )
 
     def _fastest_move(
         self,
@@ -459,13 +574,17 @@ class Plausibility:
         sensors: tuple[str, ...],
         now_x: np.ndarray,
         speed_rpm: float | None,
-    ) -> tuple[float, float, np.ndarray] | None:
-        """(moved µm, over s, the earlier rises) of the earlier cycle most past the bound.
+    ) -> list[tuple[float, float, Mapping[str, float]]]:
+        """(moved µm, over s, that cycle's trusted rises) of the earlier cycles past the
+        bound a step is looked for against: the latest one past it (a sudden step
+        stands alone there, apart from what came before it), then the one most past it.
 
         Every earlier cycle in the horizon is predicted at this cycle's model and
-        speed; the predictions are kept from cycle to cycle while those are
-        unchanged (:mod:`gateway.live.earlier_rows`), so the cost does not grow
-        with the horizon's length. None: no earlier cycle is past the bound.
+        speed: the same model at both ends, so a switch of model (to a fallback
+        without a sensor, or between regimes) is never a move. The predictions
+        are kept from cycle to cycle while those are unchanged
+        (:mod:`gateway.live.earlier_rows`), so the cost does not grow with the
+        horizon's length. Empty: no earlier cycle is past the bound.
         """
         model = banked.model
         compared = self._earlier.compare(
@@ -477,15 +596,19 @@ class Plausibility:
             lambda rows: _predict(banked, sensors, rows, speed_rpm),
         )
         if compared is None:
-            return None
+            return []
         spans_s = compared.spans_s
         moved = compared.now_um - compared.then_um
         excess = np.abs(moved) - self._allowed_um(spans_s)
         excess[np.isnan(excess)] = -np.inf  # a NaN prediction blames nobody
         worst = int(np.argmax(excess))  # the first of equal ones, as a scan would take
         if not excess[worst] > 0:
-            return None
-        return float(moved[worst]), float(spans_s[worst]), compared.rows[worst]
+            return []
+        latest = int(np.flatnonzero(excess > 0)[-1])
+        return [
+            (float(moved[k]), float(spans_s[k]), self._earlier.rises_of(int(compared.index[k])))
+            for k in dict.fromkeys((latest, worst))
+        ]
 
     def accept(
         self, now_s: float, rises_C: Mapping[str, float], speed_rpm: float | None = None

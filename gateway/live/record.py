@@ -2,6 +2,11 @@
 
 Apart from the loop (:mod:`gateway.live.loop`) so that the outputs, the SCADA server,
 the Sparkplug node and the web console can take a record without importing the loop.
+
+A record carries two times: ``time_s``, machine time (monotonic on the wall clock: what
+the loop schedules and computes rates on), and ``stamp_s``, the wall time taken once
+at the cycle's start, which every output stamps the cycle with (see
+:mod:`drivers.clock`).
 """
 
 from __future__ import annotations
@@ -31,6 +36,23 @@ class CycleRecord:
     probe_error_um: float | None = None  # a new probe measurement of the real error, µm
     correction_um: float | None = None  # online correction added to predicted_um, µm
     probe_refused: bool = False  # the online correction refused this cycle's probe value
+    #: half-width of the calibrated interval around predicted_um, µm (None: unknown);
+    #: see gateway/live/interval.py
+    interval_um: float | None = None
+    #: "inside" / "outside" the model's training span, None when unknown
+    training_span: str | None = None
+    outside_inputs: list[str] = field(default_factory=list)  # inputs outside the span
+    #: compensation.when_uncertain held or scaled this cycle's aim
+    uncertain: bool = False
+    #: The wall time of the cycle's start (Unix s, :meth:`drivers.clock.Clock.stamp`), taken
+    #: once: every output stamps the cycle with it. None: a record made without one, whose
+    #: outputs take ``time_s``.
+    stamp_s: float | None = None
+
+    @property
+    def stamped_s(self) -> float:
+        """The time every output gives this cycle: its wall stamp, else its machine time."""
+        return self.time_s if self.stamp_s is None else self.stamp_s
 
 
 Sink = Callable[[CycleRecord], None]

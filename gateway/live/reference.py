@@ -13,6 +13,12 @@ fitted on the error as measured, whose reference is the model's own intercept
 (the stored ``error_reference``), and the loop compensates the prediction as it
 is, from the start of the recording to its end, whatever the spindle did first.
 
+In a running gateway the file is written by the state writer's thread
+(:data:`gateway.process.file_writer.STATE`, atomic with ``fsync``, as the lag states):
+a thousand machines taking their first reading in the same cycle at a first start
+made a thousand ``fsync`` calls on the event loop, each holding every other machine's
+cycle (17 ms each on a busy disk). A save that fails is tried again next cycle.
+
 The file also marks whether the first readings were taken with the spindle
 turning (``taken_turning``): a warm reference, which the sensor plausibility
 check must judge differently (:mod:`gateway.live.plausibility`) at this start and at
@@ -29,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gateway.process.file_writer import FileWriter
 from models.data.unit_ranges import TEMPERATURE_C, first_implausible
 from models.json_files import write_json_atomic
 
@@ -36,11 +43,22 @@ log = logging.getLogger(__name__)
 
 
 class TemperatureReference:
-    def __init__(self, mode: str, fixed_C: Mapping[str, float], state_file: Path | None) -> None:
+    def __init__(
+        self,
+        mode: str,
+        fixed_C: Mapping[str, float],
+        state_file: Path | None,
+        writer: FileWriter | None = None,
+    ) -> None:
+        """``writer``: saves are handed to its thread (the event loop does not wait for
+        the disk; the loop's close waits for the writer); without one, saved in place."""
         self.mode = mode
         self.state_file = state_file
+        self.writer = writer
         self.values_C: dict[str, float] = dict(fixed_C)
         self._unsaved = False  # first readings taken that the file does not hold yet
+        self._revision = 0  # counts the changes, so a save in flight knows if it is the last
+        self._handed_over: int | None = None  # the revision with the writer now
         self._save_failing = False
         #: Whether the first readings were taken with the spindle turning (None: unknown).
         self.taken_turning: bool | None = None
@@ -65,6 +83,7 @@ class TemperatureReference:
                 self.taken_turning = abs(self._start_speed_rpm[0]) > 0
             self.values_C.update(new)
             self._unsaved = True
+            self._revision += 1
         if self._unsaved:
             self._save()
 
@@ -81,29 +100,50 @@ class TemperatureReference:
         return {s: v - self.values_C[s] for s, v in readings_C.items() if s in self.values_C}
 
     def _save(self) -> None:
-        """Write the reference; a full or failing disk keeps it in memory, named once, and
-        the next cycle tries again (the loop goes on compensating meanwhile)."""
+        """Write the reference (or hand it to the writer); a full or failing disk keeps it
+        in memory, named once, and the next cycle tries again (the loop goes on
+        compensating meanwhile)."""
         if self.state_file is None:
             self._unsaved = False
             return
-        try:
-            document: dict[str, object] = {"reference_C": self.values_C}
-            if self.taken_turning is not None:
-                document["taken_turning"] = self.taken_turning
-            write_json_atomic(self.state_file, document, sort_keys=True)
-        except OSError as exc:
+        document: dict[str, object] = {"reference_C": self.values_C}
+        if self.taken_turning is not None:
+            document["taken_turning"] = self.taken_turning
+        revision = self._revision
+        if self.writer is None:
+            try:
+                write_json_atomic(self.state_file, document, sort_keys=True)
+            except OSError as exc:
+                self._saved(revision, exc)
+                return
+            self._saved(revision, None)
+            return
+        if self._handed_over == revision:
+            return  # on its way to the disk: its outcome decides
+        # The text is taken now; a newer one handed over before this is written replaces it.
+        self._handed_over = revision
+        text = json.dumps(document, indent=2, sort_keys=True, ensure_ascii=False) + "\n"
+        self.writer.submit(self.state_file, text, lambda _path, error: self._saved(revision, error))
+
+    def _saved(self, revision: int, error: OSError | None) -> None:
+        """How the save of ``revision`` ended (in the writer's thread with a writer)."""
+        if self._handed_over == revision:
+            self._handed_over = None
+        if error is not None:
             if not self._save_failing:
                 log.error(
                     "%s: cannot save the cold reference (%s); it is kept in memory and saved "
                     "once the disk allows: a restart before that takes a new one",
                     self.state_file,
-                    exc.strerror or exc,
+                    error.strerror or error,
                 )
                 self._save_failing = True
             return
         if self._save_failing:
             log.info("%s: the cold reference is saved now", self.state_file)
-        self._unsaved = self._save_failing = False
+        self._save_failing = False
+        if revision == self._revision:
+            self._unsaved = False
 
 
 def read_saved_reference(state_file: Path) -> dict[str, float]:

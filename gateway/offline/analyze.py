@@ -52,6 +52,7 @@ def run_analyze(
 ) -> AnalysisResult:
     """Analyse ``data`` as ``request`` says, print the report; the result (its JSON)."""
     prepared, fit_rows = _prepared(data, request)
+    data_with_readings = None if fit_rows is not None else data
     data = prepared.data  # the readings of the sensors are let go: their rises are kept
     known = "" if fit_rows is None else f" ({int(fit_rows.sum())} with {request.target})"
     say(
@@ -73,8 +74,19 @@ def run_analyze(
         tolerance_um=request.tolerance_um,
         nested=outer,
     )
+    forward = _forward(method, prepared, data_with_readings, request, result)
+    result = replace(result, forward=forward)
     say(text_report(result))
-    if request.store_dir is not None:
+    if result.forward is not None:
+        say(_forward_text(result.forward))
+    if request.store_dir is not None and result.effects and not accepted:
+        # Found by refitting lag-ridge with the effect as an input (models.analysis.inside):
+        # the stored form (a base's prediction plus effect terms) cannot hold that model.
+        say(
+            f"not saved: {', '.join(result.effects)} was found inside the lag-ridge base, "
+            "which the augmented-model store cannot hold yet; analyze --model mlr stores one"
+        )
+    elif request.store_dir is not None:
         model_id = f"{method}-{request.target}-" + ("-".join(result.effects) or "none")
         document = augmented.build_augmented_document(
             analysis, accepted, result, model_id, __version__
@@ -125,3 +137,46 @@ def _analyse(
     }
     result = replace(kept.result, base_choice=base_choice)
     return method, result, kept.accepted, kept.analysis
+
+
+def _forward(
+    method: str,
+    prepared: Prepared,
+    data: MeasuredRuns | None,
+    request: AnalyzeRequest,
+    result: AnalysisResult,
+) -> dict[str, object] | None:
+    """The base model's forward figure and how it compares with its leave-one-run-out
+    figure (``result``'s before) (None with ``--probe-rows`` or too few runs)."""
+    from models.estimators.registry import make_model
+    from models.fit.forward import disagreement, forward_validate
+
+    if data is None:
+        return None
+
+    def factory():
+        return make_model(method, request.sensors)
+
+    forward = forward_validate(factory, prepared, data, request.sensors)
+    if forward is None:
+        return None
+    agreement = disagreement(forward, result.predicted_before_um, result.measured_um, result.run)
+    return {
+        **forward.as_dict(),
+        "model": method,
+        "of": "the base model, fitted as fit fits it (no effect added)",
+        "against_loro": agreement.as_dict(),
+        "note": agreement.sentence(),
+    }
+
+
+def _forward_text(forward: dict) -> str:
+    """Two lines: the base's forward figure per unit, and how it compares with LORO."""
+    units = ", ".join(f"{k} {v['rmse_um']:.2f}" for k, v in forward["per_fold"].items())
+    pooled = forward["pooled"]["rmse_um"]
+    prefix = "warning: " if forward["against_loro"]["disagree"] else ""
+    return (
+        f"forward ({forward['model']} base, each later {forward['unit']} predicted by a model "
+        f"fitted on the earlier ones, started as a new recording): {pooled:.2f} µm "
+        f"(RMSE µm: {units})\n{prefix}{forward['note']}"
+    )

@@ -16,6 +16,7 @@ from gateway import __version__
 from gateway.offline.tables import accuracy_table, sigma_matrix_table
 from models.data.dataset import MeasuredRuns
 from models.data.features import Prepared, prepare
+from models.fit.forward import Forward
 from models.fit.ranking import format_report
 from models.fit.workflow import FitOutcome, fit_and_store
 from models.store import ModelStore
@@ -36,6 +37,7 @@ class FitRequest:
     regime_column: str | None
     sensor_accuracy_C: float
     max_bias_error_um: float
+    collinearity: str = "short"  # "full": every input's VIF and bias sensitivity
 
 
 def run_fit(
@@ -58,6 +60,7 @@ def run_fit(
         progress=request.progress,
         software_version=__version__,
         sensor_accuracy_C=request.sensor_accuracy_C,
+        data_with_readings=data,
     )
     _say_outcome(outcome, request, say, warn)
     return {
@@ -69,6 +72,10 @@ def run_fit(
         "ranking": outcome.ranking.as_json() if outcome.ranking else None,
         "saved": {k: str(v) for k, v in outcome.saved.items()},
         "conditioning": {k: c.as_dict() for k, c in outcome.conditioning.items()},
+        "forward": {
+            g: {**f.as_dict(), "against_loro": outcome.agreement[g].as_dict()}
+            for g, f in outcome.forward.items()
+        },
     }
 
 
@@ -98,6 +105,14 @@ def _say_outcome(
     for group, validation in outcome.validations.items():
         say(f"\n{request.method} [{group}] — {validation.scheme}")
         say(accuracy_table(validation))
+        forward = outcome.forward.get(group)
+        if forward is not None:
+            say(f"\n{request.method} [{group}] — {forward_label(forward)}")
+            say(accuracy_table(forward))
+            agreement = outcome.agreement[group]
+            (warn if agreement.disagree else say)(
+                ("warning: " if agreement.disagree else "") + agreement.sentence()
+            )
     if outcome.sigma_rows:
         say("\nσ (µm) of each run's model (rows) on each run (columns):")
         say(sigma_matrix_table(outcome.sigma_rows))
@@ -106,7 +121,7 @@ def _say_outcome(
     for model_id, text in outcome.summaries.items():
         say(f"\n{model_id}: {text}")
     for model_id, conditioning in outcome.conditioning.items():
-        say(f"\n{model_id} {conditioning.table()}")
+        say(f"\n{model_id} {conditioning.table(request.collinearity == 'full')}")
         if conditioning.worst_single_um > request.max_bias_error_um:
             warn(
                 f"warning: {model_id}: a bias of ±{request.sensor_accuracy_C:g} °C on "
@@ -116,3 +131,11 @@ def _say_outcome(
             )
     for model_id, path in outcome.saved.items():
         say(f"saved {model_id} → {path}")
+
+
+def forward_label(forward: Forward) -> str:
+    """The forward scheme in a few words, for the table's heading."""
+    return (
+        f"forward: each later {forward.unit} predicted by a model fitted on the earlier ones "
+        "only, started as a new recording"
+    )

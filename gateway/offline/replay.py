@@ -12,6 +12,7 @@ from models.analysis import augmented
 from models.data.dataset import MeasuredRuns, load_runs
 from models.data.features import Prepared, prepare
 from models.fit.metrics import accuracy
+from models.online import declared_fits
 from models.online.replay import (
     DEFAULT_KINDS,
     filter_choice,
@@ -58,11 +59,14 @@ def run_replay(
     store_dir: Path | None = None,
     version: str = "unknown",
     filter_kinds: Sequence[str] = (),
+    progress: bool = False,
+    note: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6.
 
     ``filter_kinds``: the kinds the nested choice may pick; none given means
-    ``DEFAULT_KINDS`` (models/online/replay.py)."""
+    ``DEFAULT_KINDS`` (models/online/replay.py). ``note``: where notes on the data go
+    (default ``say``; the command gives stderr)."""
     filter_kinds = tuple(filter_kinds) or DEFAULT_KINDS
     if store_dir is not None and method == "lag-ridge":  # refused before the long replay
         raise ValueError(
@@ -75,7 +79,7 @@ def run_replay(
         document = augmented.load(augmented_file)
         method = document["base"]["method"]
         base = "augmented"
-    data = _load_replayable(data_csv, target, sensors, intervals_min, say)
+    data = _load_replayable(data_csv, target, sensors, intervals_min, note or say)
     prepared = prepare(data, sensors)
     described = "lagged lag-ridge" if base == "lagged" and method == "lag-ridge" else base
     say(
@@ -83,7 +87,9 @@ def run_replay(
         f"model {method}; base: {BASE_DESCRIPTIONS[described]}"
     )
     if document is not None and Path(document["provenance"]["source_file"]).name == data_csv.name:
-        say(SAME_FILE_NOTE)
+        (note or say)(SAME_FILE_NOTE)
+    if base == "declared":  # every base fit of every interval, once, on every core
+        declared_fits.prefill(prepared, method, sensors, progress)
     offline = offline_accuracy(prepared, method, sensors)
     online = [
         replay_interval(
@@ -94,11 +100,13 @@ def run_replay(
             sensors=sensors,
             document=document,
             kinds=filter_kinds,
+            progress=progress,
         )
         for m in intervals_min
     ]
     rows = [r.as_dict() for r in online]
     _say_table(method, offline, rows, say)
+    _say_interval(offline.get("interval"), say)
     stored = None
     if store_dir is not None:
         if base != "lagged":
@@ -130,12 +138,14 @@ def _load_replayable(
     target: str,
     sensors: Sequence[str] | None,
     intervals_min: Sequence[float],
-    say: Callable[[str], None],
+    note: Callable[[str], None],
 ) -> MeasuredRuns:
     """The runs of DATA_CSV, refused when no interval would take a single probe."""
     data = load_runs(data_csv, target=target, sensors=sensors)
     for skipped in data.skipped:
-        say(f"note: {skipped.describe()}")
+        note(f"note: {skipped.describe()}")
+    for text in data.notes:
+        note(f"note: {data.source}: {text}")
     longest_min = max(
         (data.time_s[part][-1] - data.time_s[part][0]) / 60.0 for _, part in data.run_slices()
     )
@@ -173,6 +183,22 @@ def _say_table(
         say(f"chosen without the held-out run, probe every {row['probe_interval_min']:g} min:")
         for run, figures in row["per_run"].items():
             say(f"  {run:<14} {figures['rmse_um']:6.2f} µm  {describe_choice(figures['chosen'])}")
+
+
+def _say_interval(interval: dict[str, Any] | None, say: Callable[[str], None]) -> None:
+    """The declared model's interval: coverage of each held-out run (width calibrated on the
+    other runs) and pooled."""
+    if interval is None:
+        say("interval: too few held-out rows to calibrate one")
+        return
+    pooled = interval["heldout_coverage"]
+    covered = "n/a" if pooled is None else f"{pooled:.1%}"
+    say(
+        f"interval {interval['nominal_coverage']:.0%} (no probes): ±{interval['half_width_um']:.2f}"
+        f" µm, coverage {covered} pooled over the held-out runs"
+    )
+    for run, row in interval["per_run_coverage"].items():
+        say(f"  {run:<14} coverage {row['coverage']:6.1%}  width {row['mean_width_um']:6.2f} µm")
 
 
 def store_lagged(

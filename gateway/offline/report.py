@@ -25,6 +25,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -237,7 +238,7 @@ def _step_signal_plot(
     fig = _new_figure(8.0, 5.0)
     ax = fig.subplots()
     ax.axhline(0.0, color="0.6", lw=0.6)
-    style = {"s": 4, "alpha": 0.35, "linewidths": 0}
+    style: dict[str, Any] = {"s": 4, "alpha": 0.35, "linewidths": 0}
     ax.scatter(signal[rows], before[rows], color=BEFORE_COLOUR, label="before this step", **style)
     ax.scatter(
         signal[rows], after[rows], color=AFTER_COLOUR, label=_plain(f"after: + {name}"), **style

@@ -32,9 +32,11 @@ import numpy as np
 from gateway.live.bank.model_bank import Banked, BankedAugmented, BankedModel
 from models.analysis import augmented
 from models.base import ModelInputs
-from models.data.dataset import AMBIENT_COLUMN, load_runs
+from models.data.dataset import AMBIENT_COLUMN, HEADER_LINE, DataError, load_runs, read_header
 from models.data.features import Prepared, prepare
 from models.data.references import first_rows
+from models.data.unit_ranges import SENSOR_PATTERN
+from models.fit.interval import coverage, span_excess, widened_um
 from models.fit.metrics import accuracy
 from models.store import FORMAT as PLAIN_FORMAT
 from models.store import ModelStore, StoreError, load_file
@@ -54,6 +56,8 @@ class ScoredModel:
     training_range: dict[str, Any] | None
     fitted_on: str  # the training file and runs, for the header line
     heldout_rmse_um: float | None  # the held-out figure stored at fit time
+    #: the calibrated interval stored at fit time (:mod:`models.fit.interval`); None: unknown
+    interval: dict[str, Any] | None = None
 
 
 def find_model(spec: str, store_dir: Path | None) -> Path:
@@ -67,7 +71,8 @@ def find_model(spec: str, store_dir: Path | None) -> Path:
             f"--model {spec}: no such model file; give --store DIR to look a model id up"
         )
     if not store_dir.is_dir():
-        raise ValueError(f"--store {store_dir}: no such folder")
+        what = "is a file" if store_dir.exists() else "no such folder"
+        raise ValueError(f"--store {store_dir}: {what}; a model store folder was expected")
     for candidate in (
         ModelStore(store_dir).path_of(spec),
         store_dir / augmented.FOLDER / f"{spec}.json",
@@ -115,6 +120,7 @@ def _plain(path: Path) -> ScoredModel:
         training_range=document.training_range,
         fitted_on=f"{training.file} (runs {', '.join(training.runs)})",
         heldout_rmse_um=pooled.get("rmse_um"),
+        interval=document.interval,
     )
 
 
@@ -181,6 +187,22 @@ def streamed(banked: BankedAugmented, prepared: Prepared) -> np.ndarray:
     return out
 
 
+def _require_model_sensors(data_csv: Path, scored: ScoredModel) -> None:
+    """Refuse a file without a sensor the model reads, naming the model (the sensors are
+    the model's, not a --sensors list the user gave)."""
+    names = read_header(data_csv)
+    missing = [s for s in needed_sensors(scored) if s not in names]
+    if missing:
+        present = [n for n in names if SENSOR_PATTERN.match(n)]
+        raise DataError(
+            data_csv,
+            HEADER_LINE,
+            missing[0],
+            f"the model {scored.banked.model_id} reads sensor(s) {', '.join(missing)}, "
+            f"which this file lacks (its temperature columns: {', '.join(present) or 'none'})",
+        )
+
+
 def run_figures(prepared: Prepared, predicted: np.ndarray) -> dict[str, dict[str, float | int]]:
     """RMSE, σ and max|e| (µm) of each run, then of every row pooled."""
     measured = prepared.error_um
@@ -194,6 +216,42 @@ def run_figures(prepared: Prepared, predicted: np.ndarray) -> dict[str, dict[str
         raise ValueError("the model predicted no row of this file (an input missing throughout)")
     figures["pooled"] = accuracy(measured[known], predicted[known]).as_dict()
     return figures
+
+
+def half_widths(scored: ScoredModel, prepared: Prepared) -> np.ndarray | None:
+    """The interval's half-width at every row (µm), widened as the live loop widens it for
+    inputs outside the training span; None when the model holds no calibration."""
+    if scored.interval is None:
+        return None
+    inputs = prepared.inputs
+    stored = scored.training_range or {}
+    out = np.empty(inputs.n_samples)
+    for k in range(inputs.n_samples):
+        rises = dict(zip(inputs.sensors, map(float, inputs.rise_C[k]), strict=True))
+        excess, _ = span_excess(stored, rises, float(inputs.speed_rpm[k]))
+        out[k] = widened_um(scored.interval, excess, 0)
+    return out
+
+
+def interval_figures(
+    scored: ScoredModel, prepared: Prepared, predicted: np.ndarray
+) -> dict[str, Any] | None:
+    """Coverage (share of rows inside predicted ± half-width) and mean width, µm, per run
+    and pooled; None when the model holds no calibration (interval unknown)."""
+    widths = half_widths(scored, prepared)
+    if widths is None or scored.interval is None:
+        return None
+    measured = prepared.error_um
+    per_run = {
+        run_id: coverage(measured[rows], predicted[rows], widths[rows])
+        for run_id, rows in prepared.data.run_slices()
+    }
+    return {
+        "nominal_coverage": scored.interval.get("nominal_coverage"),
+        "half_width_um_stored": scored.interval.get("half_width_um"),
+        "per_run": per_run,
+        "pooled": coverage(measured, predicted, widths),
+    }
 
 
 def excursions(scored: ScoredModel, prepared: Prepared) -> list[Excursion]:
@@ -211,20 +269,28 @@ def score(
     store_dir: Path | None,
     target: str | None,
     say: Callable[[str], None],
+    note: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """Score the model on DATA_CSV; print the table and notes; return the JSON result."""
+    """Score the model on DATA_CSV; print the table (``say``) and the notes on the data
+    (``note``, default ``say``: the command gives stderr); return the JSON result."""
+    note = note or say
     scored = load_model(find_model(model_spec, store_dir))
     target = target or scored.target
+    _require_model_sensors(Path(data_csv), scored)
     data = load_runs(data_csv, target=target, sensors=needed_sensors(scored))
     if scored.banked.sensors & {AMBIENT_COLUMN} and data.ambient_C is None:
         raise ValueError(f"{data_csv}: the model needs an {AMBIENT_COLUMN} column; there is none")
     for skipped in data.skipped:
-        say(f"note: {skipped.describe()}")
+        note(f"note: {skipped.describe()}")
+    for text in data.notes:
+        note(f"note: {data.source}: {text}")
     prepared = prepare(data, needed_sensors(scored), scored.policy)
-    figures = run_figures(prepared, predictions(scored, prepared))
+    predicted = predictions(scored, prepared)
+    figures = run_figures(prepared, predicted)
     found = excursions(scored, prepared)
-    for line in report_lines(scored, prepared, figures, found):
-        say(line)
+    interval = interval_figures(scored, prepared, predicted)
+    for line in report_lines(scored, prepared, figures, found) + interval_lines(interval):
+        (note if line.startswith("note:") else say)(line)
     return {
         "model_id": scored.banked.model_id,
         "model_file": str(scored.path),
@@ -239,7 +305,23 @@ def score(
         "heldout_rmse_um_at_fit": scored.heldout_rmse_um,
         "training_range_stored": scored.training_range is not None,
         "outside_training": [e.as_dict() for e in found],
+        "interval": interval,
     }
+
+
+def interval_lines(interval: dict[str, Any] | None) -> list[str]:
+    """The interval's coverage per run and pooled, or a note that the model holds none."""
+    if interval is None:
+        return ["note: the model file holds no calibrated interval: its width is unknown"]
+    nominal = float(interval["nominal_coverage"])
+    header = f"{'interval':<16} {'rows':>6} {'coverage':>8} {'width µm':>9}"
+    lines = [f"{header}  (nominal {nominal:.0%})"]
+    rows = {**interval["per_run"], "pooled": interval["pooled"]}
+    for name, row in rows.items():
+        lines.append(
+            f"{name:<16} {row['n_samples']:>6} {row['coverage']:8.1%} {row['mean_width_um']:9.2f}"
+        )
+    return lines
 
 
 def report_lines(

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from models.fit.crossval import Validation
+from models.fit.forward import Forward
 from models.fit.ranking import SigmaRow, sigma_matrix
 
 
@@ -22,7 +23,7 @@ def render(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     return "\n".join(lines)
 
 
-def accuracy_table(validation: Validation) -> str:
+def accuracy_table(validation: Validation | Forward) -> str:
     rows = [
         [fold, f"{a.rmse_um:.2f}", f"{a.sigma_um:.2f}", f"{a.max_abs_um:.2f}", str(a.n_samples)]
         for fold, a in validation.per_fold.items()

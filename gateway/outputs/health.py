@@ -4,8 +4,9 @@ Every reader takes them from :func:`machine_health` (through
 :meth:`gateway.wiring.Gateway.health`): the SCADA server's ``Machines/<id>/Health``
 nodes (:func:`scalar_counters`), the heartbeat file the container's health check
 reads (:class:`gateway.outputs.sinks.Outputs`), the console's overview row and the
-Sparkplug node's ``Health/…`` metrics (:func:`integer_counters`). Each counter is
-therefore named and computed once, and the readers cannot disagree.
+Sparkplug devices' ``Health/…`` metrics (:func:`integer_counters`; the node's own are
+:func:`gateway_counters`). Each counter is therefore named and computed once, and the
+readers cannot disagree.
 
 The mapping, by source (keys are part of the public contracts):
 
@@ -80,6 +81,13 @@ def machine_health(loop: Any, supervisor: Supervised, forwarder: Forwarder | Non
         **supervisor_counters(supervisor),
         **forwarder_counters(forwarder),
     }
+
+
+def gateway_counters(forwarder: Forwarder | None) -> dict[str, int]:
+    """The process's own integer counters, not any one machine's (the Sparkplug node's
+    ``Health/…`` metrics of NBIRTH and NDATA): the forwarder's, which every machine's
+    health also repeats."""
+    return integer_counters(forwarder_counters(forwarder))
 
 
 def scalar_counters(health: Mapping[str, Any]) -> dict[str, int | float | str | bool]:

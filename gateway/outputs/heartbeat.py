@@ -11,7 +11,10 @@ with::
 
 ``wall_time`` is the wall clock (``time.time()``, s since the epoch) of the
 process that wrote it, so another process (the checker) can compare it with its
-own clock; ``time_s`` is the loop's machine time, kept for the record only.
+own clock; ``time_s`` is the time the cycle's outputs carry (its logged points, its
+Sparkplug data: in the plant the wall time of the cycle's start, with a simulated
+clock machine time), kept for the record only. In the plant the two differ by the
+cycle's length, also after a step of the system clock or a pause of the host.
 ``health`` holds the machine's counters since the gateway started (the same
 ones SCADA shows under ``Machines/<id>/Health``).
 
@@ -69,7 +72,7 @@ def write_heartbeat(
     wall_time: float | None = None,
     health: Mapping[str, Any] | None = None,
 ) -> Path:
-    """Record that ``machine_id``'s loop completed a cycle at machine time ``time_s``.
+    """Record that ``machine_id``'s loop completed a cycle stamped ``time_s``.
 
     The file is written to a temporary name in the same directory and renamed
     over the old one, so a reader sees the old or the new heartbeat, never half

@@ -47,8 +47,10 @@ The server's other answers are read too (docs/reliability/influxdb.md):
   halved at once (no wait) until the server takes it, down to one point; the
   smaller size is kept for the rest of the run (``batch_limit`` in
   :meth:`Forwarder.health`). A single point the server still refuses as too large
-  is dropped, logged at ERROR and counted in ``too_large`` (and ``rejected``), and
-  the batch size goes back to the last one the server took.
+  is dropped and counted in ``too_large`` (and ``rejected``), and the batch size goes
+  back to the last one the server took. Its size is remembered
+  (:mod:`gateway.outputs.oversized`): later points that large are dropped without a
+  request, and a run of such drops is one episode, logged once at ERROR.
 - Every other failure (5xx, 401/403/404, timeouts, refused connections) keeps the
   batch and retries after the back-off. Each distinct cause of an outage (its HTTP
   status, or the kind of connection error) is logged once at WARNING with its
@@ -68,13 +70,13 @@ import time
 from collections.abc import Sequence
 from typing import Protocol
 
-from influxdb_client import InfluxDBClient, WritePrecision
-from influxdb_client import Point as InfluxPoint
+from influxdb_client import InfluxDBClient
 from influxdb_client.client.write_api import SYNCHRONOUS
 from influxdb_client.rest import ApiException
 
 from drivers.backoff import Backoff
 from gateway.outputs.disk_buffer import PointBuffer
+from gateway.outputs.oversized import OversizedPoints, Row, to_influx
 from gateway.outputs.points import Point
 from gateway.process.supervision import Supervised
 
@@ -123,15 +125,6 @@ class WriteRejectedError(WriteError):
     def __init__(self, message: str, status: int, dropped: int | None = None) -> None:
         super().__init__(message, status)
         self.dropped = dropped
-
-
-def to_influx(point: Point) -> InfluxPoint:
-    influx = InfluxPoint(point.measurement)
-    for key, value in point.tags.items():
-        influx.tag(key, value)
-    for key, value in point.fields.items():
-        influx.field(key, value)
-    return influx.time(point.time_ns, WritePrecision.NS)
 
 
 def _describe(exc: BaseException) -> str:
@@ -212,9 +205,8 @@ class InfluxWriter:
             return
         records = [to_influx(p) for p in points]
         try:
-            self._write_api.write(
-                bucket=self.bucket, org=self.org, record=records, write_precision=WritePrecision.NS
-            )
+            # Each point carries its precision (ns), which the client groups points by.
+            self._write_api.write(bucket=self.bucket, org=self.org, record=records)
         except ApiException as exc:
             raise _api_error(exc, self.url, len(points)) from exc
         except Exception as exc:  # urllib3 connection errors, timeouts, …
@@ -359,6 +351,7 @@ class Forwarder:
         self._stable_limit = batch
         self._last_ok_limit: int | None = None  # limit of the last write, if acknowledged
         self._told_too_large = False  # the first 413 is logged at WARNING, the rest at DEBUG
+        self.oversized = OversizedPoints()  # lone points refused as too large, by size
         self.last_error: str | None = None
         self.last_error_time: float | None = None
         self.last_success_time: float | None = None
@@ -426,23 +419,34 @@ class Forwarder:
             if not batch:
                 await self._idle(self.idle_s)
                 continue
+            send, oversized = self.oversized.split(batch)
             try:
-                await self.writer.write([point for _, point in batch])
+                if send:
+                    await self.writer.write([point for _, point in send])
             except WriteRejectedError as exc:
-                self._refused(batch, exc)
+                self._refused(batch, oversized, exc)
             except WriteTooLargeError as exc:
-                self._too_large(batch, exc)
+                self._too_large(send, exc)
             except Exception as exc:
                 await self._failed(exc)
             else:
-                self._acknowledged(batch)
+                self._acknowledged(batch, len(send), oversized)
 
-    def _acknowledged(self, batch: list[tuple[int, Point]]) -> None:
+    def _remove(self, batch: list[Row], oversized: list[Row]) -> None:
+        """Remove a batch that is done with; count and log its points known to be too large."""
         self.buffer.remove_through(batch[-1][0])
-        self.sent += len(batch)
+        self.too_large += len(oversized)
+        self.rejected += len(oversized)
+        self.oversized.dropped(oversized)
+
+    def _acknowledged(self, batch: list[Row], sent: int, oversized: list[Row]) -> None:
+        self._remove(batch, oversized)
+        self.sent += sent
+        self.oversized.write_acknowledged()
         self.last_success_time = time.time()
         self.backoff.reset()
-        self._settle(self.batch_limit)
+        if sent:
+            self._settle(self.batch_limit)
         if self._down:
             log.info("InfluxDB writes succeed again; %d point(s) buffered", len(self.buffer))
             self._down = False
@@ -455,40 +459,31 @@ class Forwarder:
             self._stable_limit = limit
         self._last_ok_limit = limit
 
-    def _refused(self, batch: list[tuple[int, Point]], exc: WriteRejectedError) -> None:
+    def _refused(self, batch: list[Row], oversized: list[Row], exc: WriteRejectedError) -> None:
         """Invalid points (HTTP 400/422): drop the batch, it would fail for ever."""
-        self.rejected += len(batch) if exc.dropped is None else exc.dropped
+        sent = len(batch) - len(oversized)
+        self.rejected += sent if exc.dropped is None else exc.dropped
         self._record_error(exc)
-        log.error("dropping %d point(s) InfluxDB refused: %s", len(batch), exc)
-        self.buffer.remove_through(batch[-1][0])
+        log.error("dropping %d point(s) InfluxDB refused: %s", sent, exc)
+        self._remove(batch, oversized)
 
-    def _too_large(self, batch: list[tuple[int, Point]], exc: WriteTooLargeError) -> None:
-        """HTTP 413: halve the batch at once; drop a single point that is still too large."""
+    def _too_large(self, send: list[Row], exc: WriteTooLargeError) -> None:
+        """HTTP 413: halve the batch at once; a single point still too large is remembered
+        by its size, and dropped with the others that large by the next :meth:`run` pass."""
         self._record_error(exc)
         self._last_ok_limit = None
-        if len(batch) > 1:
+        if len(send) > 1:
             log.log(
                 logging.DEBUG if self._told_too_large else logging.WARNING,
                 "InfluxDB refused a batch of %d point(s) as too large (%s); halving it",
-                len(batch),
+                len(send),
                 exc,
             )
             self._told_too_large = True
-            self.batch_limit = max(1, len(batch) // 2)
+            self.batch_limit = max(1, len(send) // 2)
             return
-        _, point = batch[0]
-        self.too_large += 1
-        self.rejected += 1
+        self.oversized.refused_alone(send[0][1], str(exc))
         self.batch_limit = self._stable_limit  # the points behind it fit as before
-        log.error(
-            "dropping one %s point (machine %s, time %d ns) InfluxDB refuses as too large "
-            "even alone: %s",
-            point.measurement,
-            point.tags.get("machine", "?"),
-            point.time_ns,
-            exc,
-        )
-        self.buffer.remove_through(batch[-1][0])
 
     async def _failed(self, exc: Exception) -> None:
         """Keep the batch; wait the back-off, or the server's Retry-After when longer."""

@@ -72,7 +72,8 @@ CREATE TABLE IF NOT EXISTS samples (
     tags_extra TEXT NOT NULL,
     time_ns INTEGER NOT NULL,
     speed_rpm REAL, predicted_um REAL, target_um REAL, applied_um REAL, written_cnc REAL,
-    correction_um REAL, write_status TEXT, link_errors INTEGER, value_C REAL, reason TEXT,
+    correction_um REAL, interval_um REAL, training_span TEXT, outside_inputs TEXT,
+    write_status TEXT, link_errors INTEGER, value_C REAL, reason TEXT,
     error_um REAL, fields_extra TEXT,
     PRIMARY KEY ({", ".join(_KEY)})
 ) WITHOUT ROWID;

@@ -5,6 +5,9 @@ Every :class:`~gateway.live.loop.CycleRecord` becomes:
 * one ``spindle_cycle`` point — tags ``machine`` (+ ``regime``, ``model_id`` when
   known); fields ``speed_rpm``, ``predicted_um``, ``target_um``, ``applied_um``,
   ``written_cnc`` (the value written to the CNC macro, in the CNC's unit),
+  ``interval_um`` (half-width of the calibrated interval around ``predicted_um``, when
+  known), ``training_span`` (text: inside / outside) with ``outside_inputs`` (text: the
+  inputs outside the model's training span, comma-separated, empty when inside),
   ``write_status`` (text) and ``link_errors`` (how many sources failed);
 * one ``spindle_temperature`` point per sensor — tags ``machine``, ``sensor``,
   ``quality``; field ``value_C``, and for a sensor that is not good, field ``reason``
@@ -22,10 +25,12 @@ the quality flips from it) would not show the sensor going bad. Float fields are
 written as floats, so a whole number never turns a float field into an integer
 one (InfluxDB refuses a field whose type changes).
 
-Timestamps: ``time_ns = round((epoch_s + time_s) × 1e9)``, where ``time_s`` is the
-machine clock of the record and ``epoch_s`` the real time (Unix seconds) that
-machine time 0 stands for. Two points are the same point when measurement, tags
-and ``time_ns`` agree (InfluxDB's identity), which is what makes re-sending safe.
+Timestamps: ``time_ns = round((epoch_s + t) × 1e9)``, where ``t`` is the record's
+stamp (:attr:`~gateway.live.record.CycleRecord.stamped_s`: in the plant the wall time
+of the cycle's start, the time every output gives the cycle; else its machine time)
+and ``epoch_s`` the real time (Unix seconds) that time 0 stands for. Two points are
+the same point when measurement, tags and ``time_ns`` agree (InfluxDB's identity),
+which is what makes re-sending safe.
 """
 
 from __future__ import annotations
@@ -46,11 +51,16 @@ NS_PER_S = 1_000_000_000
 
 @dataclass(frozen=True)
 class Point:
-    """One time-series point: what InfluxDB stores as measurement, tags, fields, time."""
+    """One time-series point: what InfluxDB stores as measurement, tags, fields, time.
+
+    A field may be None only in the Sparkplug node's backlog, where a metric without a
+    value travels as a null; the cycle's points for InfluxDB and the local store leave
+    such a field out.
+    """
 
     measurement: str
     tags: dict[str, str]
-    fields: dict[str, FieldValue]
+    fields: Mapping[str, FieldValue | None]
     time_ns: int
 
     @property
@@ -98,7 +108,7 @@ def _floats(**values: float | None) -> dict[str, FieldValue]:
 def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]:
     """The points of one cycle: its ``spindle_cycle`` point, then one per sensor that has
     a value or is not good."""
-    time_ns = to_time_ns(record.time_s, epoch_s)
+    time_ns = to_time_ns(record.stamped_s, epoch_s)
     tags = {"machine": record.machine}
     if record.regime:
         tags["regime"] = record.regime
@@ -111,7 +121,11 @@ def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]
         applied_um=record.applied_um,
         written_cnc=record.written_cnc,
         correction_um=record.correction_um,
+        interval_um=record.interval_um,
     )
+    if record.training_span is not None:
+        fields["training_span"] = record.training_span
+        fields["outside_inputs"] = ",".join(record.outside_inputs)
     fields["write_status"] = record.write_status
     fields["link_errors"] = len(record.link_errors)
     points = [Point(CYCLE_MEASUREMENT, tags, fields, time_ns)]

@@ -17,23 +17,23 @@ written.
 - Retention: every ``logging.retention_interval_s`` the store (or buffer) deletes
   what is past its age or over its size (gateway/outputs/local_store.py: typed Parquet
   parts after a SQLite open period; disk_buffer.py: a bounded SQLite ring, sqlite_ring.py).
-- Timestamps: in the plant (``clock`` given, running on wall time) points carry
-  ``time.time_ns()`` of the cycle's start, so an NTP correction of the system
-  clock is followed; the loops keep scheduling on the monotonic clock.
+- Timestamps: every point, and the heartbeat's ``time_s``, carry the record's one
+  stamp (:attr:`CycleRecord.stamped_s`): in the plant the wall time taken at the
+  cycle's start, so an NTP correction or a step of the system clock is followed and
+  the Sparkplug node stamps the same cycle with the same time; the loops keep
+  scheduling on the monotonic clock.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import logging
 import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from drivers.clock import Clock
 from gateway.config import GatewayConfig
 from gateway.live.record import CycleRecord
 from gateway.outputs.disk_buffer import PointBuffer
@@ -66,11 +66,9 @@ class Outputs:
         self,
         config: GatewayConfig,
         health: HealthProvider | None = None,
-        wall_clock: Clock | None = None,
     ) -> None:
         self.config = config
         self.health = health
-        self.wall_clock = wall_clock
         section = config.logging
         self.forwarder: Forwarder | None = None
         self.buffer: PointBuffer | None = None
@@ -119,13 +117,6 @@ class Outputs:
         assert self.store is not None
         return self.store.enforce_retention(now_ns)
 
-    def _stamped(self, points: list[Point], record: CycleRecord) -> list[Point]:
-        if self.wall_clock is None:
-            return points
-        elapsed_ns = round((self.wall_clock.now() - record.time_s) * 1e9)
-        time_ns = time.time_ns() - elapsed_ns
-        return [dataclasses.replace(p, time_ns=time_ns) for p in points]
-
     def _write(self, points: list[Point]) -> None:
         if self.buffer is not None:
             self.buffer.append(points)
@@ -144,8 +135,7 @@ class Outputs:
         """Log the record's points (and any probe value) to the buffer or the local store."""
         points = points_from_record(record)
         if record.probe_error_um is not None:
-            points.append(probe_point(record.machine, record.time_s, record.probe_error_um))
-        points = self._stamped(points, record)
+            points.append(probe_point(record.machine, record.stamped_s, record.probe_error_um))
         self._write(points)
         if time.monotonic() >= self._next_retention:
             self.enforce_retention(points[0].time_ns)
@@ -157,7 +147,7 @@ class Outputs:
         submit_heartbeat(
             self.state_dir,
             record.machine,
-            record.time_s,
+            record.stamped_s,
             cycles=self._cycles[record.machine],
             health=None if self.health is None else self.health(record.machine),
             done=self._heartbeat_written,

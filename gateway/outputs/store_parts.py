@@ -89,9 +89,11 @@ def _summary(path: Path) -> tuple[int, int | None, int | None]:
     """Rows, first and last time of a written part."""
     db = duckdb.connect()
     try:
-        rows, first, last = db.execute(
+        found = db.execute(
             f"SELECT count(*), min(time_ns), max(time_ns) FROM read_parquet('{path}')"
         ).fetchone()
+        assert found is not None  # an aggregate always has its one row
+        rows, first, last = found
     finally:
         db.close()
     return int(rows), first, last
@@ -190,7 +192,8 @@ def read_history(
     """The history rows of ``files`` for one measurement (and machine), by time."""
     if not files:
         return []
-    where, params = ["measurement = ?"], [measurement]
+    where: list[str] = ["measurement = ?"]
+    params: list[object] = [measurement]
     for clause, value in (("machine = ?", machine), ("time_ns >= ?", start_ns)):
         if value is not None:
             where.append(clause)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
+from typing import cast
 
 from gateway.outputs.points import FieldValue, Point
 
@@ -26,13 +27,23 @@ FLOAT_FIELDS = (
     "applied_um",
     "written_cnc",
     "correction_um",
+    "interval_um",
     "value_C",
     "error_um",
 )
 INT_FIELDS = ("link_errors",)
-TEXT_FIELDS = ("write_status", "reason")
+TEXT_FIELDS = ("training_span", "outside_inputs", "write_status", "reason")
 #: In the order the gateway writes them (a point read back lists them so).
-FIELDS = (*FLOAT_FIELDS[:6], "write_status", "link_errors", "value_C", "reason", "error_um")
+FIELDS = (
+    *FLOAT_FIELDS[:7],
+    "training_span",
+    "outside_inputs",
+    "write_status",
+    "link_errors",
+    "value_C",
+    "reason",
+    "error_um",
+)
 #: Every column in order: measurement, the tags, the time, the fields, the JSON rest.
 COLUMNS = ("measurement", *TAGS, "tags_extra", "time_ns", *FIELDS, "fields_extra")
 TIME_INDEX = COLUMNS.index("time_ns")
@@ -47,7 +58,7 @@ _TAG_SET = frozenset(TAGS)
 Row = tuple[object, ...]
 
 
-def _fits(kind: str, value: FieldValue) -> bool:
+def _fits(kind: str, value: object) -> bool:
     if kind == "float":
         return type(value) is float and math.isfinite(value)
     if kind == "int":
@@ -61,7 +72,7 @@ def _json(data: dict) -> str | None:
 
 _SLOT = {name: i for i, name in enumerate(COLUMNS)}
 _FLOAT_SLOT = {name: _SLOT[name] for name in FLOAT_FIELDS}
-_EMPTY = ["", *[""] * len(TAGS), "", 0, *[None] * len(FIELDS), None]
+_EMPTY: list[object] = ["", *[""] * len(TAGS), "", 0, *[None] * len(FIELDS), None]
 
 
 def row_of(point: Point) -> Row:
@@ -82,15 +93,15 @@ def row_of(point: Point) -> Row:
     if extra_tags:
         row[TIME_INDEX - 1] = _json(dict(sorted(extra_tags.items())))
     extra_fields = None
-    for name, value in point.fields.items():
+    for name, field in point.fields.items():
         slot = _FLOAT_SLOT.get(name)
-        if slot is not None and type(value) is float and value - value == 0.0:  # finite
-            row[slot] = value
-        elif name in _KIND and slot is None and _fits(_KIND[name], value):
-            row[_SLOT[name]] = value
+        if slot is not None and type(field) is float and field - field == 0.0:  # finite
+            row[slot] = field
+        elif name in _KIND and slot is None and _fits(_KIND[name], field):
+            row[_SLOT[name]] = field
         else:
             extra_fields = extra_fields or {}
-            extra_fields[name] = value
+            extra_fields[name] = field
     if extra_fields:
         row[-1] = _json(extra_fields)
     return tuple(row)
@@ -106,7 +117,12 @@ def point_of(row: Sequence[object]) -> Point:
         if value is None or (isinstance(value, float) and math.isnan(value)):
             continue
         kind = _KIND[name]
-        fields[name] = float(value) if kind == "float" else int(value) if kind == "int" else value
+        if kind == "float":
+            fields[name] = float(cast(float, value))
+        elif kind == "int":
+            fields[name] = int(cast(int, value))
+        else:
+            fields[name] = str(value)
     if row[-1]:
         fields.update(json.loads(str(row[-1])))
-    return Point(str(row[0]), tags, fields, int(row[TIME_INDEX]))  # type: ignore[arg-type]
+    return Point(str(row[0]), tags, fields, int(cast(int, row[TIME_INDEX])))

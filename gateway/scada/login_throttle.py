@@ -2,21 +2,32 @@
 
 An OPC UA client can open sessions as fast as the handshakes allow (about 7 a
 second on loopback), and each one is a password guess. The throttle keeps, for
-each *key* — a remote address and a user name are separate keys — the failed
-logins of the last ``window_s``. The ``max_failures``-th failure within that
-window locks the key for ``lockout_s``; every further lockout of the same key
-doubles, up to ``max_lockout_s``. While a key is locked, every login through it
-is refused without looking at the password, the right one included, so guesses
-made during a lockout teach nothing. A key that has failed nothing for
-``forget_s`` starts over; a successful login clears its keys.
+each *key* — a user name, and a remote address — the failed logins of the last
+``window_s``:
 
-Keying on the user name as well as the address means a client cannot rotate
-addresses to keep guessing one account. It also means anyone who can reach the
-server can lock an account out for a while; the lockout is bounded and every
-lockout is logged, and the shift can log in again when it ends.
+* a user name is locked by the ``max_failures``-th failure within that window,
+  from whatever addresses (a client cannot rotate addresses to keep guessing one
+  account);
+* an address is locked only when its failures within that window name
+  ``max_failures`` different users (one client trying password after password on
+  account after account). One person mistyping their own password at a shared
+  terminal locks their account, not the terminal: a colleague at the same address
+  still logs in with theirs.
 
-The throttle is pure bookkeeping on an injected clock (``now``, seconds); the
-SCADA server calls it from its user manager.
+A lock lasts ``lockout_s``; every further lockout of the same key doubles, up to
+``max_lockout_s``. While a key is locked, every login through it is refused without
+looking at the password, the right one included, so guesses made during a lockout
+teach nothing. A key that has failed nothing for ``forget_s`` starts over. A
+successful login clears its user's failures, also from its address's count, and
+leaves the other users' failures from that address counted.
+
+Locking per user name means anyone who can reach the server can lock an account out
+for a while; the lockout is bounded and every lockout is logged, and the shift can log
+in again when it ends.
+
+The throttle is pure bookkeeping on an injected clock (``now``, seconds); the SCADA
+server and the web console call it with the keys of one login, ``[("address", …),
+("user", …)]``.
 """
 
 from __future__ import annotations
@@ -26,39 +37,19 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
+from gateway.limits import LoginLimits
+
+#: The lockout policy (its one definition: :class:`gateway.limits.LoginLimits`).
+ThrottlePolicy = LoginLimits
+
 Key = tuple[str, str]  # ("address", "10.0.0.7") or ("user", "alice")
 
 MAX_KEYS = 10_000  # a flood of made-up user names cannot grow the table without bound
 
 
-@dataclass(frozen=True, kw_only=True)
-class ThrottlePolicy:
-    """When a key is locked, and for how long."""
-
-    max_failures: int = 5
-    window_s: float = 60.0
-    lockout_s: float = 30.0
-    max_lockout_s: float = 900.0
-    forget_s: float = 3600.0
-
-    def __post_init__(self) -> None:
-        if self.max_failures < 1:
-            raise ValueError(f"max_failures must be at least 1, got {self.max_failures}")
-        if not 0 < self.lockout_s <= self.max_lockout_s:
-            raise ValueError(
-                f"need 0 < lockout_s ({self.lockout_s}) <= max_lockout_s ({self.max_lockout_s})"
-            )
-        if self.window_s <= 0 or self.forget_s <= 0:
-            raise ValueError("window_s and forget_s must be positive")
-
-    def lockout_for(self, previous_lockouts: int) -> float:
-        """The length of a key's next lockout after ``previous_lockouts`` earlier ones."""
-        return min(self.lockout_s * 2.0 ** min(previous_lockouts, 64), self.max_lockout_s)
-
-
 @dataclass
 class _KeyState:
-    failures: deque[float] = field(default_factory=deque)
+    failures: deque[tuple[float, str]] = field(default_factory=deque)  # (time, user name)
     locked_until_s: float = 0.0
     lockouts: int = 0
     last_failure_s: float = 0.0
@@ -103,16 +94,18 @@ class LoginThrottle:
         """Record a failed login through ``keys``; the lockouts it started."""
         now = self._now()
         self._forget_idle(now)
+        keys = list(keys)
+        user = next((value for kind, value in keys if kind == "user"), "")
         started = []
         for key in keys:
             state = self._keys.setdefault(key, _KeyState())
             if now - state.last_failure_s > self.policy.forget_s:
                 state.lockouts = 0
             state.last_failure_s = now
-            state.failures.append(now)
-            while state.failures and now - state.failures[0] > self.policy.window_s:
+            state.failures.append((now, user))
+            while state.failures and now - state.failures[0][0] > self.policy.window_s:
                 state.failures.popleft()
-            if len(state.failures) >= self.policy.max_failures:
+            if self._count(key, state) >= self.policy.max_failures:
                 duration = self.policy.lockout_for(state.lockouts)
                 state.locked_until_s = now + duration
                 state.lockouts += 1
@@ -120,9 +113,25 @@ class LoginThrottle:
                 state.failures.clear()
         return started
 
+    @staticmethod
+    def _count(key: Key, state: _KeyState) -> int:
+        """What locks a key: a user's failures; the different users an address failed."""
+        if key[0] == "address":
+            return len({user for _, user in state.failures})
+        return len(state.failures)
+
     def succeeded(self, keys: Iterable[Key]) -> None:
+        """A right password: its user starts over, and so do its failures at the address."""
+        keys = list(keys)
+        user = next((value for kind, value in keys if kind == "user"), "")
         for key in keys:
-            self._keys.pop(key, None)
+            state = self._keys.get(key)
+            if state is None:
+                continue
+            if key[0] == "address":
+                state.failures = deque(f for f in state.failures if f[1] != user)
+            else:
+                del self._keys[key]
 
     def _forget_idle(self, now: float) -> None:
         if len(self._keys) < MAX_KEYS:

@@ -21,8 +21,9 @@ Security (asyncua's defaults are open, so every layer is set explicitly):
   with one log line and no traceback;
 * identity: user name and password checked against :class:`ScadaUser` (constant-
   time compare); anonymous only if ``allow_anonymous``, and then read-only.
-  Failed logins lock the remote address and the user name out for a while
-  (:mod:`gateway.scada.login_throttle`), so passwords cannot be guessed at speed;
+  Failed logins lock the user name out for a while, and the remote address when it
+  fails many users (:mod:`gateway.scada.login_throttle`), so passwords cannot be
+  guessed at speed;
 * authorisation: only operators may send Write requests (viewers and anonymous
   get BadUserAccessDenied and nothing changes); the only writable node is each
   machine's ``CompensationEnabled``. An operator's write calls
@@ -63,7 +64,16 @@ from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.serialization import Encoding
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from drivers.opcua_common import CELSIUS, MICROMETRE, RPM, ServerLifecycle
+from drivers.opcua_common import (
+    CELSIUS,
+    MICROMETRE,
+    RPM,
+    ServerLifecycle,
+    data_value,
+    node_id,
+    status_code,
+    ua_datetime,
+)
 from gateway.live.record import CycleRecord
 from gateway.scada.login_throttle import Key, LoginThrottle, ThrottlePolicy
 from gateway.scada.trust_store import TolerantTrustStore
@@ -184,8 +194,8 @@ _NO_VIEWER = {
     ua.ObjectIds.WriteRequest_Encoding_DefaultBinary,
     ua.ObjectIds.CallRequest_Encoding_DefaultBinary,
 }
-_OPERATOR_REQUESTS = frozenset(ua.NodeId(t) for t in USER_TYPES)
-_VIEWER_REQUESTS = frozenset(ua.NodeId(t) for t in USER_TYPES if t not in _NO_VIEWER)
+_OPERATOR_REQUESTS = frozenset(node_id(t) for t in USER_TYPES)
+_VIEWER_REQUESTS = frozenset(node_id(t) for t in USER_TYPES if t not in _NO_VIEWER)
 
 
 class _RoleRuleset(PermissionRuleset):
@@ -232,7 +242,7 @@ class _ClientTrust:
                 raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
             await CertificateValidator(options, store).validate(cert, app)
         except ServiceError as err:
-            name = ua.StatusCode(err.code).name
+            name = status_code(err.code).name
             subject = _common_name(cert)
             if err.code == ua.StatusCodes.BadCertificateUntrusted:
                 path, removed = self._save_rejected(cert, der)
@@ -383,11 +393,12 @@ def _watch_peers(server: Server, manager: _UserManager) -> None:
                 manager.peer = None
                 manager.admitted_certificate = None
 
-        session.create_session = create_checked
-        session.activate_session = activate_session
+        # asyncua has no hook for this: its methods are wrapped in place, on purpose.
+        session.create_session = create_checked  # type: ignore[method-assign]
+        session.activate_session = activate_session  # type: ignore[method-assign]
         return session
 
-    iserver.create_session = create_watched_session
+    iserver.create_session = create_watched_session  # type: ignore[method-assign]
 
 
 # -- the server -----------------------------------------------------------------------
@@ -397,11 +408,15 @@ def _now() -> datetime:
     return datetime.now(UTC)
 
 
+def _source_time(record: CycleRecord) -> ua.DateTime | None:
+    """When the cycle measured its values: the wall stamp every output of the cycle carries
+    (None for a simulation's machine time counted from 0: the values are stamped now)."""
+    stamp_s = record.stamped_s
+    return ua_datetime(datetime.fromtimestamp(stamp_s, UTC)) if stamp_s >= 1e9 else None
+
+
 def _dv(variant: ua.Variant, status: int = ua.StatusCodes.Good) -> ua.DataValue:
-    now = _now()
-    return ua.DataValue(
-        variant, StatusCode=ua.StatusCode(status), SourceTimestamp=now, ServerTimestamp=now
-    )
+    return data_value(variant, status)
 
 
 def _double(value: float | None, missing: int = ua.StatusCodes.BadNoData) -> ua.DataValue:
@@ -578,6 +593,9 @@ class ScadaServer(ServerLifecycle):
                 ("Regime", _string(record.regime)),
                 ("ModelId", _string(record.model_id)),
                 ("PredictedUm", _double(record.predicted_um)),
+                ("IntervalUm", _double(record.interval_um)),
+                ("TrainingSpan", _string(record.training_span)),
+                ("OutsideInputs", _string(",".join(record.outside_inputs))),
                 ("CompensationUm", _double(record.applied_um)),
                 ("LastWriteStatus", _string(record.write_status)),
                 ("Health.LinkErrors", _uint32(len(record.link_errors))),
@@ -587,7 +605,10 @@ class ScadaServer(ServerLifecycle):
                 for key, (node, _) in HEALTH_COUNTERS.items()
                 if key in health
             ]
+            measured = _source_time(record)
             for name, datavalue in values:
+                if measured is not None:
+                    datavalue.SourceTimestamp = measured
                 await server.write_attribute_value(
                     self._nodeids[self.node_id(machine, name)], datavalue
                 )
@@ -684,6 +705,21 @@ class ScadaServer(ServerLifecycle):
                 (obj, "Regime", text, "Speed regime (empty: none yet)", None),
                 (obj, "ModelId", text, "Model in use (empty: none)", None),
                 (obj, "PredictedUm", nan, "Predicted thermal Z error rise", MICROMETRE),
+                (
+                    obj,
+                    "IntervalUm",
+                    nan,
+                    "Half-width of the 90 % interval (NaN: unknown)",
+                    MICROMETRE,
+                ),
+                (
+                    obj,
+                    "TrainingSpan",
+                    text,
+                    "inside / outside the training span (empty: unknown)",
+                    None,
+                ),
+                (obj, "OutsideInputs", text, "Inputs outside the training span", None),
                 (obj, "CompensationUm", nan, "Compensation applied by the CNC", MICROMETRE),
                 (obj, "LastWriteStatus", text, "Outcome of the last CNC write", None),
                 (health, "Health.LinkErrors", zero, "Link errors in the last cycle", None),
@@ -722,12 +758,12 @@ class ScadaServer(ServerLifecycle):
             await self._variable(proposals, machine, name, initial[kind], description, unit)
         proposal_id = ua.Argument()
         proposal_id.Name = "ProposalId"
-        proposal_id.DataType = ua.NodeId(ua.ObjectIds.String)
+        proposal_id.DataType = node_id(ua.ObjectIds.String)
         proposal_id.ValueRank = -1
         proposal_id.Description = ua.LocalizedText("Id of the proposal, e.g. P0001")
         result = ua.Argument()
         result.Name = "Result"
-        result.DataType = ua.NodeId(ua.ObjectIds.String)
+        result.DataType = node_id(ua.ObjectIds.String)
         result.ValueRank = -1
         result.Description = ua.LocalizedText("What changed")
         for name, call, inputs in (
@@ -735,7 +771,7 @@ class ScadaServer(ServerLifecycle):
             ("RollbackModels", self._rollback_method, []),
         ):
             await obj.add_method(
-                ua.NodeId(self.node_id(machine, name), ns),
+                node_id(self.node_id(machine, name), ns),
                 ua.QualifiedName(name, ns),
                 call,
                 inputs,
@@ -746,9 +782,9 @@ class ScadaServer(ServerLifecycle):
         """``PromoteProposal(ProposalId)``: operators only (the ruleset refuses others)."""
         machine = self._machine_of_object(parent)
         if self._on_promote is None:
-            return ua.StatusCode(ua.StatusCodes.BadNotImplemented)
+            return status_code(ua.StatusCodes.BadNotImplemented)
         if len(args) != 1 or args[0].VariantType != ua.VariantType.String:
-            return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+            return status_code(ua.StatusCodes.BadInvalidArgument)
         proposal_id = str(args[0].Value or "")
         on_promote = self._on_promote
         return await self._operator_action(
@@ -759,9 +795,9 @@ class ScadaServer(ServerLifecycle):
         """``RollbackModels()``: operators only (the ruleset refuses others)."""
         machine = self._machine_of_object(parent)
         if self._on_rollback is None:
-            return ua.StatusCode(ua.StatusCodes.BadNotImplemented)
+            return status_code(ua.StatusCodes.BadNotImplemented)
         if args:
-            return ua.StatusCode(ua.StatusCodes.BadTooManyArguments)
+            return status_code(ua.StatusCodes.BadTooManyArguments)
         on_rollback = self._on_rollback
         return await self._operator_action(
             machine, "RollbackModels()", lambda: on_rollback(machine)
@@ -789,7 +825,7 @@ class ScadaServer(ServerLifecycle):
                 self._nodeids[self.node_id(machine, "Proposals.LastAction")], _string(line)
             )
         if status != ua.StatusCodes.Good:
-            return ua.StatusCode(status)
+            return status_code(status)
         return [ua.Variant(text, ua.VariantType.String)]
 
     def _machine_of_object(self, parent: ua.NodeId) -> str:
@@ -800,10 +836,10 @@ class ScadaServer(ServerLifecycle):
 
     async def _object(self, parent: Node, nodeid: str, browse: str, description: str) -> Node:
         node = await parent.add_object(
-            ua.NodeId(nodeid, self.namespace_index), ua.QualifiedName(browse, self.namespace_index)
+            node_id(nodeid, self.namespace_index), ua.QualifiedName(browse, self.namespace_index)
         )
         await node.write_attribute(
-            ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+            ua.AttributeIds.Description, data_value(ua.LocalizedText(description), stamped=False)
         )
         return node
 
@@ -819,17 +855,17 @@ class ScadaServer(ServerLifecycle):
         ns = self.namespace_index
         nodeid = self.node_id(machine, name)
         node = await parent.add_variable(
-            ua.NodeId(nodeid, ns), ua.QualifiedName(name.rsplit(".", 1)[-1], ns), initial
+            node_id(nodeid, ns), ua.QualifiedName(name.rsplit(".", 1)[-1], ns), initial
         )
         await node.write_attribute(
-            ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+            ua.AttributeIds.Description, data_value(ua.LocalizedText(description), stamped=False)
         )
         if unit is not None:
             await node.add_property(
-                ua.NodeId(f"{nodeid}.EngineeringUnits", ns),
+                node_id(f"{nodeid}.EngineeringUnits", ns),
                 ua.QualifiedName("EngineeringUnits", 0),
                 ua.Variant(unit, ua.VariantType.ExtensionObject),
-                datatype=ua.NodeId(ua.ObjectIds.EUInformation),
+                datatype=node_id(ua.ObjectIds.EUInformation),
             )
         # No value until the first publish(): SCADA sees "waiting", not a fake zero.
         await node.write_value(_dv(initial, ua.StatusCodes.BadWaitingForInitialData))

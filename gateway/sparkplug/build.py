@@ -15,9 +15,14 @@ from gateway.sparkplug.node import EdgeNode, NodeSettings
 
 
 def build_node(
-    config: GatewayConfig, health: Callable[[str], Mapping[str, Any]], actions: Actions
+    config: GatewayConfig,
+    health: Callable[[str], Mapping[str, Any]],
+    actions: Actions,
+    gateway_health: Callable[[], Mapping[str, int]] = dict,
 ) -> EdgeNode:
-    """An edge node for ``config.sparkplug`` (which must be set); its buffer opened."""
+    """An edge node for ``config.sparkplug`` (which must be set); its buffer opened.
+    ``health`` gives a machine's counters (its DBIRTH/DDATA), ``gateway_health`` the
+    process's own (the node's NBIRTH/NDATA)."""
     section = config.sparkplug
     assert section is not None
     first = config.machines[0].id
@@ -45,4 +50,5 @@ def build_node(
     buffer = PointBuffer(section.buffer_path, section.buffer_max_points)
     c = section.commands
     allowed = Allowed(c.set_compensation, c.promote_proposal, c.rollback_models)
-    return EdgeNode(settings, mqtt, buffer, CommandHandler(allowed, actions), health)
+    commands = CommandHandler(allowed, actions)
+    return EdgeNode(settings, mqtt, buffer, commands, health, gateway_health)

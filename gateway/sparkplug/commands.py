@@ -15,8 +15,9 @@ from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
-from gateway.sparkplug.metrics import ENABLED, PROMOTE, REBIRTH, ROLLBACK
-from gateway.sparkplug.payload import MetricSpec, decode, value_of
+from gateway.sparkplug import sparkplug_b_pb2 as pb
+from gateway.sparkplug.metrics import ENABLED, PROMOTE, REBIRTH, ROLLBACK, WRITABLE
+from gateway.sparkplug.payload import DATATYPE_NAMES, MetricSpec, decode, value_of
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +92,7 @@ class CommandHandler:
             raise CommandRefusedError(f"replayed command (timestamp {key[0]}, seq {key[1]})")
         if not payload.metrics:
             raise CommandRefusedError("no metric")
-        by_alias = {s.alias: s for s in specs}
+        by_alias = {s.alias: s for s in specs if s.alias is not None}
         by_name = {s.name: s for s in specs}
         steps = [self._step(m, by_alias, by_name, device) for m in payload.metrics]
         self._seen.append(key)
@@ -99,21 +100,23 @@ class CommandHandler:
 
     def _step(
         self,
-        metric: object,
+        metric: pb.Payload.Metric,
         by_alias: Mapping[int, MetricSpec],
         by_name: Mapping[str, MetricSpec],
         device: str | None,
     ) -> tuple[str, Callable[[], object]]:
         spec = _spec_of(metric, by_alias, by_name)
-        if metric.HasField("datatype") and metric.datatype != spec.datatype:  # type: ignore[attr-defined]
+        kind = WRITABLE.get(spec.name)
+        if kind is None:
+            raise CommandRefusedError(f"{spec.name} is read-only; {_writable(by_name)}")
+        if metric.HasField("datatype") and metric.datatype != spec.datatype:
             raise CommandRefusedError(
-                f"{spec.name}: datatype {metric.datatype} where {spec.datatype} is expected"  # type: ignore[attr-defined]
+                f"{spec.name}: datatype {_type_name(metric.datatype)} where "
+                f"{_type_name(spec.datatype)} is expected"
             )
-        value = value_of(metric)  # type: ignore[arg-type]
-        expected = {bool: "Boolean", str: "String"}
-        kind = bool if spec.name in (REBIRTH, ENABLED, ROLLBACK) else str
-        if not isinstance(value, kind):
-            wanted = expected[kind]
+        value = value_of(metric)
+        if not isinstance(value, kind) or not isinstance(value, bool | str):
+            wanted = _type_name(spec.datatype)
             raise CommandRefusedError(f"{spec.name}: a {wanted} value expected, got {value!r}")
         return spec.name, self._action(spec.name, value, device)
 
@@ -132,15 +135,25 @@ class CommandHandler:
         raise CommandRefusedError(f"{name}={value!r} is not allowed by sparkplug.commands")
 
 
+def _type_name(datatype: int) -> str:
+    return DATATYPE_NAMES.get(datatype, f"datatype {datatype}")
+
+
+def _writable(by_name: Mapping[str, MetricSpec]) -> str:
+    """The metrics a host may write here, with their datatypes (for a refusal's text)."""
+    names = [f"{s.name} ({_type_name(s.datatype)})" for s in by_name.values() if s.name in WRITABLE]
+    return "the writable metrics are " + ", ".join(names)
+
+
 def _spec_of(
-    metric: object, by_alias: Mapping[int, MetricSpec], by_name: Mapping[str, MetricSpec]
+    metric: pb.Payload.Metric, by_alias: Mapping[int, MetricSpec], by_name: Mapping[str, MetricSpec]
 ) -> MetricSpec:
-    if metric.HasField("alias"):  # type: ignore[attr-defined]
-        spec = by_alias.get(metric.alias)  # type: ignore[attr-defined]
+    if metric.HasField("alias"):
+        spec = by_alias.get(metric.alias)
         if spec is None:
-            raise CommandRefusedError(f"unknown alias {metric.alias}")  # type: ignore[attr-defined]
+            raise CommandRefusedError(f"unknown alias {metric.alias}")
         return spec
-    spec = by_name.get(metric.name)  # type: ignore[attr-defined]
+    spec = by_name.get(metric.name)
     if spec is None:
-        raise CommandRefusedError(f"unknown metric {metric.name!r}")  # type: ignore[attr-defined]
+        raise CommandRefusedError(f"unknown metric {metric.name!r}")
     return spec

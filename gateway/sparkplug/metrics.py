@@ -12,7 +12,7 @@ from typing import Any
 
 from gateway.live.record import CycleRecord
 from gateway.outputs.health import integer_counters
-from gateway.sparkplug.payload import BOOLEAN, DOUBLE, STRING, UINT64, MetricSpec, Value
+from gateway.sparkplug.payload import BOOLEAN, DOUBLE, INT64, STRING, UINT64, MetricSpec, Value
 
 BD_SEQ = "bdSeq"
 REBIRTH = "Node Control/Rebirth"
@@ -21,9 +21,14 @@ PROMOTE = "Command/Promote Proposal"
 ROLLBACK = "Command/Rollback Models"
 CYCLES = "Health/cycles"
 
-#: Aliases: node metrics below 100, device ``i`` from ``(i + 1) * ALIAS_BLOCK``.
+#: Aliases: node metrics below ``ALIAS_BLOCK``, device ``i`` from ``(i + 1) * ALIAS_BLOCK``.
 ALIAS_BLOCK = 1000
-NODE_METRICS = (MetricSpec(BD_SEQ, UINT64, 1), MetricSpec(REBIRTH, BOOLEAN, 2))
+#: bdSeq is an Int64 in the will and the NBIRTH; the rebirth switch has no alias, so that
+#: any host can ask for births by its name (Sparkplug 3.0).
+NODE_METRICS = (MetricSpec(BD_SEQ, INT64, 1), MetricSpec(REBIRTH, BOOLEAN, None))
+NODE_HEALTH_ALIAS = 10  # the node's ``Health/…`` metrics from here
+#: The metrics a host may write, with the value type each takes; every other is read-only.
+WRITABLE = {REBIRTH: bool, ENABLED: bool, PROMOTE: str, ROLLBACK: bool}
 
 _RECORD_METRICS = (
     ("Spindle/Speed", DOUBLE, "r/min"),
@@ -39,6 +44,9 @@ _RECORD_METRICS = (
     ("Probe/Residual", DOUBLE, "µm"),
     (PROMOTE, STRING, ""),
     (ROLLBACK, BOOLEAN, ""),
+    ("Prediction/Interval", DOUBLE, "µm"),
+    ("Prediction/Training Span", STRING, ""),
+    ("Prediction/Outside Inputs", STRING, ""),
 )
 
 
@@ -54,6 +62,20 @@ def device_specs(
     named.extend((f"Health/{key}", UINT64, "") for key in health_keys)
     base = (index + 1) * ALIAS_BLOCK
     return [MetricSpec(name, kind, base + i, unit) for i, (name, kind, unit) in enumerate(named)]
+
+
+def node_specs(health_keys: Sequence[str]) -> list[MetricSpec]:
+    """The node's own metrics (NBIRTH, NDATA): bdSeq, the rebirth switch and the gateway's
+    process-wide counters as ``Health/<name>``, which belong to no one machine."""
+    health = [
+        MetricSpec(f"Health/{key}", UINT64, NODE_HEALTH_ALIAS + i)
+        for i, key in enumerate(health_keys)
+    ]
+    if NODE_HEALTH_ALIAS + len(health) > ALIAS_BLOCK:
+        raise ValueError(
+            f"{len(health)} node health counters: more than the aliases below {ALIAS_BLOCK}"
+        )
+    return [*NODE_METRICS, *health]
 
 
 def health_counters(health: Mapping[str, Any]) -> dict[str, int]:
@@ -86,6 +108,9 @@ def snapshot(record: CycleRecord, health: Mapping[str, Any]) -> dict[str, Value]
             "Probe/Residual": residual,
             PROMOTE: "",
             ROLLBACK: False,
+            "Prediction/Interval": record.interval_um,
+            "Prediction/Training Span": record.training_span,
+            "Prediction/Outside Inputs": ",".join(record.outside_inputs),
         }
     )
     values.update({f"Health/{k}": v for k, v in health_counters(health).items()})

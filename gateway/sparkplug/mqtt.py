@@ -30,7 +30,7 @@ class MqttSettings:
     ca_file: Path | None = None
     cert_file: Path | None = None
     key_file: Path | None = None
-    qos: int = 1
+    qos: int = 0  # of births and data; Sparkplug 3.0 asks 0, 1 has the broker ack each
     keepalive_s: int = 30
 
 
@@ -54,6 +54,7 @@ class MqttLink:
         self.loop = asyncio.get_running_loop()
         self.messages: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue()
         self.connected = False
+        self.connect_sent = False  # the CONNECT packet (with the will) went out
         self._connected = self.loop.create_future()
         client = paho.Client(
             CallbackAPIVersion.VERSION2,
@@ -109,6 +110,7 @@ class MqttLink:
             )
         except (OSError, ssl.SSLError) as exc:
             raise ConnectionError(f"cannot connect to {self.url}: {exc}") from None
+        self.connect_sent = True  # paho wrote it before returning (no network thread yet)
         self.client.loop_start()
         try:
             await asyncio.wait_for(asyncio.shield(self._connected), CONNECT_TIMEOUT_S)
@@ -123,8 +125,11 @@ class MqttLink:
         for topic in topic_filters:
             self.client.subscribe(topic, qos=1)
 
-    def publish(self, topic: str, payload: bytes) -> paho.MQTTMessageInfo:
-        return self.client.publish(topic, payload, qos=self.settings.qos)
+    def publish(self, topic: str, payload: bytes, qos: int | None = None) -> paho.MQTTMessageInfo:
+        """At ``qos``, by default the configured one (births and data), never retained."""
+        return self.client.publish(
+            topic, payload, qos=self.settings.qos if qos is None else qos, retain=False
+        )
 
     async def acknowledged(self, infos: Sequence[paho.MQTTMessageInfo], timeout_s: float) -> bool:
         """Wait until the broker acknowledged every message (QoS 0: sent).

@@ -2,17 +2,24 @@
 
 Every cycle's values go first to a disk buffer (the :class:`PointBuffer` class of the
 InfluxDB path, its own file), from which a task publishes them in order once the
-node is born and the primary host is online; a point is removed only when the broker
-acknowledged it (QoS 1). So a broker down or a host offline costs nothing: the points
-wait and are delivered afterwards, marked historical (``is_historical``) when births
-came between their cycle and their delivery. The sink itself only appends to the
-buffer, so MQTT never slows the compensation loop.
+node is born and the primary host is online; a point is removed only when it was
+delivered: written to the socket at QoS 0 (Sparkplug 3.0's, the default), acknowledged
+by the broker at QoS 1. So a host offline costs nothing, nor a broker down at QoS 1:
+the points wait and are delivered afterwards, marked historical (``is_historical``)
+when births came between their cycle and their delivery. The sink itself only appends
+to the buffer, so MQTT never slows the compensation loop.
 
 Sessions: a random start-up delay (``startup_delay_max_s``) spreads births when many
-nodes reconnect; each connection takes the next broker of the list and a new bdSeq,
-carried in the NDEATH will and the NBIRTH. The node waits for the primary host's
-STATE ``online`` before its births; ``Node Control/Rebirth`` republishes NBIRTH and
-every DBIRTH on the same session with the same bdSeq.
+nodes reconnect; each connection takes the next broker of the list. Every MQTT CONNECT
+that goes out carries a new bdSeq (the previous one + 1, Sparkplug 3.0's rule), in the
+NDEATH will and the NBIRTH; an attempt that fails before its CONNECT (no TCP, no TLS)
+uses none. The node waits for the primary host's STATE ``online`` before its births.
+A valid ``offline`` STATE while born ends the session: NDEATH, disconnect, and a new
+connection (next broker, new bdSeq) that waits for ``online`` again. A STATE older than
+the last one taken, or not ``{"online": bool, "timestamp": int}``, is ignored (logged).
+``Node Control/Rebirth`` republishes NBIRTH and every DBIRTH on the same session with the
+same bdSeq. The node's own metrics (the gateway's process-wide counters and the node's)
+are in NBIRTH and, when they change, in NDATA, at most once every ``NODE_DATA_EVERY_S``.
 """
 
 from __future__ import annotations
@@ -33,7 +40,14 @@ from gateway.outputs.disk_buffer import PointBuffer
 from gateway.outputs.points import Point
 from gateway.sparkplug import topics
 from gateway.sparkplug.commands import CommandHandler
-from gateway.sparkplug.metrics import BD_SEQ, NODE_METRICS, REBIRTH, changed, device_specs, snapshot
+from gateway.sparkplug.metrics import (
+    BD_SEQ,
+    REBIRTH,
+    changed,
+    device_specs,
+    node_specs,
+    snapshot,
+)
 from gateway.sparkplug.mqtt import MqttLink, MqttSettings
 from gateway.sparkplug.payload import Value, encode
 
@@ -47,6 +61,12 @@ BATCH = 200  # points published before waiting for their acknowledgements
 YIELD_EVERY = 10
 ACK_TIMEOUT_S = 10.0
 FINAL_DRAIN_S = 1.5  # at a stop; the gateway gives the node 3 s in all
+NODE_DATA_EVERY_S = 1.0  # NDATA of the node's counters that changed, at most this often
+DEATH_QOS = 1  # NDEATH, as the will (Sparkplug 3.0)
+
+
+class HostOfflineError(ConnectionError):
+    """The primary host said it is offline: the session ends (NDEATH, disconnect)."""
 
 
 @dataclass(frozen=True)
@@ -70,51 +90,65 @@ class EdgeNode:
         buffer: PointBuffer,
         commands: CommandHandler,
         health: Callable[[str], Mapping[str, Any]],
+        gateway_health: Callable[[], Mapping[str, int]] = dict,
     ) -> None:
         self.settings = settings
         self.mqtt = mqtt
         self.buffer = buffer
         self.commands = commands
         self.health = health
+        self.gateway_health = gateway_health
         self.specs = {
             machine: device_specs(i, sensors, settings.health_keys)
             for i, (machine, sensors) in enumerate(settings.machines.items())
         }
+        self.published = 0
+        self.node_specs = node_specs(list(self._node_counters()))
         self.latest: dict[str, dict[str, Value]] = {}
         self.sent: dict[str, dict[str, Value]] = {}  # last values published per device
+        self.node_sent: dict[str, Value] = {}  # the node's own, as last published
         self.epoch = 0  # births published so far: a point of an older epoch is historical
         self.seq = 0
-        self.bd_seq = self._next_bd_seq()
+        self._bd_seq_sent = self._saved_bd_seq()  # of the last CONNECT that went out
+        self.bd_seq = (self._bd_seq_sent + 1) % 256  # of the current (or next) CONNECT
         self.link: MqttLink | None = None
         self.born = False
         self.host_online = settings.primary_host_id is None
-        self.published = 0
+        self.host_state_ms: int | None = None  # the timestamp of the last STATE taken
         self.sessions = 0
         self._broker = 0
         self._linked = False
+        self._node_data_due = 0.0
 
     # -- the runtime sink: a local append only -------------------------------------------
     def sink(self, record: CycleRecord) -> None:
         values = snapshot(record, self.health(record.machine))
         self.latest[record.machine] = values
         tags = {"machine": record.machine, "epoch": str(self.epoch if self.born else -1)}
-        ms = round(time.time() * 1000) if record.time_s < 1e9 else round(record.time_s * 1000)
+        stamp_s = record.stamped_s  # the cycle's one time, as its logged points carry
+        ms = round(time.time() * 1000) if stamp_s < 1e9 else round(stamp_s * 1000)
         self.buffer.append([Point(MEASUREMENT, tags, dict(values), ms * 1_000_000)])
 
-    # -- bdSeq, kept across restarts -----------------------------------------------------
-    def _next_bd_seq(self) -> int:
-        path = self.settings.state_dir / "sparkplug-bdseq.json"
+    # -- bdSeq, one per CONNECT sent, kept across restarts --------------------------------
+    def _bd_seq_path(self) -> Path:
+        return self.settings.state_dir / "sparkplug-bdseq.json"
+
+    def _saved_bd_seq(self) -> int:
+        """The bdSeq of the last CONNECT sent (by this process or an earlier one); -1: none."""
         try:
-            last = int(json.loads(path.read_text(encoding="utf-8"))["bdSeq"])
+            return int(json.loads(self._bd_seq_path().read_text(encoding="utf-8"))["bdSeq"])
         except (OSError, ValueError, KeyError, TypeError):
-            last = -1
-        value = (last + 1) % 256
+            return -1
+
+    def _bd_seq_used(self, value: int) -> None:
+        """A CONNECT with ``value`` in its will went out: the next one takes ``value + 1``."""
+        self._bd_seq_sent = value
+        path = self._bd_seq_path()
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps({"bdSeq": value}), encoding="utf-8")
         except OSError as exc:
             log.warning("cannot save the Sparkplug bdSeq in %s: %s", path, exc)
-        return value
 
     def _topic(self, kind: str, device: str | None = None) -> str:
         s = self.settings
@@ -128,7 +162,9 @@ class EdgeNode:
         return seq
 
     def death_payload(self) -> bytes:
-        return encode(NODE_METRICS[:1], {BD_SEQ: self.bd_seq}, seq=None, timestamp_ms=_now_ms())
+        """NDEATH: ``bdSeq`` by name (and alias), so that a host pairs it with the NBIRTH."""
+        bd_seq = self.node_specs[:1]
+        return encode(bd_seq, {BD_SEQ: self.bd_seq}, seq=None, timestamp_ms=_now_ms(), birth=True)
 
     # -- sessions ------------------------------------------------------------------------
     async def run(self, stop: asyncio.Event) -> None:
@@ -149,22 +185,30 @@ class EdgeNode:
                 backoff = min(backoff * 2, self.settings.reconnect_max_s)
 
     async def _session(self, stop: asyncio.Event) -> None:
-        self.bd_seq = self._next_bd_seq() if self.sessions else self.bd_seq
+        self.bd_seq = (self._bd_seq_sent + 1) % 256
         self.sessions += 1
         self.born, self.host_online = False, self.settings.primary_host_id is None
         url = self.mqtt.brokers[self._broker % len(self.mqtt.brokers)]
         self._broker += 1  # the next session tries the next broker (fail-over)
         link = MqttLink(self.mqtt, url, self._topic("NDEATH"), self.death_payload())
-        await link.connect()
+        try:
+            await link.connect()
+        finally:
+            if link.connect_sent:
+                self._bd_seq_used(self.bd_seq)
         self.link, self._linked = link, True
+        host_left = False
         try:
             subs = [self._topic("NCMD"), self._topic("DCMD", "+")]
             if self.settings.primary_host_id:
                 subs.append(topics.state_topic(self.settings.primary_host_id))
             await link.subscribe(subs)
             await self._serve(link, stop)
+        except HostOfflineError:
+            host_left = True  # Sparkplug 3.0: NDEATH, then disconnect
+            raise
         finally:
-            if stop.is_set() and link.connected:
+            if (stop.is_set() or host_left) and link.connected:
                 await self._say_goodbye(link)
             self.link = None
             await asyncio.to_thread(link.close)  # joins paho's thread: not on the loop
@@ -176,7 +220,12 @@ class EdgeNode:
                 raise ConnectionError(f"lost the broker {link.url}")
             if self.host_online and not self.born:
                 self.births()
+            if self.born and not self.host_online:
+                self.born = False  # births again on the next session, once it is back
+                raise HostOfflineError(f"primary host {self.settings.primary_host_id} offline")
             backlog = self.born and await self._drain(link)
+            if self.born:
+                self._node_data(link)
             message = await link.next_message(0.01 if backlog else 0.2)
             if message is not None:
                 self._on_message(*message)
@@ -190,7 +239,7 @@ class EdgeNode:
                 await asyncio.wait_for(self._drain_all(link), FINAL_DRAIN_S)
             for machine in list(self.sent):
                 self._device_death(link, machine)
-        link.publish(self._topic("NDEATH"), self.death_payload())
+        link.publish(self._topic("NDEATH"), self.death_payload(), qos=DEATH_QOS)
         await link.flush(1.0)
 
     async def _drain_all(self, link: MqttLink) -> None:
@@ -219,9 +268,10 @@ class EdgeNode:
         assert self.link is not None
         self.seq = 0
         self.epoch += 1
+        self.node_sent = self._node_values()
         node = encode(
-            NODE_METRICS,
-            {BD_SEQ: self.bd_seq, REBIRTH: False},
+            self.node_specs,
+            self.node_sent,
             seq=self._next_seq(),
             timestamp_ms=_now_ms(),
             birth=True,
@@ -242,6 +292,28 @@ class EdgeNode:
         self.sent[machine] = dict(values)
 
     # -- data ----------------------------------------------------------------------------
+    def _node_counters(self) -> dict[str, int]:
+        return {**self.gateway_health(), **self.health_counters()}
+
+    def _node_values(self) -> dict[str, Value]:
+        counters = {f"Health/{k}": v for k, v in self._node_counters().items()}
+        return {BD_SEQ: self.bd_seq, REBIRTH: False, **counters}
+
+    def _node_data(self, link: MqttLink) -> None:
+        """NDATA with the node's counters that changed, at most every ``NODE_DATA_EVERY_S``."""
+        now = time.monotonic()
+        if now < self._node_data_due:
+            return
+        self._node_data_due = now + NODE_DATA_EVERY_S
+        values = self._node_values()
+        send = changed(self.node_specs, self.node_sent, values)
+        if not send:
+            return
+        link.publish(
+            self._topic("NDATA"), encode(send, values, seq=self._next_seq(), timestamp_ms=_now_ms())
+        )
+        self.node_sent = values
+
     async def _drain(self, link: MqttLink) -> bool:
         """Publish the oldest buffered points; True when more are waiting."""
         batch = self.buffer.peek(BATCH)
@@ -289,7 +361,7 @@ class EdgeNode:
         if incoming.kind == "STATE":
             self._on_state(incoming.host, data)
         elif incoming.kind == "NCMD":
-            self.commands.handle(data, NODE_METRICS, None)
+            self.commands.handle(data, self.node_specs, None)
         elif incoming.device in self.specs:
             self.commands.handle(data, self.specs[incoming.device], incoming.device)
         else:
@@ -297,18 +369,31 @@ class EdgeNode:
             log.warning("Sparkplug DCMD refused: unknown device %s", incoming.device)
 
     def _on_state(self, host: str | None, data: bytes) -> None:
-        if host != self.settings.primary_host_id:
+        """The primary host's STATE: taken unless malformed or older than the last one
+        taken (a late death of an earlier host session); an ``offline`` taken while born
+        ends the session in :meth:`_serve`."""
+        if host != self.settings.primary_host_id or host is None:
             return
+        topic = topics.state_topic(host)
         try:
-            online = json.loads(data.decode("utf-8"))["online"] is True
-        except (ValueError, KeyError, TypeError, UnicodeDecodeError):
-            log.warning("Sparkplug: STATE of %s not understood: %r", host, data[:80])
+            online, timestamp_ms = state_of(data)
+        except ValueError as exc:
+            log.warning("Sparkplug: STATE on %s ignored: %s", topic, exc)
             return
+        last = self.host_state_ms
+        if last is not None and timestamp_ms < last:
+            log.warning(
+                "Sparkplug: STATE on %s ignored: timestamp %d is older than the last one "
+                "taken (%d)",
+                topic,
+                timestamp_ms,
+                last,
+            )
+            return
+        self.host_state_ms = timestamp_ms
         if online != self.host_online:
             log.warning("Sparkplug: primary host %s %s", host, "online" if online else "offline")
         self.host_online = online
-        if not online:
-            self.born = False  # births again when it is back; the data waits in the buffer
 
     def rebirth(self) -> None:
         """``Node Control/Rebirth``: births again on this session, bdSeq unchanged."""
@@ -322,6 +407,23 @@ class EdgeNode:
             "sparkplug_commands_accepted": self.commands.accepted,
             "sparkplug_commands_refused": self.commands.refused,
         }
+
+
+def state_of(data: bytes) -> tuple[bool, int]:
+    """``(online, timestamp_ms)`` of a STATE payload; ValueError naming what is wrong."""
+    expected = 'expected JSON {"online": true|false, "timestamp": <ms>}'
+    try:
+        state = json.loads(data.decode("utf-8"))
+    except (ValueError, UnicodeDecodeError):
+        raise ValueError(f"not JSON ({data[:80]!r}); {expected}") from None
+    if not isinstance(state, dict):
+        raise ValueError(f"{state!r}: {expected}")
+    online, timestamp_ms = state.get("online"), state.get("timestamp")
+    if not isinstance(online, bool):
+        raise ValueError(f"online is {online!r}, not a boolean; {expected}")
+    if not isinstance(timestamp_ms, int) or isinstance(timestamp_ms, bool):
+        raise ValueError(f"timestamp is {timestamp_ms!r}, not an integer; {expected}")
+    return online, timestamp_ms
 
 
 def _now_ms() -> int:

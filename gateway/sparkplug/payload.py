@@ -2,7 +2,8 @@
 
 A metric is described once (:class:`MetricSpec`: name, datatype, unit, alias); births
 carry name, alias, datatype and the unit as the ``engUnit`` property, data messages
-only the alias. Values are set in the protobuf field the datatype calls for.
+only the alias (a metric without an alias, ``Node Control/Rebirth``, goes by its name
+everywhere). Values are set in the protobuf field the datatype calls for.
 """
 
 from __future__ import annotations
@@ -20,9 +21,14 @@ DOUBLE = pb.Double
 BOOLEAN = pb.Boolean
 STRING = pb.String
 
-DATATYPE_NAMES = {INT64: "Int64", UINT64: "UInt64", DOUBLE: "Double", BOOLEAN: "Boolean",
-                  STRING: "String"}  # fmt: skip
-_VALUE_FIELD = {
+DATATYPE_NAMES: dict[int, str] = {
+    INT64: "Int64",
+    UINT64: "UInt64",
+    DOUBLE: "Double",
+    BOOLEAN: "Boolean",
+    STRING: "String",
+}
+_VALUE_FIELD: dict[int, str] = {
     INT64: "long_value",
     UINT64: "long_value",
     DOUBLE: "double_value",
@@ -35,11 +41,12 @@ Value = float | int | bool | str | None
 
 @dataclass(frozen=True)
 class MetricSpec:
-    """One metric: its name, Sparkplug datatype, engineering unit (or "") and alias."""
+    """One metric: its name, Sparkplug datatype, alias (None: by name only) and
+    engineering unit (or "")."""
 
     name: str
     datatype: int
-    alias: int
+    alias: int | None
     unit: str = ""
 
 
@@ -83,9 +90,11 @@ def encode(
     if seq is not None:
         payload.seq = seq
     for spec in specs:
-        metric = payload.metrics.add(alias=spec.alias, timestamp=timestamp_ms)
+        metric = payload.metrics.add(timestamp=timestamp_ms)
         metric.datatype = spec.datatype
-        if birth:
+        if spec.alias is not None:
+            metric.alias = spec.alias
+        if birth or spec.alias is None:
             metric.name = spec.name
             if spec.unit:
                 metric.properties.keys.append("engUnit")

@@ -19,7 +19,6 @@ import secrets
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Optional
 from urllib.parse import urlsplit
 
 from aiohttp import web
@@ -107,7 +106,7 @@ class Auth:
 
 
 #: Where the middleware keeps the request's session (None: not logged in).
-SESSION = web.RequestKey("session", Optional["Session"])
+SESSION = web.RequestKey[Session | None]("session")
 
 
 def same_origin(request: web.Request) -> bool:

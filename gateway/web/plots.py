@@ -46,7 +46,7 @@ def _figure(rows: int) -> tuple[Any, Sequence[Any]]:
         left=0.08, right=0.955, top=1 - 0.3 / height_in, bottom=0.55 / height_in, hspace=0.12
     )
     axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
-    return fig, axes
+    return fig, list(axes)
 
 
 def _svg(fig: Any) -> str:
@@ -65,6 +65,9 @@ def machine_svg(data: MachineView, title: str) -> str:
     _line(speed, lines["speed_rpm"], "speed")
     speed.set_ylabel("speed (r/min)")
     _line(comp, lines["predicted_um"], "predicted")
+    if "interval_low_um" in lines and np.isfinite(lines["interval_high_um"][1]).any():
+        _line(comp, lines["interval_low_um"], "90 % interval", color="grey", linestyle="-.")
+        _line(comp, lines["interval_high_um"], "_nolegend_", color="grey", linestyle="-.")
     _line(comp, lines["applied_um"], "applied")
     _line(comp, lines["cnc_um"], "CNC holds", linestyle="--")
     _line(comp, lines["correction_um"], "online correction", linestyle=":")

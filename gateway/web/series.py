@@ -30,7 +30,14 @@ from gateway.web.store_window import temperature_envelopes, window_columns, wind
 #: ("local", path) or ("influx", url, token, org, bucket, timeout_s): picklable for the worker.
 SourceSpec = tuple
 
-CYCLE_FIELDS = ("speed_rpm", "predicted_um", "applied_um", "written_cnc", "correction_um")
+CYCLE_FIELDS = (
+    "speed_rpm",
+    "predicted_um",
+    "applied_um",
+    "written_cnc",
+    "correction_um",
+    "interval_um",
+)
 MAX_EVENTS = 200
 #: Pixel columns of a plot: the envelope keeps two points per column.
 COLUMNS = 900
@@ -69,7 +76,9 @@ class MachineView:
     column envelope, the probes, and the events (newest first), from all the rows."""
 
     cycles: int
-    lines: dict[str, Series]  # speed_rpm, predicted_um, applied_um, cnc_um, correction_um
+    #: speed_rpm, predicted_um, applied_um, cnc_um, correction_um, and the 90 % interval's
+    #: edges interval_low_um, interval_high_um (NaN where it was unknown)
+    lines: dict[str, Series]
     temperatures_C: dict[str, Series]
     probe_t_s: np.ndarray
     probe_error_um: np.ndarray
@@ -186,12 +195,13 @@ def _cycles(rows: list) -> _Cycles:
 
 def _cycles_of(columns: list) -> _Cycles:
     """The cycles from their columns: time, the fields, write status, link errors."""
+    n = len(CYCLE_FIELDS) + 1  # the time, then the fields
     return _Cycles(
         t_ns=np.array(columns[0], dtype=np.int64),
         t_s=np.array(columns[0], dtype=float) / NS_PER_S,
-        values={f: _array(c) for f, c in zip(CYCLE_FIELDS, columns[1:6], strict=True)},
-        write_status=[str(s or "") for s in columns[6]],
-        link_errors=_array(columns[7]),
+        values={f: _array(c) for f, c in zip(CYCLE_FIELDS, columns[1:n], strict=True)},
+        write_status=[str(s or "") for s in columns[n]],
+        link_errors=_array(columns[n + 1]),
     )
 
 
@@ -304,7 +314,10 @@ def machine_view(
         cycles = _cycles(rows["cycles"])
     probe_t, probe_err, residual = _probes(rows["probes"], cycles)
     values = dict(cycles.values, cnc_um=cycles.values["written_cnc"] * cnc_um_per_unit)
-    names = ("speed_rpm", "predicted_um", "applied_um", "cnc_um", "correction_um")
+    values["interval_low_um"] = values["predicted_um"] - values["interval_um"]
+    values["interval_high_um"] = values["predicted_um"] + values["interval_um"]
+    names: tuple[str, ...] = ("speed_rpm", "predicted_um", "applied_um", "cnc_um", "correction_um")
+    names += ("interval_low_um", "interval_high_um")
     lines = {n: window_envelope(cycles.t_ns, values[n], start_ns, stop_ns, columns) for n in names}
     found = _cycle_events(cycles.t_s, cycles.write_status, cycles.link_errors)
     found += [(t, "sensor flag", f"{sensor}: {change}") for t, sensor, change in changes]

@@ -19,6 +19,7 @@ from typing import Any
 
 from aiohttp import web
 
+from gateway.config import login_limits
 from gateway.live.record import CycleRecord
 from gateway.scada.login_throttle import ThrottlePolicy
 from gateway.scada.server import ScadaUser
@@ -31,7 +32,14 @@ from gateway.web.plots import PlotRenderer
 log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).with_name("static")
-OPEN_PATHS = ("/login", "/static/")
+FAVICON = STATIC / "favicon.svg"
+OPEN_PATHS = ("/login", "/static/", "/favicon.ico")
+#: Sent with every response: pages, redirects, 404s, refusals, errors and static files.
+SECURITY_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'",
+    "X-Frame-Options": "DENY",
+    "X-Content-Type-Options": "nosniff",
+}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -84,6 +92,7 @@ class WebConsole:
 
     def app(self) -> web.Application:
         app = web.Application(middlewares=[self._session_middleware], client_max_size=64 * 1024)
+        app.on_response_prepare.append(_security_headers)
         p = self.pages
         app.add_routes(
             [
@@ -100,23 +109,23 @@ class WebConsole:
                 web.post("/machines/{machine}/{action}", p.action),
                 web.get("/reports", p.reports),
                 web.get("/reports/{path:.+}", p.report_file),
+                web.get("/favicon.ico", _favicon),
                 web.static("/static", STATIC),
             ]
         )
         return app
 
     @web.middleware
-    async def _session_middleware(self, request: web.Request, handler: Handler):  # type: ignore[no-untyped-def]
+    async def _session_middleware(
+        self, request: web.Request, handler: Handler
+    ) -> web.StreamResponse:
         session = self.auth.session(request)
         request[SESSION] = session
         if session is None and not request.path.startswith(OPEN_PATHS):
             if request.method == "GET":
                 raise web.HTTPSeeOther(f"/login?next={request.path}")
             raise web.HTTPUnauthorized(text="log in first")
-        response = await handler(request)
-        response.headers.setdefault("X-Frame-Options", "DENY")
-        response.headers.setdefault("Content-Security-Policy", "default-src 'self'")
-        return response
+        return await handler(request)
 
     async def start(self) -> None:
         self._runner = web.AppRunner(self.app(), access_log=None, shutdown_timeout=1.0)
@@ -146,6 +155,20 @@ class WebConsole:
         self.renderer.close()
 
 
+async def _security_headers(request: web.Request, response: web.StreamResponse) -> None:
+    """Every response gets the headers, whoever made it: a handler, a redirect or refusal
+    raised as an HTTPException, the router's 404/405, the static files, or aiohttp's own
+    500 after an unexpected exception (a middleware sees none of the last)."""
+    for name, value in SECURITY_HEADERS.items():
+        response.headers.setdefault(name, value)
+
+
+async def _favicon(request: web.Request) -> web.FileResponse:
+    """The tab icon at the address browsers ask for first (an SVG: Chromium and Firefox
+    take it from here too), so no page's load ends in a 404."""
+    return web.FileResponse(FAVICON, headers={"Content-Type": "image/svg+xml"})
+
+
 def build_web(config: Any, gateway: GatewayLike) -> WebConsole:
     """The console of ``config.web`` (users: its own, else the SCADA server's)."""
     section = config.web
@@ -155,12 +178,7 @@ def build_web(config: Any, gateway: GatewayLike) -> WebConsole:
         host=section.host,
         port=section.port,
         users=users,
-        throttle=ThrottlePolicy(
-            max_failures=section.login_max_failures,
-            window_s=section.login_window_s,
-            lockout_s=section.login_lockout_s,
-            max_lockout_s=section.login_max_lockout_s,
-        ),
+        throttle=login_limits(section),
         session_s=section.session_hours * 3600.0,
         tls_cert=section.tls_cert,
         tls_key=section.tls_key,

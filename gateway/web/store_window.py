@@ -118,8 +118,8 @@ def temperature_envelopes(
         found.close()
     series: dict[str, Series] = {}
     for sensor in valued:
-        t = [(a, b) for s, a, b, _, _ in grouped if s == sensor]
-        y = [(lo, hi) for s, _, _, lo, hi in grouped if s == sensor]
+        t: list[tuple[object, ...]] = [(a, b) for s, a, b, _, _ in grouped if s == sensor]
+        y: list[tuple[object, ...]] = [(lo, hi) for s, _, _, lo, hi in grouped if s == sensor]
         if sensor in small:
             t = [(r[1],) for r in whole if r[0] == sensor]
             y = [(r[2],) for r in whole if r[0] == sensor]

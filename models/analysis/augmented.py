@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -66,7 +67,13 @@ def fit_augmented(
 
 def augmented_prediction(analysis: ResidualAnalysis, accepted: list[Accepted]) -> np.ndarray:
     """The fitted augmented model's prediction (µm) on every row of the analysis's data,
-    the rows it was not fitted on included (a held-out run)."""
+    the rows it was not fitted on included (a held-out run). An effect found inside a
+    lag-ridge base is that base refitted with the effect as an input."""
+    inside = getattr(analysis, "inside", None)
+    if inside is not None:
+        from models.analysis.inside import fitted_inside_prediction
+
+        return fitted_inside_prediction(analysis, inside)
     _, design, _ = _augmented_design(analysis, accepted)
     return design @ _coefficients(analysis, design)
 
@@ -143,10 +150,11 @@ def build_augmented_document(
 
 
 def save(document: dict[str, Any], store_dir: str | Path) -> Path:
-    """Write ``document`` into the store's augmented folder, signed if the store has a key."""
+    """Write ``document`` into the store's augmented folder, signed (the key made on first use)
+    unless the store is declared unsigned."""
     refuse_non_finite(document)
     path = Path(store_dir) / FOLDER / f"{document['model_id']}.json"
-    document = sign(document, signing.key_for_store(store_dir))
+    document = sign(document, signing.key_for_store(store_dir, create=True))
     return write_json_atomic(path, document)
 
 
@@ -161,7 +169,10 @@ def load(path: str | Path, key: bytes | None = None) -> dict[str, Any]:
     if not isinstance(document, dict):
         raise StoreError(f"{path}: a JSON object was expected at the top level")
     if key is None:
-        key = signing.key_for_store(path.parent.parent)
+        try:
+            key = signing.key_for_store(path.parent.parent)
+        except signing.SigningError as exc:
+            raise StoreError(str(exc)) from None
     check(document, str(path), key)
     return document
 
@@ -185,12 +196,40 @@ def check(document: dict[str, Any], where: str, key: bytes | None) -> None:
         raise StoreError(str(exc)) from None
 
 
+def sign_unsigned(store_dir: str | Path, key: bytes) -> list[Path]:
+    """Sign every unsigned augmented model of the store (``models sign``), each checked whole
+    first; one with a wrong signature is refused (StoreError). Returns the files signed."""
+    signed = []
+    for path in sorted((Path(store_dir) / FOLDER).glob("*.json")):
+        document = _read_unsigned(path, key)
+        if document is not None:
+            write_json_atomic(path, sign(document, key))
+            signed.append(path)
+    return signed
+
+
+def _read_unsigned(path: Path, key: bytes) -> dict[str, Any] | None:
+    """The augmented model in ``path`` if it is unsigned and whole; None if it is validly
+    signed with ``key``; StoreError otherwise."""
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as err:
+        raise StoreError(f"{path}: cannot read an augmented model: {err}") from None
+    if not isinstance(document, dict):
+        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    if signing.FIELD in document:
+        check(document, str(path), key)
+        return None
+    check(document, str(path), None)
+    return document
+
+
 def sign(document: dict[str, Any], key: bytes | None) -> dict[str, Any]:
     """``document`` signed with ``key`` (unchanged without one)."""
     return signing.sign(document, key, canonical_bytes(document))
 
 
-def stored_base(document: dict[str, Any]) -> ThermalModel:
+def stored_base(document: Mapping[str, Any]) -> ThermalModel:
     """The base model of a stored augmented model, as its terms were fitted.
 
     Documents before format 2 with a ridge or PLS base stored the coefficients of
@@ -206,7 +245,7 @@ def stored_base(document: dict[str, Any]) -> ThermalModel:
     return METHODS[method].from_params(info["hyperparams"], info["params"])
 
 
-def stored_design(document: dict[str, Any], prepared: Prepared) -> np.ndarray:
+def stored_design(document: Mapping[str, Any], prepared: Prepared) -> np.ndarray:
     """The design (intercept, base terms, effect terms) of a stored augmented model."""
     base = stored_base(document)
     columns = [np.ones((prepared.data.n_samples, 1)), base.design_matrix(prepared.inputs)]

@@ -137,7 +137,7 @@ class History:
 
     def save(self, path: str) -> None:
         """One .npz file (the background analysis reads it in its own process)."""
-        arrays = {
+        arrays: dict[str, Any] = {
             "time_s": self.time_s,
             "speed_rpm": self.speed_rpm,
             "sensors": np.array(self.sensors),

@@ -53,6 +53,11 @@ DEFAULT_TOLERANCE_UM = 2.5
 MIN_RUNS_FOR_EVIDENCE = 4
 #: A run holding at least this share of the held-out squared error dominates it.
 DOMINANT_SHARE = 0.5
+#: A run holding at least this many times its share of the rows in the held-out squared
+#: error left, and at least ``OUTLIER_MIN_SHARE`` of it, is an outlier among the runs
+#: (with 43 runs, one run's 22 % is 9 times its 2.3 % of the rows).
+OUTLIER_FACTOR = 4.0
+OUTLIER_MIN_SHARE = 0.1
 
 NEXT_STEP_RULE = (
     "1. promote: one or more effects were added (held-out RMSE fell): save the augmented "
@@ -62,10 +67,13 @@ NEXT_STEP_RULE = (
     f"thin (fewer than {MIN_RUNS_FOR_EVIDENCE} held-out runs, one run holding at least "
     f"{100 * DOMINANT_SHARE:g} % of the held-out squared error, or a candidate of the last "
     "round that lowered both held-out RMSEs enough but failed the fold or significance "
-    "rule): record more cycles, repeating the speeds of the dominant run; otherwise "
-    "add_sensor: the error is spread over the runs and no candidate effect of the measured "
-    "signals passes the rules, so a temperature sensor is missing where the unexplained heat "
-    "flows."
+    "rule): record more cycles, repeating the speeds of the dominant run; otherwise, "
+    f"check_run when one run holds at least {OUTLIER_FACTOR:g} times its share of the rows "
+    f"in the held-out squared error and at least {100 * OUTLIER_MIN_SHARE:g} % of it: that "
+    "run is an outlier (a probe, fixture or condition no other run has) to check before "
+    "anything else; otherwise add_sensor: the error is spread over the runs and no candidate "
+    "effect of the measured signals passes the rules, so a temperature sensor is missing "
+    "where the unexplained heat flows."
 )
 
 
@@ -233,7 +241,7 @@ class RunFigures:
 
 @dataclass(frozen=True)
 class NextStep:
-    """One recommended action: a key (``promote``, ``keep``, ``more_data``,
+    """One recommended action: a key (``promote``, ``keep``, ``more_data``, ``check_run``,
     ``add_sensor``) and the sentence that says it."""
 
     action: str
@@ -273,6 +281,9 @@ class AnalysisResult:
     base_choice: dict[str, Any] | None = None
     #: ``--nested``: the whole analysis scored by an outer leave-one-run-out.
     nested: NestedAnalysis | None = None
+    #: the base model's forward figure (:mod:`models.fit.forward`): each later recording
+    #: (or run) predicted by the base fitted on the earlier ones, against leave-one-run-out
+    forward: dict[str, Any] | None = None
 
     # ---- figures derived once, read by every renderer ------------------------------
 
@@ -339,8 +350,23 @@ class AnalysisResult:
                 steps.append(NextStep("keep", f"keep the {self.model} model: it meets {target}"))
             return tuple(steps)
         thin = self._thin_evidence()
+        outlier = self.outlier_run
         if thin:
             steps.append(NextStep("more_data", f"record more cycles: {thin}"))
+        elif outlier is not None:
+            rows = sum(r.n_samples for r in self.per_run)
+            factor = outlier.share_after / (outlier.n_samples / rows)
+            steps.append(
+                NextStep(
+                    "check_run",
+                    f"check run {outlier.run}: it holds "
+                    f"{pct_text(100.0 * outlier.share_after)} % of the held-out squared error "
+                    f"left ({factor:.1f} times its share of the rows), an outlier among the "
+                    f"{len(self.per_run)} runs (a probe, fixture or condition no other run "
+                    f"has); the error left is above {target} and no candidate effect of the "
+                    "measured signals passes the rules",
+                )
+            )
         else:
             steps.append(
                 NextStep(
@@ -376,6 +402,20 @@ class AnalysisResult:
             f"Held-out RMSE {um_text(before)} µm → {um_text(after)} µm "
             f"({change_text(self.rmse_gain_pct)} %) by adding {names}; {self.tolerance_text}."
         )
+
+    @property
+    def outlier_run(self) -> RunFigures | None:
+        """The run whose part of the held-out squared error left is far above its part of
+        the rows (``OUTLIER_FACTOR``, ``OUTLIER_MIN_SHARE``), or ``None``."""
+        runs = self.per_run
+        rows = sum(r.n_samples for r in runs)
+        if len(runs) < MIN_RUNS_FOR_EVIDENCE or rows == 0:
+            return None
+        worst = max(runs, key=lambda r: r.share_after / r.n_samples if r.n_samples else 0.0)
+        expected = worst.n_samples / rows
+        if worst.share_after >= max(OUTLIER_FACTOR * expected, OUTLIER_MIN_SHARE):
+            return worst
+        return None
 
     def _thin_evidence(self) -> str | None:
         """Why the data are too thin to go further, or ``None`` (see ``NEXT_STEP_RULE``)."""
@@ -426,6 +466,7 @@ class AnalysisResult:
             "steps": [step.as_dict() for step in self.added_steps],
             "rounds": [step.as_dict() for step in self.steps],
             "per_run": [r.as_dict() for r in self.per_run],
+            "outlier_run": None if self.outlier_run is None else self.outlier_run.run,
             "reference": self.reference,
             "rules": self.rules,
             "source": self.source,
@@ -440,6 +481,8 @@ class AnalysisResult:
             extra["base_choice"] = self.base_choice
         if self.nested is not None:
             extra["nested"] = self.nested.as_dict()
+        if self.forward is not None:
+            extra["forward"] = self.forward
         return extra
 
 

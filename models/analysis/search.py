@@ -38,6 +38,7 @@ folds and inner folds there are.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -217,12 +218,14 @@ class ResidualAnalysis:
         self.progress = progress
         self.base = BaseDesigns(method, sensors, prepared, self.folds, fit_rows)
         self.families = candidate_families(prepared, self.base.used_sensors)
+        # An input effect found inside a lag-ridge base (models.analysis.inside), if any.
+        self.inside: Variant | None = None
 
     # ---- the loop -----------------------------------------------------------------
 
     def run(self) -> tuple[list[StepResult], list[Accepted]]:
         accepted: list[Accepted] = []
-        current = self.evaluate(accepted, None)
+        current = self._declared(self.evaluate(accepted, None))
         steps: list[StepResult] = []
         while len(accepted) < MAX_STEPS:
             families = self._open_families(accepted)
@@ -252,8 +255,9 @@ class ResidualAnalysis:
                 )
                 break
             best = min(believed, key=lambda i: candidates[i].rmse_um)
-            family, ev = tried[best]
-            assert ev is not None
+            family, believed_ev = tried[best]
+            assert believed_ev is not None
+            ev = believed_ev
             overall = candidates[best]
             choice = _overall_choice(ev, family)
             variant = family.variants[choice]
@@ -274,6 +278,20 @@ class ResidualAnalysis:
             )
             current = ev
         return steps, accepted
+
+    def _declared(self, ev: Evaluation) -> Evaluation:
+        """The base alone as ``fit`` validates it: a base refitted per fold whose design is
+        not its terms (lag-ridge, ridge, pls: one column, its penalised prediction) predicts
+        each held-out fold itself, not rescaled by a least-squares level and slope, so the
+        analysis starts from the figure ``fit`` reports. Candidates refit that column's
+        level and slope with their own terms."""
+        if self.base.fixed:
+            return ev  # the model is least squares on its design: the same fit
+        predicted = ev.predicted_um.copy()
+        for f, rows in enumerate(self.folds.rows):
+            predicted[rows] = self.base.models[f].predict(self.prepared.inputs)[rows]
+        sse = np.array([np.sum((self.y[rows] - predicted[rows]) ** 2) for rows in self.folds.rows])
+        return dataclasses.replace(ev, predicted_um=predicted, per_fold_sse=sse)
 
     def _open_families(self, accepted: list[Accepted]) -> list[EffectFamily]:
         """Families that may still enter the model.
@@ -505,8 +523,8 @@ class ResidualAnalysis:
             fixed = designs[key]
             for vi in sorted({chosen[f] for f in folds_in_group}):
                 built_vi, extra = last_built.pop(key, (None, None))
-                if built_vi != vi:
-                    del extra
+                if built_vi != vi or extra is None:
+                    extra = None  # another variant's terms go before these are made
                     extra = self._extra(variants[vi])
                 for f in (f for f in folds_in_group if chosen[f] == vi):
                     part, beta = self.folds.parts[f], betas[vi, f]
@@ -549,7 +567,7 @@ class ResidualAnalysis:
         products = []
         for part in self.folds.parts:
             rows = a.rows(part) if isinstance(a, FixedDesign) else a[part]
-            other = rows if b is a else b[part]
+            other = rows if b is a else (b.rows(part) if isinstance(b, FixedDesign) else b[part])
             products.append(rows.T @ other)
         return np.stack(products)
 
@@ -704,6 +722,22 @@ def _refuse_constant_error(data: MeasuredRuns, fit_rows: np.ndarray | None) -> N
     )
 
 
+def _inside_or_run(analysis: ResidualAnalysis) -> tuple[list[StepResult], list[Accepted]]:
+    """On a lag-ridge base, the input effects refitted inside it first
+    (:mod:`models.analysis.inside`); the loop of this module when none is believed.
+
+    An effect found inside lag-ridge is part of the refitted base, not a term beside it:
+    it is returned with no :class:`Accepted` (nothing to add to the scaled prediction)."""
+    if analysis.method == "lag-ridge":
+        from models.analysis.inside import inside_step
+
+        base = analysis.evaluate([], None).predicted_um
+        step = inside_step(analysis, base, ALPHA, MIN_GAIN_PCT)
+        if step is not None:
+            return [step], []
+    return analysis.run()
+
+
 def analyze(
     prepared: Prepared,
     method: str = "mlr",
@@ -717,7 +751,7 @@ def analyze(
     the effect terms still run over every row."""
     _refuse_constant_error(prepared.data, fit_rows)
     analysis = ResidualAnalysis(prepared, method, sensors, progress, fit_rows)
-    steps, accepted = analysis.run()
+    steps, accepted = _inside_or_run(analysis)
     first = steps[0]
     last = steps[-1]
     return (

@@ -244,7 +244,9 @@ class _Terms:
         return np.column_stack([speed_krpm, speed_krpm**2])
 
     def ambient_rise(self) -> np.ndarray:
-        return self.prepared.plan.rises(self.data.ambient_C)
+        ambient_C = self.data.ambient_C
+        assert ambient_C is not None, "an ambient term needs an ambient column"
+        return self.prepared.plan.rises(ambient_C)
 
     def lagged(
         self, values: Callable[[], np.ndarray], tau: float, start_cold: bool = False

@@ -32,7 +32,7 @@ def fingerprint(*arrays: np.ndarray | None, names: Sequence[object] = ()) -> str
             continue
         values = np.ascontiguousarray(array)
         digest.update(f"{values.dtype.str}{values.shape}".encode())
-        digest.update(values.view(np.uint8).reshape(-1) if values.size else b"")
+        digest.update(values.data.cast("B") if values.size else b"")
     return digest.hexdigest()
 
 
@@ -105,6 +105,7 @@ def group_grams(
     if by_group is None:
         rows = [labels == label for label in order]
         return order, np.array([augmented_gram(terms[r], y[r]) for r in rows])
+    assert run_index is not None  # whole runs need runs
     full_key = key + fingerprint(y, run_index)
     if not (_last and _last[0][0] == full_key):
         _last.clear()  # drop the previous data set's products before taking the new ones

@@ -18,7 +18,9 @@ the training runs alone among a small family fixed in the code
 one on the speed terms, a ridge with one penalty on every term, a lasso on the
 sensors and their 30 min lags, a lasso on the sensors and the speed powers with their
 30 min lags whose intercept is held at 0 µm),
-by a doubly nested leave-one-run-out (above 10 training runs the inner folds are
+by a doubly nested leave-one-run-out, each run that continues a recording scored as
+a new recording too (its cold start, :func:`with_cold_starts`), so the choice holds
+on a later file (above 10 training runs the inner folds are
 5 folds of consecutive runs, :func:`models.estimators.ridge_pls.inner_groups`). The
 chosen structures are stacked with weights on the simplex (a weight of 1 is one
 structure alone); since every candidate's terms are among the largest one's,
@@ -52,6 +54,7 @@ a square root of the products (:mod:`models.estimators.lag_paths`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -60,6 +63,7 @@ import numpy as np
 
 from models.base import ModelInputs, ThermalModel
 from models.data.lag_terms import SPEED_SCALE_RPM, first_order_lag, lag_step
+from models.data.references import error_origins, first_rows, reference_rows
 from models.estimators.lag_grams import group_grams, inputs_fingerprint
 from models.estimators.lag_structures import (
     DEFAULT_SPEED_POWERS,
@@ -173,6 +177,7 @@ def candidate_paths(
     structures: Sequence[Structure],
     y: np.ndarray,
     labels: np.ndarray,
+    cold: np.ndarray | None = None,
 ) -> list[CandidatePaths]:
     """Each structure's terms of ``inputs`` and its fits over the groups of rows in
     ``labels`` (-1: a row left out), ready for :func:`models.estimators.lag_structures.choose`.
@@ -188,7 +193,7 @@ def candidate_paths(
         return [
             CandidatePaths(
                 s, lag_terms(inputs, sensors, s.lag_taus_s, s.speed_powers), y, labels,
-                len(sensors), n,
+                len(sensors), n, cold=cold,
             )
             for s, n in zip(structures, names, strict=True)
         ]  # fmt: skip
@@ -202,9 +207,70 @@ def candidate_paths(
         columns = np.array([index[name] for name in own], dtype=int)
         grams = GroupGrams.from_products(order, products, columns)
         paths.append(
-            CandidatePaths(structure, terms, y, labels, len(sensors), own, grams, columns, shared)
+            CandidatePaths(
+                structure, terms, y, labels, len(sensors), own, grams, columns, shared, cold
+            )
         )
     return paths
+
+
+def with_cold_starts(
+    inputs: ModelInputs, y: np.ndarray, labels: np.ndarray
+) -> tuple[ModelInputs, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``inputs`` and ``y`` with a cold start of every training run that continues a
+    recording appended: (inputs, y, labels, cold), the appended rows labelled −1 (never
+    fitted on) and marked in ``cold`` with their run's group (−1 elsewhere).
+
+    A cold start is the run as a gateway meets it on a new recording: its rises taken
+    from its own reference rows (:func:`models.data.references.reference_rows`), every lag
+    started at its first sample, its error from an origin of its own where its at-rest
+    lead-in reads more than 1 µm (:func:`models.data.references.error_origins`). Scoring
+    each structure on these too makes the choice one that holds on a later recording,
+    where a term that leans on the history of one long recording (a 24 h lag) fails.
+    Runs that open a recording, and runs with rows left out, are not copied.
+    """
+    if inputs.run_index is None or inputs.time_s is None:
+        return inputs, y, labels, None
+    recording = np.zeros(inputs.n_samples, int) if inputs.recording is None else inputs.recording
+    run = inputs.run_index
+    opening = np.isin(run, run[first_rows(recording)])
+    partial = np.isin(run, run[labels < 0])
+    copied = ~opening & ~partial
+    if not copied.any():
+        return inputs, y, labels, None
+    part = inputs.take(copied)
+    runs = part.run_index
+    assert runs is not None and part.time_s is not None  # a mix scored on runs has both
+    position = np.unique(runs, return_inverse=True)[1]
+    reference = reference_rows(position, part.time_s, part.speed_rpm)
+    rise = part.rise_C.copy()
+    for k in range(position.max() + 1):
+        own = position == k
+        rise[own] -= rise[own & reference].mean(axis=0)
+    y_cold = y[copied] - error_origins(y[copied], position, reference, part.speed_rpm)[position]
+    offset = int(run.max()) + 1
+    joined = ModelInputs(
+        rise_C=np.vstack([inputs.rise_C, rise]),
+        sensors=inputs.sensors,
+        speed_rpm=np.r_[inputs.speed_rpm, part.speed_rpm],
+        run_index=np.r_[run, runs + offset],
+        time_s=np.r_[inputs.time_s, part.time_s],
+        recording=np.r_[recording, int(recording.max()) + 1 + position],
+    )
+    cold = np.r_[np.full(inputs.n_samples, -1), labels[copied]]
+    return joined, np.r_[y, y_cold], np.r_[labels, np.full(part.n_samples, -1)], cold
+
+
+def _without_constant_speed(
+    candidates: tuple[Structure, ...], speed_rpm: np.ndarray
+) -> tuple[Structure, ...]:
+    """``candidates`` without their speed powers when the speed does not vary on the
+    training rows (not recorded, or one speed throughout): such terms are constant, the
+    data say nothing of them, and a model without them does not need the speed."""
+    speed = np.asarray(speed_rpm, dtype=float)
+    if speed.size and np.ptp(speed) > 0:
+        return candidates
+    return tuple(dataclasses.replace(c, speed_powers=()) for c in candidates)
 
 
 class LagRidgeModel(ThermalModel):
@@ -283,11 +349,15 @@ class LagRidgeModel(ThermalModel):
         part = inputs if rows is None else inputs.take(rows)
         labels = np.full(inputs.n_samples, -1)
         labels[rows if rows is not None else slice(None)] = inner_groups(part)
+        candidates = _without_constant_speed(self.candidates, part.speed_rpm)
+        cold = None
+        if len(candidates) > 1:
+            inputs, y, labels, cold = with_cold_starts(inputs, y, labels)
         # Small dense problems: one BLAS thread is faster than several fighting for cores.
         with threadpool_limits(1):
-            choice = choose(candidate_paths(inputs, used, self.candidates, y, labels))
+            choice = choose(candidate_paths(inputs, used, candidates, y, labels, cold))
         self._use(choice.structure)
-        self._design_cache = None
+        self._design_cache: tuple[ModelInputs, np.ndarray] | None = None
         self.sensors_used_ = used
         self.intercept_um_ = float(choice.beta[0])
         self.coef_ = choice.beta[1:]
@@ -295,6 +365,7 @@ class LagRidgeModel(ThermalModel):
         self.term_scale_ = choice.scale
         self.penalties_ = choice.penalties
         self.inner_rmse_um_ = choice.inner_rmse_um
+        self.cold_rmse_um_ = choice.cold_rmse_um
         self.stack_weights_ = choice.weights
 
     # --- prediction ------------------------------------------------------------------
@@ -367,12 +438,16 @@ class LagRidgeModel(ThermalModel):
             "structure_choice": {
                 "candidates": [s.as_dict() for s in self.candidates],
                 "inner_rmse_um": dict(self.inner_rmse_um_),
+                "cold_start_rmse_um": dict(getattr(self, "cold_rmse_um_", {})),
                 "weights": dict(self.stack_weights_),
                 "weight_step": 1.0 / STACK_STEPS,
                 "chosen_by": (
-                    "weights on the simplex with the lowest pooled squared error over the "
-                    "training runs, each run predicted by every structure fitted on the "
-                    "other training runs with its penalty chosen on those alone"
+                    "weights on the simplex with the lowest of the worse of two mean squared "
+                    "errors over the training runs, each run predicted by every structure "
+                    "fitted on the other training runs with its penalty chosen on those "
+                    "alone: as the recording carried it, and as a new recording (its own "
+                    "cold reference, lags from its first sample) for each run that "
+                    "continues a recording"
                     if self.inner_rmse_um_
                     else "the only candidate"
                 ),
@@ -397,6 +472,8 @@ class LagRidgeModel(ThermalModel):
         self.penalties_ = {k: float(v) for k, v in params["penalties"].items()}
         choice = params.get("structure_choice", {})
         self.inner_rmse_um_ = {k: float(v) for k, v in choice.get("inner_rmse_um", {}).items()}
+        cold = choice.get("cold_start_rmse_um", {})
+        self.cold_rmse_um_ = {k: float(v) for k, v in cold.items()}
         self.stack_weights_ = {k: float(v) for k, v in choice.get("weights", {}).items()}
 
     def summary(self) -> str:
@@ -404,10 +481,11 @@ class LagRidgeModel(ThermalModel):
         penalties = ", ".join(f"{k} {v:.3g}" for k, v in self.penalties_.items())
         scores = ", ".join(f"{k} {v:.2f}" for k, v in self.inner_rmse_um_.items())
         chosen = f"; inner RMSE µm {scores}" if scores else ""
+        speed = f" and {len(self.speed_powers)} speed powers" if self.speed_powers else ""
         return (
             f"lag-ridge [{self.structure_.name}: {self.structure_.estimator}]: "
-            f"{len(self.sensors_used_)} sensors and {len(self.speed_powers)} speed "
-            f"powers with lags at τ = {taus} min ({self.coef_.size} terms); penalties "
+            f"{len(self.sensors_used_)} sensors{speed} "
+            f"with lags at τ = {taus} min ({self.coef_.size} terms); penalties "
             f"{penalties} (nested leave-one-run-out{chosen})"
         )
 
@@ -508,6 +586,6 @@ class LagRidgeStream:
         self._time_s = float(state["time_s"])
         self._lags = values.reshape(len(self.model.lag_taus_s), len(self.names))
         last = [state.get(k) for k in self.input_keys()]
-        self._last = None if last[0] is None else np.array([float(v) for v in last])
+        self._last = None if last[0] is None else np.array(last, dtype=float)
         if self._last is not None and not np.all(np.isfinite(self._last)):
             raise ValueError("lag-ridge: state holds a value that is not finite")

@@ -49,11 +49,18 @@ The choice is nested twice. Every training run is predicted by every
 structure fitted on the other training runs *with its penalty chosen by
 leave-one-run-out on those alone* (so a structure with a larger grid gains
 nothing from the grid's size); the structure's score is the pooled RMSE of
-those predictions. The stacking weights (multiples of 1/``STACK_STEPS`` that
-sum to 1) are the ones whose weighted sum of those predictions has the lowest
-pooled squared error: one structure alone when it is clearly the best, a blend
-when the runs disagree (a hard pick among structures whose scores are close
-follows the noise of five runs). Each structure with a weight then has its
+those predictions. A training run that continues a recording is predicted a
+second time as a *cold start*: the same run prepared as a new recording (its own
+reference, every lag from its first sample), as ``score`` and a new gateway meet
+a later file (:func:`models.estimators.lag_ridge.with_cold_starts`; never fitted
+on). The stacking weights (multiples of 1/``STACK_STEPS`` that sum to 1) are the
+ones whose weighted sum of those predictions has the lowest of the worse of two
+mean squared errors, over the runs as the recording carried them and over their
+cold starts (:func:`stack_weights`): a structure that leans on the history of one
+long recording (a 24 h lag learned inside 30 h) scores well the first way and
+fails the second. One structure alone when it is clearly the best, a blend when
+the runs disagree (a hard pick among structures whose scores are close follows
+the noise of five runs). Each structure with a weight then has its
 penalty chosen by leave-one-run-out on all the training runs and is fitted on
 all of them; the stack is their weighted sum. With fewer than three groups of
 training rows there is nothing to nest a choice in, and the first structure is
@@ -74,7 +81,7 @@ import itertools
 import math
 import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -218,7 +225,11 @@ class GroupGrams:
         return grams
 
     def total(self, members: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-        return sum(self.gram[i] for i in members), sum(self.cross[i] for i in members)
+        zeros_gram, zeros_cross = np.zeros_like(self.gram[0]), np.zeros_like(self.cross[0])
+        return (
+            sum((self.gram[i] for i in members), zeros_gram),
+            sum((self.cross[i] for i in members), zeros_cross),
+        )
 
     def total_yy(self, members: Sequence[int]) -> float:
         return float(sum(self.yy[i] for i in members))
@@ -300,14 +311,18 @@ class CandidatePaths:
         grams: GroupGrams | None = None,
         columns: np.ndarray | None = None,
         shared: dict | None = None,
+        cold: np.ndarray | None = None,
     ) -> None:
         """``names``: the name of every term of the structure; ``labels``: the group of every
         row (−1: not a training row). ``terms`` are its terms, or, with ``columns``, a
         larger set of which its terms are those columns (``grams`` then given over them).
         ``shared``: ridge factorisations kept per set of groups, shared with the other
         candidates on the same terms (the one-penalty ridge is the two-group one at r = 1).
+        ``cold``: for rows that are a training group's cold start (the group prepared as a
+        new recording, never fitted on), that group's label; −1 elsewhere.
         """
         self.structure = structure
+        self.cold = np.full(labels.size, -1) if cold is None else np.asarray(cold)
         self.names = list(names)
         self.terms = terms
         self.columns = None if columns is None else np.asarray(columns, dtype=int)
@@ -317,6 +332,7 @@ class CandidatePaths:
         self._shared = {} if shared is None else shared
         self.groups = term_groups(n_sensors, len(structure.lag_taus_s), len(structure.speed_powers))
         self._paths: dict[frozenset[int], list[np.ndarray]] = {}
+        self._nested_cache: dict[frozenset[int], tuple[np.ndarray, np.ndarray]] = {}
         if structure.estimator == TWO_GROUP_RIDGE and structure.speed_powers:
             ratios: Sequence[float] = SPEED_PENALTY_RATIOS
         else:
@@ -325,6 +341,8 @@ class CandidatePaths:
             self.grid = [{"l1_over_target_sigma": a} for a in LASSO_PENALTIES]
         else:
             self.grid = [{"sensors": p, "speed": p * r} for r in ratios for p in PENALTIES]
+            if not structure.speed_powers:  # no speed term: no speed penalty to report
+                self.grid = [{"sensors": p} for p in PENALTIES]
         self._ratios = ratios
 
     @property
@@ -390,6 +408,7 @@ class CandidatePaths:
                 alphas=sigma * np.asarray(LASSO_PENALTIES) * n / z.shape[0],
                 max_iter=5000,
                 precompute=True,
+                check_input=False,  # z, y made contiguous float64 above (square_root_rows)
             )
         path = []
         for w in coefs.T:
@@ -416,13 +435,13 @@ class CandidatePaths:
             return best
         standard_error = math.sqrt(len(held_out)) * float(sse[:, best].std(ddof=1))
         within = np.flatnonzero(total <= total[best] + standard_error)
-        return int(max(within, key=self._strength))
+        return int(max(within.tolist(), key=self._strength))
 
     def _strength(self, k: int) -> tuple[float, float]:
         point = self.grid[k]
         if "l1_over_target_sigma" in point:
             return (point["l1_over_target_sigma"], 0.0)
-        return (point["sensors"], point["speed"])
+        return (point["sensors"], point.get("speed", 0.0))
 
     def nested_sse(self, members: frozenset[int]) -> float:
         """Pooled squared error of each group of ``members`` predicted by this structure fitted
@@ -435,6 +454,17 @@ class CandidatePaths:
 
     def nested_predictions(self, members: frozenset[int]) -> np.ndarray:
         """Every training row of ``members`` (in row order) predicted as in :meth:`nested_sse`."""
+        return self._nested(members)[0]
+
+    def nested_cold_predictions(self, members: frozenset[int]) -> np.ndarray:
+        """Every cold-start row of ``members`` (in row order, :meth:`cold_rows_of`) predicted
+        by the fit of :meth:`nested_sse` on the other groups."""
+        return self._nested(members)[1]
+
+    def _nested(self, members: frozenset[int]) -> tuple[np.ndarray, np.ndarray]:
+        cached = self._nested_cache.get(members)
+        if cached is not None:
+            return cached
         held_out = sorted(members)
         # One pass over the terms for every held-out group (each column one group's fit).
         coefficients = np.zeros((self.terms.shape[1], len(held_out)))
@@ -447,16 +477,25 @@ class CandidatePaths:
         every = self.terms @ coefficients + intercepts
         predicted = np.empty(self.labels.size)
         for i, held in enumerate(held_out):
-            mask = self.labels == self.grams.labels[held]
+            mask = (self.labels == self.grams.labels[held]) | (self.cold == self.grams.labels[held])
             predicted[mask] = every[mask, i]
-        return predicted[self.rows_of(members)]
+        result = (predicted[self.rows_of(members)], predicted[self.cold_rows_of(members)])
+        self._nested_cache[members] = result
+        return result
+
+    def cold_target(self, members: frozenset[int]) -> np.ndarray:
+        return self.y[self.cold_rows_of(members)]
+
+    def cold_rows_of(self, members: frozenset[int]) -> np.ndarray:
+        """Mask of the cold-start rows of the groups ``members``."""
+        return np.isin(self.cold, [self.grams.labels[m] for m in members])
 
     def training_target(self, members: frozenset[int]) -> np.ndarray:
         return self.y[self.rows_of(members)]
 
     def rows_of(self, members: frozenset[int]) -> np.ndarray:
-        """Mask of the rows of the groups ``members``."""
-        return np.isin(self.labels, [self.grams.labels[m] for m in members])
+        """Mask of the rows of the groups ``members`` (not their cold starts)."""
+        return np.isin(self.labels, [self.grams.labels[m] for m in members]) & (self.cold < 0)
 
 
 def simplex_weights(k: int, steps: int = STACK_STEPS) -> np.ndarray:
@@ -488,6 +527,24 @@ def _converged(
     return [c for c, k in zip(candidates, kept, strict=True) if k], predicted[:, kept]
 
 
+def stack_weights(predicted: np.ndarray, target: np.ndarray, n_continued: int) -> np.ndarray:
+    """The simplex weights whose stack of the nested predictions ``predicted`` (rows: the
+    ``n_continued`` training rows as the recording carried them, then their cold starts)
+    has the lowest worse of the two mean squared errors: a stack must hold both where the
+    recording goes on and where a new one starts."""
+    grid = simplex_weights(predicted.shape[1])
+    parts = [slice(0, n_continued), slice(n_continued, target.size)]
+    worst = np.zeros(grid.shape[0])
+    for part in parts:
+        p, t = predicted[part], target[part]
+        if t.size == 0:
+            continue
+        gram, cross = p.T @ p, p.T @ t
+        sse = np.einsum("mi,ij,mj->m", grid, gram, grid) - 2.0 * grid @ cross + t @ t
+        worst = np.maximum(worst, sse / t.size)
+    return grid[int(np.argmin(worst))]
+
+
 @dataclass(frozen=True)
 class Choice:
     """What :func:`choose` picked: the structure (a stack of several when the weights split),
@@ -501,6 +558,9 @@ class Choice:
     scale: np.ndarray
     inner_rmse_um: dict[str, float]
     weights: dict[str, float]
+    #: each structure's nested score on the training runs' cold starts (each run prepared
+    #: as a new recording), RMSE µm; empty when no run is a warm continuation
+    cold_rmse_um: dict[str, float] = field(default_factory=dict)
 
 
 def choose(candidates: Sequence[CandidatePaths]) -> Choice:
@@ -510,18 +570,24 @@ def choose(candidates: Sequence[CandidatePaths]) -> Choice:
     members = candidates[0].members
     scores: dict[str, float] = {}
     weights = np.r_[1.0, np.zeros(len(candidates) - 1)]
+    cold_scores: dict[str, float] = {}
     if len(candidates) > 1 and len(members) >= 3:
         y = candidates[0].training_target(members)
+        y_cold = candidates[0].cold_target(members)
         with np.errstate(over="ignore", invalid="ignore"):
-            predicted = np.column_stack([c.nested_predictions(members) for c in candidates])
-            rmse = np.sqrt(np.mean((y[:, None] - predicted) ** 2, axis=0))
+            predicted = np.column_stack(
+                [np.r_[c.nested_predictions(members), c.nested_cold_predictions(members)]
+                 for c in candidates]
+            )  # fmt: skip
+            target = np.r_[y, y_cold]
+            rmse = np.sqrt(np.mean((target[:, None] - predicted) ** 2, axis=0))
         candidates, predicted = _converged(candidates, predicted, rmse)
         for candidate, column in zip(candidates, predicted.T, strict=True):
-            scores[candidate.structure.name] = float(np.sqrt(np.mean((y - column) ** 2)))
-        grid = simplex_weights(len(candidates))
-        gram, cross = predicted.T @ predicted, predicted.T @ y
-        sse = np.einsum("mi,ij,mj->m", grid, gram, grid) - 2.0 * grid @ cross
-        weights = grid[int(np.argmin(sse))]
+            scores[candidate.structure.name] = float(np.sqrt(np.mean((y - column[: y.size]) ** 2)))
+            if y_cold.size:
+                cold = y_cold - column[y.size :]
+                cold_scores[candidate.structure.name] = float(np.sqrt(np.mean(cold**2)))
+        weights = stack_weights(predicted, target, y.size)
     used = [(w, c) for w, c in zip(weights, candidates, strict=True) if w > 0]
     union = max((c for _, c in used), key=lambda c: len(c.names))
     index = {name: j for j, name in enumerate(union.names)}
@@ -557,4 +623,5 @@ def choose(candidates: Sequence[CandidatePaths]) -> Choice:
         scale,
         scores,
         {c.structure.name: float(w) for w, c in zip(weights, candidates, strict=True)},
+        cold_scores,
     )

@@ -54,7 +54,9 @@ def fold_labels(prepared: Prepared) -> tuple[str, np.ndarray]:
     n = prepared.data.n_samples
     if n < BLOCKS * 2:
         raise ValueError(
-            f"one run of {n} samples is too short for a blocked split into {BLOCKS} blocks"
+            f"{prepared.data.source}: one run of {n} samples is too short for a blocked "
+            f"split into {BLOCKS} blocks; at least {BLOCKS * 2} samples, or two runs, "
+            "were expected"
         )
     block = np.minimum(np.arange(n) * BLOCKS // n, BLOCKS - 1)
     labels = np.array([f"{runs[0]}#block{b + 1}" for b in block], dtype=object)
@@ -100,7 +102,12 @@ def _held_out(
     from joblib import Parallel, delayed
 
     jobs = (delayed(_fold_one_thread)(factory, prepared, labels == fold) for fold in folds)
-    return list(Parallel(n_jobs=workers)(jobs))
+    results = Parallel(n_jobs=workers, return_as="generator")(jobs)  # in order, as they end
+    bar = tqdm(
+        results, total=len(folds), desc="held-out folds", disable=not progress, leave=False,
+        mininterval=0,  # every fold shown as it ends, however fast
+    )  # fmt: skip
+    return list(bar)
 
 
 def _fold(factory: ModelFactory, prepared: Prepared, test: np.ndarray) -> np.ndarray:

@@ -20,11 +20,14 @@ from pathlib import Path
 import numpy as np
 
 from models.base import ModelInputs
+from models.data.dataset import MeasuredRuns
 from models.data.features import Prepared
 from models.estimators.registry import make_model
 from models.estimators.sensor_relations import fit_relations
 from models.fit.conditioning import DEFAULT_SENSOR_ACCURACY_C, Conditioning, assess
-from models.fit.crossval import Validation, cross_evaluate, cross_validate
+from models.fit.crossval import Validation, cross_evaluate, cross_validate, fold_labels
+from models.fit.forward import Disagreement, Forward, disagreement, forward_validate
+from models.fit.interval import calibrate, forward_scaled_residuals
 from models.fit.ranking import RegimeReport, SigmaRow, rank_regimes
 from models.store import ModelStore, build_document
 
@@ -40,6 +43,9 @@ class FitOutcome:
     ranking: RegimeReport | None = None
     summaries: dict[str, str] = field(default_factory=dict)
     conditioning: dict[str, Conditioning] = field(default_factory=dict)  # model id → figures
+    #: by regime: each later recording (or run) predicted from the earlier ones only
+    forward: dict[str, Forward] = field(default_factory=dict)
+    agreement: dict[str, Disagreement] = field(default_factory=dict)  # forward vs LORO
 
 
 def model_id_for(method: str, target: str, group: str) -> str:
@@ -56,7 +62,12 @@ def fit_and_store(
     progress: bool = False,
     software_version: str = "unknown",
     sensor_accuracy_C: float = DEFAULT_SENSOR_ACCURACY_C,
+    data_with_readings: MeasuredRuns | None = None,
 ) -> FitOutcome:
+    """Validate, fit and store ``method`` per group. With ``data_with_readings`` (the file
+    as loaded, the sensors' readings kept) the model of all runs is validated forward
+    too (:mod:`models.fit.forward`)."""
+
     def factory():
         return make_model(method, sensors)
 
@@ -88,6 +99,7 @@ def fit_and_store(
         model_id = model_id_for(method, data.target, label)
         if validation is not None:
             outcome.validations[group] = validation
+            _validate_forward(outcome, group, factory, part, data_with_readings, sensors)
         summary = getattr(model, "summary", None)
         if callable(summary):
             outcome.summaries[model_id] = summary()
@@ -109,9 +121,32 @@ def fit_and_store(
             software_version=software_version,
             conditioning=conditioning.as_dict(),
             sensor_relations=relations_document(part.inputs),
+            interval=interval_record(validation, part, outcome.forward.get(group)),
         )
         outcome.saved[document["model_id"]] = store.save(document)
     return outcome
+
+
+def _validate_forward(
+    outcome: FitOutcome,
+    group: str,
+    factory,
+    prepared: Prepared,
+    data: MeasuredRuns | None,
+    sensors: Sequence[str] | None,
+) -> None:
+    """The forward figure of ``group`` (every run; none without the readings) and how it
+    compares with leave-one-run-out."""
+    if data is None or prepared.data.n_samples != data.n_samples:
+        return
+    forward = forward_validate(factory, prepared, data, sensors)
+    if forward is None:
+        return
+    validation = outcome.validations[group]
+    outcome.forward[group] = forward
+    outcome.agreement[group] = disagreement(
+        forward, validation.predicted_um, prepared.error_um, prepared.data.run
+    )
 
 
 def _validation_record(
@@ -162,6 +197,7 @@ def fit_sensor_fallbacks(
             software_version=software_version,
             conditioning=assess(model, prepared.inputs).as_dict(),
             sensor_relations=relations_document(prepared.inputs),
+            interval=interval_record(validation, prepared),
         )
         saved[document["model_id"]] = store.save(document)
     return saved
@@ -180,3 +216,34 @@ def relations_document(inputs: ModelInputs) -> dict[str, object] | None:
         return fit_relations(inputs.rise_C, inputs.sensors, inputs.run_index).as_document()
     except ValueError:
         return None
+
+
+def interval_record(
+    validation: Validation | None, prepared: Prepared, forward: Forward | None = None
+) -> dict[str, object] | None:
+    """The calibrated interval (:mod:`models.fit.interval`) from the held-out predictions,
+    each row labelled by the run (or block) it was held out with, and from the forward
+    figure's where there is one; None without held-out predictions."""
+    if validation is None:
+        return None
+    labels = fold_labels(prepared)[1]
+    forward_res = None
+    if forward is not None:
+        run = prepared.data.run
+        units = [
+            (
+                np.flatnonzero(np.isin(run, forward.runs[unit])),
+                np.flatnonzero(np.isin(run, forward.trained_on[unit])),
+            )
+            for unit in forward.folds
+        ]
+        forward_res = forward_scaled_residuals(
+            forward.measured_um, forward.predicted_um, prepared.inputs, units
+        )
+    return calibrate(
+        prepared.error_um,
+        validation.predicted_um,
+        labels,
+        prepared.inputs,
+        forward_abs_residuals_um=forward_res,
+    )

@@ -37,8 +37,8 @@ the version in force, wherever a writer was killed.
 
 Every file read is checked for its ``format`` and a supported ``format_version``,
 naming the file; so are the augmented models inside proposals and versions
-(:func:`models.analysis.augmented.check`), and their signatures when the store has a
-signing key (:mod:`models.signing`).
+(:func:`models.analysis.augmented.check`), and their signatures (:mod:`models.signing`;
+not in a store declared unsigned).
 
 A promoted entry names the model it takes the place of (``replaces``, a model
 id of the store, or None: every regime). Promoting a proposal for the same
@@ -48,7 +48,10 @@ The running gateway watches ``versions/current.json`` (a ``stat`` per cycle,
 :meth:`ModelVersions.pointer_key`) and swaps the set in between cycles after its
 own checks (:mod:`gateway.live.bank.promotion`). Writers take ``versions/.lock`` (an
 advisory ``flock``), so the command line and the gateway's SCADA method can
-change the set at the same time without losing a version.
+change the set at the same time without losing a version. The lock is only ever
+tried, never waited on in the kernel (:meth:`ModelVersions.locked`): a holder that
+is stopped stops no one else; readers need no lock, the rename of
+``versions/current.json`` being the commit; publishing a proposal takes none.
 """
 
 from __future__ import annotations
@@ -75,6 +78,10 @@ PROPOSALS_FOLDER = "proposals"
 VERSIONS_FOLDER = "versions"
 CURRENT_FILE = "current.json"
 LOCK_FILE = ".lock"
+#: how often a busy ``versions/.lock`` is tried again while a writer waits for it, s
+LOCK_RETRY_S = 0.05
+#: a publication tries this many free ids (each taken meanwhile, or its file removed)
+PUBLISH_TRIES = 100
 #: temporary files of writers (models.json_files; ``tmp*.tmp``: before they were dot-named)
 TEMPORARIES = (".*.tmp", "tmp*.tmp")
 
@@ -97,6 +104,19 @@ _ID_PATTERN = re.compile(r"^P(\d{4,})$")
 
 class ProposalError(StoreError):
     """A proposal or version file that cannot be used, or a change that is not allowed."""
+
+
+class StoreBusyError(ProposalError):
+    """Another process holds ``versions/.lock`` (a change under way, or a stopped writer)."""
+
+    def __init__(self, path: Path, holder: str, waited_s: float) -> None:
+        self.path = path
+        who = f"process {holder}" if holder.isdigit() else "another process"
+        waited = f" for {waited_s:g} s" if waited_s > 0 else ""
+        super().__init__(
+            f"{path} is held by {who}{waited}: another change of the promoted set is under way "
+            "(or its writer is stopped); nothing was changed, try again when it is done"
+        )
 
 
 # -- records --------------------------------------------------------------------------------
@@ -266,6 +286,7 @@ class Version:
             "start": "the store's own models",
             "promote": f"promoted {self.proposal_id}",
             "rollback": f"rolled back to the set of version {self.restores}",
+            "sign": f"the set of version {self.number - 1}, its models signed",
         }.get(self.action, self.action)
         return f"version {self.number}: {what}; promoted models: {models}"
 
@@ -347,30 +368,36 @@ class ProposalStore:
                 raise ProposalError(f"proposal {name} must be a finite number ≥ 0, got {value!r}")
         if int(probe_rows) < 1:
             raise ProposalError(f"proposal probe_rows must be at least 1, got {probe_rows!r}")
-        key = signing.key_for_store(self.store_dir)
+        key = signing.key_for_store(self.store_dir, create=True)
         sealed = checked_document(document, "proposal document", key, sign_unsigned=True)
         created = time.time() if created_s is None else float(created_s)
         params_json = json.loads(json.dumps(dict(params)))
         self.folder.mkdir(parents=True, exist_ok=True)
-        figures = {name: float(value) for name, value in figures.items()}
         published = {"status": PROPOSED, "time_s": created, "note": "published"}
-        with self.versions.locked():  # a recovery removes temporary files under it
-            while True:
-                proposal = Proposal(
-                    self._next_id(),
-                    str(machine_id),
-                    created,
-                    str(effect),
-                    params_json,
-                    probe_rows=int(probe_rows),
-                    document=sealed,
-                    replaces=replaces,
-                    note=note,
-                    history=(published,),
-                    **figures,
-                )
+        # No lock: the running loop publishes, and must never wait for a writer of versions.
+        # The file is linked to a free id (exclusive); a recovery that removed its temporary
+        # file mid-write (FileNotFoundError at the link) only costs another try.
+        for _ in range(PUBLISH_TRIES):
+            proposal = Proposal(
+                self._next_id(),
+                str(machine_id),
+                created,
+                str(effect),
+                params_json,
+                probe_rows=int(probe_rows),
+                document=sealed,
+                replaces=replaces,
+                note=note,
+                history=(published,),
+                before_rmse_um=float(before_rmse_um),
+                after_rmse_um=float(after_rmse_um),
+            )
+            with contextlib.suppress(FileNotFoundError):
                 if _write_new(self._path(proposal.id), proposal.to_json()):
                     return proposal
+        raise ProposalError(
+            f"{self.folder}: no proposal file could be written in {PUBLISH_TRIES} tries"
+        )
 
     def list(self, machine_id: str | None = None, status: str | None = None) -> list[Proposal]:
         """Every proposal (of ``machine_id``, with ``status``), oldest first."""
@@ -402,9 +429,12 @@ class ProposalStore:
             )
         return self._read(path)
 
-    def reject(self, proposal_id: str, note: str = "", time_s: float | None = None) -> Proposal:
-        """Mark an open proposal rejected (a promoted one is rolled back instead)."""
-        with self.versions.locked():
+    def reject(
+        self, proposal_id: str, note: str = "", time_s: float | None = None, wait_s: float = 0.0
+    ) -> Proposal:
+        """Mark an open proposal rejected (a promoted one is rolled back instead). ``wait_s``:
+        how long to wait for a busy lock (:meth:`ModelVersions.locked`)."""
+        with self.versions.locked(wait_s):
             proposal = self.get(proposal_id)
             if not proposal.open:
                 raise ProposalError(
@@ -533,15 +563,18 @@ class ModelVersions:
             return proposal.status, ""
         return PROPOSED, "never in force"
 
-    def promote(self, proposal_id: str, by: str = "", time_s: float | None = None) -> Version:
+    def promote(
+        self, proposal_id: str, by: str = "", time_s: float | None = None, wait_s: float = 0.0
+    ) -> Version:
         """Put the proposal's model in force: a new version, the proposal ``promoted``.
 
         A promoted entry of the same machine in the same place (``replaces``) is
         superseded. Refused for a proposal that is not open (already promoted,
         rejected or superseded: publish it again to reconsider it), and for a model of
         an unsupported format version or, with a signing key, not signed with it.
+        StoreBusyError if another process holds the lock after ``wait_s`` (:meth:`locked`).
         """
-        with self.locked():
+        with self.locked(wait_s):
             proposal = self.proposals.get(proposal_id)
             if not proposal.open:
                 raise ProposalError(
@@ -572,9 +605,10 @@ class ModelVersions:
             self.reconcile(version.created_s)
             return version
 
-    def rollback(self, by: str = "", time_s: float | None = None) -> Version:
-        """Restore the set in force before the current version, as a new version."""
-        with self.locked():
+    def rollback(self, by: str = "", time_s: float | None = None, wait_s: float = 0.0) -> Version:
+        """Restore the set in force before the current version, as a new version (StoreBusyError:
+        as :meth:`promote`)."""
+        with self.locked(wait_s):
             current = self.current()
             if current.previous is None:
                 raise ProposalError(
@@ -619,13 +653,57 @@ class ModelVersions:
                 note = f"machine {machine_id} still runs it: it refused {proposal_id}"
                 self.proposals.set_status(kept, PROMOTED, note, time_s, about)
 
-    def recover(self) -> list[str]:
+    def sign_unsigned(self, key: bytes, by: str = "", wait_s: float = 0.0) -> list[str]:
+        """Sign the unsigned models of the open proposals and of the version in force
+        (``models sign``, for a store written before models were signed by default).
+
+        A proposal file is rewritten with its model signed; the version in force, never
+        rewritten, is followed by a new version (action ``sign``) holding the same models,
+        signed. A model with a wrong signature is refused (ProposalError). Returns what
+        was done, one line each."""
+        done: list[str] = []
+        with self.locked(wait_s):
+            for proposal in self.proposals.list(status=PROPOSED):
+                if signing.FIELD in proposal.document:
+                    continue
+                where = f"{self.proposals.folder / f'{proposal.id}.json'}, its model"
+                raw = self.proposals.read_file(proposal.id)
+                signed = checked_document(raw.document, where, key, sign_unsigned=True)
+                write_json_atomic(
+                    self.proposals._path(raw.id), replace(raw, document=signed).to_json()
+                )
+                done.append(f"signed the model of proposal {proposal.id}")
+            current = self.get(self.current_number())
+            if any(signing.FIELD not in e.document for e in current.active):
+                where = f"{self.folder / f'{current.number}.json'}"
+                active = tuple(
+                    replace(
+                        e, document=checked_document(e.document, where, key, sign_unsigned=True)
+                    )
+                    for e in current.active
+                )
+                version = self._write(
+                    action="sign",
+                    current=current,
+                    previous=current.previous,
+                    active=active,
+                    by=by,
+                    time_s=None,
+                )
+                done.append(
+                    f"version {version.number}: the models of version {current.number}, signed"
+                )
+        return done
+
+    def recover(self, wait_s: float = 0.0) -> list[str]:
         """Clean up after a writer killed mid-change (at the start of ``run`` and of the
         ``models`` commands): remove temporary files and version files never in force, and
-        bring each proposal file's status in line with the versions. Returns what was done."""
+        bring each proposal file's status in line with the versions. Returns what was done.
+        StoreBusyError while another process holds the lock (its change is under way): readers
+        need no recovery (they read through ``current.json``), a writer tries again later."""
         if not self.folder.is_dir() and not self.proposals.folder.is_dir():
             return []
-        with self.locked():
+        with self.locked(wait_s):
             done: list[str] = []
             for folder in (self.folder, self.proposals.folder):
                 done += [f"removed {p}" for p in remove_temporaries(folder, TEMPORARIES)]
@@ -649,15 +727,27 @@ class ModelVersions:
         return changed
 
     @contextlib.contextmanager
-    def locked(self) -> Iterator[None]:
-        """Hold the store's change lock (one writer of versions and statuses at a time)."""
+    def locked(self, wait_s: float = 0.0) -> Iterator[None]:
+        """Hold the store's change lock (one writer of versions and statuses at a time).
+
+        Never a blocking ``flock``: the lock is tried (``LOCK_NB``) and tried again every
+        :data:`LOCK_RETRY_S` for up to ``wait_s`` (0: once), then :class:`StoreBusyError` naming
+        the lock file and the process holding it. A holder that is stopped (``SIGSTOP``) or
+        hung would otherwise stop every writer after it, the running loop included. The
+        holder's process id is written into the lock file for that message."""
         self.folder.mkdir(parents=True, exist_ok=True)
-        with open(self.folder / LOCK_FILE, "a", encoding="utf-8") as handle:
-            fcntl.flock(handle, fcntl.LOCK_EX)
+        path = self.folder / LOCK_FILE
+        handle = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            _acquire(handle, path, wait_s)
             try:
+                os.ftruncate(handle, 0)
+                os.pwrite(handle, f"{os.getpid()}\n".encode(), 0)
                 yield
             finally:
                 fcntl.flock(handle, fcntl.LOCK_UN)
+        finally:
+            os.close(handle)
 
     def _numbers(self) -> list[int]:
         return sorted(int(p.stem) for p in self.folder.glob("*.json") if p.stem.isdigit())
@@ -704,6 +794,27 @@ class ModelVersions:
 
 
 # -- helpers --------------------------------------------------------------------------------
+
+
+def _acquire(handle: int, path: Path, wait_s: float) -> None:
+    """``flock`` ``handle`` without ever blocking in the kernel; StoreBusyError after ``wait_s``."""
+    deadline = time.monotonic() + max(0.0, wait_s)
+    while True:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                raise StoreBusyError(path, _holder(handle), wait_s) from None
+            time.sleep(LOCK_RETRY_S)
+
+
+def _holder(handle: int) -> str:
+    """The process id the holder wrote into the lock file ("" if none can be read)."""
+    try:
+        return os.pread(handle, 32, 0).decode("ascii", "replace").strip()
+    except OSError:
+        return ""
 
 
 def check_format_version(data: Mapping[str, Any], where: str) -> None:

@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
+from tqdm import tqdm
 
 from models.analysis.augmented import stored_design
 from models.data.features import Prepared
@@ -64,7 +65,9 @@ from models.data.lag_terms import first_order_lag
 from models.estimators.lag_ridge import DEFAULT_SPEED_POWERS, DEFAULT_TAUS_S, lag_terms
 from models.estimators.registry import make_model
 from models.estimators.ridge_pls import grouped_runs
+from models.fit.interval import calibrate
 from models.fit.metrics import accuracy
+from models.online import declared_fits
 from models.online.correction import CorrectionParams, OnlineCorrection
 
 LAG_TAU_SETS_S: tuple[tuple[float, ...], ...] = ((600.0, 3600.0), (1800.0, 7200.0))
@@ -258,35 +261,6 @@ class LaggedFeatures:
         return self.designs[taus][rows] @ beta
 
 
-#: Base predictions already made in this process, by (data, method, sensors, training rows):
-#: the leave-one-out at every probe interval, and the inner leave-one-out of every held-out
-#: run, fit the same training sets again (a lag-ridge fit makes its own nested choice).
-_declared_cache: dict[tuple[int, str, tuple[str, ...] | None, bytes], np.ndarray] = {}
-_DECLARED_CACHE_SIZE = 32
-
-
-def _declared_prediction(
-    prepared: Prepared, method: str, sensors: Sequence[str] | None, train: np.ndarray
-) -> np.ndarray:
-    """The declared model fitted on ``train`` (its lags built over the whole history), predicting
-    every row."""
-    key = (
-        id(prepared),
-        method,
-        None if sensors is None else tuple(sensors),
-        np.packbits(train).tobytes(),
-    )
-    cached = _declared_cache.get(key)
-    if cached is not None and cached.size == prepared.data.n_samples:
-        return cached
-    model = make_model(method, sensors).fit_rows(prepared.inputs, prepared.error_um, train)
-    predicted = model.predict(prepared.inputs)
-    if len(_declared_cache) >= _DECLARED_CACHE_SIZE:
-        _declared_cache.pop(next(iter(_declared_cache)))
-    _declared_cache[key] = predicted
-    return predicted
-
-
 # --- the nested choice ------------------------------------------------------------------
 
 
@@ -390,7 +364,10 @@ class _ReplayBase:
         self.slices = dict(data.run_slices())
         self.masks = {r: data.run == r for r in data.run_ids}
         self._lagged: dict[tuple[str, ...], LaggedFeatures] = {}  # by the sensors a model uses
-        self.design = stored_design(document, prepared) if base == "augmented" else None
+        self.design = None
+        if base == "augmented":
+            assert document is not None, "an augmented base is replayed from its document"
+            self.design = stored_design(document, prepared)
         self.grams = {}
         if self.design is not None:
             y = prepared.error_um
@@ -413,7 +390,7 @@ class _ReplayBase:
         """Base prediction on every row from ``train_runs``, and what was chosen."""
         if self.base == "declared":
             train = np.any([self.masks[r] for r in train_runs], axis=0)
-            return _declared_prediction(self.prepared, self.method, self.sensors, train), {}
+            return declared_fits.prediction(self.prepared, self.method, self.sensors, train), {}
         if self.design is not None:  # least squares from the runs' Gram sums
             g = sum(self.grams[r][0] for r in train_runs)
             c = sum(self.grams[r][1] for r in train_runs)
@@ -453,8 +430,10 @@ def replay_interval(
     document: dict[str, Any] | None = None,
     defaults: CorrectionParams | None = None,
     kinds: Sequence[str] = DEFAULT_KINDS,
+    progress: bool = False,
 ) -> IntervalResult:
-    """Leave-one-run-out replay at one probe interval; see the module docstring."""
+    """Leave-one-run-out replay at one probe interval; see the module docstring.
+    ``progress``: a bar over the held-out runs (on stderr)."""
     if base not in BASES:
         raise ValueError(f"unknown base {base!r}; expected one of {BASES}")
     defaults = defaults or CorrectionParams()
@@ -466,7 +445,9 @@ def replay_interval(
     result_runs: list[RunReplay] = []
     base_residual = np.empty(prepared.error_um.size)
     choices: dict[str, dict[str, Any]] = {}
-    for held in runs:
+    bar = tqdm(runs, desc=f"held-out runs, probe every {interval_min:g} min", unit="run",
+               disable=not progress, leave=False, mininterval=0)  # fmt: skip
+    for held in bar:
         train_runs = [r for r in runs if r != held]
         predicted, chosen = model.fitted(train_runs)
         inner_residual = model.inner_residual(train_runs, chosen)
@@ -566,14 +547,17 @@ def _choose_lagged(
 
 def offline_accuracy(
     prepared: Prepared, method: str, sensors: Sequence[str] | None
-) -> dict[str, float]:
-    """The declared model as ``fit`` validates it (leave-one-run-out, no probes)."""
+) -> dict[str, Any]:
+    """The declared model as ``fit`` validates it (leave-one-run-out, no probes), with
+    its calibrated interval's coverage, each run against the width calibrated on the
+    others (:func:`models.fit.interval.calibrate`; ``interval`` None with too few rows)."""
     predicted = np.empty(prepared.data.n_samples)
     for run in prepared.data.run_ids:
         test = prepared.data.run == run
-        predicted[test] = _declared_prediction(prepared, method, sensors, ~test)[test]
+        predicted[test] = declared_fits.prediction(prepared, method, sensors, ~test)[test]
     acc = accuracy(prepared.error_um, predicted)
-    return {"rmse_um": acc.rmse_um, "max_abs_um": acc.max_abs_um}
+    calibration = calibrate(prepared.error_um, predicted, prepared.data.run, prepared.inputs)
+    return {"rmse_um": acc.rmse_um, "max_abs_um": acc.max_abs_um, "interval": calibration}
 
 
 # --- the model to store -----------------------------------------------------------------

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import math
-from datetime import UTC, datetime
 from pathlib import Path
 
 from asyncua import Node, Server, ua
@@ -27,7 +26,7 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.server.address_space import NodeData
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
-from drivers.opcua_common import MICROMETRE, RPM, SECOND, ServerLifecycle
+from drivers.opcua_common import MICROMETRE, RPM, SECOND, ServerLifecycle, data_value, node_id
 from simulator.link import MACRO_FIRST, MACRO_LAST, MachineLink, MachineSnapshot
 
 _logger = logging.getLogger(__name__)
@@ -171,8 +170,8 @@ class CncOpcUaServer(ServerLifecycle):
         server = self._require_started()
         snap = self._link.snapshot()
         writes_at_snapshot = self._client_writes
-        for name, value in self._state_values(snap):
-            await server.write_attribute_value(self._nodeids[name], self._datavalue(value))
+        for name, variant in self._state_values(snap):
+            await server.write_attribute_value(self._nodeids[name], self._datavalue(variant))
         for number, value in snap.macros.items():
             nodeid = self._nodeids.get(self.macro_node_id(number))
             if nodeid is None:
@@ -200,8 +199,7 @@ class CncOpcUaServer(ServerLifecycle):
 
     @staticmethod
     def _datavalue(variant: ua.Variant) -> ua.DataValue:
-        now = datetime.now(UTC)
-        return ua.DataValue(variant, SourceTimestamp=now, ServerTimestamp=now)
+        return data_value(variant)
 
     @staticmethod
     def _state_values(snap: MachineSnapshot) -> list[tuple[str, ua.Variant]]:
@@ -218,9 +216,10 @@ class CncOpcUaServer(ServerLifecycle):
         ns = self.namespace_index
 
         async def folder(parent: Node, name: str, description: str) -> Node:
-            node = await parent.add_object(ua.NodeId(name, ns), ua.QualifiedName(name, ns))
+            node = await parent.add_object(node_id(name, ns), ua.QualifiedName(name, ns))
             await node.write_attribute(
-                ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+                ua.AttributeIds.Description,
+                data_value(ua.LocalizedText(description), stamped=False),
             )
             return node
 
@@ -233,17 +232,18 @@ class CncOpcUaServer(ServerLifecycle):
         ) -> Node:
             browse_name = nodeid.split(".", 1)[1]
             node = await parent.add_variable(
-                ua.NodeId(nodeid, ns), ua.QualifiedName(browse_name, ns), initial
+                node_id(nodeid, ns), ua.QualifiedName(browse_name, ns), initial
             )
             await node.write_attribute(
-                ua.AttributeIds.Description, ua.DataValue(ua.LocalizedText(description))
+                ua.AttributeIds.Description,
+                data_value(ua.LocalizedText(description), stamped=False),
             )
             if unit is not None:
                 await node.add_property(
-                    ua.NodeId(f"{nodeid}.EngineeringUnits", ns),
+                    node_id(f"{nodeid}.EngineeringUnits", ns),
                     ua.QualifiedName("EngineeringUnits", 0),
                     ua.Variant(unit, ua.VariantType.ExtensionObject),
-                    datatype=ua.NodeId(ua.ObjectIds.EUInformation),
+                    datatype=node_id(ua.ObjectIds.EUInformation),
                 )
             self._nodeids[nodeid] = node.nodeid
             return node
@@ -271,10 +271,11 @@ class CncOpcUaServer(ServerLifecycle):
         for number in self._macro_numbers:
             name = self.macro_node_id(number)
             node = await macros.add_variable(
-                ua.NodeId(name, ns), ua.QualifiedName(f"Macro{number}", ns), zero
+                node_id(name, ns), ua.QualifiedName(f"Macro{number}", ns), zero
             )
             await node.write_attribute(
-                ua.AttributeIds.DisplayName, ua.DataValue(ua.LocalizedText(f"#{number}"))
+                ua.AttributeIds.DisplayName,
+                data_value(ua.LocalizedText(f"#{number}"), stamped=False),
             )
             await node.set_writable()
             self._nodeids[name] = node.nodeid

@@ -52,6 +52,7 @@ export async function readOperation(session, namespaceIndex, name, jsonValue) {
         status: dv.statusCode.name,
         dataType: DataType[dv.value.dataType],
         value: jsonValue(dv.value.value),
+        sourceTimestampMs: dv.sourceTimestamp ? dv.sourceTimestamp.getTime() : null,
     };
 }
 

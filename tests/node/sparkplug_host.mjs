@@ -2,14 +2,16 @@
 // payload library (sparkplug-payload) and the MQTT client sparkplug-client uses (mqtt).
 //
 // argv[2]: JSON {url, ca, username, password, group, host}. It publishes its STATE
-// (retained, will: offline), subscribes to the group, decodes every message, checks the
+// (retained, will: offline, both with the connect's timestamp), subscribes to the group, decodes every message, checks the
 // sequence numbers of each edge node and prints one JSON line per message:
 //   {"event":"message","kind":"DDATA","node":..,"device":..,"seq":..,"gap":false,
-//    "bdSeq":..,"metrics":[{"name":..,"alias":..,"type":..,"value":..,"historical":..}]}
+//    "qos":..,"retain":..,"metrics":[{"name":..,"sentName":..,"alias":..,"type":..,"value":..,
+//    "historical":..}]}  (name: as sent, else the birth's name of the alias; sentName: as sent)
 // It reads JSON commands on stdin, one per line:
 //   {"op":"rebirth","node":N}          NCMD Node Control/Rebirth
 //   {"op":"dcmd","node":N,"device":D,"metrics":[{name|alias,type,value}],"timestamp":T,"seq":S}
 //   {"op":"raw","topic":T,"hex":H}     arbitrary bytes (a malformed command)
+//   {"op":"rawstate","text":X}         X as its STATE payload, not retained (old or malformed)
 //   {"op":"state","online":bool}       its own STATE
 //   {"op":"quit"}
 import { readFileSync } from "node:fs";
@@ -22,7 +24,9 @@ const cfg = JSON.parse(process.argv[2]);
 const stateTopic = `spBv1.0/STATE/${cfg.host}`;
 const say = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
 const plain = (v) => (v !== null && typeof v === "object" && typeof v.toNumber === "function" ? v.toNumber() : v);
-const stateMessage = (online) => JSON.stringify({ online, timestamp: Date.now() });
+const stateMessage = (online, timestamp = Date.now()) => JSON.stringify({ online, timestamp });
+// Sparkplug 3.0: the online STATE carries the timestamp of the will of the CONNECT before it.
+const connectedAt = Date.now();
 
 const nodes = new Map(); // node → {seq, bdSeq, aliases: Map(device → Map(alias → name))}
 
@@ -33,12 +37,12 @@ const client = mqtt.connect(cfg.url, {
   clientId: `host-${cfg.host}-${process.pid}`,
   clean: true,
   reconnectPeriod: 200,
-  will: { topic: stateTopic, payload: stateMessage(false), qos: 1, retain: true },
+  will: { topic: stateTopic, payload: stateMessage(false, connectedAt), qos: 1, retain: true },
 });
 
 client.on("connect", () => {
   client.subscribe(`spBv1.0/${cfg.group}/#`, { qos: 1 }, () => {
-    client.publish(stateTopic, stateMessage(true), { qos: 1, retain: true }, () => say({ event: "online" }));
+    client.publish(stateTopic, stateMessage(true, connectedAt), { qos: 1, retain: true }, () => say({ event: "online" }));
   });
 });
 client.on("error", (err) => say({ event: "error", message: String(err) }));
@@ -66,7 +70,7 @@ function track(kind, node, device, payload) {
   return { gap, names: n.aliases.get(key) ?? new Map() };
 }
 
-client.on("message", (topic, buf) => {
+client.on("message", (topic, buf, packet) => {
   const parts = topic.split("/");
   if (parts[1] === "STATE") return;
   const [, , kind, node, device] = parts;
@@ -81,6 +85,7 @@ client.on("message", (topic, buf) => {
   const { gap, names } = track(kind, node, device ?? null, payload);
   const metrics = (payload.metrics ?? []).map((m) => ({
     name: m.name ?? names.get(plain(m.alias)) ?? null,
+    sentName: m.name ?? null,
     alias: plain(m.alias),
     type: m.type,
     value: plain(m.value),
@@ -90,7 +95,7 @@ client.on("message", (topic, buf) => {
   say({
     event: "message", kind, node, device: device ?? null,
     seq: payload.seq === undefined ? null : plain(payload.seq),
-    timestamp: plain(payload.timestamp), gap, metrics,
+    timestamp: plain(payload.timestamp), gap, qos: packet.qos, retain: packet.retain, metrics,
   });
 });
 
@@ -101,6 +106,8 @@ rl.on("line", (line) => {
     client.end(true, () => process.exit(0));
   } else if (cmd.op === "state") {
     client.publish(stateTopic, stateMessage(cmd.online), { qos: 1, retain: true }, () => say({ event: "state-sent", online: cmd.online }));
+  } else if (cmd.op === "rawstate") {
+    client.publish(stateTopic, cmd.text, { qos: 1, retain: false }, () => say({ event: "state-sent", text: cmd.text }));
   } else if (cmd.op === "raw") {
     client.publish(cmd.topic, Buffer.from(cmd.hex, "hex"), { qos: 1 }, () => say({ event: "sent", op: "raw" }));
   } else if (cmd.op === "rebirth") {

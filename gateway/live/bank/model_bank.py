@@ -1,8 +1,9 @@
 """The fitted models a machine can use, loaded and checked once at start-up.
 
 Every file of the store is loaded through :func:`models.store.load_file` (which
-refuses damaged or incompatible files, and, with a signing key for the store, an
-unsigned or wrongly signed one: :mod:`models.signing`). Augmented models (a declared model plus
+refuses damaged or incompatible files, and an unsigned or wrongly signed one unless the
+store is declared unsigned: :mod:`models.signing`), and a file whose model id is not
+its file name (:func:`models.store.check_named_after`). Augmented models (a declared model plus
 the effects residual analysis added, ``<store>/augmented/*.json``) are loaded
 through :func:`models.analysis.augmented.load` (format and checksum) and checked by
 building their sample-by-sample form (:mod:`models.online.streaming`); their lag
@@ -32,7 +33,7 @@ from models.data.dataset import AMBIENT_COLUMN
 from models.estimators.sensor_relations import SensorRelations
 from models.fit.conditioning import bias_sensitivity
 from models.online.streaming import StreamingAugmented
-from models.store import StoredModel, load_file, probe_inputs
+from models.store import StoredModel, check_named_after, load_file, probe_inputs
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +138,10 @@ class BankedAugmented:
     #: µm per °C of bias per sensor, for a plain model stepped with lag states
     #: (:meth:`from_plain`); None for an ``analyze`` result (judged by its analysis).
     sensitivity_um_per_C: dict[str, float] | None = None
+    #: the calibrated interval and the training span of a stored plain model
+    #: (:mod:`gateway.live.interval`); None for an ``analyze`` result or a file without them.
+    interval: dict[str, Any] | None = None
+    training_range: dict[str, Any] | None = None
 
     @classmethod
     def from_plain(cls, model: ThermalModel, document: StoredModel) -> BankedAugmented:
@@ -168,6 +173,8 @@ class BankedAugmented:
             ambient_sensor=None,
             regime=document.regime,
             sensitivity_um_per_C=bias_sensitivity(model, probe_inputs(document)),
+            interval=document.interval,
+            training_range=document.training_range,
         )
 
     @classmethod
@@ -266,16 +273,15 @@ class ModelBank:
         signing_key = signing.key_for_store(folder)
         for path in sorted(folder.glob("*.json")):
             model, document = load_checked(path, signing_key)
+            check_named_after(path, document.model_id)
             if callable(getattr(model, "stream", None)):  # its terms carry lag states
                 loaded.append(BankedAugmented.from_plain(model, document))
             else:
                 loaded.append(BankedModel(document.model_id, model, document))
         for path in sorted((folder / augmented.FOLDER).glob("*.json")):
-            loaded.append(
-                BankedAugmented.from_document(
-                    augmented.load(path), ambient_sensor or AMBIENT_COLUMN
-                )
-            )
+            stored = augmented.load(path)
+            check_named_after(path, str(stored.get("model_id")))
+            loaded.append(BankedAugmented.from_document(stored, ambient_sensor or AMBIENT_COLUMN))
         if not loaded:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"

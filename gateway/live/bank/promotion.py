@@ -27,6 +27,15 @@ compensation moves to it no faster than the slew allows.
 With ``models.auto_promote: true`` the loop itself promotes a new proposal for
 its machine as soon as it sees it (one ``stat`` of the proposals folder per
 cycle); by default nothing is promoted without an operator.
+
+The loop never waits for the store's lock (``versions/.lock``): the recovery at start
+and an automatic promotion only *try* it (:meth:`models.online.proposals.ModelVersions.locked`);
+while another process holds it (a ``models promote`` under way, or stopped) they are
+tried again on each later cycle, and the cycles go on. Reading the version in force
+needs no lock: its commit is the atomic rename of ``versions/current.json``. The running
+loop also runs that recovery whenever it sees a new version (once the lock is free): a
+writer killed between its commit and the proposal files' update leaves them behind the
+version in force, and nothing else would bring them in line until the next command.
 """
 
 from __future__ import annotations
@@ -45,6 +54,7 @@ from models.online.proposals import (
     ActiveEntry,
     Proposal,
     ProposalStore,
+    StoreBusyError,
     Version,
 )
 
@@ -157,6 +167,10 @@ class Promotions:
         self._proposals_key: tuple[int, int] | None = None
         self._entries: dict[str | None, ActiveEntry] = {}  # what the bank holds, by place
         self._proposals_path = os.fspath(self.store.folder)  # stat-ed every cycle
+        self._recover_pending = False  # a recovery found the lock held: tried next cycle
+        self._recover_quiet = False  # ... and says so only if it is the one at start
+        self._auto_pending = False  # an automatic promotion found the lock held
+        self._busy_logged = False  # the held lock is logged once per episode
 
     # -- at start ---------------------------------------------------------------------------
     def load(self, bank: ModelBank) -> SwapOutcome:
@@ -171,20 +185,39 @@ class Promotions:
         self._refresh_proposals()
         return outcome
 
-    def _recover(self) -> None:
+    def _recover(self, quiet: bool = False) -> None:
+        """Clean up after a writer killed mid-change; tried again next cycle while another
+        process holds the lock (``quiet``: without saying so, as after every new version,
+        whose writer is still bringing the proposal files in line)."""
+        self._recover_pending = False
         try:
             for line in self.store.versions.recover():
                 log.warning("%s: model store recovered: %s", self.machine.id, line)
+        except StoreBusyError as exc:  # tried again next cycle: never wait on the loop
+            self._recover_pending, self._recover_quiet = True, quiet
+            if not quiet:
+                self._lock_busy("the recovery of the model store", exc)
+            return
         except OSError as exc:  # a read-only store: nothing can have been left half-written
             log.warning("%s: model store not checked for leftovers: %s", self.machine.id, exc)
+        self._busy_logged = False
+
+    def _lock_busy(self, what: str, exc: StoreBusyError) -> None:
+        """Log once per episode that ``what`` waits for a lock another process holds."""
+        if not self._busy_logged:
+            self._busy_logged = True
+            log.warning("%s: %s is tried again every cycle: %s", self.machine.id, what, exc)
 
     # -- every cycle ------------------------------------------------------------------------
     def poll(self, bank: ModelBank) -> SwapOutcome | None:
         """Between cycles: new proposals (auto-promoted if configured), then a new version."""
+        if self._recover_pending:
+            self._recover(quiet=self._recover_quiet)
         if self._proposals_changed():
             self._refresh_proposals()
-            if self.auto_promote:
-                self._auto_promote()
+            self._auto_pending = self.auto_promote
+        if self._auto_pending:
+            self._auto_promote()
         key = self.store.versions.pointer_key()
         if key == self._version_key:
             return None
@@ -200,6 +233,9 @@ class Promotions:
             )
             return None
         outcome = self._apply(version, bank)
+        if self.running:
+            # A writer killed after its commit leaves the proposal files behind this version.
+            self._recover(quiet=True)
         self._refresh_proposals()  # promotion changes statuses
         return outcome
 
@@ -306,11 +342,16 @@ class Promotions:
         self.proposals_revision += 1
 
     def _auto_promote(self) -> None:
+        self._auto_pending = False
         newest = next((p for p in reversed(self.proposals) if p.open), None)
         if newest is None:
             return
         try:
             self.store.versions.promote(newest.id, by="auto_promote")
+        except StoreBusyError as exc:
+            self._auto_pending = True
+            self._lock_busy(f"the automatic promotion of {newest.id}", exc)
+            return
         except (KeyError, ValueError) as exc:
             log.error("%s: auto-promotion of %s failed: %s", self.machine.id, newest.id, exc)
             return
@@ -319,6 +360,7 @@ class Promotions:
             self.machine.id,
             newest.describe(),
         )
+        self._busy_logged = False
         self._refresh_proposals()
 
 

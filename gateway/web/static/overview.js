@@ -38,6 +38,11 @@
     set("regime", text(row.regime));
     set("model_id", text(row.model_id) + " v" + row.models_version);
     set("predicted_um", text(row.predicted_um, 1));
+    set("interval_um", text(row.interval_um, 1));
+    var outside = row.outside_inputs || [];
+    set("training_span", text(row.training_span) + (outside.length ? ": " + outside.join(", ") : ""));
+    var span = tr.querySelector('[data-f="training_span"]');
+    if (span) span.className = row.training_span === "outside" ? "flag" : "";
     set("applied_um", text(row.applied_um, 1));
     set("written_cnc", text(row.written_cnc, 4) + " " + row.cnc_unit);
     set("write_status", text(row.write_status));

@@ -223,6 +223,7 @@ def fuzzy_c_means(
         if best is None or objective < best[0]:
             best = (objective, u, centers, n_iter)
 
+    assert best is not None  # n_init ≥ 1 starts
     objective, u, centers, n_iter = best
     if basis is not None:
         centers = centers @ basis

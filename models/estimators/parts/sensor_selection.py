@@ -149,6 +149,7 @@ def select_sensors(
             index = xie_beni(points, result)
             if best is None or index < best[0]:
                 best = (index, result)
+        assert best is not None, "no cluster count to try"
         xb, result = best
         labels = result.labels
         pc = result.partition_coefficient()

@@ -1,0 +1,253 @@
+"""A calibrated prediction interval from the held-out residuals the fit already has.
+
+Split-conformal: the half-width ``q`` is the ⌈(n+1)·c⌉-th smallest |held-out residual|
+of the model's own validation (``c`` the nominal coverage, 0.9), so a new sample like
+the held-out ones falls within ``predicted ± q`` with probability at least ``c``.
+
+Thermal residuals are strongly autocorrelated inside a run (a model that is 4 µm off
+at minute 30 is about 4 µm off at minute 31), so samples of one run are not
+exchangeable with each other and a split inside a run would flatter the interval.
+The residuals used are the leave-one-run-out ones (each run predicted by a model
+fitted on the other runs), and the coverage stored with the calibration is checked
+run by run: each run against the half-width calibrated on the *other* runs' residuals
+(``per_run_coverage``), pooled as ``heldout_coverage``. That figure is on data the
+calibration did not see.
+
+A model is fitted per regime (``fit --regime-column``), and each model is validated
+inside its regime, so the calibration is per regime.
+
+The live loop widens the calibrated half-width by what a cycle lacks
+(:func:`widened_um`); the gains are stored with the calibration, so the same width
+is reproduced offline:
+
+- an input outside the training span: × (1 + ``outside_gain`` · excess), the excess
+  being how far beyond the span the input is, as a fraction of the span's width (the
+  methods extrapolate linearly or worse, so the error grows at least in proportion);
+- each machine sensor flagged bad (held, substituted by a fallback model, or lost):
+  × ``bad_sensor_factor``.
+
+The calibration divides each held-out residual by the widening its row had against
+the span of the runs its model was fitted on, so the extrapolating folds (the fastest
+run held out) count as such. The gains themselves are settings, not fitted; no training
+row has a held sensor, so ``bad_sensor_factor`` is not checked on data.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
+from models.base import ModelInputs
+from models.training_range import MARGIN_FRACTION, MIN_MARGIN_C, MIN_MARGIN_RPM, training_range
+
+#: The nominal coverage of the stored interval.
+NOMINAL_COVERAGE = 0.9
+#: Fewer held-out samples than this: no interval (too few to place a 90 % quantile).
+MIN_SAMPLES = 30
+#: Width gain per unit of excess beyond the training span (excess as a fraction of its width).
+OUTSIDE_GAIN = 2.0
+#: Width factor per machine sensor flagged bad.
+BAD_SENSOR_FACTOR = 1.5
+
+
+def conformal_half_width(abs_residuals_um: np.ndarray, coverage: float) -> float | None:
+    """The ⌈(n+1)·coverage⌉-th smallest |residual| (µm); None when n is too small for it."""
+    values = np.sort(np.asarray(abs_residuals_um, dtype=float))
+    values = values[np.isfinite(values)]
+    n = values.size
+    rank = math.ceil((n + 1) * coverage)
+    if n < MIN_SAMPLES or rank > n:
+        return None
+    return float(values[rank - 1])
+
+
+def coverage(
+    measured_um: np.ndarray, predicted_um: np.ndarray, half_width_um: np.ndarray | float
+) -> dict[str, float | int]:
+    """Share of samples with |measured − predicted| ≤ half-width, the mean full width (µm)
+    and the sample count; rows with a non-finite value or width are not counted."""
+    measured = np.asarray(measured_um, dtype=float)
+    predicted = np.asarray(predicted_um, dtype=float)
+    width = np.broadcast_to(np.asarray(half_width_um, dtype=float), measured.shape)
+    known = np.isfinite(measured) & np.isfinite(predicted) & np.isfinite(width)
+    n = int(known.sum())
+    if n == 0:
+        return {"coverage": float("nan"), "mean_width_um": float("nan"), "n_samples": 0}
+    inside = np.abs(measured[known] - predicted[known]) <= width[known]
+    return {
+        "coverage": float(inside.mean()),
+        "mean_width_um": float(2.0 * width[known].mean()),
+        "n_samples": n,
+    }
+
+
+def calibrate(
+    measured_um: np.ndarray,
+    heldout_predicted_um: np.ndarray,
+    run_labels: np.ndarray,
+    inputs: ModelInputs,
+    nominal: float = NOMINAL_COVERAGE,
+    forward_abs_residuals_um: np.ndarray | None = None,
+) -> dict[str, Any] | None:
+    """The calibration stored with a model (field ``interval``), or None with too few samples.
+
+    ``heldout_predicted_um``: each row predicted by a model that did not see its run
+    (:func:`models.fit.crossval.cross_validate`); ``run_labels``: each row's run (or block);
+    ``inputs``: the rows' inputs. Each residual is divided by the widening its row had
+    against the span of the runs its model was fitted on, so a held-out run beyond the
+    others (the fastest run, say) counts as the extrapolation it was and the width inside
+    the span is not inflated by it (normalised conformal).
+
+    ``forward_abs_residuals_um``: the |residuals| of the fit's forward figure (later runs
+    predicted from earlier ones, each started as a new recording), normalised the same way
+    (:func:`forward_scaled_residuals`). A plant meets its model that way, and inside one
+    recording leave-one-run-out flatters the model; the stored half-width is the larger of
+    the two quantiles, so it holds forward too.
+    """
+    labels = np.asarray(run_labels)
+    abs_res = np.abs(np.asarray(measured_um, float) - np.asarray(heldout_predicted_um, float))
+    scale = 1.0 + OUTSIDE_GAIN * _fold_excess(inputs, labels)
+    q_loro = conformal_half_width(abs_res / scale, nominal)
+    if q_loro is None:
+        return None
+    q_forward = None
+    if forward_abs_residuals_um is not None:
+        q_forward = conformal_half_width(forward_abs_residuals_um, nominal)
+    q = max(q_loro, q_forward or 0.0)
+    per_run = _per_run_coverage(abs_res, scale, labels, nominal)
+    checked = [v for v in per_run.values() if v["n_samples"] > 0]
+    total = sum(int(v["n_samples"]) for v in checked)
+    pooled = (
+        sum(float(v["coverage"]) * int(v["n_samples"]) for v in checked) / total if total else None
+    )
+    return {
+        "method": (
+            "split-conformal on leave-one-run-out residuals, normalised by the widening, "
+            "and on the forward residuals: the larger half-width"
+        ),
+        "nominal_coverage": nominal,
+        "half_width_um": q,
+        "half_width_um_loro": q_loro,
+        "half_width_um_forward": q_forward,
+        "n_samples": int(np.isfinite(abs_res).sum()),
+        "heldout_coverage": pooled,
+        "per_run_coverage": per_run,
+        "outside_gain": OUTSIDE_GAIN,
+        "bad_sensor_factor": BAD_SENSOR_FACTOR,
+        "meaning": (
+            "predicted ± half_width_um holds the measured error in nominal_coverage of samples "
+            "like the held-out ones; heldout_coverage: each run checked against the width "
+            "calibrated on the other runs; widened live by outside_gain per unit of excess "
+            "beyond the training span and by bad_sensor_factor per sensor flagged bad"
+        ),
+    }
+
+
+def forward_scaled_residuals(
+    measured_um: np.ndarray,
+    predicted_um: np.ndarray,
+    inputs: ModelInputs,
+    unit_rows: Iterable[tuple[np.ndarray, np.ndarray]],
+) -> np.ndarray | None:
+    """The forward figure's |residuals|, each divided by the widening its row had against
+    the span of the runs its model was fitted on (as the leave-one-run-out ones are).
+
+    ``unit_rows``: per predicted unit in order, (its rows, its model's training rows) of
+    ``inputs``; None when they do not add up to the forward figure's rows.
+    """
+    parts = list(unit_rows)
+    order = np.concatenate([rows for rows, _ in parts]) if parts else np.array([], int)
+    if order.size != np.asarray(measured_um).size:
+        return None
+    scale = np.ones(order.size)
+    at = 0
+    for rows, trained in parts:
+        stored = training_range(inputs.take(trained))
+        for j, k in enumerate(rows):
+            rises = dict(zip(inputs.sensors, map(float, inputs.rise_C[k]), strict=True))
+            scale[at + j] = (
+                1.0 + OUTSIDE_GAIN * span_excess(stored, rises, float(inputs.speed_rpm[k]))[0]
+            )
+        at += rows.size
+    return np.abs(np.asarray(measured_um, float) - np.asarray(predicted_um, float)) / scale
+
+
+def _fold_excess(inputs: ModelInputs, labels: np.ndarray) -> np.ndarray:
+    """Each row's excess beyond the training span of the model that predicted it held out
+    (the span of every other fold)."""
+    excess = np.zeros(inputs.n_samples)
+    for fold in dict.fromkeys(labels.tolist()):
+        test = labels == fold
+        stored = training_range(inputs.take(~test))
+        for k in np.flatnonzero(test):
+            rises = dict(zip(inputs.sensors, map(float, inputs.rise_C[k]), strict=True))
+            excess[k] = span_excess(stored, rises, float(inputs.speed_rpm[k]))[0]
+    return excess
+
+
+def _per_run_coverage(
+    abs_res: np.ndarray, scale: np.ndarray, labels: np.ndarray, nominal: float
+) -> dict[str, dict[str, float | int]]:
+    """Each run against the (widened) half-width calibrated on every other run's residuals."""
+    found: dict[str, dict[str, float | int]] = {}
+    for run in dict.fromkeys(labels.tolist()):
+        rows = labels == run
+        q = conformal_half_width(abs_res[~rows] / scale[~rows], nominal)
+        if q is None:
+            continue
+        known = np.isfinite(abs_res[rows])
+        res, width = abs_res[rows][known], q * scale[rows][known]
+        found[str(run)] = {
+            "coverage": float((res <= width).mean()) if res.size else float("nan"),
+            "half_width_um": q,
+            "mean_width_um": float(2.0 * width.mean()) if res.size else float("nan"),
+            "n_samples": int(res.size),
+        }
+    return found
+
+
+def excess_fraction(value: float, span: Iterable[float], min_margin: float) -> float:
+    """How far ``value`` lies beyond ``span`` (with :mod:`models.training_range`'s margin),
+    as a fraction of the span's width (0 inside)."""
+    lo, hi = (float(v) for v in span)
+    width = hi - lo
+    margin = max(MARGIN_FRACTION * width, min_margin)
+    beyond = max(lo - margin - value, value - hi - margin, 0.0)
+    return beyond / max(width, margin)
+
+
+def widened_um(calibration: dict[str, Any], excess: float, bad_sensors: int) -> float:
+    """The calibrated half-width widened by the excess beyond the training span and by the
+    count of sensors flagged bad (µm)."""
+    q = float(calibration["half_width_um"])
+    gain = float(calibration.get("outside_gain", OUTSIDE_GAIN))
+    factor = float(calibration.get("bad_sensor_factor", BAD_SENSOR_FACTOR))
+    return q * (1.0 + gain * max(excess, 0.0)) * factor ** max(bad_sensors, 0)
+
+
+def span_excess(
+    stored: dict[str, Any], rises_C: dict[str, float], speed_rpm: float | None
+) -> tuple[float, list[str]]:
+    """(largest excess beyond the training span, the inputs outside it) for one sample:
+    each sensor's rise (°C) by name and the speed (r/min), against ``stored``
+    (:func:`models.training_range.training_range`); inputs it does not hold are skipped."""
+    largest = 0.0
+    names: list[str] = []
+    for name, span in stored.get("rise_C", {}).items():
+        value = rises_C.get(name)
+        if value is None or not math.isfinite(value):
+            continue
+        excess = excess_fraction(value, span, MIN_MARGIN_C)
+        if excess > 0.0:
+            names.append(name)
+            largest = max(largest, excess)
+    span = stored.get("speed_rpm")
+    if speed_rpm is not None and span is not None and math.isfinite(speed_rpm):
+        excess = excess_fraction(abs(speed_rpm), span, MIN_MARGIN_RPM)
+        if excess > 0.0:
+            names.append("speed")
+            largest = max(largest, excess)
+    return largest, names

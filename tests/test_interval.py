@@ -1,0 +1,205 @@
+"""The calibrated prediction interval (models/fit/interval.py) and its coverage offline.
+
+Coverage is always checked on data the calibration did not see: each leave-one-run-out
+run against the width calibrated on the other runs (stored with the model), the FL
+recording's later runs c5–c6 scored with the model fitted on c1–c4, and simulated
+production programmes the fit never saw. The nominal interval is 90 %; a coverage
+outside 85–95 % fails (the forward FL figure is only bounded below: see
+docs/interval.md).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gateway.live.bank.model_bank import BankedModel
+from gateway.live.interval import assess
+from models.fit.interval import (
+    calibrate,
+    conformal_half_width,
+    coverage,
+    span_excess,
+    widened_um,
+)
+from models.store import load_file
+from simulator.params import load_params
+from simulator.programs import production_program
+from simulator.record import record
+from tests import gateway_rig as rig
+from tests.cli import gateway_in_process
+from tests.test_store import resealed
+
+ROOT = Path(__file__).resolve().parents[1]
+FL = ROOT / "data" / "fl_thermal.csv"
+BAND = (0.85, 0.95)
+
+
+# --- pure maths ----------------------------------------------------------------------
+def test_half_width_is_the_conformal_rank() -> None:
+    values = np.arange(1.0, 101.0)  # |residuals| 1 … 100
+    # ⌈(100 + 1) · 0.9⌉ = 91st smallest
+    assert conformal_half_width(values, 0.9) == 91.0
+    assert conformal_half_width(values[:20], 0.9) is None  # too few to place it
+
+
+def test_coverage_counts_rows_within_the_width() -> None:
+    measured = np.array([0.0, 1.0, 2.0, 3.0, np.nan])
+    found = coverage(measured, np.zeros(5), 1.5)
+    assert found == {"coverage": 0.5, "mean_width_um": 3.0, "n_samples": 4}
+
+
+def test_widening_beyond_the_span_and_per_bad_sensor() -> None:
+    stored = {"rise_C": {"T1": [0.0, 10.0]}, "speed_rpm": [0.0, 6000.0]}
+    assert span_excess(stored, {"T1": 10.4}, 6200.0) == (0.0, [])  # within the margin
+    excess, names = span_excess(stored, {"T1": 5.0}, 8000.0)
+    assert names == ["speed"] and math.isclose(excess, (8000 - 6300) / 6000)
+    cal = {"half_width_um": 2.0, "outside_gain": 2.0, "bad_sensor_factor": 1.5}
+    assert widened_um(cal, 0.0, 0) == 2.0
+    assert math.isclose(widened_um(cal, 0.5, 1), 2.0 * 2.0 * 1.5)
+
+
+def test_live_span_check_gives_the_offline_figures() -> None:
+    """The loop's precomputed bounds (gateway/live/interval.py) agree with score's check."""
+    from gateway.live.interval import excess_of
+
+    stored = {"rise_C": {"T1": [0.0, 10.0], "T2": [-1.0, 0.2]}, "speed_rpm": [0.0, 6000.0]}
+    rng = np.random.default_rng(1)
+    for _ in range(500):
+        rises = {"T1": float(rng.uniform(-5, 20)), "T2": float(rng.uniform(-3, 3))}
+        speed = float(rng.uniform(0, 9000))
+        live = excess_of(stored, rises, speed)
+        offline = span_excess(stored, rises, speed)
+        assert live[1] == offline[1] and math.isclose(live[0], offline[0], abs_tol=1e-12)
+
+
+def test_calibration_is_normalised_by_the_folds_span() -> None:
+    """A held-out run beyond the others' span counts as the extrapolation it was."""
+    from models.base import ModelInputs
+
+    rng = np.random.default_rng(0)
+    runs = np.repeat(["a", "b", "c", "d"], 100)
+    speed = np.repeat([1000.0, 2000.0, 3000.0, 6000.0], 100)
+    inputs = ModelInputs(rng.uniform(0, 5, (400, 1)), ("T1",), speed)
+    residual = rng.normal(0, 1, 400) * np.where(runs == "d", 3.0, 1.0)
+    cal = calibrate(residual, np.zeros(400), runs, inputs)
+    assert cal is not None
+    plain = conformal_half_width(np.abs(residual), 0.9)
+    assert plain is not None and cal["half_width_um"] < plain
+    assert set(cal["per_run_coverage"]) == {"a", "b", "c", "d"}
+
+
+# --- FL recording --------------------------------------------------------------------
+def split_fl(folder: Path) -> tuple[Path, Path]:
+    with FL.open(encoding="utf-8", newline="") as f:
+        rows = list(csv.reader(f))
+    paths = (folder / "c1-c4.csv", folder / "c5-c6.csv")
+    for path, keep in zip(paths, (("c1", "c2", "c3", "c4"), ("c5", "c6")), strict=True):
+        with path.open("w", encoding="utf-8", newline="") as f:
+            csv.writer(f).writerows([rows[0], *(r for r in rows[1:] if r[0][:2] in keep)])
+    return paths
+
+
+@pytest.fixture(scope="module")
+def fl_fit(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    folder = tmp_path_factory.mktemp("interval-fl")
+    train, test = split_fl(folder)
+    store = folder / "store"
+    done = gateway_in_process("fit", train, "--target", "ch1_um", "--store", store)
+    assert done.returncode == 0, done.stderr
+    out = folder / "score.json"
+    done = gateway_in_process(
+        "score", test, "--model", "lag-ridge-ch1_um-all", "--store", store, "--json", out
+    )
+    assert done.returncode == 0, done.stderr
+    document = json.loads((store / "lag-ridge-ch1_um-all.json").read_text(encoding="utf-8"))
+    return {"document": document, "score": json.loads(out.read_text()), "stdout": done.stdout}
+
+
+def test_fl_leave_one_run_out_coverage_in_band(fl_fit: dict) -> None:
+    interval = fl_fit["document"]["interval"]
+    assert interval["nominal_coverage"] == 0.9
+    assert interval["half_width_um"] > 0
+    assert BAND[0] <= interval["heldout_coverage"] <= BAND[1], interval
+
+
+def test_fl_forward_coverage_scored_on_c5_c6(fl_fit: dict) -> None:
+    found = fl_fit["score"]["interval"]
+    assert set(found["per_run"]) == {"c5_3500rpm", "c6_steps"}
+    pooled = found["pooled"]
+    assert pooled["n_samples"] == 1920 + 1485
+    assert pooled["coverage"] >= BAND[0], found  # never narrower than promised
+    assert pooled["mean_width_um"] >= 2 * fl_fit["document"]["interval"]["half_width_um"]
+    assert "interval" in fl_fit["stdout"] and "coverage" in fl_fit["stdout"]
+
+
+# --- simulated production ------------------------------------------------------------
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    folder = tmp_path_factory.mktemp("interval-sim")
+    store = rig.fit_store(folder)
+    programs = [production_program(seed=s, duration_s=5 * 3600.0) for s in (31, 32)]
+    data = folder / "production.csv"
+    data.write_text(record(load_params(), programs, seed=7).to_csv(), encoding="utf-8")
+    return store, data
+
+
+@pytest.mark.parametrize("model_id", ["mlr-error_um-all", "mlr-error_um-variable"])
+def test_unseen_production_coverage_in_band(
+    simulated: tuple[Path, Path], tmp_path: Path, model_id: str
+) -> None:
+    store, data = simulated
+    out = tmp_path / "score.json"
+    done = gateway_in_process("score", data, "--model", model_id, "--store", store, "--json", out)
+    assert done.returncode == 0, done.stderr
+    found = json.loads(out.read_text())["interval"]
+    assert BAND[0] <= found["pooled"]["coverage"] <= BAND[1], found
+    for run in found["per_run"].values():
+        assert BAND[0] <= run["coverage"] <= BAND[1], found
+
+
+# --- models stored without a calibration ---------------------------------------------
+def test_model_without_calibration_loads_and_has_no_interval(
+    simulated: tuple[Path, Path], tmp_path: Path
+) -> None:
+    store, data = simulated
+    old = tmp_path / "old"
+    old.mkdir()
+    raw = json.loads((store / "mlr-error_um-all.json").read_text(encoding="utf-8"))
+    del raw["interval"]
+    raw = resealed(raw, old)  # as a holder of the key wrote it before intervals existed
+    (old / "mlr-error_um-all.json").write_text(json.dumps(raw), encoding="utf-8")
+    model, document = load_file(old / "mlr-error_um-all.json")
+    assert document.interval is None
+    banked = BankedModel(document.model_id, model, document)
+    state = assess(banked, 3.0, {"T1": 1.0}, 2000.0, 0)
+    assert state.half_width_um is None and state.span == "inside"
+    out = tmp_path / "score.json"
+    done = gateway_in_process(
+        "score", data, "--model", "mlr-error_um-all", "--store", old, "--json", out
+    )
+    assert done.returncode == 0, done.stderr
+    assert json.loads(out.read_text())["interval"] is None
+    assert "no calibrated interval" in done.stderr  # a note: on the notes stream
+
+
+def test_replay_reports_the_interval_coverage_per_run_and_pooled(tmp_path: Path) -> None:
+    out = tmp_path / "replay.json"
+    done = gateway_in_process("replay", FL, "--target", "ch1_um", "--model", "mlr", "--json", out)
+    assert done.returncode == 0, done.stderr
+    interval = json.loads(out.read_text())["offline"]["interval"]
+    assert set(interval["per_run_coverage"]) == {
+        "c1_1250rpm",
+        "c2_2500rpm",
+        "c3_3750rpm",
+        "c4_5000rpm",
+        "c5_3500rpm",
+        "c6_steps",
+    }
+    assert BAND[0] <= interval["heldout_coverage"] <= BAND[1], interval
+    assert "coverage" in done.stdout and "pooled over the held-out runs" in done.stdout

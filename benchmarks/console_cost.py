@@ -17,7 +17,9 @@
    plot, first (cold: read and drawn) and again (cached), over HTTP; and cold in
    headless Chromium (navigation start until the plot image is complete) when it is
    installed; and the read and the drawing timed alone in this process (wall and CPU
-   seconds). ``--only-page`` measures this part only.
+   seconds). ``--only-page`` measures this part only. The store is written in the
+   earlier JSON layout and converted on opening (``converted_s``); ``--days`` fills
+   more days before the last 24 h (the page still shows 24 h).
 
 Prints one JSON document.
 
@@ -52,7 +54,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from gateway.live.record import CycleRecord  # noqa: E402
-from gateway.outputs.local_store import SCHEMA  # noqa: E402
+from gateway.outputs.local_store import LocalStore  # noqa: E402
 from gateway.scada.login_throttle import ThrottlePolicy  # noqa: E402
 from gateway.scada.server import ScadaUser  # noqa: E402
 from gateway.web.server import WebConsole, WebSettings  # noqa: E402
@@ -168,10 +170,23 @@ def summary(samples: list[float]) -> dict[str, float]:
     }
 
 
-def fill_day(store: Path, machine: str, now_s: float) -> None:
-    """24 h of 1 Hz points of ``machine``, written as the local store holds them."""
+def fill_days(store: Path, machine: str, now_s: float, days: int = 1) -> float:
+    """``days`` × 24 h of 1 Hz points of ``machine``, written in the earlier JSON layout
+    and converted by opening the store (as a gateway's first start does); the seconds
+    the conversion took."""
+    from tests.json_layout_store import SCHEMA
+
     db = sqlite3.connect(store)
     db.executescript(SCHEMA)
+    for day in range(days):
+        _fill_day(db, machine, now_s - 86_400 * (days - 1 - day))
+    db.close()
+    started = time.perf_counter()
+    LocalStore(store).close()
+    return round(time.perf_counter() - started, 1)
+
+
+def _fill_day(db: sqlite3.Connection, machine: str, now_s: float) -> None:
     rows = []
     for k in range(86_400):
         t = now_s - 86_400 + k
@@ -204,10 +219,9 @@ def fill_day(store: Path, machine: str, now_s: float) -> None:
             )
     db.executemany("INSERT INTO points VALUES (?, ?, ?, ?, ?)", rows)
     db.commit()
-    db.close()
 
 
-async def page_load(url: str, machine: str) -> dict[str, float]:
+async def page_load(url: str, machine: str, hours: int = 24) -> dict[str, float]:
     jar = aiohttp.CookieJar(unsafe=True)
     times = {}
     async with aiohttp.ClientSession(cookie_jar=jar) as session:
@@ -216,16 +230,16 @@ async def page_load(url: str, machine: str) -> dict[str, float]:
             await response.read()
         for attempt in ("cold", "cached"):
             started = time.perf_counter()
-            async with session.get(f"{url}/machines/{machine}?h=24") as response:
+            async with session.get(f"{url}/machines/{machine}?h={hours}") as response:
                 await response.read()
-            async with session.get(f"{url}/machines/{machine}/plot.svg?h=24") as response:
+            async with session.get(f"{url}/machines/{machine}/plot.svg?h={hours}") as response:
                 svg = await response.read()
             times[f"http_{attempt}_s"] = round(time.perf_counter() - started, 3)
         times["svg_bytes"] = len(svg)
     return times
 
 
-def chromium_load(url: str, machine: str) -> float | None:
+def chromium_load(url: str, machine: str, hours: int = 24) -> float | None:
     if shutil.which("chromium") is None or shutil.which("chromedriver") is None:
         return None
     sys.path.insert(0, str(ROOT))
@@ -240,7 +254,7 @@ def chromium_load(url: str, machine: str) -> float | None:
         driver.find_element(By.ID, "password").send_keys(USER[1])
         driver.find_element(By.ID, "login").click()
         started = time.perf_counter()
-        driver.get(f"{url}/machines/{machine}?h=24")
+        driver.get(f"{url}/machines/{machine}?h={hours}")
         plot = driver.find_element(By.ID, "plot")
         while not driver.execute_script("return arguments[0].complete", plot):
             time.sleep(0.02)
@@ -252,7 +266,7 @@ def chromium_load(url: str, machine: str) -> float | None:
 async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     machines = [f"m{i:03d}" for i in range(args.machines)]
     store = folder / "points.sqlite"
-    fill_day(store, machines[0], time.time())
+    converted_s = fill_days(store, machines[0], time.time(), args.days)
     port = free_port()
     settings = WebSettings(
         host="127.0.0.1",
@@ -265,7 +279,8 @@ async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     url = f"http://127.0.0.1:{port}"
     try:
         if args.only_page:
-            return {"machine_page_24h_1hz": await machine_page(console, url, machines[0], store)}
+            page = await machine_page(console, url, machines[0], store)
+            return {"converted_s": converted_s, "machine_page_24h_1hz": page}
         await measure(console, machines, 3.0)  # warm-up
         alone = [await measure(console, machines, args.window_s)]
         watched = []
@@ -293,24 +308,27 @@ async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     }
 
 
-async def machine_page(console: WebConsole, url: str, machine: str, store: Path) -> dict:
-    """The 24 h page over HTTP (cold, cached), in Chromium (cold), and its read and
-    drawing timed alone in this process."""
-    page = await page_load(url, machine)
+async def machine_page(
+    console: WebConsole, url: str, machine: str, store: Path, hours: int = 24
+) -> dict:
+    """The page of the last ``hours`` over HTTP (cold, cached), in Chromium (cold), and
+    its read and drawing timed alone in this process."""
+    console.renderer.clear()
+    page = await page_load(url, machine, hours)
     console.renderer.clear()  # the browser's first load is drawn afresh too
     page["chromium_s"] = await asyncio.get_running_loop().run_in_executor(
-        None, chromium_load, url, machine
+        None, chromium_load, url, machine, hours
     )
-    return {**page, **read_and_draw(store, machine)}
+    return {**page, **read_and_draw(store, machine, hours)}
 
 
-def read_and_draw(store: Path, machine: str) -> dict[str, float]:
+def read_and_draw(store: Path, machine: str, hours: int = 24) -> dict[str, float]:
     from gateway.web import plots, series
 
     plots.proposal_svg(np.zeros(0), np.zeros(0), 1.0, 1.0)  # matplotlib imported before
     now = time.time()
     clocks = [(time.perf_counter(), time.process_time())]
-    data = series.machine_view(("local", str(store)), machine, now - 86_400, now, 1000.0)
+    data = series.machine_view(("local", str(store)), machine, now - 3600 * hours, now, 1000.0)
     clocks.append((time.perf_counter(), time.process_time()))
     plots.machine_svg(data, machine)
     clocks.append((time.perf_counter(), time.process_time()))
@@ -354,6 +372,7 @@ def main() -> None:
     parser.add_argument("--window-s", type=float, default=30.0)
     parser.add_argument("--rounds", type=int, default=3, help="windows with browsers")
     parser.add_argument("--only-page", action="store_true", help="the machine page part only")
+    parser.add_argument("--days", type=int, default=1, help="days of 1 Hz points in the store")
     args = parser.parse_args()
     import uvloop
 

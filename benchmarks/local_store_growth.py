@@ -41,9 +41,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from gateway.outputs import local_store  # noqa: E402
-from gateway.outputs.local_store import LocalStore, _tags_text  # noqa: E402
 from gateway.outputs.points import Point, points_from_record  # noqa: E402
+from tests import json_layout_store as local_store  # noqa: E402
+from tests.json_layout_store import JsonLocalStore as LocalStore  # noqa: E402
+from tests.json_layout_store import _tags_text  # noqa: E402
 from tests.records import written_record  # noqa: E402
 
 SENSORS = [f"T{i}" for i in range(1, 10)]

@@ -775,7 +775,8 @@ class LoggingSection(Strict):
     With ``influxdb``: points go to a disk buffer first (``buffer_path``, at most
     ``buffer_max_points``; when full the oldest are dropped, counted and reported)
     and are forwarded in order; a database outage or a gateway restart loses
-    nothing. Without it: points go to the embedded ``local_store`` (SQLite).
+    nothing. Without it: points go to the embedded ``local_store`` (SQLite for the
+    open period, Parquet parts beside it for closed ones).
     """
 
     influxdb: InfluxSection | None = None
@@ -784,10 +785,14 @@ class LoggingSection(Strict):
     buffer_max_points: int = Field(default=2_000_000, ge=1000)
     # Retention (deploy/README.md, "Disk use"): points older than *_retention_days go,
     # and the oldest go while a file holds more than *_max_mb (10⁶ bytes), checked every
-    # retention_interval_s. Defaults: a 16 GB edge disk; they hold days, not a year, of
-    # ten machines at 1 Hz (~300 bytes a point in the store, ~150 in the buffer).
+    # retention_interval_s. Defaults: a 16 GB edge disk; the store holds 9-11 months of
+    # ten machines at 1 Hz (typed Parquet parts, docs/benchmarks.md), the buffer days
+    # (~150 bytes a point).
     local_store_retention_days: float = Field(default=365.0, gt=0)
     local_store_max_mb: float = Field(default=8000.0, ge=1)
+    # The local store's per-minute history (min/mean/max of every number) outlives its
+    # 1-s points: kept this long, and dropped last when the store is at its size cap.
+    local_store_history_days: float = Field(default=3650.0, gt=0)
     buffer_retention_days: float = Field(default=30.0, gt=0)
     buffer_max_mb: float = Field(default=1000.0, ge=1)
     retention_interval_s: float = Field(default=60.0, gt=0)

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import json
-import sqlite3
 from pathlib import Path
 
+from gateway.outputs.local_store import LocalStore
 from models.data.dataset import load_runs
 from tests.cli import gateway
 
@@ -49,8 +49,6 @@ def test_demo_compensates_an_unseen_programme_and_reports_the_contract(tmp_path:
     assert abs(online["mean_um"]) < abs(none["mean_um"])  # it does take out the mean
     # The training data it recorded passes the loader; every cycle was logged.
     assert load_runs(workdir / "training.csv").run_ids[0] == "iso230-spectrum"
-    with sqlite3.connect(workdir / "points.sqlite") as db:
-        tables = [r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")]
-        assert tables
-        logged = sum(db.execute(f"SELECT COUNT(*) FROM {t}").fetchone()[0] for t in tables)
+    with LocalStore(workdir / "points.sqlite", set_aside_damaged=False) as store:
+        logged = len(store)
     assert logged >= report["cycles"]

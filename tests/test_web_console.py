@@ -16,7 +16,6 @@ import hashlib
 import itertools
 import os
 import shutil
-import sqlite3
 import struct
 import subprocess
 import sys
@@ -31,6 +30,7 @@ import pytest
 import yaml
 from selenium.webdriver.common.by import By
 
+from gateway.web.store_window import window_rows
 from models.online.proposals import ProposalStore
 from tests import gateway_rig as rig
 from tests.browser import (
@@ -302,17 +302,15 @@ def test_the_machine_page_plots_the_logged_window_with_its_events(
 
 def _t3_points(store: Path, after_ns: int) -> list[tuple[int, str, str]]:
     """mill-b's logged T3 points after ``after_ns``: (time_ns, quality, reason), by time."""
-    db = sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=5.0)
-    try:
-        return db.execute(
-            "SELECT time_ns, json_extract(tags, '$.quality'), "
-            "coalesce(json_extract(fields, '$.reason'), '') FROM points "
-            "WHERE measurement = 'spindle_temperature' AND machine = 'mill-b' "
-            "AND json_extract(tags, '$.sensor') = 'T3' AND time_ns > ? ORDER BY time_ns",
-            (after_ns,),
-        ).fetchall()
-    finally:
-        db.close()
+    rows = window_rows(
+        store,
+        "spindle_temperature",
+        "mill-b",
+        (after_ns + 1, 2**62),
+        "time_ns, sensor, quality, coalesce(reason, '')",
+        "time_ns",
+    )
+    return [(t, quality, reason) for t, sensor, quality, reason in rows if sensor == "T3"]
 
 
 def _t3_flips(store: Path, after_ns: int) -> list[tuple[int, str, str]]:

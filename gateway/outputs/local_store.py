@@ -1,77 +1,134 @@
-"""The embedded time-series store: points in one SQLite file, no server needed.
+"""The embedded time-series store: typed columns, compressed, no server needed.
 
 The default destination of the gateway's time series when no InfluxDB is
-configured, and a source for :func:`gateway.offline.export.export_runs`. It keeps
-InfluxDB's identity rule: a point is identified by measurement, tags and time, so
-writing the same point again stores it once (its fields are merged, a field
-written again takes the new value, as InfluxDB does).
+configured, and a source for :func:`gateway.offline.export.export_runs` and the
+console. It keeps InfluxDB's identity rule: a point is identified by measurement,
+tags and time, so writing the same point again stores it once (its fields are
+merged, a field written again takes the new value, as InfluxDB does) — within the
+open period; a point re-sent after its period was closed is stored again.
 
-The store is one bounded SQLite ring (:mod:`gateway.outputs.sqlite_ring`): by age, points older than
-``retention_s`` are deleted by :meth:`LocalStore.enforce_retention` (the gateway
-calls it every ``logging.retention_interval_s``); by size, the file never grows past
-``max_bytes`` — a write that meets the cap first deletes the oldest points. A
-write that fails because the disk is full is dropped and counted
-(:attr:`LocalStore.dropped`), logged once when it starts and once when writes
-succeed again, and never raised: compensation does not depend on its log.
+Layout (one row per point, typed columns: :mod:`gateway.outputs.store_rows`):
 
-Write cost: the gateway writes each machine's cycle (about 10 points) as one
-transaction. Each point goes to the end of its own series in the primary key and the
-machine/time index, so one write dirties many pages, each written whole to the WAL and
-again at the checkpoint (about 40 MB/s for 200 machines, 0.64 MB/s of points). The CPU
-of a second of 200 machines rises about 40 % from a new file to 0.5 GB, then stays flat
-to 4 GB (``benchmarks/local_store_growth.py``, docs/benchmarks.md). The connection keeps
-SQLite's defaults: a 64 MB page cache or memory-mapped reads changed it by less than the
-spread between runs (the operating system already holds the file's pages), and a larger
-WAL checkpoint made it dearer. The schema stays too: a WITHOUT ROWID table was no
-cheaper, and the time index (8–23 % of the cost) is how retention and the size cap find
-the oldest points.
+* the **open period** — the last ``PART_S`` seconds and a ``LATE_S`` margin — lives
+  in a SQLite (WAL) table in the configured file (``points.sqlite``): every commit
+  is on the disk before the next, so a SIGKILL or a power cut loses at most the
+  points not yet committed (the gateway commits once a second, off the event loop:
+  ``commit_interval_s``), and it never leaves a half-written store;
+* each **closed period** is compacted into one immutable Parquet (zstd) file in
+  ``<file>.parts/`` (:mod:`gateway.outputs.store_parts`), 1.3–1.8 bytes a value measured,
+  registered in the same SQLite file in the transaction that deletes its rows there;
+  a crash between the two leaves an unregistered file, removed at the next start.
+  The parts of a closed day are merged into one (:meth:`LocalStore.merge_days`);
+  each part has its per-minute history beside it (``<file>.history/``: count, min,
+  mean and max of every number), kept ``history_retention_s`` and dropped last at
+  the size cap. Readers (``export``, the console's worker process) take the list of parts and the
+  open rows from one SQLite snapshot and read the parts with DuckDB: any process may
+  read while the gateway writes;
+* a store written in the earlier JSON-per-point layout is converted on first open,
+  in chunks that each commit with the deletion of their old rows (a crash resumes),
+  every point counted (:attr:`LocalStore.migrated`).
+
+Bounds: by age, :meth:`LocalStore.enforce_retention` deletes the parts (and open
+rows) older than ``retention_s``; by size, the oldest parts go while the store
+(file in use + parts) holds more than ``max_bytes``. A write that fails because
+the disk is full is dropped and counted (:attr:`LocalStore.dropped`), logged once
+when it starts and once when writes succeed again, and never raised: compensation
+does not depend on its log.
 """
 
 from __future__ import annotations
 
-import functools
-import json
+import contextlib
 import logging
+import sqlite3
+import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
 
+import duckdb
+
+from gateway.outputs import store_parts
 from gateway.outputs.points import Point
 from gateway.outputs.sqlite_ring import SqliteRing
+from gateway.outputs.store_migrate import migrate_json_points
+from gateway.outputs.store_rows import COLUMNS, FIELDS, TAGS, Row, point_of, row_of
 
 log = logging.getLogger(__name__)
 
 DELETE_CHUNK_ROWS = 5000  # rows per DELETE: keeps one retention step short (ms)
+PART_S = 600  # seconds of points per Parquet part
+LATE_S = 60  # a period is closed this long after its end (points of slower machines)
+NS = 1_000_000_000
+DAY_NS = 86_400 * NS  # the parts of a closed (UTC) day are merged into one
+READ_ATTEMPTS = 3  # a reader whose parts were merged or aged out meanwhile reads again
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS points (
+_KEY = ("time_ns", "measurement", *TAGS, "tags_extra")
+_MERGE = ", ".join(f"{f} = coalesce(excluded.{f}, {f})" for f in FIELDS)
+SCHEMA = f"""
+CREATE TABLE IF NOT EXISTS samples (
     measurement TEXT NOT NULL,
-    machine TEXT NOT NULL,
-    tags TEXT NOT NULL,
+    {", ".join(f"{t} TEXT NOT NULL" for t in TAGS)},
+    tags_extra TEXT NOT NULL,
     time_ns INTEGER NOT NULL,
-    fields TEXT NOT NULL,
-    PRIMARY KEY (measurement, machine, tags, time_ns)
+    speed_rpm REAL, predicted_um REAL, target_um REAL, applied_um REAL, written_cnc REAL,
+    correction_um REAL, interval_um REAL, training_span TEXT, outside_inputs TEXT,
+    write_status TEXT, link_errors INTEGER, value_C REAL, reason TEXT,
+    error_um REAL, fields_extra TEXT,
+    PRIMARY KEY ({", ".join(_KEY)})
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS parts (
+    name TEXT PRIMARY KEY,
+    first_ns INTEGER NOT NULL,
+    last_ns INTEGER NOT NULL,
+    rows INTEGER NOT NULL,
+    bytes INTEGER NOT NULL
 );
-CREATE INDEX IF NOT EXISTS points_by_machine_time ON points (measurement, machine, time_ns);
-CREATE INDEX IF NOT EXISTS points_by_time ON points (time_ns);
+CREATE TABLE IF NOT EXISTS history (
+    name TEXT PRIMARY KEY,
+    first_ns INTEGER NOT NULL,
+    last_ns INTEGER NOT NULL,
+    rows INTEGER NOT NULL,
+    bytes INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, value INTEGER NOT NULL);
 """
+_INSERT = (
+    f"INSERT INTO samples ({', '.join(COLUMNS)}) VALUES ({', '.join('?' * len(COLUMNS))}) "
+    f"ON CONFLICT ({', '.join(_KEY)}) DO UPDATE SET {_MERGE}, fields_extra = CASE "
+    "WHEN excluded.fields_extra IS NULL THEN fields_extra WHEN fields_extra IS NULL "
+    "THEN excluded.fields_extra ELSE json_patch(fields_extra, excluded.fields_extra) END"
+)
+_STAGED = f"SELECT {', '.join(COLUMNS)} FROM samples"
 
 
-def _tags_text(tags: dict[str, str]) -> str:
-    return json.dumps(dict(sorted(tags.items())), separators=(",", ":"), ensure_ascii=False)
+def parts_folder(path: Path) -> Path:
+    """Where the Parquet parts of the store file ``path`` live."""
+    return path.with_name(path.name + ".parts")
+
+
+def history_folder(path: Path) -> Path:
+    """Where the per-minute history parts of the store file ``path`` live."""
+    return path.with_name(path.name + ".history")
 
 
 class LocalStore:
-    """SQLite (WAL) table of points, indexed on (measurement, machine, time_ns).
+    """Typed points: the open period in SQLite, closed periods in Parquet parts.
 
     Args:
-        path: the database file (created with its folder when missing).
-        synchronous: SQLite ``synchronous`` level.
-        max_bytes: the largest the file may grow (None: unbounded); at the cap the
-            oldest points make room for the newest.
+        path: the SQLite file (created with its folder when missing).
+        synchronous: SQLite ``synchronous`` level ("FULL": each commit reaches the
+            disk, so a power cut loses nothing committed).
+        max_bytes: the most the store may hold (None: unbounded); the oldest parts
+            make room for the newest.
         retention_s: the oldest point :meth:`enforce_retention` keeps, s (None: all).
+        history_retention_s: the oldest minute of the per-minute history it keeps, s
+            (None: all).
         set_aside_damaged: a file SQLite cannot read is renamed aside and a new one
             started (the gateway); False refuses it with a ``ValueError`` (``export``).
+        commit_interval_s: None: each :meth:`write` commits before it returns;
+            otherwise points are queued and a thread commits them (and compacts
+            closed periods) this often, so the caller never waits on the disk.
     """
 
     def __init__(
@@ -81,6 +138,8 @@ class LocalStore:
         max_bytes: int | None = None,
         retention_s: float | None = None,
         set_aside_damaged: bool = True,
+        commit_interval_s: float | None = None,
+        history_retention_s: float | None = None,
     ) -> None:
         self._ring = SqliteRing(
             path,
@@ -92,62 +151,204 @@ class LocalStore:
             set_aside_damaged=set_aside_damaged,
         )
         self.path = self._ring.path
+        self.parts = parts_folder(self.path)
+        self.parts.mkdir(exist_ok=True)
+        self.history_parts = history_folder(self.path)
+        self.history_parts.mkdir(exist_ok=True)
+        self.history_retention_s = history_retention_s
         self.set_aside_as = self._ring.set_aside_as
         self.max_bytes = max_bytes
         self.retention_s = retention_s
-        self.dropped = 0  # points not stored because the disk was full
         self.expired = 0  # points deleted for age
         self.evicted = 0  # points deleted to stay within max_bytes
         self._db = self._ring.db
         self._lock = self._ring.lock
-
-    def write(self, points: Iterable[Point]) -> bool:
-        """Store points (one transaction); a point already stored has its fields merged.
-
-        Returns False when the points could not be stored (disk full): they are
-        counted in :attr:`dropped` and logged, nothing is raised. At the file's own
-        cap the oldest points make room; a full disk is waited out (the pages freed
-        are reused once space returns).
-        """
-        rows = [
-            (
-                p.measurement,
-                p.tags.get("machine", ""),
-                _tags_text(p.tags),
-                p.time_ns,
-                json.dumps(p.fields, separators=(",", ":"), ensure_ascii=False),
+        with self._lock:
+            if set_aside_damaged:  # the writer; a reader must not touch a part being made
+                self._remove_strays()
+            self.migrated = migrate_json_points(self._db, self._write_part)
+        self.dropped = self._counter("dropped")  # points not stored (full disk)
+        self._queue: list[Point] = []
+        self._queue_lock = threading.Lock()
+        self._newest_ns = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        if commit_interval_s is not None:
+            self._thread = threading.Thread(
+                target=self._run, args=(commit_interval_s,), name="local-store", daemon=True
             )
-            for p in points
-        ]
-        if not rows:
+            self._thread.start()
+
+    def _remove_strays(self) -> None:
+        """Delete the files of parts a crash left unregistered (lock held)."""
+        named = {n for (n,) in self._db.execute("SELECT name FROM parts")}
+        store_parts.remove_strays(self.parts, named)
+        named = {n for (n,) in self._db.execute("SELECT name FROM history")}
+        store_parts.remove_strays(self.history_parts, named)
+
+    # --- writing ----------------------------------------------------------------------
+    def write(self, points: Iterable[Point]) -> bool:
+        """Store points; a point already stored in the open period has its fields merged.
+
+        Queued for the commit thread when there is one (True unless the last commit
+        failed). Otherwise one transaction; False when the points could not be stored
+        (disk full): they are counted in :attr:`dropped` and logged, nothing raised.
+        """
+        points = list(points)
+        if not points:
             return True
+        newest = max(p.time_ns for p in points)
+        if self._thread is not None:  # made into rows by the commit thread, not the caller
+            with self._queue_lock:
+                self._queue.extend(points)
+                self._newest_ns = max(self._newest_ns, newest)
+            return not self._ring.failing
+        self._newest_ns = max(self._newest_ns, newest)
+        return self._commit([row_of(p) for p in points])
+
+    def _commit(self, rows: list[Row]) -> bool:
         return self._ring.write(
             lambda: self._insert(rows), self._evict_oldest, self._count_dropped, len(rows)
         )
 
+    def flush(self) -> bool:
+        """Commit the queued points now (the commit thread does it every interval)."""
+        with self._queue_lock:
+            points, self._queue = self._queue, []
+        return self._commit([row_of(p) for p in points]) if points else True
+
+    def _run(self, interval_s: float) -> None:
+        """The commit thread: commit, then close any period due; a compaction that fails
+        (a full disk) leaves the rows where they are, says so once, and is retried."""
+        failing = False
+        while not self._stop.wait(interval_s):
+            try:
+                self.flush()
+                if self.compact():
+                    self.merge_days()
+            except Exception as exc:
+                if not failing:
+                    log.error(
+                        "local store %s: cannot close a period (%s); retrying", self.path, exc
+                    )
+                failing = True
+            else:
+                if failing:
+                    log.warning("local store %s: periods close again", self.path)
+                failing = False
+
     def _count_dropped(self, n: int) -> int:
         self.dropped += n
+        with contextlib.suppress(sqlite3.Error):  # a full disk may refuse the count too
+            self._db.execute(
+                "INSERT INTO counters VALUES ('dropped', ?) "
+                "ON CONFLICT (name) DO UPDATE SET value = excluded.value",
+                (self.dropped,),
+            )
         return self.dropped
 
-    def _insert(self, rows: list[tuple[str, str, str, int, str]]) -> None:
+    def _counter(self, name: str) -> int:
+        with self._lock:
+            row = self._db.execute("SELECT value FROM counters WHERE name = ?", (name,)).fetchone()
+        return 0 if row is None else int(row[0])
+
+    def _insert(self, rows: list[Row]) -> None:
         with self._ring.transaction() as db:
-            db.executemany(
-                "INSERT INTO points (measurement, machine, tags, time_ns, fields) "
-                "VALUES (?, ?, ?, ?, ?) "
-                "ON CONFLICT (measurement, machine, tags, time_ns) "
-                "DO UPDATE SET fields = json_patch(fields, excluded.fields)",
-                rows,
-            )
+            db.executemany(_INSERT, rows)
 
     def _evict_oldest(self) -> int:
-        """Delete the oldest chunk of points (lock held); how many went."""
-        removed = self._db.execute(
-            "DELETE FROM points WHERE rowid IN (SELECT rowid FROM points ORDER BY time_ns LIMIT ?)",
-            (DELETE_CHUNK_ROWS,),
-        ).rowcount
+        """Make room at the cap (lock held): the oldest part of 1-s points, else the
+        oldest history part, else the oldest open rows. The points deleted (a history
+        part counts as 1: room was made)."""
+        removed = self._drop_oldest_part()
+        if removed == 0 and self._drop_oldest_history():
+            return 1
+        if removed == 0:
+            removed = self._db.execute(
+                "DELETE FROM samples WHERE time_ns IN (SELECT time_ns FROM samples "
+                "ORDER BY time_ns LIMIT ?)",
+                (DELETE_CHUNK_ROWS,),
+            ).rowcount
         self.evicted += removed
         return removed
 
+    # --- closing periods ----------------------------------------------------------------
+    def _write_part(self, rows: list[Row]) -> None:
+        """Write ``rows`` as a part and register it (the caller deletes their source rows
+        in the same transaction, lock held)."""
+        times = [r[COLUMNS.index("time_ns")] for r in rows]
+        first, last = min(times), max(times)  # type: ignore[type-var]
+        name = f"{first}-{last}-{time.time_ns()}.parquet"
+        size = store_parts.write_part(rows, self.parts / name)
+        self._db.execute(
+            "INSERT INTO parts VALUES (?, ?, ?, ?, ?)", (name, first, last, len(rows), size)
+        )
+        minutes, size = store_parts.write_history(self.parts / name, self.history_parts / name)
+        self._db.execute(
+            "INSERT INTO history VALUES (?, ?, ?, ?, ?)", (name, first, last, minutes, size)
+        )
+
+    def compact(self, now_ns: int | None = None) -> int:
+        """Move every closed period (ended ``LATE_S`` before the newest point, or
+        ``now_ns``) from SQLite into Parquet parts; the points moved."""
+        now_ns = self._newest_ns if now_ns is None else now_ns
+        cut = (now_ns - LATE_S * NS) // (PART_S * NS) * (PART_S * NS)
+        moved = 0
+        with self._lock:
+            while True:
+                oldest = self._db.execute("SELECT min(time_ns) FROM samples").fetchone()[0]
+                if oldest is None or oldest >= cut:
+                    return moved
+                end = min(cut, (oldest // (PART_S * NS) + 1) * (PART_S * NS))
+                moved += self._compact_period(end)
+
+    def merge_days(self, now_ns: int | None = None) -> int:
+        """Merge the parts (and history parts) of each day closed before ``now_ns`` into
+        one each (better compression, fewer files to open); the files merged."""
+        now_ns = self._newest_ns if now_ns is None else now_ns
+        before = (now_ns - LATE_S * NS) // DAY_NS * DAY_NS
+        merged = 0
+        with self._lock:
+            for table, folder in (("parts", self.parts), ("history", self.history_parts)):
+                merged += self._merge_table(table, folder, before)
+        return merged
+
+    def _merge_table(self, table: str, folder: Path, before_ns: int) -> int:
+        found = self._db.execute(
+            f"SELECT name, first_ns, last_ns, rows FROM {table} WHERE last_ns < ? "
+            "ORDER BY first_ns",
+            (before_ns,),
+        ).fetchall()
+        days: dict[int, list[tuple]] = {}
+        for part in found:
+            days.setdefault(part[1] // DAY_NS, []).append(part)
+        merged = 0
+        for parts in days.values():
+            if len(parts) < 2:
+                continue
+            first, last = parts[0][1], max(p[2] for p in parts)
+            name = f"{first}-{last}-{time.time_ns()}.parquet"
+            size = store_parts.merge_parts([folder / p[0] for p in parts], folder / name)
+            with self._ring.transaction() as db:
+                db.executemany(f"DELETE FROM {table} WHERE name = ?", [(p[0],) for p in parts])
+                db.execute(
+                    f"INSERT INTO {table} VALUES (?, ?, ?, ?, ?)",
+                    (name, first, last, sum(p[3] for p in parts), size),
+                )
+            for part in parts:  # unregistered now: a crash here leaves strays, removed later
+                with contextlib.suppress(FileNotFoundError):
+                    (folder / part[0]).unlink()
+            merged += len(parts)
+        return merged
+
+    def _compact_period(self, end_ns: int) -> int:
+        rows = self._db.execute(f"{_STAGED} WHERE time_ns < ?", (end_ns,)).fetchall()
+        with self._ring.transaction() as db:
+            self._write_part(rows)
+            db.execute("DELETE FROM samples WHERE time_ns < ?", (end_ns,))
+        return len(rows)
+
+    # --- reading ------------------------------------------------------------------------
     def query(
         self,
         measurement: str,
@@ -156,81 +357,182 @@ class LocalStore:
         stop_ns: int | None = None,
     ) -> list[Point]:
         """Points of ``measurement`` (of ``machine``), ``start_ns ≤ time < stop_ns``, by time."""
-        sql = "SELECT tags, fields, time_ns FROM points WHERE measurement = ?"
-        args: list[object] = [measurement]
-        if machine is not None:
-            sql += " AND machine = ?"
-            args.append(machine)
-        if start_ns is not None:
-            sql += " AND time_ns >= ?"
-            args.append(int(start_ns))
-        if stop_ns is not None:
-            sql += " AND time_ns < ?"
-            args.append(int(stop_ns))
-        sql += " ORDER BY time_ns, tags"
+        self.flush()
         with self._lock:
-            rows = self._db.execute(sql, args).fetchall()
-        return [
-            Point(measurement, json.loads(tags), json.loads(fields), time_ns)
-            for tags, fields, time_ns in rows
-        ]
+            db = read_window(self._db, self.parts, measurement, machine, start_ns, stop_ns)
+        try:
+            return [point_of(r) for r in db.fetchall()]
+        finally:
+            db.close()
 
     def machines(self) -> list[str]:
+        self.flush()
         with self._lock:
-            rows = self._db.execute("SELECT DISTINCT machine FROM points ORDER BY machine")
-            return [machine for (machine,) in rows.fetchall() if machine]
+            db = read_window(self._db, self.parts, None, None, None, None, "DISTINCT machine")
+        try:
+            return sorted(m for (m,) in db.fetchall() if m)
+        finally:
+            db.close()
 
+    # --- bounds -------------------------------------------------------------------------
     def delete_before(self, time_ns: int, limit: int | None = None) -> int:
-        """Remove points older than ``time_ns`` (retention), at most ``limit``; return how many."""
+        """Remove points older than ``time_ns``: the open rows, and the parts wholly
+        before it (at most ``limit`` open rows); how many points."""
+        self.flush()
         with self._lock:
             return self._delete_before(time_ns, limit)
 
     def _delete_before(self, time_ns: int, limit: int | None) -> int:
-        args: tuple[int, ...]
-        if limit is None:
-            sql, args = "DELETE FROM points WHERE time_ns < ?", (time_ns,)
-        else:
+        removed = 0
+        for name, rows in self._db.execute(
+            "SELECT name, rows FROM parts WHERE last_ns < ? ORDER BY first_ns", (time_ns,)
+        ).fetchall():
+            self._drop_part(name)
+            removed += rows
+        straddling = self._db.execute(
+            "SELECT name, rows FROM parts WHERE first_ns < ? AND last_ns >= ?", (time_ns, time_ns)
+        ).fetchall()
+        for name, rows in straddling:
+            removed += rows - self._trim_part(name, time_ns)
+        sql = "DELETE FROM samples WHERE time_ns < ?"
+        args: tuple[int, ...] = (time_ns,)
+        if limit is not None:
             sql = (
-                "DELETE FROM points WHERE rowid IN (SELECT rowid FROM points "
-                "WHERE time_ns < ? ORDER BY time_ns LIMIT ?)"
+                "DELETE FROM samples WHERE time_ns IN (SELECT time_ns FROM samples "
+                "WHERE time_ns < ? ORDER BY time_ns LIMIT ?) AND time_ns < ?"
             )
-            args = (time_ns, limit)
-        return self._db.execute(sql, args).rowcount
+            args = (time_ns, limit, time_ns)
+        return removed + self._db.execute(sql, args).rowcount
+
+    def _trim_part(self, name: str, from_ns: int) -> int:
+        """Replace part ``name`` by its rows at or after ``from_ns``; the rows kept."""
+        new = f"{from_ns}-{name.split('-', 1)[1]}"
+        rows, first, last, size = store_parts.trim_part(
+            self.parts / name, self.parts / new, from_ns
+        )
+        self._db.execute(
+            "UPDATE parts SET name = ?, first_ns = ?, last_ns = ?, rows = ?, bytes = ? "
+            "WHERE name = ?",
+            (new, first, last, rows, size, name),
+        )
+        with contextlib.suppress(FileNotFoundError):
+            (self.parts / name).unlink()
+        return rows
+
+    def _drop_part(self, name: str) -> None:
+        """Unregister a part (committed first: a reader's snapshot no longer lists it),
+        then delete its file."""
+        self._db.execute("DELETE FROM parts WHERE name = ?", (name,))
+        with contextlib.suppress(FileNotFoundError):
+            (self.parts / name).unlink()
+
+    def _drop_oldest_history(self) -> bool:
+        """Drop the oldest history part when no 1-s part is left; whether one went."""
+        row = self._db.execute("SELECT name FROM history ORDER BY first_ns LIMIT 1").fetchone()
+        if row is None:
+            return False
+        self._drop_history(row[0])
+        return True
+
+    def _drop_history(self, name: str) -> None:
+        self._db.execute("DELETE FROM history WHERE name = ?", (name,))
+        with contextlib.suppress(FileNotFoundError):
+            (self.history_parts / name).unlink()
+
+    def _expire_history(self, now_ns: int) -> None:
+        if self.history_retention_s is None:
+            return
+        cutoff = now_ns - round(self.history_retention_s * 1e9)
+        old = self._db.execute("SELECT name FROM history WHERE last_ns < ?", (cutoff,))
+        for (name,) in old.fetchall():
+            self._drop_history(name)
+
+    def history(
+        self,
+        measurement: str,
+        machine: str | None = None,
+        start_ns: int | None = None,
+        stop_ns: int | None = None,
+    ) -> list[dict[str, object]]:
+        """The per-minute history of ``measurement`` (of ``machine``): one dict per
+        minute and series, with ``time_ns`` (the minute's start), ``samples`` and
+        ``<field>_min``, ``_mean``, ``_max`` of every numeric field, by time."""
+        self.flush()
+        with self._lock:
+            names = [n for (n,) in self._db.execute("SELECT name FROM history ORDER BY first_ns")]
+        files = [self.history_parts / n for n in names]
+        return store_parts.read_history(files, measurement, machine, start_ns, stop_ns)
+
+    def _drop_oldest_part(self) -> int:
+        row = self._db.execute("SELECT name, rows FROM parts ORDER BY first_ns LIMIT 1").fetchone()
+        if row is None:
+            return 0
+        self._drop_part(row[0])
+        return int(row[1])
 
     def enforce_retention(self, now_ns: int | None = None, budget_s: float = 0.2) -> int:
-        """Delete points past ``retention_s``, then the oldest while over ``max_bytes``.
+        """Delete points past ``retention_s``, then the oldest parts while over ``max_bytes``.
 
-        Works in chunks for at most about ``budget_s`` (it runs between compensation
-        cycles); what is left is taken on the next call. Returns the points deleted.
-        A full disk makes it do nothing (and nothing is raised).
+        Without a commit thread, closed periods are compacted first. Works for about
+        ``budget_s`` at most; what is left is taken on the next call. Returns the points
+        deleted. A full disk makes it do nothing (and nothing is raised).
         """
         now_ns = time.time_ns() if now_ns is None else now_ns
-        expire = None
-        if self.retention_s is not None:
-            cutoff = now_ns - round(self.retention_s * 1e9)
-            expire = functools.partial(self._expire_chunk, cutoff)
-        deleted = self._ring.enforce(
-            expire, lambda: self._ring.make_room(self._evict_oldest), budget_s
-        )
+        self._newest_ns = max(self._newest_ns, now_ns)
+        self.flush()  # the queued points count too (at most a second of them)
+        if self._thread is None and self.compact():
+            self.merge_days()
+        deadline = time.monotonic() + budget_s
+        deleted = 0
+        with self._lock:
+            try:
+                if self.retention_s is not None:
+                    cutoff = now_ns - round(self.retention_s * 1e9)
+                    n = self._delete_before(cutoff, DELETE_CHUNK_ROWS)
+                    self.expired += n
+                    deleted += n
+                self._expire_history(now_ns)
+                while self._over_cap() and time.monotonic() < deadline:
+                    n = self._evict_oldest()
+                    deleted += n
+                    if n == 0:
+                        break
+            except sqlite3.Error as exc:
+                log.warning("local store %s: retention step failed (%s)", self.path, exc)
         if deleted:
             log.info("local store %s: retention deleted %d old point(s)", self.path, deleted)
         return deleted
 
-    def _expire_chunk(self, cutoff_ns: int) -> tuple[int, bool]:
-        """Delete a chunk of points older than ``cutoff_ns``: how many, and whether more may be."""
-        n = self._delete_before(cutoff_ns, DELETE_CHUNK_ROWS)
-        self.expired += n
-        return n, n >= DELETE_CHUNK_ROWS
+    def _over_cap(self) -> bool:
+        return self.max_bytes is not None and self._used_bytes() > 0.98 * self.max_bytes
+
+    def _used_bytes(self) -> int:
+        from gateway.outputs.sqlite_ring import used_bytes
+
+        parts = self._db.execute(
+            "SELECT (SELECT coalesce(sum(bytes), 0) FROM parts) "
+            "+ (SELECT coalesce(sum(bytes), 0) FROM history)"
+        ).fetchone()[0]
+        return used_bytes(self._db) + int(parts)
 
     def used_bytes(self) -> int:
-        """Bytes of the file in use (the quantity ``max_bytes`` bounds)."""
-        return self._ring.used_bytes()
+        """Bytes the store holds: the SQLite file's pages in use and the parts."""
+        with self._lock:
+            return self._used_bytes()
 
     def __len__(self) -> int:
+        self.flush()
         with self._lock:
-            return self._db.execute("SELECT COUNT(*) FROM points").fetchone()[0]
+            staged = self._db.execute("SELECT COUNT(*) FROM samples").fetchone()[0]
+            parts = self._db.execute("SELECT coalesce(sum(rows), 0) FROM parts").fetchone()[0]
+        return int(staged) + int(parts)
 
     def close(self) -> None:
+        if self._thread is not None:
+            self._stop.set()
+            self._thread.join()
+            self._thread = None
+        self.flush()
         self._ring.close()
 
     def __enter__(self) -> LocalStore:
@@ -238,3 +540,66 @@ class LocalStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def read_window(
+    db: sqlite3.Connection,
+    parts: Path,
+    measurement: str | None,
+    machine: str | None,
+    start_ns: int | None,
+    stop_ns: int | None,
+    select: str = ", ".join(COLUMNS),
+    order: str | None = None,
+) -> duckdb.DuckDBPyConnection:
+    """The rows of a window from one snapshot of the store: the parts that overlap it
+    and the open rows, read in one SQLite read transaction; a DuckDB connection with the
+    result of ``SELECT select`` ordered by time (``select`` empty: none), and the
+    window as the view ``w`` for further queries (the caller fetches and closes it)."""
+    where, args, literals = ["TRUE"], [], ["TRUE"]
+    for column, value, op in (
+        ("measurement", measurement, "="),
+        ("machine", machine, "="),
+        ("time_ns", start_ns, ">="),
+        ("time_ns", stop_ns, "<"),
+    ):
+        if value is not None:
+            where.append(f"{column} {op} ?")
+            args.append(value)
+            literals.append(f"{column} {op} {store_parts.literal(value)}")
+    clause = " AND ".join(where)
+    lo = -(2**63) if start_ns is None else start_ns
+    hi = 2**63 - 1 if stop_ns is None else stop_ns
+    if order is None:
+        order = (
+            "" if select.startswith("DISTINCT") else "time_ns, " + ", ".join((*TAGS, "tags_extra"))
+        )
+    for attempt in range(READ_ATTEMPTS):
+        names, staged = _snapshot(db, clause, args, (lo, hi))
+        files = [parts / n for (n,) in names]
+        try:
+            return store_parts.scan(files, staged, " AND ".join(literals), select, order)
+        except duckdb.IOException:  # a part merged or aged out since the snapshot
+            if attempt == READ_ATTEMPTS - 1:
+                raise
+    raise AssertionError("unreachable")
+
+
+def _snapshot(
+    db: sqlite3.Connection, clause: str, args: list, span: tuple[int, int]
+) -> tuple[list, list]:
+    """The parts overlapping ``span`` and the open rows meeting ``clause``, read in one
+    SQLite read transaction (one consistent state of the store)."""
+    in_transaction = db.in_transaction
+    if not in_transaction:
+        db.execute("BEGIN")
+    try:
+        names = db.execute(
+            "SELECT name FROM parts WHERE last_ns >= ? AND first_ns < ? ORDER BY first_ns",
+            span,
+        ).fetchall()
+        staged = db.execute(f"{_STAGED} WHERE {clause}", args).fetchall()
+    finally:
+        if not in_transaction:
+            db.execute("COMMIT")
+    return names, staged

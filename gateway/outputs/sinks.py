@@ -15,8 +15,8 @@ a log write that fails (a full disk under the local store) is counted by the
 loop and does not keep the heartbeat, and the failure count in it, from being
 written.
 - Retention: every ``logging.retention_interval_s`` the store (or buffer) deletes
-  what is past its age or over its size (gateway/outputs/local_store.py, disk_buffer.py,
-  both one bounded SQLite ring: sqlite_ring.py).
+  what is past its age or over its size (gateway/outputs/local_store.py: typed Parquet
+  parts after a SQLite open period; disk_buffer.py: a bounded SQLite ring, sqlite_ring.py).
 - Timestamps: every point, and the heartbeat's ``time_s``, carry the record's one
   stamp (:attr:`CycleRecord.stamped_s`): in the plant the wall time taken at the
   cycle's start, so an NTP correction or a step of the system clock is followed and
@@ -55,6 +55,9 @@ HealthProvider = Callable[[str], Mapping[str, Any]]
 
 
 SECONDS_PER_DAY = 86_400.0
+#: How often the local store commits the queued points (off the event loop): at most
+#: this much is lost to a SIGKILL or a power cut.
+STORE_COMMIT_S = 1.0
 BYTES_PER_MB = 1_000_000
 
 
@@ -93,6 +96,9 @@ class Outputs:
                 section.local_store,
                 max_bytes=round(section.local_store_max_mb * BYTES_PER_MB),
                 retention_s=section.local_store_retention_days * SECONDS_PER_DAY,
+                synchronous="FULL",
+                commit_interval_s=STORE_COMMIT_S,
+                history_retention_s=section.local_store_history_days * SECONDS_PER_DAY,
             )
         self.state_dir = Path(config.state_dir)
         self._cycles: dict[str, int] = {}

@@ -1,19 +1,18 @@
 """Reading a machine's logged window back for plots and the event table.
 
-The local store is read with SQLite's own JSON functions on a read-only
-connection (a day of 1 Hz data is about a million temperature rows: parsing each
-row's JSON in Python would take seconds); InfluxDB is read through
+The local store is read through DuckDB from its typed columns
+(:mod:`gateway.web.store_window`: a day of 1 Hz data is about a million
+temperature rows, handed over as numpy arrays); InfluxDB is read through
 :class:`gateway.outputs.influx.InfluxReader`, as ``export`` does.
 
 The machine page draws :func:`machine_view`: every line cut to a min/max envelope
 per pixel column of the window (:func:`window_envelope`), the temperatures of the
-local store grouped per column in SQL (:mod:`gateway.web.store_window`), the events
+local store grouped per column in DuckDB (:mod:`gateway.web.store_window`), the events
 from the full rows. :func:`read_machine` gives the whole window, row by row.
 """
 
 from __future__ import annotations
 
-import sqlite3
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +25,7 @@ from gateway.outputs.points import (
     PROBE_MEASUREMENT,
     TEMPERATURE_MEASUREMENT,
 )
-from gateway.web.store_window import temperature_envelopes
+from gateway.web.store_window import temperature_envelopes, window_columns, window_rows
 
 #: ("local", path) or ("influx", url, token, org, bucket, timeout_s): picklable for the worker.
 SourceSpec = tuple
@@ -102,39 +101,25 @@ def _array(values: Iterable[object]) -> np.ndarray:
     return np.array(list(values), dtype=float)
 
 
-def _connect(path: Path) -> sqlite3.Connection:
-    return sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
-
-
-_WHERE = "measurement = ? AND machine = ? AND time_ns >= ? AND time_ns < ?"
-_CYCLE_COLUMNS = ", ".join(
-    f"json_extract(fields, '$.{f}')" for f in (*CYCLE_FIELDS, "write_status", "link_errors")
-)
 _LOCAL_SQL = {
-    "cycles": (CYCLE_MEASUREMENT, f"SELECT time_ns, {_CYCLE_COLUMNS}"),
-    "temps": (
-        TEMPERATURE_MEASUREMENT,
-        "SELECT time_ns, json_extract(tags, '$.sensor'), json_extract(tags, '$.quality'), "
-        "json_extract(fields, '$.value_C')",
+    "cycles": (
+        CYCLE_MEASUREMENT,
+        f"time_ns, {', '.join((*CYCLE_FIELDS, 'write_status', 'link_errors'))}",
     ),
-    "probes": (PROBE_MEASUREMENT, "SELECT time_ns, json_extract(fields, '$.error_um')"),
+    "temps": (TEMPERATURE_MEASUREMENT, "time_ns, sensor, quality, value_C"),
+    "probes": (PROBE_MEASUREMENT, "time_ns, error_um"),
 }
 
 
-def _local_part(db: sqlite3.Connection, part: str, machine: str, window: tuple) -> list:
+def _local_part(path: Path, part: str, machine: str, window: tuple[int, int]) -> list:
     measurement, select = _LOCAL_SQL[part]
-    sql = f"{select} FROM points WHERE {_WHERE} ORDER BY time_ns"
-    return db.execute(sql, (measurement, machine, *window)).fetchall()
+    return window_rows(path, measurement, machine, window, select, "time_ns, sensor, quality")
 
 
 def _local_rows(
     path: Path, machine: str, start_ns: int, stop_ns: int, parts: tuple[str, ...] = PARTS
 ) -> dict[str, list]:
-    db = _connect(path)
-    try:
-        return {p: _local_part(db, p, machine, (start_ns, stop_ns)) for p in parts}
-    finally:
-        db.close()
+    return {p: _local_part(path, p, machine, (start_ns, stop_ns)) for p in parts}
 
 
 _MEASUREMENTS = (CYCLE_MEASUREMENT, TEMPERATURE_MEASUREMENT, PROBE_MEASUREMENT)
@@ -205,7 +190,11 @@ def _split_temperatures(rows: list) -> tuple[dict[str, tuple[list, list]], list]
 
 
 def _cycles(rows: list) -> _Cycles:
-    columns = list(zip(*rows, strict=True)) if rows else [()] * (len(CYCLE_FIELDS) + 3)
+    return _cycles_of(list(zip(*rows, strict=True)) if rows else [()] * (len(CYCLE_FIELDS) + 3))
+
+
+def _cycles_of(columns: list) -> _Cycles:
+    """The cycles from their columns: time, the fields, write status, link errors."""
     n = len(CYCLE_FIELDS) + 1  # the time, then the fields
     return _Cycles(
         t_ns=np.array(columns[0], dtype=np.int64),
@@ -308,21 +297,21 @@ def machine_view(
     aggregate: bool = True,
 ) -> MachineView:
     """The window ``start_s ≤ t < stop_s`` as the machine page draws it. ``aggregate``:
-    the local store's temperatures are cut per column in SQL (the same result as
+    the local store's temperatures are cut per column in DuckDB (the same result as
     reading every row, which ``aggregate=False`` does)."""
     start_ns, stop_ns = int(start_s * NS_PER_S), int(stop_s * NS_PER_S)
     if spec[0] == "local" and aggregate:
-        db = _connect(Path(spec[1]))
-        try:
-            window = (start_ns, stop_ns)
-            rows = {p: _local_part(db, p, machine, window) for p in ("cycles", "probes")}
-            temps, changes = temperature_envelopes(db, machine, start_ns, stop_ns, columns)
-        finally:
-            db.close()
+        path = Path(spec[1])
+        rows = _local_rows(path, machine, start_ns, stop_ns, ("probes",))
+        cycle_columns = window_columns(
+            path, CYCLE_MEASUREMENT, machine, (start_ns, stop_ns), _LOCAL_SQL["cycles"][1]
+        )
+        temps, changes = temperature_envelopes(path, machine, start_ns, stop_ns, columns)
+        cycles = _cycles_of(cycle_columns)
     else:
         rows = _rows(spec, machine, start_ns, stop_ns)
         temps, changes = _full_temperatures(rows["temps"], start_ns, stop_ns, columns)
-    cycles = _cycles(rows["cycles"])
+        cycles = _cycles(rows["cycles"])
     probe_t, probe_err, residual = _probes(rows["probes"], cycles)
     values = dict(cycles.values, cnc_um=cycles.values["written_cnc"] * cnc_um_per_unit)
     values["interval_low_um"] = values["predicted_um"] - values["interval_um"]

@@ -121,7 +121,13 @@ async def fail_one_cycle(run: Run, machine: str) -> None:
     births = len(run.host.messages("DBIRTH", machine))
     loop.run_cycle = failing_cycle  # type: ignore[method-assign]
     await run.host.wait(lambda: len(run.host.messages("DDEATH", machine)) == 1, 10, "DDEATH")
-    dead_at = len(run.host.messages())
+    # From the death itself: on a busy machine the birth (and data) may have come in by the
+    # time the wait returns, and counting from there would miss them.
+    dead_at = 1 + next(
+        i
+        for i, e in enumerate(run.host.messages())
+        if e["kind"] == "DDEATH" and e["device"] == machine
+    )
     await run.host.wait(
         lambda: len(run.host.messages("DBIRTH", machine)) == births + 1, 10, "DBIRTH again"
     )

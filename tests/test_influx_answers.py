@@ -13,6 +13,7 @@ import email.utils
 import logging
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -38,6 +39,31 @@ def cycle_points(count: int) -> list[Point]:
     return [p for r in make_records("vmc-1", count) for p in points_from_record(r, EPOCH_S)]
 
 
+async def forward_through(
+    proxy: AnsweringProxy,
+    server: InfluxServer,
+    bucket: str,
+    buffer_path: Path,
+    batches: list[list[Point]],
+    flush_timeout_s: float,
+    **settings: Any,
+) -> tuple[dict, RecordingWriter]:
+    """Buffer ``batches`` and let a forwarder (``settings``) send them through ``proxy``
+    until the buffer is empty: (its health after the flush, the writer it used)."""
+    buffer = PointBuffer(buffer_path)
+    writer = RecordingWriter(proxy.url, server.token, server.org, bucket, timeout_s=5.0)
+    forwarder = Forwarder(buffer, writer, **settings)
+    for batch in batches:
+        buffer.append(batch)
+    forwarder.start()
+    assert await forwarder.flush(timeout=flush_timeout_s)
+    health = forwarder.health()
+    await forwarder.stop()
+    writer.close()
+    buffer.close()
+    return health, writer
+
+
 def warnings_naming(caplog: pytest.LogCaptureFixture, text: str) -> list[str]:
     return [
         r.getMessage()
@@ -56,16 +82,10 @@ def test_retry_after_is_honoured_and_each_cause_is_logged_once(
         async with AnsweringProxy(server.url) as proxy:
             proxy.script = [(500, {}), (500, {}), (429, {"Retry-After": "2"}), (503, {})]
             proxy.script += [(500, {})]
-            buffer = PointBuffer(tmp_path / "buffer.sqlite")
-            writer = RecordingWriter(proxy.url, server.token, server.org, bucket, timeout_s=5.0)
-            forwarder = Forwarder(buffer, writer, retry_s=0.1, max_retry_s=0.5, idle_s=0.05)
-            buffer.append(points)
-            forwarder.start()
-            assert await forwarder.flush(timeout=20)
-            health = forwarder.health()
-            await forwarder.stop()
-            writer.close()
-            buffer.close()
+            health, writer = await forward_through(
+                proxy, server, bucket, tmp_path / "buffer.sqlite", [points], 20,
+                retry_s=0.1, max_retry_s=0.5, idle_s=0.05,
+            )  # fmt: skip
             return proxy, health, writer
 
     with caplog.at_level(logging.INFO, logger=WRITER_LOG):
@@ -100,18 +120,12 @@ def test_too_large_halves_the_batch_drops_a_lone_oversized_point_and_loses_nothi
 
     async def scenario() -> tuple[AnsweringProxy, dict, RecordingWriter]:
         async with AnsweringProxy(server.url, max_body_bytes=limit_bytes) as proxy:
-            buffer = PointBuffer(tmp_path / "buffer.sqlite")
-            writer = RecordingWriter(proxy.url, server.token, server.org, bucket, timeout_s=5.0)
-            forwarder = Forwarder(buffer, writer, batch=5000, retry_s=0.1, max_retry_s=0.5)
-            buffer.append(points[:1000])
-            buffer.append([huge])
-            buffer.append(points[1000:])
-            forwarder.start()
-            assert await forwarder.flush(timeout=30)  # today's code resends the batch for ever
-            health = forwarder.health()
-            await forwarder.stop()
-            writer.close()
-            buffer.close()
+            # A forwarder that resent the refused batch for ever would never flush.
+            health, writer = await forward_through(
+                proxy, server, bucket, tmp_path / "buffer.sqlite",
+                [points[:1000], [huge], points[1000:]], 30,
+                batch=5000, retry_s=0.1, max_retry_s=0.5,
+            )  # fmt: skip
             return proxy, health, writer
 
     with caplog.at_level(logging.INFO, logger=WRITER_LOG):
@@ -165,16 +179,10 @@ def test_oversized_point_every_few_cycles_is_one_error_episode_without_a_request
 
     async def scenario() -> tuple[AnsweringProxy, dict, RecordingWriter]:
         async with AnsweringProxy(server.url, max_body_bytes=limit_bytes) as proxy:
-            buffer = PointBuffer(tmp_path / "buffer.sqlite")
-            writer = RecordingWriter(proxy.url, server.token, server.org, bucket, timeout_s=5.0)
-            forwarder = Forwarder(buffer, writer, batch=5000, retry_s=0.1, max_retry_s=0.5)
-            buffer.append(buffered)
-            forwarder.start()
-            assert await forwarder.flush(timeout=60)
-            health = forwarder.health()
-            await forwarder.stop()
-            writer.close()
-            buffer.close()
+            health, writer = await forward_through(
+                proxy, server, bucket, tmp_path / "buffer.sqlite", [buffered], 60,
+                batch=5000, retry_s=0.1, max_retry_s=0.5,
+            )  # fmt: skip
             return proxy, health, writer
 
     with caplog.at_level(logging.DEBUG, logger=WRITER_LOG):

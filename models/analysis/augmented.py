@@ -162,12 +162,7 @@ def load(path: str | Path, key: bytes | None = None) -> dict[str, Any]:
     """Read a stored augmented model and check its format, version, checksum and signature
     (``key``, default the key of the store the file is in)."""
     path = Path(path)
-    try:
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as err:
-        raise StoreError(f"{path}: cannot read an augmented model: {err}") from None
-    if not isinstance(document, dict):
-        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    document = _read_object(path)
     if key is None:
         try:
             key = signing.key_for_store(path.parent.parent)
@@ -196,6 +191,17 @@ def check(document: dict[str, Any], where: str, key: bytes | None) -> None:
         raise StoreError(str(exc)) from None
 
 
+def _read_object(path: Path) -> dict[str, Any]:
+    """The JSON object in ``path``, unchecked; StoreError (naming the file) otherwise."""
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as err:
+        raise StoreError(f"{path}: cannot read an augmented model: {err}") from None
+    if not isinstance(document, dict):
+        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    return document
+
+
 def sign_unsigned(store_dir: str | Path, key: bytes) -> list[Path]:
     """Sign every unsigned augmented model of the store (``models sign``), each checked whole
     first; one with a wrong signature is refused (StoreError). Returns the files signed."""
@@ -211,12 +217,7 @@ def sign_unsigned(store_dir: str | Path, key: bytes) -> list[Path]:
 def _read_unsigned(path: Path, key: bytes) -> dict[str, Any] | None:
     """The augmented model in ``path`` if it is unsigned and whole; None if it is validly
     signed with ``key``; StoreError otherwise."""
-    try:
-        document = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, json.JSONDecodeError) as err:
-        raise StoreError(f"{path}: cannot read an augmented model: {err}") from None
-    if not isinstance(document, dict):
-        raise StoreError(f"{path}: a JSON object was expected at the top level")
+    document = _read_object(path)
     if signing.FIELD in document:
         check(document, str(path), key)
         return None

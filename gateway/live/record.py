@@ -16,6 +16,31 @@ from dataclasses import dataclass, field
 
 
 @dataclass
+class AxisRecord:
+    """What one cycle decided for one axis of a multi-axis machine (units in the names).
+
+    A machine configured with ``compensation.axes`` predicts and writes every axis from
+    the cycle's one poll; each axis's outcome is one of these, in
+    :attr:`CycleRecord.axes`. The fields mean what the same-named fields of
+    :class:`CycleRecord` mean, for this axis's model and macro.
+    """
+
+    axis: str  # "X", "Y", "Z", ...
+    macro: int  # the macro variable this axis's compensation is written to
+    model_id: str | None = None
+    predicted_um: float | None = None
+    target_um: float | None = None
+    applied_um: float | None = None
+    written_cnc: float | None = None
+    write_status: str = ""
+    correction_um: float | None = None
+    interval_um: float | None = None
+    training_span: str | None = None
+    outside_inputs: list[str] = field(default_factory=list)
+    uncertain: bool = False
+
+
+@dataclass
 class CycleRecord:
     """Everything one cycle measured and decided (units in the names)."""
 
@@ -48,6 +73,11 @@ class CycleRecord:
     #: once: every output stamps the cycle with it. None: a record made without one, whose
     #: outputs take ``time_s``.
     stamp_s: float | None = None
+    #: Every axis of a machine configured with ``compensation.axes``, by axis name, in
+    #: the configured order (empty for the single-axis form). The per-axis fields above
+    #: (model_id, predicted_um, ..., uncertain) then repeat the first axis's, so a reader
+    #: that knows one axis sees the first.
+    axes: dict[str, AxisRecord] = field(default_factory=dict)
 
     @property
     def stamped_s(self) -> float:

@@ -98,8 +98,11 @@ class ReceivingCnc(FixedLink):
         )
         self.clock = clock
         self.received: dict[int, list[tuple[float, float]]] = {}  # macro → (time, value)
+        self.refused: set[int] = set()  # macros the machine refuses to take (write-protected)
 
     def write_macro(self, number: int, value: float) -> None:
+        if number in self.refused:  # the server answers the write with an error status
+            raise ValueError(f"macro #{number} is write-protected")
         super().write_macro(number, value)
         self.received.setdefault(number, []).append((self.clock.now(), float(value)))
 
@@ -361,6 +364,41 @@ def test_an_axis_without_a_model_holds_then_ramps_while_the_others_write(
         )
     assert b.loop is not None
     assert [a.failed_writes for a in b.loop.axes] == [0, 0, 0]
+    assert_one_handshake_per_cycle_with_writes(b)
+
+
+# --- (b') one axis's writes fail; the others keep compensating -----------------------------
+
+
+@pytest.mark.parametrize("cnc_kind", CNCS)
+def test_an_axis_whose_writes_fail_holds_while_the_others_write(cnc_kind: str, store: Path) -> None:
+    async def body() -> tuple[Bench, list[CycleRecord], list[CycleRecord]]:
+        async with bench(cnc_kind, store) as b:
+            b.cnc.refused.add(AXES["X"]["macro"])  # X's macro write-protected at the CNC
+            refused = await b.cycles(8)
+            assert b.loop is not None
+            assert [a.failed_writes for a in b.loop.axes] == [0, len(refused), 0]
+            assert b.loop.failed_writes == len(refused)  # the machine total
+            b.cnc.refused.clear()
+            return b, refused, await b.cycles(6)
+
+    b, refused, after = run(body)
+    assert all(r.axes["X"].write_status.startswith("write failed") for r in refused)
+    assert all(r.axes["X"].applied_um == 0.0 for r in refused)  # never moved by a failure
+    assert 502 not in b.cnc.received or all(t > refused[-1].time_s for t, _ in b.cnc.axis_um("X"))
+    # Z and Y compensated meanwhile, within their own limits.
+    assert b.cnc.held_um("Z") == pytest.approx(refused[-1].axes["Z"].predicted_um, abs=0.5)
+    assert b.cnc.held_um("Y") == pytest.approx(refused[-1].axes["Y"].predicted_um, abs=0.5)
+    for axis in ("Z", "Y"):
+        assert_within_limits(b.cnc.axis_um(axis), axis, 0.0)
+    # Once the CNC takes it again, X ramps from what the CNC holds at its own slew limit:
+    # its first step one cycle's slew (8 µm/min for 30 s) plus at most the deadband and
+    # one CNC step the budget keeps after a hold (gateway/live/writeback.py).
+    x_writes = b.cnc.axis_um("X")
+    assert x_writes[0][0] == after[0].time_s
+    assert 4.0 <= x_writes[0][1] <= 4.0 + 0.5 + 1e-4 + 1e-9
+    assert_within_limits(x_writes, "X", x_writes[0][1])
+    assert b.cnc.held_um("X") == pytest.approx(12.0)
     assert_one_handshake_per_cycle_with_writes(b)
 
 

@@ -360,7 +360,7 @@ def axis_targets(machine: MachineSection, bank: ModelBank) -> dict[str, str | No
     owners: dict[str, str] = {}
     for name, axis in axes.items():
         target = _axis_target(name, axis, bank)
-        where = ("compensation", "axes", name, "target")
+        where: tuple[str, ...] = ("compensation", "axes", name, "target")
         if axis.target is None:
             where = ("compensation", "axes", name, *next(iter(axis.named_models())).split("."))
         if not any(m.target.name == target for m in bank.models.values()):

@@ -15,10 +15,16 @@ from pathlib import Path
 import pytest
 from influxdb_client import InfluxDBClient
 
+from gateway.offline.export import export_runs
 from gateway.outputs.disk_buffer import PointBuffer
 from gateway.outputs.influx import Forwarder, InfluxReader, InfluxWriter
 from gateway.outputs.local_store import LocalStore
-from gateway.outputs.points import CYCLE_MEASUREMENT, TEMPERATURE_MEASUREMENT, points_from_record
+from gateway.outputs.points import (
+    CYCLE_MEASUREMENT,
+    TEMPERATURE_MEASUREMENT,
+    points_from_record,
+    probe_point,
+)
 from tests.influx_server import InfluxServer
 from tests.records import axes_record, written_record
 from tests.test_timeseries import EPOCH_S
@@ -181,3 +187,25 @@ def test_three_axis_cycles_written_to_the_local_store_read_back_with_their_axes(
     # the per-minute history of the parts keeps one series per axis
     axes_in_history = {str(m["tags_extra"]) for m in minutes}
     assert axes_in_history == {f'{{"axis":"{a}"}}' for a in AXES}
+
+
+def test_export_of_a_three_axis_machine_is_one_row_per_cycle_as_for_one_axis(
+    tmp_path: Path,
+) -> None:
+    """The measured-run CSV of a 3-axis machine equals that of the same cycles logged
+    as a single-axis machine: one row per cycle, nothing of the other axes mixed in."""
+    multi = three_axis_records("vmc-3", 120)
+    single = three_axis_records("vmc-3", 120)
+    for record in single:
+        record.axes = {}
+    files = {}
+    for name, records in (("multi", multi), ("single", single)):
+        points = [p for r in records for p in points_from_record(r, EPOCH_S)]
+        points += [probe_point("vmc-3", r.time_s, 0.5 * r.time_s, EPOCH_S) for r in records]
+        with LocalStore(tmp_path / f"{name}.sqlite") as store:
+            store.write(points)
+            result = export_runs(store, "vmc-3", None, None, tmp_path / f"{name}.csv", EPOCH_S)
+        assert result.rows == 120 and result.rows_without_probe == 0
+        files[name] = (tmp_path / f"{name}.csv").read_text()
+    assert files["multi"] == files["single"]
+    assert len(files["multi"].splitlines()) == 1 + 120

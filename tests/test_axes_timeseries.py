@@ -25,6 +25,7 @@ from gateway.outputs.points import (
     points_from_record,
     probe_point,
 )
+from gateway.web.series import machine_view
 from tests.influx_server import InfluxServer
 from tests.records import axes_record, written_record
 from tests.test_timeseries import EPOCH_S
@@ -150,6 +151,16 @@ def test_three_axis_cycles_land_in_influxdb_as_three_points_queryable_by_axis(
         assert len(found) == 30
         assert [v for _, v in found] == [expected_applied(axis, float(t)) for t in range(30)]
     assert len(single) == 1 and "axis" not in single[0].tags
+    # the console reads InfluxDB too: the machine's lines are the first axis's, each apart
+    spec = ("influx", server.url, server.token, server.org, bucket, 5.0)
+    factors = {"Z": 1000.0, "X": 1000.0, "Y": 1000.0}
+    view = machine_view(spec, "vmc-3", EPOCH_S, EPOCH_S + 30, 1000.0, 60, axes=factors)
+    assert view.cycles == 30
+    assert list(view.lines["applied_um"][1]) == [float(t) for t in range(30)]
+    for axis in AXES:
+        assert list(view.axis_lines[axis]["applied_um"][1]) == [
+            expected_applied(axis, float(t)) for t in range(30)
+        ]
 
 
 # --- the embedded local store -------------------------------------------------------------

@@ -180,7 +180,7 @@ def test_the_page_shows_each_axis_and_plots_it_and_the_overview_lists_them(
             (s.get_attribute("data-axis"), s.text, "held" in s.get_attribute("class"))
             for s in driver.find_elements(By.CSS_SELECTOR, f"#row-{MULTI} .axes .axis")
         ]
-        single_axes = driver.find_elements(By.CSS_SELECTOR, f"#row-{SINGLE} .axes")
+        single_axes = driver.find_elements(By.CSS_SELECTOR, f"#row-{SINGLE} .axes .axis")
         served.record(multi_record(1000, time.time()))  # the live stream updates the axes
         first = f"#row-{MULTI} .axes .axis[data-axis='Z']"
         deadline = time.monotonic() + 20

@@ -215,26 +215,37 @@ def _axis_of(tag: object, known: dict[object, str | None]) -> str | None:
     return known[tag]
 
 
-def _split_axes(columns: list, axes: Sequence[str]) -> dict[str | None, list]:
-    """The cycle columns of "the" series (key None: the first of ``axes`` and every
-    untagged row; without ``axes`` the untagged rows) and of each of ``axes``."""
-    if not columns or not len(columns[0]):
-        return {key: columns for key in (None, *axes)}
+def _split_axes(columns: list, axes: Sequence[str]) -> dict[str | None, _Cycles]:
+    """The cycles of "the" series (key None: the first of ``axes`` and every untagged
+    row; without ``axes`` the untagged rows) and of each of ``axes``, from the cycle
+    columns (the axis tag last): made into arrays once, then cut by axis."""
+    every = _cycles_of(columns if columns else [[]] * _CYCLE_COLUMNS)
     known: dict[object, str | None] = {}
-    tags = [_axis_of(tag, known) for tag in columns[-1]]
+    tags = [_axis_of(tag, known) for tag in (columns[-1] if columns else [])]
     if not axes and all(t is None for t in tags):
-        return {None: columns}
+        return {None: every}
+    codes = {key: i for i, key in enumerate(dict.fromkeys([None, *axes, *known.values()]))}
+    code = np.array([codes[t] for t in tags], dtype=np.int64)
     split = {}
     for key in (None, *axes):
-        wanted = {None, axes[0]} if key is None and axes else {key}
-        keep = [i for i, t in enumerate(tags) if t in wanted]
-        split[key] = [[column[i] for i in keep] for column in columns]
+        wanted = [codes[None], codes[axes[0]]] if key is None and axes else [codes[key]]
+        split[key] = _cycles_where(every, np.isin(code, wanted))
     return split
 
 
+def _cycles_where(cycles: _Cycles, keep: np.ndarray) -> _Cycles:
+    return _Cycles(
+        t_ns=cycles.t_ns[keep],
+        t_s=cycles.t_s[keep],
+        values={f: v[keep] for f, v in cycles.values.items()},
+        write_status=[cycles.write_status[i] for i in np.flatnonzero(keep)],
+        link_errors=cycles.link_errors[keep],
+    )
+
+
 def _cycles(rows: list, axes: Sequence[str] = ()) -> _Cycles:
-    columns = list(zip(*rows, strict=True)) if rows else [()] * _CYCLE_COLUMNS
-    return _cycles_of(_split_axes([list(c) for c in columns], axes)[None])
+    columns = [list(c) for c in zip(*rows, strict=True)] if rows else []
+    return _split_axes(columns, axes)[None]
 
 
 def _cycles_of(columns: list) -> _Cycles:
@@ -366,9 +377,8 @@ def machine_view(
         temps, changes = _full_temperatures(rows["temps"], start_ns, stop_ns, columns)
         logged = rows["cycles"]
         cycle_columns = [list(c) for c in zip(*logged, strict=True)] if logged else []
-    split = _split_axes(cycle_columns or [[]] * _CYCLE_COLUMNS, list(axes))
-    cycles = _cycles_of(split[None])
-    by_axis = {axis: _cycles_of(split[axis]) for axis in axes}
+    by_axis = _split_axes(cycle_columns, list(axes))
+    cycles = by_axis[None]
     axis_lines = {
         axis: _axis_lines(by_axis[axis], factor, (start_ns, stop_ns), columns)
         for axis, factor in axes.items()

@@ -41,6 +41,7 @@ from gateway.live.loop import MachineLoop
 from gateway.live.proposal_monitor import MonitorSink, build_monitor
 from gateway.live.record import CycleRecord, Sink
 from gateway.live.scheduler import CycleScheduler
+from gateway.outputs.axes import axis_macros
 from gateway.outputs.health import Health, gateway_counters, machine_health, scalar_counters
 from gateway.outputs.sinks import Outputs
 from gateway.process.gc_tuning import frozen_startup_heap
@@ -290,6 +291,7 @@ class Gateway:
             self._set_enabled,
             on_promote=self.promote,
             on_rollback=self.rollback,
+            axes={m.id: axis_macros(m) for m in self.config.machines},
         )
 
     def _build_sparkplug(self) -> EdgeNode | None:

@@ -26,6 +26,11 @@ start nothing, and after an analysis the tests start from fresh evidence, as
 they do when a model never seen before comes into use (a promotion). An effect
 already proposed is not proposed again (the analysis refits the declared model
 from scratch, so after a promotion it would name the same effect).
+
+For a machine with several axes it watches the first axis only: it reads the record's
+own per-axis fields (``model_id``, ``predicted_um``, ``applied_um``), which repeat the
+first axis's (:attr:`gateway.live.record.CycleRecord.axes`), the axis the probe
+measures; the other axes are never mixed into its residuals.
 """
 
 from __future__ import annotations

@@ -27,6 +27,11 @@ of one machine from a :class:`PointSource` — the embedded
   and counted (:attr:`ExportResult.implausible_values`), so the file always
   passes ``load_runs`` and no absurd number reaches a fit.
 
+A machine with several axes logs one ``spindle_cycle`` point per axis and cycle (tag
+``axis``); only their time and ``speed_rpm`` are read here, the cycle's and the same on
+every axis's point, so each cycle is still one row whatever the axes, and no axis's
+values are mixed into another's (``error_um`` is the probe's, of the first axis).
+
 The file passes :func:`models.data.dataset.load_runs`.
 """
 

@@ -3,7 +3,8 @@
 Every :class:`~gateway.live.loop.CycleRecord` becomes:
 
 * one ``spindle_cycle`` point — tags ``machine`` (+ ``regime``, ``model_id`` when
-  known); fields ``speed_rpm``, ``predicted_um``, ``target_um``, ``applied_um``,
+  known; for a machine with several axes, see below); fields ``speed_rpm``,
+  ``predicted_um``, ``target_um``, ``applied_um``,
   ``written_cnc`` (the value written to the CNC macro, in the CNC's unit),
   ``interval_um`` (half-width of the calibrated interval around ``predicted_um``, when
   known), ``training_span`` (text: inside / outside) with ``outside_inputs`` (text: the
@@ -12,6 +13,14 @@ Every :class:`~gateway.live.loop.CycleRecord` becomes:
 * one ``spindle_temperature`` point per sensor — tags ``machine``, ``sensor``,
   ``quality``; field ``value_C``, and for a sensor that is not good, field ``reason``
   (text: "transmitter fault code 1 (open circuit)", "stale", …).
+
+A machine configured with several axes (``compensation.axes``: its record carries
+:attr:`~gateway.live.record.CycleRecord.axes`) gets one ``spindle_cycle`` point per axis
+instead of one, in the configured order, each with the extra tag ``axis`` (the axis
+name: X, Y, Z, ...), that axis's ``model_id`` tag and that axis's fields; ``speed_rpm``
+and ``link_errors`` (the cycle's) are on every axis's point, the temperature points
+come once per cycle as for one axis. A point without an ``axis`` tag is the single
+axis of a machine without ``compensation.axes``.
 
 A measured thermal error (a probe or dial-gauge reading) is a ``spindle_probe``
 point with field ``error_um`` (:func:`probe_point`).
@@ -39,7 +48,7 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
-from gateway.live.record import CycleRecord
+from gateway.live.record import AxisRecord, CycleRecord
 
 CYCLE_MEASUREMENT = "spindle_cycle"
 TEMPERATURE_MEASUREMENT = "spindle_temperature"
@@ -105,31 +114,45 @@ def _floats(**values: float | None) -> dict[str, FieldValue]:
     return {k: v for k, v in ((k, _float(v)) for k, v in values.items()) if v is not None}
 
 
-def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]:
-    """The points of one cycle: its ``spindle_cycle`` point, then one per sensor that has
-    a value or is not good."""
-    time_ns = to_time_ns(record.stamped_s, epoch_s)
+def _cycle_point(
+    record: CycleRecord, outcome: CycleRecord | AxisRecord, axis: str | None, time_ns: int
+) -> Point:
+    """A ``spindle_cycle`` point of the cycle with ``outcome``'s model and values (the
+    record's own, or one axis's, tagged ``axis``)."""
     tags = {"machine": record.machine}
     if record.regime:
         tags["regime"] = record.regime
-    if record.model_id:
-        tags["model_id"] = record.model_id
+    if axis is not None:
+        tags["axis"] = axis
+    if outcome.model_id:
+        tags["model_id"] = outcome.model_id
     fields = _floats(
         speed_rpm=record.speed_rpm,
-        predicted_um=record.predicted_um,
-        target_um=record.target_um,
-        applied_um=record.applied_um,
-        written_cnc=record.written_cnc,
-        correction_um=record.correction_um,
-        interval_um=record.interval_um,
+        predicted_um=outcome.predicted_um,
+        target_um=outcome.target_um,
+        applied_um=outcome.applied_um,
+        written_cnc=outcome.written_cnc,
+        correction_um=outcome.correction_um,
+        interval_um=outcome.interval_um,
     )
-    if record.training_span is not None:
-        fields["training_span"] = record.training_span
-    if record.outside_inputs:  # InfluxDB keeps no empty string field: none when inside
-        fields["outside_inputs"] = ",".join(record.outside_inputs)
-    fields["write_status"] = record.write_status
+    if outcome.training_span is not None:
+        fields["training_span"] = outcome.training_span
+    if outcome.outside_inputs:  # InfluxDB keeps no empty string field: none when inside
+        fields["outside_inputs"] = ",".join(outcome.outside_inputs)
+    fields["write_status"] = outcome.write_status
     fields["link_errors"] = len(record.link_errors)
-    points = [Point(CYCLE_MEASUREMENT, tags, fields, time_ns)]
+    return Point(CYCLE_MEASUREMENT, tags, fields, time_ns)
+
+
+def points_from_record(record: CycleRecord, epoch_s: float = 0.0) -> list[Point]:
+    """The points of one cycle: its ``spindle_cycle`` point (one per axis, tagged
+    ``axis``, for a multi-axis record), then one per sensor that has a value or is not
+    good."""
+    time_ns = to_time_ns(record.stamped_s, epoch_s)
+    if record.axes:
+        points = [_cycle_point(record, a, name, time_ns) for name, a in record.axes.items()]
+    else:
+        points = [_cycle_point(record, record, None, time_ns)]
     for sensor, value in record.temperatures_C.items():
         quality = record.quality.get(sensor, "unknown")
         value_C = _float(value)

@@ -74,7 +74,7 @@ from drivers.opcua_common import (
     status_code,
     ua_datetime,
 )
-from gateway.live.record import CycleRecord
+from gateway.live.record import AxisRecord, CycleRecord
 from gateway.scada.login_throttle import Key, LoginThrottle, ThrottlePolicy
 from gateway.scada.trust_store import TolerantTrustStore
 
@@ -448,12 +448,43 @@ def _temperature(value: float | None, quality: str | None, reason: str | None) -
     return _dv(ua.Variant(float(shown), ua.VariantType.Double), status)
 
 
+#: The nodes of one axis of a multi-axis machine, in ``Axes.<A>``: today's per-axis node
+#: names (name, kind, description, in µm), and the axis's macro number.
+AXIS_NODES = (
+    ("ModelId", "String", "Model in use on this axis (empty: none)", False),
+    ("PredictedUm", "Double", "Predicted thermal error rise of this axis", True),
+    ("IntervalUm", "Double", "Half-width of the 90 % interval (NaN: unknown)", True),
+    ("TrainingSpan", "String", "inside / outside the training span (empty: unknown)", False),
+    ("OutsideInputs", "String", "Inputs outside the training span", False),
+    ("CompensationUm", "Double", "Compensation of this axis applied by the CNC", True),
+    ("LastWriteStatus", "String", "Outcome of this axis's last CNC write", False),
+    ("Macro", "UInt32", "Macro variable this axis's compensation is written to", False),
+)
+
+
+def _axis_values(axis: AxisRecord) -> list[tuple[str, ua.DataValue]]:
+    """One axis's node values (names relative to ``Axes.<A>``), as :data:`AXIS_NODES`."""
+    return [
+        ("ModelId", _string(axis.model_id)),
+        ("PredictedUm", _double(axis.predicted_um)),
+        ("IntervalUm", _double(axis.interval_um)),
+        ("TrainingSpan", _string(axis.training_span)),
+        ("OutsideInputs", _string(",".join(axis.outside_inputs))),
+        ("CompensationUm", _double(axis.applied_um)),
+        ("LastWriteStatus", _string(axis.write_status)),
+        ("Macro", _uint32(axis.macro)),
+    ]
+
+
 class ScadaServer(ServerLifecycle):
     """The secured OPC UA server SCADA connects to (address space in ``docs/scada.md``).
 
     ``machines`` lists the machine ids, or maps each id to its sensor names so the
     temperature nodes exist from the start (a sensor first seen in a record gets
-    its node then). ``on_enable(machine, enabled)`` is called for every write to a
+    its node then). ``axes`` maps a multi-axis machine's id to its axes in configured
+    order, each with its macro number (:func:`gateway.outputs.axes.axis_macros`): their
+    ``Axes`` folders exist from the start (an axis first seen in a record gets its folder
+    then). ``on_enable(machine, enabled)`` is called for every write to a
     ``CompensationEnabled`` node that an operator makes; if it raises, the write
     fails (BadInternalError) and the node keeps its value.
     """
@@ -467,6 +498,7 @@ class ScadaServer(ServerLifecycle):
         *,
         on_promote: Callable[[str, str], str] | None = None,
         on_rollback: Callable[[str], str] | None = None,
+        axes: Mapping[str, Mapping[str, int | None]] | None = None,
     ) -> None:
         """``clock`` (seconds) times login lockouts; tests pass a manual one.
 
@@ -489,6 +521,10 @@ class ScadaServer(ServerLifecycle):
             raise ValueError(f"invalid machine id in {list(sensors)}")
         self._settings = settings
         self._sensors = sensors
+        self._axes = {str(m): dict(a) for m, a in (axes or {}).items() if a}
+        if unknown := set(self._axes) - set(sensors):
+            raise ValueError(f"axes given for machines not served: {sorted(unknown)}")
+        self._axes_parent: dict[str, Node] = {}
         self._on_enable = on_enable
         self._on_promote = on_promote
         self._on_rollback = on_rollback
@@ -605,6 +641,10 @@ class ScadaServer(ServerLifecycle):
                 for key, (node, _) in HEALTH_COUNTERS.items()
                 if key in health
             ]
+            for name, axis in record.axes.items():
+                if self.node_id(machine, f"Axes.{name}.Macro") not in self._nodeids:
+                    await self._add_axis(machine, name)
+                values += [(f"Axes.{name}.{node}", dv) for node, dv in _axis_values(axis)]
             measured = _source_time(record)
             for name, datavalue in values:
                 if measured is not None:
@@ -741,6 +781,8 @@ class ScadaServer(ServerLifecycle):
             # in place of storing the value, synchronously within the Write service.
             server.set_attribute_value_setter(switch.nodeid, self._set_enabled)
             await self._build_proposals(obj, machine)
+            for axis in self._axes.get(machine, {}):
+                await self._add_axis(machine, axis)
 
     async def _build_proposals(self, obj: Node, machine: str) -> None:
         """The machine's proposal nodes and the operators' two methods."""
@@ -881,6 +923,33 @@ class ScadaServer(ServerLifecycle):
             f"Temperature {sensor}; StatusCode: Good, Uncertain (recovering) or Bad",
             CELSIUS,
         )
+
+    async def _add_axis(self, machine: str, axis: str) -> None:
+        """The folder ``Axes.<axis>`` of a multi-axis machine and its variables (and the
+        ``Axes`` folder with the first axis)."""
+        if machine not in self._axes_parent:
+            machine_node = self._require_started().get_node(node_id(machine, self.namespace_index))
+            self._axes_parent[machine] = await self._object(
+                machine_node, f"{machine}.Axes", "Axes", "Each compensated axis"
+            )
+        folder = await self._object(
+            self._axes_parent[machine], f"{machine}.Axes.{axis}", axis, f"Axis {axis}"
+        )
+        initial = {
+            "String": ua.Variant("", ua.VariantType.String),
+            "UInt32": ua.Variant(0, ua.VariantType.UInt32),
+            "Double": ua.Variant(math.nan, ua.VariantType.Double),
+        }
+        for name, kind, description, in_um in AXIS_NODES:
+            unit = MICROMETRE if in_um else None
+            await self._variable(
+                folder, machine, f"Axes.{axis}.{name}", initial[kind], description, unit
+            )
+        macro = self._axes.get(machine, {}).get(axis)
+        if macro is not None:  # known from the configuration before any cycle
+            await self._require_started().write_attribute_value(
+                self._nodeids[self.node_id(machine, f"Axes.{axis}.Macro")], _uint32(macro)
+            )
 
     async def _show_enabled(self, machine: str, enabled: bool) -> None:
         server = self._require_started()

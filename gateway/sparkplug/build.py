@@ -7,6 +7,7 @@ from collections.abc import Callable, Mapping
 from typing import Any
 
 from gateway.config import GatewayConfig
+from gateway.outputs.axes import axis_names
 from gateway.outputs.disk_buffer import PointBuffer
 from gateway.sparkplug.commands import Actions, Allowed, CommandHandler
 from gateway.sparkplug.metrics import health_counters
@@ -35,6 +36,7 @@ def build_node(
         state_dir=config.state_dir,
         startup_delay_max_s=section.startup_delay_max_s,
         reconnect_max_s=section.reconnect_max_s,
+        axes={m.id: tuple(axis_names(m)) for m in config.machines if axis_names(m)},
     )
     mqtt = MqttSettings(
         brokers=tuple(section.brokers),

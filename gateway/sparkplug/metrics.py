@@ -1,8 +1,13 @@
 """What each machine (a Sparkplug device) publishes: its metrics and one cycle's values.
 
-The metric set of a machine is fixed by its sensors and the health counters, so the
-births (NBIRTH/DBIRTH) declare every metric once with an alias that stays the same
-for the life of the process.
+The metric set of a machine is fixed by its sensors, the health counters and, for a
+machine configured with several axes, its axes, so the births (NBIRTH/DBIRTH) declare
+every metric once with an alias that stays the same for the life of the process.
+
+A multi-axis machine keeps every metric of one axis (holding its first axis's values)
+and adds, per axis ``<A>``, ``Axes/<A>/<leaf>`` with the same leaves as the machine's
+per-axis metrics (:data:`AXIS_LEAVES`), after the health counters so that the aliases of
+the other metrics are those of a single-axis machine.
 """
 
 from __future__ import annotations
@@ -50,16 +55,36 @@ _RECORD_METRICS = (
 )
 
 
+#: The per-axis metrics' leaves: each axis ``<A>`` of a multi-axis machine has
+#: ``Axes/<A>/<leaf>``, with the value of its :class:`~gateway.live.record.AxisRecord`.
+AXIS_LEAVES = (
+    ("Model", STRING, "", "model_id"),
+    ("Prediction", DOUBLE, "µm", "predicted_um"),
+    ("Online Correction", DOUBLE, "µm", "correction_um"),
+    ("Compensation/Target", DOUBLE, "µm", "target_um"),
+    ("Compensation/Applied", DOUBLE, "µm", "applied_um"),
+    ("Compensation/Write Status", STRING, "", "write_status"),
+    ("Prediction/Interval", DOUBLE, "µm", "interval_um"),
+    ("Prediction/Training Span", STRING, "", "training_span"),
+    ("Prediction/Outside Inputs", STRING, "", "outside_inputs"),
+)
+
+
 def device_specs(
-    index: int, sensors: Sequence[str], health_keys: Sequence[str]
+    index: int, sensors: Sequence[str], health_keys: Sequence[str], axes: Sequence[str] = ()
 ) -> list[MetricSpec]:
-    """The metrics of the ``index``-th machine, with aliases unique across the node."""
+    """The metrics of the ``index``-th machine (with ``Axes/<A>/…`` for each of its
+    ``axes`` when it has several), with aliases unique across the node."""
     named: list[tuple[str, int, str]] = []
     for sensor in sensors:
         named.append((f"Temperature/{sensor}", DOUBLE, "°C"))
         named.append((f"Temperature/{sensor}/Quality", STRING, ""))
     named.extend(_RECORD_METRICS)
     named.extend((f"Health/{key}", UINT64, "") for key in health_keys)
+    for axis in axes:
+        named.extend((f"Axes/{axis}/{leaf}", kind, unit) for leaf, kind, unit, _ in AXIS_LEAVES)
+    if len(named) > ALIAS_BLOCK:
+        raise ValueError(f"{len(named)} metrics of one machine: more than {ALIAS_BLOCK} aliases")
     base = (index + 1) * ALIAS_BLOCK
     return [MetricSpec(name, kind, base + i, unit) for i, (name, kind, unit) in enumerate(named)]
 
@@ -114,6 +139,10 @@ def snapshot(record: CycleRecord, health: Mapping[str, Any]) -> dict[str, Value]
         }
     )
     values.update({f"Health/{k}": v for k, v in health_counters(health).items()})
+    for name, axis in record.axes.items():
+        for leaf, _, _, attribute in AXIS_LEAVES:
+            value = getattr(axis, attribute)
+            values[f"Axes/{name}/{leaf}"] = ",".join(value) if isinstance(value, list) else value
     return values
 
 

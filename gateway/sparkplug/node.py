@@ -31,7 +31,7 @@ import logging
 import random
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -80,6 +80,8 @@ class NodeSettings:
     startup_delay_max_s: float = 5.0
     reconnect_min_s: float = 0.5
     reconnect_max_s: float = 30.0
+    #: machine id → its axes in configured order (a multi-axis machine only)
+    axes: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 class EdgeNode:
@@ -99,7 +101,7 @@ class EdgeNode:
         self.health = health
         self.gateway_health = gateway_health
         self.specs = {
-            machine: device_specs(i, sensors, settings.health_keys)
+            machine: device_specs(i, sensors, settings.health_keys, settings.axes.get(machine, ()))
             for i, (machine, sensors) in enumerate(settings.machines.items())
         }
         self.published = 0

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
+from gateway.outputs.axes import axis_cnc_um_per_unit
 from gateway.outputs.health import integer_counters
 from gateway.web.series import SourceSpec
 
@@ -61,6 +62,11 @@ class Backend:
     def cnc_um_per_unit(self, machine: str) -> float:
         comp = self.loop(machine).config.compensation
         return (1000.0 if comp.unit == "mm" else 1.0) * comp.sign
+
+    def axes(self, machine: str) -> dict[str, float]:
+        """A multi-axis machine's axes in configured order, each with its CNC value's µm
+        per unit (empty for a single-axis machine)."""
+        return axis_cnc_um_per_unit(self.loop(machine).config)
 
     def proposals(self, machine: str) -> list[Any]:
         return list(self.loop(machine).promotions.store.list(machine_id=machine))

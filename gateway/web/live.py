@@ -42,6 +42,30 @@ class _Machine:
     probe_residual_um: float | None = None
     probe_time_s: float | None = None
     cnc_value: float | None = None  # the last value written and read back: what the CNC holds
+    #: the same per axis of a multi-axis machine
+    axis_cnc_values: dict[str, float] = field(default_factory=dict)
+
+
+def _axis_rows(record: CycleRecord, state: _Machine) -> list[dict[str, Any]]:
+    """Each axis of a multi-axis machine's cycle, in configured order ([] for one axis):
+    what it predicted and applied, what its macro holds, and its write's outcome (a hold
+    says why)."""
+    return [
+        {
+            "axis": name,
+            "macro": axis.macro,
+            "model_id": axis.model_id,
+            "predicted_um": _num(axis.predicted_um),
+            "interval_um": _num(axis.interval_um),
+            "applied_um": _num(axis.applied_um),
+            "written_cnc": _num(state.axis_cnc_values.get(name)),
+            "write_status": axis.write_status,
+            "held": not axis.write_status.startswith("ok"),
+            "uncertain": axis.uncertain,
+            "training_span": axis.training_span,
+        }
+        for name, axis in record.axes.items()
+    ]
 
 
 @dataclass
@@ -67,6 +91,9 @@ class LiveBoard:
         state.record = record
         if record.written_cnc is not None:
             state.cnc_value = record.written_cnc
+        for name, axis in record.axes.items():
+            if axis.written_cnc is not None:
+                state.axis_cnc_values[name] = axis.written_cnc
         if record.probe_error_um is not None and record.predicted_um is not None:
             state.probe_error_um = record.probe_error_um
             state.probe_residual_um = record.probe_error_um - record.predicted_um
@@ -108,6 +135,7 @@ class LiveBoard:
             "sensors": sensors,
             "probe_error_um": _num(state.probe_error_um),
             "probe_residual_um": _num(state.probe_residual_um),
+            "axes": _axis_rows(rec, state),
         }
 
     def rows(self) -> list[dict[str, Any]]:

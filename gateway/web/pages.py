@@ -133,6 +133,7 @@ class Pages:
             machine,
             hours * 3600.0,
             self.backend.cnc_um_per_unit(machine),
+            self.backend.axes(machine),
             max_age_s=self._max_age_s(hours),
         )
 
@@ -186,6 +187,7 @@ class Pages:
             24 * 3600.0,
             proposal.before_rmse_um,
             proposal.after_rmse_um,
+            list(self.backend.axes(machine)),
         )
         return web.Response(text=svg, content_type="image/svg+xml")
 

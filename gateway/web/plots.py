@@ -15,7 +15,7 @@ import concurrent.futures
 import io
 import multiprocessing
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
@@ -55,9 +55,20 @@ def _svg(fig: Any) -> str:
     return out.getvalue()
 
 
+def _axis_panel(ax: Any, axis: str, lines: Mapping[str, tuple[np.ndarray, np.ndarray]]) -> None:
+    """One further axis's compensation: predicted, applied, and what its CNC macro holds."""
+    _line(ax, lines["predicted_um"], "predicted")
+    _line(ax, lines["applied_um"], "applied")
+    _line(ax, lines["cnc_um"], "CNC holds", linestyle="--")
+    ax.set_ylabel(f"{axis} compensation (µm)")
+
+
 def machine_svg(data: MachineView, title: str) -> str:
-    """The machine page's four panels: temperatures, speed, compensation, probes."""
-    fig, (temps, speed, comp, probe) = _figure(4)
+    """The machine page's panels: temperatures, speed, compensation (a multi-axis
+    machine's first axis), one per further axis, probes."""
+    further = list(data.axis_lines)[1:]
+    fig, panels = _figure(4 + len(further))
+    temps, speed, comp, *axis_panels, probe = panels
     for sensor, series in sorted(data.temperatures_C.items()):
         _line(temps, series, sensor)
     temps.set_ylabel("temperature (°C)")
@@ -71,7 +82,9 @@ def machine_svg(data: MachineView, title: str) -> str:
     _line(comp, lines["applied_um"], "applied")
     _line(comp, lines["cnc_um"], "CNC holds", linestyle="--")
     _line(comp, lines["correction_um"], "online correction", linestyle=":")
-    comp.set_ylabel("Z compensation (µm)")
+    comp.set_ylabel(f"{next(iter(data.axis_lines), 'Z')} compensation (µm)")
+    for ax, axis in zip(axis_panels, further, strict=True):
+        _axis_panel(ax, axis, data.axis_lines[axis])
     if len(data.probe_t_s):
         dates = _dates(data.probe_t_s)
         probe.plot(dates, data.probe_error_um, "o", markersize=4, label="probe measured")
@@ -79,7 +92,7 @@ def machine_svg(data: MachineView, title: str) -> str:
     probe.axhline(0.0, color="grey", linewidth=0.5)
     probe.set_ylabel("probe error (µm)")
     probe.set_xlabel("local time")
-    for ax in (temps, speed, comp, probe):
+    for ax in panels:
         ax.grid(True, linewidth=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(loc="upper left", fontsize=7, ncols=6)
@@ -107,21 +120,33 @@ def proposal_svg(
 
 
 def render_machine(
-    spec: SourceSpec, machine: str, window_s: float, cnc_um_per_unit: float
+    spec: SourceSpec,
+    machine: str,
+    window_s: float,
+    cnc_um_per_unit: float,
+    axes: Mapping[str, float] | None = None,
 ) -> tuple[str, list[tuple[float, str, str]]]:
     """Worker entry: read the window once, draw it and list its events (in the plot
-    process); the page and its plot share the result through the cache."""
+    process); the page and its plot share the result through the cache. ``axes``: a
+    multi-axis machine's, each with its CNC value's µm per unit."""
     now = time.time()
-    data = machine_view(spec, machine, now - window_s, now, cnc_um_per_unit, COLUMNS)
+    data = machine_view(spec, machine, now - window_s, now, cnc_um_per_unit, COLUMNS, axes=axes)
     hours = window_s / 3600
     return machine_svg(data, f"{machine}: last {hours:g} h ({data.cycles} cycles)"), data.events
 
 
 def render_proposal(
-    spec: SourceSpec, machine: str, window_s: float, before_um: float, after_um: float
+    spec: SourceSpec,
+    machine: str,
+    window_s: float,
+    before_um: float,
+    after_um: float,
+    axes: Sequence[str] = (),
 ) -> str:
+    """Worker entry: a proposal's plot (residuals against the first of ``axes``, which
+    the probe measures, or the single axis)."""
     now = time.time()
-    probe_t_s, _, residual_um = read_probes(spec, machine, now - window_s, now)
+    probe_t_s, _, residual_um = read_probes(spec, machine, now - window_s, now, axes)
     return proposal_svg(probe_t_s, residual_um, before_um, after_um)
 
 

@@ -9,11 +9,20 @@ The machine page draws :func:`machine_view`: every line cut to a min/max envelop
 per pixel column of the window (:func:`window_envelope`), the temperatures of the
 local store grouped per column in DuckDB (:mod:`gateway.web.store_window`), the events
 from the full rows. :func:`read_machine` gives the whole window, row by row.
+
+A machine with several axes logs one ``spindle_cycle`` point per axis and cycle, tagged
+``axis`` (:mod:`gateway.outputs.points`). The readers here never mix them: "the" cycle
+series of a machine (its speed, predicted, applied, events, the probes' residuals) is
+the rows of its first configured axis together with any rows without an ``axis`` tag
+(a single-axis machine's, or the same machine's before it had several axes), and each
+axis's own lines are read apart (:attr:`MachineView.axis_lines`). Without configured
+axes the untagged rows alone are the series.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import json
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -85,6 +94,9 @@ class MachineView:
     probe_residual_um: np.ndarray
     events: list[Event]
     quality_changes: list[tuple[float, str, str]]  # (Unix s, sensor, "before → after"), all
+    #: a multi-axis machine's axes in configured order → that axis's predicted_um,
+    #: applied_um and cnc_um lines (empty for a single-axis machine)
+    axis_lines: dict[str, dict[str, Series]] = field(default_factory=dict)
 
 
 @dataclass
@@ -104,7 +116,7 @@ def _array(values: Iterable[object]) -> np.ndarray:
 _LOCAL_SQL = {
     "cycles": (
         CYCLE_MEASUREMENT,
-        f"time_ns, {', '.join((*CYCLE_FIELDS, 'write_status', 'link_errors'))}",
+        f"time_ns, {', '.join((*CYCLE_FIELDS, 'write_status', 'link_errors', 'tags_extra'))}",
     ),
     "temps": (TEMPERATURE_MEASUREMENT, "time_ns, sensor, quality, value_C"),
     "probes": (PROBE_MEASUREMENT, "time_ns, error_um"),
@@ -129,6 +141,7 @@ _INFLUX_ROW = {
         *(p.fields.get(f) for f in CYCLE_FIELDS),
         p.fields.get("write_status"),
         p.fields.get("link_errors"),
+        p.tags.get("axis"),
     ),
     "temps": lambda p: (
         p.time_ns,
@@ -189,8 +202,50 @@ def _split_temperatures(rows: list) -> tuple[dict[str, tuple[list, list]], list]
     return by_sensor, changes
 
 
-def _cycles(rows: list) -> _Cycles:
-    return _cycles_of(list(zip(*rows, strict=True)) if rows else [()] * (len(CYCLE_FIELDS) + 3))
+#: The cycle columns: the time, the fields, write status, link errors, then the axis
+#: (the local store's ``tags_extra`` JSON or InfluxDB's ``axis`` tag).
+_CYCLE_COLUMNS = len(CYCLE_FIELDS) + 4
+
+
+def _axis_of(tag: object, known: dict[object, str | None]) -> str | None:
+    """The axis a cycle row's tag column names (None: untagged), parsed once per text."""
+    if tag not in known:
+        axis = json.loads(str(tag)).get("axis") if isinstance(tag, str) and tag[:1] == "{" else tag
+        known[tag] = None if axis in (None, "") else str(axis)
+    return known[tag]
+
+
+def _split_axes(columns: list, axes: Sequence[str]) -> dict[str | None, _Cycles]:
+    """The cycles of "the" series (key None: the first of ``axes`` and every untagged
+    row; without ``axes`` the untagged rows) and of each of ``axes``, from the cycle
+    columns (the axis tag last): made into arrays once, then cut by axis."""
+    every = _cycles_of(columns if columns else [[]] * _CYCLE_COLUMNS)
+    known: dict[object, str | None] = {}
+    tags = [_axis_of(tag, known) for tag in (columns[-1] if columns else [])]
+    if not axes and all(t is None for t in tags):
+        return {None: every}
+    codes = {key: i for i, key in enumerate(dict.fromkeys([None, *axes, *known.values()]))}
+    code = np.array([codes[t] for t in tags], dtype=np.int64)
+    split = {}
+    for key in (None, *axes):
+        wanted = [codes[None], codes[axes[0]]] if key is None and axes else [codes[key]]
+        split[key] = _cycles_where(every, np.isin(code, wanted))
+    return split
+
+
+def _cycles_where(cycles: _Cycles, keep: np.ndarray) -> _Cycles:
+    return _Cycles(
+        t_ns=cycles.t_ns[keep],
+        t_s=cycles.t_s[keep],
+        values={f: v[keep] for f, v in cycles.values.items()},
+        write_status=[cycles.write_status[i] for i in np.flatnonzero(keep)],
+        link_errors=cycles.link_errors[keep],
+    )
+
+
+def _cycles(rows: list, axes: Sequence[str] = ()) -> _Cycles:
+    columns = [list(c) for c in zip(*rows, strict=True)] if rows else []
+    return _split_axes(columns, axes)[None]
 
 
 def _cycles_of(columns: list) -> _Cycles:
@@ -218,11 +273,17 @@ def _probes(rows: list, cycles: _Cycles) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def read_machine(
-    spec: SourceSpec, machine: str, start_s: float, stop_s: float, cnc_um_per_unit: float
+    spec: SourceSpec,
+    machine: str,
+    start_s: float,
+    stop_s: float,
+    cnc_um_per_unit: float,
+    axes: Sequence[str] = (),
 ) -> MachineSeries:
-    """The logged window ``start_s ≤ t < stop_s`` (Unix seconds) of ``machine``, every row."""
+    """The logged window ``start_s ≤ t < stop_s`` (Unix seconds) of ``machine``, every row
+    (its cycles: "the" series of the module docstring, ``axes`` its configured axes)."""
     rows = _rows(spec, machine, int(start_s * NS_PER_S), int(stop_s * NS_PER_S))
-    cycles = _cycles(rows["cycles"])
+    cycles = _cycles(rows["cycles"], axes)
     by_sensor, changes = _split_temperatures(rows["temps"])
     temperatures = {
         s: (np.array([t / NS_PER_S for t in times]), _array(values))
@@ -248,13 +309,13 @@ def read_machine(
 
 
 def read_probes(
-    spec: SourceSpec, machine: str, start_s: float, stop_s: float
+    spec: SourceSpec, machine: str, start_s: float, stop_s: float, axes: Sequence[str] = ()
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Probe times (Unix s), measured errors and residuals (µm) of the window: its cycles
-    and probes only."""
+    and probes only (the residuals against "the" series: the first of ``axes``)."""
     window = (int(start_s * NS_PER_S), int(stop_s * NS_PER_S))
     rows = _rows(spec, machine, *window, parts=("cycles", "probes"))
-    return _probes(rows["probes"], _cycles(rows["cycles"]))
+    return _probes(rows["probes"], _cycles(rows["cycles"], axes))
 
 
 def window_envelope(
@@ -295,10 +356,14 @@ def machine_view(
     cnc_um_per_unit: float,
     columns: int = COLUMNS,
     aggregate: bool = True,
+    axes: Mapping[str, float] | None = None,
 ) -> MachineView:
     """The window ``start_s ≤ t < stop_s`` as the machine page draws it. ``aggregate``:
     the local store's temperatures are cut per column in DuckDB (the same result as
-    reading every row, which ``aggregate=False`` does)."""
+    reading every row, which ``aggregate=False`` does). ``axes``: a multi-axis machine's
+    axes in configured order, each with its CNC value's µm per unit; its main lines are
+    "the" series (the first axis, see the module docstring), each axis's are apart."""
+    axes = dict(axes or {})
     start_ns, stop_ns = int(start_s * NS_PER_S), int(stop_s * NS_PER_S)
     if spec[0] == "local" and aggregate:
         path = Path(spec[1])
@@ -307,11 +372,17 @@ def machine_view(
             path, CYCLE_MEASUREMENT, machine, (start_ns, stop_ns), _LOCAL_SQL["cycles"][1]
         )
         temps, changes = temperature_envelopes(path, machine, start_ns, stop_ns, columns)
-        cycles = _cycles_of(cycle_columns)
     else:
         rows = _rows(spec, machine, start_ns, stop_ns)
         temps, changes = _full_temperatures(rows["temps"], start_ns, stop_ns, columns)
-        cycles = _cycles(rows["cycles"])
+        logged = rows["cycles"]
+        cycle_columns = [list(c) for c in zip(*logged, strict=True)] if logged else []
+    by_axis = _split_axes(cycle_columns, list(axes))
+    cycles = by_axis[None]
+    axis_lines = {
+        axis: _axis_lines(by_axis[axis], factor, (start_ns, stop_ns), columns)
+        for axis, factor in axes.items()
+    }
     probe_t, probe_err, residual = _probes(rows["probes"], cycles)
     values = dict(cycles.values, cnc_um=cycles.values["written_cnc"] * cnc_um_per_unit)
     values["interval_low_um"] = values["predicted_um"] - values["interval_um"]
@@ -321,6 +392,8 @@ def machine_view(
     lines = {n: window_envelope(cycles.t_ns, values[n], start_ns, stop_ns, columns) for n in names}
     found = _cycle_events(cycles.t_s, cycles.write_status, cycles.link_errors)
     found += [(t, "sensor flag", f"{sensor}: {change}") for t, sensor, change in changes]
+    for axis in list(axes)[1:]:  # the first axis's writes are the machine's, above
+        found += _axis_write_events(axis, by_axis[axis])
     return MachineView(
         cycles=len(cycles.t_ns),
         lines={n: _seconds(s) for n, s in lines.items()},
@@ -330,7 +403,19 @@ def machine_view(
         probe_residual_um=residual,
         events=_newest_first(found),
         quality_changes=changes,
+        axis_lines=axis_lines,
     )
+
+
+def _axis_lines(
+    cycles: _Cycles, cnc_um_per_unit: float, window: tuple[int, int], columns: int
+) -> dict[str, Series]:
+    """One axis's predicted, applied and CNC-held lines (µm), cut to the window's columns."""
+    values = dict(cycles.values, cnc_um=cycles.values["written_cnc"] * cnc_um_per_unit)
+    return {
+        name: _seconds(window_envelope(cycles.t_ns, values[name], *window, columns))
+        for name in ("predicted_um", "applied_um", "cnc_um")
+    }
 
 
 def _seconds(series: Series) -> Series:
@@ -369,6 +454,16 @@ def _cycle_events(t_s: np.ndarray, statuses: list[str], link_errors: np.ndarray)
         elif count == 0 and previous_links > 0:
             found.append((t, "reconnected", "every source answering again"))
     return found
+
+
+def _axis_write_events(axis: str, cycles: _Cycles) -> list[Event]:
+    """One further axis's macro changes and write refusals, its name in their kind (its
+    link faults are the machine's, listed once)."""
+    quiet = np.zeros(len(cycles.write_status))
+    return [
+        (t, f"{kind} ({axis})", text)
+        for t, kind, text in _cycle_events(cycles.t_s, cycles.write_status, quiet)
+    ]
 
 
 def _newest_first(found: list[Event]) -> list[Event]:

@@ -30,6 +30,20 @@
       cell.appendChild(document.createElement("br"));
     });
   }
+  function axes(cell, list) {
+    // a multi-axis machine's axes: "Z predicted / applied", held ones marked
+    if (!cell) return;
+    cell.textContent = "";
+    list.forEach(function (a) {
+      var span = document.createElement("span");
+      span.className = "axis" + (a.held ? " held" : "");
+      span.dataset.axis = a.axis;
+      span.title = a.axis + ": predicted / applied µm; write: " + a.write_status;
+      span.textContent = a.axis + " " + text(a.predicted_um, 1) + " / " + text(a.applied_um, 1);
+      cell.appendChild(span);
+      cell.appendChild(document.createTextNode(" "));
+    });
+  }
   function update(row) {
     var tr = document.getElementById("row-" + row.machine);
     if (!tr) return;
@@ -49,6 +63,7 @@
     set("probe_residual_um", text(row.probe_residual_um, 1));
     sensors(tr.querySelector('[data-f="sensors"]'), row.sensors || []);
     health(tr.querySelector('[data-f="health"]'), row.health);
+    axes(tr.querySelector('[data-f="axes"]'), row.axes || []);
     tr.dataset.updates = String(Number(tr.dataset.updates || 0) + 1);
   }
   var live = document.getElementById("live");

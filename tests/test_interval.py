@@ -27,6 +27,7 @@ from models.fit.interval import (
     rule_check,
     span_excess,
     widened_um,
+    with_probe_age,
 )
 from models.store import load_file
 from simulator.params import load_params
@@ -63,6 +64,21 @@ def test_widening_beyond_the_span_and_per_bad_sensor() -> None:
     cal = {"half_width_um": 2.0, "outside_gain": 2.0, "bad_sensor_factor": 1.5}
     assert widened_um(cal, 0.0, 0) == 2.0
     assert math.isclose(widened_um(cal, 0.5, 1), 2.0 * 2.0 * 1.5)
+
+
+def test_probe_age_widens_in_quadrature_by_the_filters_grown_variance() -> None:
+    from models.online.correction import CorrectionParams, OnlineCorrection
+
+    filter_ = OnlineCorrection(CorrectionParams(process_um2_per_h=2.0, decay_after_s=7200.0))
+    assert filter_.added_variance_um2(100.0) == 0.0  # no probe yet: no correction applied
+    assert filter_.update(0.0, 3.0).accepted
+    assert filter_.added_variance_um2(0.0) == 0.0
+    assert math.isclose(filter_.added_variance_um2(1800.0), 2.0 * 0.5)  # random walk: q·Δt
+    # in silence the correction decays, and the variance it carries with it
+    decayed = filter_.added_variance_um2(7200.0 + 3600.0)
+    assert math.isclose(decayed, 2.0 * 3.0 * math.exp(-2.0))
+    assert with_probe_age(1.0, 0.0, 0.9) == 1.0
+    assert math.isclose(with_probe_age(1.0, 1.0, 0.9), math.sqrt(1 + 1.6448536269514722**2))
 
 
 def test_live_span_check_gives_the_offline_figures() -> None:

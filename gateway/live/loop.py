@@ -46,7 +46,7 @@ from gateway.config import MachineSection
 from gateway.live.bank.lag_state import EffectStates, WarmLags
 from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.live.bank.promotion import Promotions
-from gateway.live.interval import assess
+from gateway.live.interval import assess, interval_nominal
 from gateway.live.plausibility import Plausibility
 from gateway.live.quality import Quality, QualityMonitor
 from gateway.live.record import CycleRecord, Sink, sink_name
@@ -57,6 +57,7 @@ from gateway.live.writeback import CompensationPolicy, Decision
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
 from models.data.dataset import ambient_sensor_of
+from models.fit.interval import with_probe_age
 from models.online.correction import CorrectionParams, OnlineCorrection
 from models.online.regime_rules import RegimeSelector
 
@@ -577,7 +578,8 @@ class MachineLoop:
     def _corrected(
         self, now: float, banked: Banked | None, predicted: float | None, record: CycleRecord
     ) -> float | None:
-        """The prediction plus the online correction (bounded, decayed in silence).
+        """The prediction plus the online correction (bounded, decayed in silence); the
+        interval widened by the variance the correction gained since the last probe.
 
         No prediction stays no prediction: the policy's hold-and-ramp path takes over.
         A model that stores its own online-correction noise model (``replay --store``)
@@ -591,6 +593,12 @@ class MachineLoop:
             self.online = OnlineCorrection(params)
         self.online.params = params
         record.correction_um = float(self.online.correction_at(now, predicted_um=predicted)[0])
+        if record.interval_um is not None:
+            record.interval_um = with_probe_age(
+                record.interval_um,
+                self.online.added_variance_um2(now, predicted_um=predicted),
+                interval_nominal(banked),
+            )
         return predicted + record.correction_um
 
     def _online_params(self, banked: Banked | None) -> CorrectionParams:

@@ -24,7 +24,9 @@ is reproduced offline:
   being how far beyond the span the input is, as a fraction of the span's width (the
   methods extrapolate linearly or worse, so the error grows at least in proportion);
 - each machine sensor flagged bad (held, substituted by a fallback model, or lost):
-  × ``bad_sensor_factor``.
+  × ``bad_sensor_factor``;
+- with the online correction running, the variance its estimate gained since the last
+  probe, in quadrature (:func:`with_probe_age`; live only: ``score`` has no probes).
 
 The calibration divides each held-out residual by the widening its row had against
 the span of the runs its model was fitted on, so the extrapolating folds (the fastest
@@ -36,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from statistics import NormalDist
 from typing import Any
 
 import numpy as np
@@ -288,6 +291,21 @@ def widened_um(calibration: dict[str, Any], excess: float, bad_sensors: int) -> 
     gain = float(calibration.get("outside_gain", OUTSIDE_GAIN))
     factor = float(calibration.get("bad_sensor_factor", BAD_SENSOR_FACTOR))
     return q * (1.0 + gain * max(excess, 0.0)) * factor ** max(bad_sensors, 0)
+
+
+def with_probe_age(half_width_um: float, added_variance_um2: float, nominal: float) -> float:
+    """The half-width widened by the online correction's variance grown since the last probe
+    (µm): √(w² + z² · Δvar), z the two-sided normal quantile of ``nominal`` (1.645 at 90 %).
+
+    The calibrated width holds the model's own residuals; the correction removes part of
+    them at a probe (not counted: the width is never narrowed for it) and is then carried
+    on an estimate whose variance grows as the filter's process noise says; that growth,
+    independent of the model's residual, adds in quadrature.
+    """
+    if not added_variance_um2 > 0.0:
+        return half_width_um
+    z = float(NormalDist().inv_cdf(0.5 + nominal / 2.0))
+    return math.sqrt(half_width_um**2 + z * z * added_variance_um2)
 
 
 def span_excess(

@@ -294,6 +294,27 @@ class OnlineCorrection:
         value = value * np.exp(-np.maximum(silent_s, 0.0) / p.decay_tau_s)
         return np.clip(value, -p.bound_um, p.bound_um)
 
+    def added_variance_um2(self, time_s: float, predicted_um: float | None = None) -> float:
+        """How much the variance of the applied correction has grown since the last probe
+        (µm²): H P(t) Hᵀ − H P Hᵀ, P(t) the filter's predicted covariance at ``time_s``,
+        times the square of the silence decay (a decayed correction carries less of it).
+
+        0 before any accepted probe (no correction applied) and right at a probe; it grows
+        with the time since the last probe as the process noise says the residual moves.
+        ``predicted_um`` as for :meth:`predicted_residual_um` (``bias-gain``).
+        """
+        if self.last_accepted_s is None or self.time_s is None:
+            return 0.0
+        if self.needs_prediction and (predicted_um is None or not math.isfinite(predicted_um)):
+            return 0.0
+        F, Q = self._transition(time_s - self.time_s)
+        H = self._h(predicted_um)
+        grown = float(H @ (F @ self.P @ F.T + Q) @ H) - float(H @ self.P @ H)
+        p = self.params
+        silent_s = time_s - self.last_accepted_s - p.decay_after_s
+        decay = math.exp(-max(silent_s, 0.0) / p.decay_tau_s)
+        return max(grown, 0.0) * decay * decay
+
     # --- a probe -------------------------------------------------------------------------
     def update(
         self, time_s: float, residual_um: float, predicted_um: float | None = None

@@ -78,6 +78,19 @@ def test_probe_age_widens_in_quadrature_by_the_filters_grown_variance() -> None:
     decayed = filter_.added_variance_um2(7200.0 + 3600.0)
     assert math.isclose(decayed, 2.0 * 3.0 * math.exp(-2.0))
     assert with_probe_age(1.0, 0.0, 0.9) == 1.0
+    # every kind: the filter's own predicted covariance, H (F P Fᵀ + Q) Hᵀ − H P Hᵀ
+    for params in (
+        CorrectionParams(process_um2_per_h=0.5, reversion_tau_s=5400.0),
+        CorrectionParams(kind="bias-rate", process_um2_per_h=0.3, rate_process_um2_per_h3=0.2),
+        CorrectionParams(kind="bias-gain", process_um2_per_h=0.3, gain_process_per_h=0.01),
+    ):
+        one = OnlineCorrection(params)
+        assert one.update(0.0, 2.0, predicted_um=8.0).accepted
+        assert one.update(900.0, 2.5, predicted_um=9.0).accepted
+        F, Q = one._transition(2000.0)
+        H = one._h(7.0)
+        grown = float(H @ (F @ one.P @ F.T + Q) @ H - H @ one.P @ H)
+        assert math.isclose(one.added_variance_um2(2900.0, 7.0), grown, rel_tol=1e-9)
     assert math.isclose(with_probe_age(1.0, 1.0, 0.9), math.sqrt(1 + 1.6448536269514722**2))
 
 

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
+from functools import cache
 from statistics import NormalDist
 from typing import Any
 
@@ -304,8 +305,14 @@ def with_probe_age(half_width_um: float, added_variance_um2: float, nominal: flo
     """
     if not added_variance_um2 > 0.0:
         return half_width_um
-    z = float(NormalDist().inv_cdf(0.5 + nominal / 2.0))
+    z = _normal_quantile(nominal)
     return math.sqrt(half_width_um**2 + z * z * added_variance_um2)
+
+
+@cache
+def _normal_quantile(nominal: float) -> float:
+    """z of a two-sided ``nominal`` normal interval (computed once per nominal)."""
+    return float(NormalDist().inv_cdf(0.5 + nominal / 2.0))
 
 
 def span_excess(

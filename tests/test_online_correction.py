@@ -323,7 +323,7 @@ def test_the_runtime_gives_a_bias_gain_filter_the_prediction():
     MachineLoop._online_update(loop, 60.0, 20.0, probe)
     assert probe.probe_refused is False
     assert loop.online.x[1] == pytest.approx(0.2, abs=1e-3)  # the gain, not a 2 µm bias
-    record = SimpleNamespace(correction_um=None)
+    record = SimpleNamespace(correction_um=None, interval_um=None)
     corrected = MachineLoop._corrected(loop, 120.0, None, 30.0, record)
     assert record.correction_um == pytest.approx(6.0, abs=0.01)  # 0.2 × 30 µm
     assert corrected == pytest.approx(36.0, abs=0.01)

@@ -4,8 +4,10 @@ The model document holds its calibrated half-width (:mod:`models.fit.interval`) 
 the span of every input it was fitted on (:mod:`models.training_range`). Each cycle
 the half-width is widened by how far an input lies beyond that span and by the
 sensors flagged bad, exactly as ``score`` widens it offline, and the inputs outside
-the span are named. A model stored without a calibration has no interval (None); one
-without a training range has an unknown span state.
+the span are named. With the online correction running, the loop widens it further
+by the variance the correction gained since the last probe
+(:func:`models.fit.interval.with_probe_age`). A model stored without a calibration
+has no interval (None); one without a training range has an unknown span state.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from gateway.live.bank.model_bank import Banked, BankedModel
-from models.fit.interval import widened_um
+from models.fit.interval import NOMINAL_COVERAGE, widened_um
 from models.training_range import MARGIN_FRACTION, MIN_MARGIN_C, MIN_MARGIN_RPM
 
 INSIDE = "inside"
@@ -36,6 +38,12 @@ def stored_of(banked: Banked) -> tuple[dict[str, Any] | None, dict[str, Any] | N
     if isinstance(banked, BankedModel):
         return banked.document.interval, banked.document.training_range
     return banked.interval, banked.training_range
+
+
+def interval_nominal(banked: Banked | None) -> float:
+    """The nominal coverage of the model's calibration (the default when it holds none)."""
+    calibration = None if banked is None else stored_of(banked)[0]
+    return float((calibration or {}).get("nominal_coverage", NOMINAL_COVERAGE))
 
 
 #: One input's bounds: (name, lowest inside, highest inside, the excess's divisor).

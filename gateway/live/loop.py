@@ -54,7 +54,7 @@ from gateway.live.axis import Axis, HandshakeToken, build_axes
 from gateway.live.bank.lag_state import EffectStates, WarmLags
 from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.live.bank.promotion import Promotions
-from gateway.live.interval import assess
+from gateway.live.interval import assess, interval_nominal
 from gateway.live.plausibility import Plausibility
 from gateway.live.quality import Quality, QualityMonitor, SensorCheck
 from gateway.live.record import AxisRecord, CycleRecord, Sink, sink_name
@@ -65,6 +65,7 @@ from gateway.live.writeback import CompensationPolicy
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
 from models.data.dataset import ambient_sensor_of
+from models.fit.interval import with_probe_age
 from models.online.correction import CorrectionParams, OnlineCorrection
 from models.online.regime_rules import RegimeSelector, Selection
 
@@ -505,7 +506,8 @@ class MachineLoop:
     def _corrected(
         self, now: float, banked: Banked | None, predicted: float | None, record: AxisRecord
     ) -> float | None:
-        """The prediction plus the online correction (bounded, decayed in silence).
+        """The prediction plus the online correction (bounded, decayed in silence); the
+        interval widened by the variance the correction gained since the last probe.
 
         No prediction stays no prediction: the policy's hold-and-ramp path takes over.
         A model that stores its own online-correction noise model (``replay --store``)
@@ -519,6 +521,12 @@ class MachineLoop:
             self.online = OnlineCorrection(params)
         self.online.params = params
         record.correction_um = float(self.online.correction_at(now, predicted_um=predicted)[0])
+        if record.interval_um is not None:
+            record.interval_um = with_probe_age(
+                record.interval_um,
+                self.online.added_variance_um2(now, predicted_um=predicted),
+                interval_nominal(banked),
+            )
         return predicted + record.correction_um
 
     def _online_params(self, banked: Banked | None) -> CorrectionParams:

@@ -227,7 +227,7 @@ def interval_record(
     if validation is None:
         return None
     labels = fold_labels(prepared)[1]
-    forward_res = None
+    forward_res = forward_labels = None
     if forward is not None:
         run = prepared.data.run
         units = [
@@ -240,10 +240,12 @@ def interval_record(
         forward_res = forward_scaled_residuals(
             forward.measured_um, forward.predicted_um, prepared.inputs, units
         )
+        forward_labels = np.concatenate([run[rows] for rows, _ in units]) if units else None
     return calibrate(
         prepared.error_um,
         validation.predicted_um,
         labels,
         prepared.inputs,
         forward_abs_residuals_um=forward_res,
+        forward_run_labels=forward_labels,
     )

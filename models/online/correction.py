@@ -294,6 +294,47 @@ class OnlineCorrection:
         value = value * np.exp(-np.maximum(silent_s, 0.0) / p.decay_tau_s)
         return np.clip(value, -p.bound_um, p.bound_um)
 
+    def added_variance_um2(self, time_s: float, predicted_um: float | None = None) -> float:
+        """How much the variance of the applied correction has grown since the last probe
+        (µm²): H P(t) Hᵀ − H P Hᵀ, P(t) the filter's predicted covariance at ``time_s``,
+        times the square of the silence decay (a decayed correction carries less of it).
+
+        0 before any accepted probe (no correction applied) and right at a probe; it grows
+        with the time since the last probe as the process noise says the residual moves.
+        ``predicted_um`` as for :meth:`predicted_residual_um` (``bias-gain``).
+        """
+        if self.last_accepted_s is None or self.time_s is None:
+            return 0.0
+        if self.needs_prediction and (predicted_um is None or not math.isfinite(predicted_um)):
+            return 0.0
+        grown = self._grown_variance(max(time_s - self.time_s, 0.0), predicted_um)
+        p = self.params
+        silent_s = time_s - self.last_accepted_s - p.decay_after_s
+        decay = math.exp(-max(silent_s, 0.0) / p.decay_tau_s) if silent_s > 0.0 else 1.0
+        return max(grown, 0.0) * decay * decay
+
+    def _grown_variance(self, dt_s: float, predicted_um: float | None) -> float:
+        """H (F P Fᵀ + Q) Hᵀ − H P Hᵀ over ``dt_s`` written out per kind (µm²): the same
+        figure as :meth:`_transition` gives, without a matrix product on every cycle."""
+        p, P = self.params, self.P
+        dt_h = dt_s / SECONDS_PER_HOUR
+        if p.kind == "bias":
+            if p.reversion_tau_s is None:
+                return p.process_um2_per_h * dt_h
+            tau_h = p.reversion_tau_s / SECONDS_PER_HOUR
+            a2 = math.exp(-2.0 * dt_h / tau_h)
+            return (a2 - 1.0) * float(P[0, 0]) + p.process_um2_per_h * tau_h / 2 * (1 - a2)
+        if p.kind == "bias-gain":
+            y = float(predicted_um or 0.0)
+            return (p.process_um2_per_h + y * y * p.gain_process_per_h) * dt_h
+        cross, rate = float(P[0, 1]), float(P[1, 1])
+        return (
+            2.0 * dt_h * cross
+            + dt_h * dt_h * rate
+            + p.rate_process_um2_per_h3 * dt_h**3 / 3.0
+            + p.process_um2_per_h * dt_h
+        )
+
     # --- a probe -------------------------------------------------------------------------
     def update(
         self, time_s: float, residual_um: float, predicted_um: float | None = None

@@ -35,6 +35,7 @@ from gateway.cli.options import (
     sensors_option,
     store_option,
     target_option,
+    targets_option,
     write_json,
 )
 from models.catalogue import (
@@ -77,7 +78,7 @@ def method_option(flag: str, help: str, also: tuple[str, ...] = ()) -> Callable[
 @method_option(
     "--method", "The fitting method; the papers' methods (mlr, grey-mlr, pca-quadratic) by name."
 )
-@target_option()
+@targets_option()
 @sensors_option()
 @click.option("--per-run", is_flag=True, help="One model per run, cross-evaluated on every run.")
 @click.option("--regime-column", help="Column that labels each run's speed regime.")
@@ -108,7 +109,7 @@ def method_option(flag: str, help: str, also: tuple[str, ...] = ()) -> Callable[
 def fit(
     data_csv: Path,
     method: str,
-    target: str,
+    targets: tuple[str, ...],
     sensors: str | None,
     per_run: bool,
     regime_column: str | None,
@@ -123,16 +124,18 @@ def fit(
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
-    data, sensor_list = _load_reported(data_csv, target, sensors)
+    chosen, data, sensor_list = _load_targets(data_csv, targets, sensors)
     from models.data.recording_checks import refuse_constant_target
+    from models.data.targets import view
 
-    refuse_constant_target(data)
+    for target in chosen:
+        refuse_constant_target(view(data, target, sensor_list))
     # The fitting stack (scipy, scikit-learn) only once the file is known good.
-    from gateway.offline.fit import FitRequest, run_fit
+    from gateway.offline.fit import FitRequest, run_fit_targets
 
     request = _request(
         FitRequest,
-        (data_csv, method, target, sensor_list, reference, progress),
+        (data_csv, method, chosen[0], sensor_list, reference, progress),
         store_dir=store_dir,
         per_run=per_run,
         regime_column=regime_column,
@@ -140,23 +143,36 @@ def fit(
         max_bias_error_um=max_bias_error_um,
         collinearity=collinearity,
     )
-    write_json(json_out, run_fit(data, request, click.echo, _warn))
+    write_json(json_out, run_fit_targets(data, chosen, request, click.echo, _warn))
 
 
 def _warn(text: str) -> None:
     click.echo(text, err=True)
 
 
+def _load_targets(
+    data_csv: Path, targets: tuple[str, ...], sensors: str | None, sparse_target: bool = False
+) -> tuple[list[str], Any, list[str] | None]:
+    """The targets (``all`` expanded), the runs of DATA_CSV read once with every target
+    (:func:`_load_reported`) and the --sensors list."""
+    from models.data.targets import chosen_targets
+
+    chosen = chosen_targets(data_csv, targets)
+    data, sensor_list = _load_reported(data_csv, chosen, sensors, sparse_target)
+    return chosen, data, sensor_list
+
+
 def _load_reported(
-    data_csv: Path, target: str, sensors: str | None, sparse_target: bool = False
+    data_csv: Path, target: str | list[str], sensors: str | None, sparse_target: bool = False
 ) -> tuple[Any, list[str] | None]:
     """The runs of DATA_CSV (skipped rows, notes and remarks on the whole recording said on
-    stderr) and the --sensors list."""
-    from models.data.dataset import load_runs
+    stderr) and the --sensors list; several targets: read once with all of them."""
     from models.data.recording_checks import recording_remarks
+    from models.data.targets import load_targets
 
     sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=sparse_target)
+    targets = [target] if isinstance(target, str) else target
+    data = load_targets(data_csv, targets, sensor_list, sparse_target)
     report_skipped(data)
     for remark in recording_remarks(data):
         _warn(f"warning: {remark}")

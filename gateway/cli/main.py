@@ -623,7 +623,7 @@ def export(
     "choice: add --nested for one that is not).",
     also=("auto",),
 )
-@target_option()
+@targets_option()
 @sensors_option("The model's declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
 @reference_option(POLICIES)
 @json_option()
@@ -658,7 +658,7 @@ def export(
 def analyze(
     data_csv: Path,
     method: str,
-    target: str,
+    targets: tuple[str, ...],
     sensors: str | None,
     reference: str,
     json_out: Path | None,
@@ -670,13 +670,13 @@ def analyze(
     progress: bool | None,
 ) -> None:
     """Fit the model, trace its held-out residual to the effect it lacks, add it, compare."""
-    data, sensor_list = _load_reported(data_csv, target, sensors, sparse_target=probe_rows)
+    chosen, data, sensor_list = _load_targets(data_csv, targets, sensors, probe_rows)
     # The analysis stack (scipy, scikit-learn) only once the file is known good.
-    from gateway.offline.analyze import AnalyzeRequest, TooFewProbeRowsError, run_analyze
+    from gateway.offline.analyze import AnalyzeRequest, TooFewProbeRowsError, run_analyze_targets
 
     request = _request(
         AnalyzeRequest,
-        (data_csv, method, target, sensor_list, reference, progress),
+        (data_csv, method, chosen[0], sensor_list, reference, progress),
         store_dir=store_dir,
         report_dir=report_dir,
         tolerance_um=tolerance_um,
@@ -684,15 +684,15 @@ def analyze(
         nested=nested,
     )
     try:
-        result = run_analyze(data, request, click.echo)
+        result = run_analyze_targets(data, chosen, request, click.echo, _warn)
     except TooFewProbeRowsError as exc:
         raise click.UsageError(str(exc)) from None
-    write_json(json_out, result.as_dict())
+    write_json(json_out, result)
 
 
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@target_option()
+@targets_option()
 @method_option("--model", "The declared model (its sensors feed the base).")
 @sensors_option()
 @click.option(
@@ -732,7 +732,7 @@ def analyze(
 @input_errors_exit
 def replay(
     data_csv: Path,
-    target: str,
+    targets: tuple[str, ...],
     method: str,
     sensors: str | None,
     base: str,
@@ -744,17 +744,18 @@ def replay(
     progress: bool | None,
 ) -> None:
     """Replay measured runs causally through the online probe correction, leave-one-run-out."""
-    from gateway.offline.replay import run_replay
+    from gateway.offline.replay import run_replay_targets
+    from models.data.targets import chosen_targets
 
-    result = run_replay(
+    result = run_replay_targets(
         data_csv,
-        target,
+        chosen_targets(data_csv, targets),
         method,
         parse_sensors(sensors),
         intervals or (60.0,),
-        base,
-        augmented_file,
         click.echo,
+        base=base,
+        augmented_file=augmented_file,
         store_dir=store_dir,
         version=__version__,
         filter_kinds=filter_kinds,
@@ -768,26 +769,31 @@ def replay(
 @click.argument("data_csv", type=click.Path(path_type=Path))
 @click.option(
     "--model",
-    "model_spec",
+    "model_specs",
     required=True,
-    help="A model file (fit or analyze --store), or a model id looked up in --store.",
+    multiple=True,
+    help="A model file (fit or analyze --store), or a model id looked up in --store. "
+    "Repeatable: one model per target, each scoring the target it predicts.",
 )
 @store_option("The model store to look --model up in (its augmented/ folder too).")
-@target_option("Measured error column, µm (default: the model's target).", default=None)
+@targets_option("Measured error column, µm (default: the model's target).", default=None)
 @json_option()
 @input_errors_exit
 def score(
     data_csv: Path,
-    model_spec: str,
+    model_specs: tuple[str, ...],
     store_dir: Path | None,
-    target: str | None,
+    targets: tuple[str, ...],
     json_out: Path | None,
 ) -> None:
     """Apply a stored model to measured runs as the gateway would, without refitting."""
-    from gateway.offline.score import score as score_model
+    from gateway.offline.score import score_targets
+    from models.data.targets import chosen_targets
 
+    chosen = chosen_targets(data_csv, targets)
     write_json(
-        json_out, score_model(data_csv, model_spec, store_dir, target, click.echo, note=_warn)
+        json_out,
+        score_targets(data_csv, model_specs, store_dir, chosen, click.echo, note=_warn),
     )
 
 

@@ -68,12 +68,13 @@ def say_heading(
     note: Callable[[str], None],
 ) -> None:
     """The line that opens a target's section of the text report (several targets only),
-    and the rows this target leaves out beyond the file's (an empty cell of its own)."""
+    and the rows it leaves out when they are more than the file's (an empty cell of its own)."""
     if len(targets) < 2:
         return
     say(f"\n=== target {one.target} ({targets.index(one.target) + 1} of {len(targets)}) ===")
-    for skipped in one.data.skipped[len(data.skipped) :]:
-        note(f"note: {one.target}: {skipped.describe()}")
+    if one.data.n_samples != data.n_samples:
+        for skipped in one.data.skipped:
+            note(f"note: {one.target}: {skipped.describe()}")
 
 
 def combined(

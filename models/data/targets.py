@@ -19,6 +19,9 @@ import numpy as np
 from models.data.dataset import (
     AMBIENT_COLUMN,
     HEADER_LINE,
+    RUN_COLUMN,
+    SPEED_COLUMN,
+    TIME_COLUMN,
     DataError,
     MeasuredRuns,
     SkippedRows,
@@ -84,7 +87,7 @@ def view(
     chosen = tuple(sensors) if sensors is not None else data.sensors
     needed = [*chosen, *([] if sparse_target else [target])]
     if AMBIENT_COLUMN in data.numeric:
-        needed.append(AMBIENT_COLUMN)
+        needed.append(AMBIENT_COLUMN)  # the single read's order: sensors, target, ambient
     keep = np.ones(data.n_samples, dtype=bool)
     for name in needed:
         keep &= np.isfinite(data.column(name))
@@ -97,11 +100,13 @@ def view(
             target,
             "every data row has an empty needed cell",
         )
-    dropped = data.lines[~keep]
-    skipped = SkippedRows(
-        count=int(dropped.size),
-        reason=f"an empty cell in a needed column ({', '.join(needed)})",
-        first_lines=tuple(int(line) for line in dropped[:5]),
+    dropped = [int(line) for line in data.lines[~keep]]
+    before = data.skipped[0] if data.skipped else SkippedRows(0, "", ())
+    columns = ", ".join([RUN_COLUMN, TIME_COLUMN, SPEED_COLUMN, *needed])
+    skipped = SkippedRows(  # as a read of this target alone words it: one count, every cause
+        count=before.count + len(dropped),
+        reason=f"an empty cell in a needed column ({columns})",
+        first_lines=tuple(sorted({*before.first_lines, *dropped[:5]})[:5]),
     )
-    narrowed = replace(data.take(keep), skipped=(*data.skipped, skipped))
+    narrowed = replace(data.take(keep), skipped=(skipped,))
     return replace(narrowed, target=target, sensors=chosen)

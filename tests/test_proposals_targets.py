@@ -39,7 +39,7 @@ def publish(store: ProposalStore, model_id: str, target: str):
 
 
 def in_force(store: ProposalStore) -> dict[str, str]:
-    return {e.target: e.model_id for e in store.versions.current().active}
+    return {e.document["target"]["name"]: e.model_id for e in store.versions.current().active}
 
 
 def test_promoting_one_axis_keeps_the_other_axes(tmp_path: Path) -> None:

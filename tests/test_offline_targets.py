@@ -135,3 +135,22 @@ def test_target_all_as_a_process_sections_and_refusals(tmp_path: Path, axes_csv:
     refused = gateway_in_process("fit", bare, "--target", "all", "--store", tmp_path / "b")
     assert refused.returncode == 2
     assert "--target all: no error column" in refused.stderr and "bare.csv" in refused.stderr
+
+
+def test_one_store_of_every_target_gives_one_bank_per_axis(tmp_path: Path, axes_csv: Path) -> None:
+    """``fit --target all --store`` writes each target's model into one store: the single-axis
+    bank refuses the mix as before, an axis's bank holds its own target's model only."""
+    from gateway.live.bank.model_bank import ModelBank
+
+    store = tmp_path / "models"
+    fitted = gateway_in_process("fit", axes_csv, "--method", "mlr", "--target", "all",
+                                "--store", store, "--no-progress")  # fmt: skip
+    assert fitted.returncode == 0, fitted.stderr
+    assert sorted(p.stem for p in store.glob("*.json")) == [f"mlr-{t}-all" for t in TARGETS]
+    with pytest.raises(ValueError, match="its models predict different targets"):
+        ModelBank.from_store(store)
+    for target in TARGETS:
+        bank = ModelBank.from_store(store, target=target)
+        assert list(bank.models) == [f"mlr-{target}-all"] and bank.target.name == target
+    with pytest.raises(ValueError, match=f"model store {store}: no model predicts target q_um"):
+        ModelBank.from_store(store, target="q_um")

@@ -261,11 +261,16 @@ class ModelBank:
         return next((m.target for m in self.models.values()), None)
 
     @classmethod
-    def from_store(cls, folder: Path, ambient_sensor: str | None = None) -> ModelBank:
+    def from_store(
+        cls, folder: Path, ambient_sensor: str | None = None, target: str | None = None
+    ) -> ModelBank:
         """Plain models from ``folder/*.json``, augmented ones from ``folder/augmented/*.json``.
 
         ``ambient_sensor``: the machine sensor feeding augmented models' ambient
         terms (default ``ambient_C``, which a machine without such a sensor lacks).
+        ``target``: the bank of one axis of a machine that compensates several (one store,
+        one target per axis, as ``fit --target all --store`` writes it): only the models
+        predicting that error column; every file is still loaded and checked.
         """
         if not folder.is_dir():
             raise ValueError(f"model store {folder}: no such folder")
@@ -282,6 +287,10 @@ class ModelBank:
             stored = augmented.load(path)
             check_named_after(path, str(stored.get("model_id")))
             loaded.append(BankedAugmented.from_document(stored, ambient_sensor or AMBIENT_COLUMN))
+        if target is not None:
+            loaded = [model for model in loaded if model.target.name == target]
+            if not loaded:
+                raise ValueError(f"model store {folder}: no model predicts target {target}")
         if not loaded:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"

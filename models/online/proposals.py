@@ -676,14 +676,16 @@ class ModelVersions:
         def entries(of: Version) -> set[tuple[str, str]]:
             return {(e.proposal_id, e.sha256) for e in of.active if e.target == target}
 
-        while version.previous is not None:
+        previous = version.previous
+        while previous is not None:
             if version.action == "rollback" and version.target == target:
                 version = self.get(int(version.restores or 0))  # that change was undone
-                continue
-            before = self.get(version.previous)
-            if entries(before) != entries(version):
-                return before
-            version = before
+            else:
+                before = self.get(previous)
+                if entries(before) != entries(version):
+                    return before
+                version = before
+            previous = version.previous
         return None
 
     def refused_by_machine(

@@ -66,8 +66,6 @@ def run_replay(
     loaded: TargetRuns | None = None,
 ) -> dict[str, Any]:
     """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6.
-    ``loaded``: the target's runs, already read and prepared (several targets,
-    :func:`run_replay_targets`).
 
     ``filter_kinds``: the kinds the nested choice may pick; none given means
     ``DEFAULT_KINDS`` (models/online/replay.py). ``note``: where notes on the data go
@@ -84,11 +82,7 @@ def run_replay(
         document = augmented.load(augmented_file)
         method = document["base"]["method"]
         base = "augmented"
-    if loaded is None:
-        data = _load_replayable(data_csv, [target], sensors, intervals_min, note or say)
-        prepared = prepare(data, sensors)
-    else:
-        data, prepared = loaded.data, loaded.prepared
+    data, prepared = _runs_of(loaded, data_csv, target, sensors, intervals_min, note or say)
     described = "lagged lag-ridge" if base == "lagged" and method == "lag-ridge" else base
     say(
         f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, target {target} (µm), "
@@ -139,6 +133,22 @@ def run_replay(
         "stored_model": stored,
         "elapsed_s": round(elapsed, 2),
     }
+
+
+def _runs_of(
+    loaded: TargetRuns | None,
+    data_csv: Path,
+    target: str,
+    sensors: Sequence[str] | None,
+    intervals_min: Sequence[float],
+    note: Callable[[str], None],
+) -> tuple[MeasuredRuns, Prepared]:
+    """The target's runs and their preparation: ``loaded`` (read and prepared once for
+    several targets, :func:`run_replay_targets`), or DATA_CSV read for this target alone."""
+    if loaded is not None:
+        return loaded.data, loaded.prepared
+    data = _load_replayable(data_csv, [target], sensors, intervals_min, note)
+    return data, prepare(data, sensors)
 
 
 def run_replay_targets(

@@ -154,3 +154,12 @@ def test_one_store_of_every_target_gives_one_bank_per_axis(tmp_path: Path, axes_
         assert list(bank.models) == [f"mlr-{target}-all"] and bank.target.name == target
     with pytest.raises(ValueError, match=f"model store {store}: no model predicts target q_um"):
         ModelBank.from_store(store, target="q_um")
+
+
+def test_a_progress_bar_names_each_target(tmp_path: Path, axes_csv: Path) -> None:
+    done = gateway_in_process("fit", axes_csv, "--method", "mlr", "--target", "x_um",
+                              "--target", "z_um", "--store", tmp_path, "--progress")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    bars = done.stderr.replace("\r", "\n")
+    assert "target x_um:" in bars and "target z_um: 100%" in bars and "2/2" in bars
+    assert "held-out folds" in bars  # each target's own bars, below the targets' bar

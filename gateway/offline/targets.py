@@ -44,7 +44,12 @@ def each_target(
     from tqdm import tqdm
 
     shared: Prepared | None = None
-    bar = tqdm(total=len(targets), unit="target", disable=not progress or len(targets) < 2)
+    bar = tqdm(
+        total=len(targets),
+        desc=f"target {targets[0]}" if targets else None,
+        unit="target",
+        disable=not progress or len(targets) < 2,
+    )
     for target in targets:
         bar.set_description(f"target {target}")
         runs = view(data, target, sensors, sparse_target)

@@ -163,3 +163,61 @@ def test_a_progress_bar_names_each_target(tmp_path: Path, axes_csv: Path) -> Non
     bars = done.stderr.replace("\r", "\n")
     assert "target x_um:" in bars and "target z_um: 100%" in bars and "2/2" in bars
     assert "held-out folds" in bars  # each target's own bars, below the targets' bar
+
+
+def axis_machine(store: Path) -> Any:
+    """A machine reading T1 … T7 (one Modbus TCP module) whose models are in ``store``."""
+    from gateway.config import MachineSection
+
+    link = {"host": "127.0.0.1", "port": 1}
+    channels = [f"T{i}" for i in range(1, 8)]
+    bus = {"name": "b", "tcp": link, "devices": [{"device_id": 1, "channels": channels}]}
+    return MachineSection.model_validate(
+        {
+            "id": "vmc-axes",
+            "cycle_s": 30.0,
+            "transmitters": [bus],
+            "cnc": {"modbus": link},
+            "compensation": {"macro": 500, "unit": "mm", "clamp_um": 50.0},
+            "models": {"store": str(store), "regimes": {"fallback_model": "mlr-z_um-all"}},
+        }
+    )
+
+
+def test_an_axis_bank_takes_its_own_promoted_model_and_leaves_the_others(
+    tmp_path: Path, axes_csv: Path
+) -> None:
+    """Two axes' augmented models promoted for one machine: the z_um bank serves its own and
+    neither takes nor refuses x_um's (which stays promoted for the x_um bank)."""
+    from gateway.live.bank.model_bank import ModelBank
+    from gateway.live.bank.promotion import Promotions
+    from models.analysis import augmented
+    from models.online.proposals import PROMOTED, ProposalStore
+
+    store, found = tmp_path / "models", tmp_path / "analysed"
+    pair = ("--target", "x_um", "--target", "z_um", "--no-progress")
+    for command in (("fit", "--method", "mlr", "--store", store),
+                    ("analyze", "--model", "mlr", "--store", found)):  # fmt: skip
+        done = gateway_in_process(command[0], axes_csv, *pair, *command[1:])
+        assert done.returncode == 0, done.stderr
+    proposals = ProposalStore(store)
+    published = {}
+    for path in sorted((found / augmented.FOLDER).glob("*.json")):
+        document = {**augmented.load(path), "model_id": f"promoted-{path.stem}"}
+        document.pop("signature", None)  # a new model: signed when it is published
+        document = augmented.sealed(document)
+        target = document["target"]["name"]
+        published[target] = proposals.publish(
+            machine_id="vmc-axes", effect="thermal_lag", params={}, before_rmse_um=1.0,
+            after_rmse_um=0.9, probe_rows=40, document=document,
+        )  # fmt: skip
+        proposals.versions.promote(published[target].id)
+    assert sorted(published) == ["x_um", "z_um"]
+    machine = axis_machine(store)
+    for target, other in (("z_um", "x_um"), ("x_um", "z_um")):
+        bank = ModelBank.from_store(store, target=target)
+        outcome = Promotions(machine, running=True).load(bank)
+        assert outcome.refused == {}, outcome.refused
+        assert outcome.swapped == [published[target].model_id]
+        assert bank.serving(f"mlr-{target}-all") == published[target].model_id
+        assert proposals.get(published[other].id).status == PROMOTED

@@ -235,6 +235,9 @@ class ModelBank:
         #: Promoted models (:mod:`gateway.live.bank.promotion`): the id of the model each one serves
         #: in place of (None: every regime) → the promoted model's id.
         self.promoted: dict[str | None, str] = {}
+        #: The error column of an axis's bank (:meth:`from_store` with ``target``): promoted
+        #: models of the machine's other axes are theirs, neither taken nor refused here.
+        self.axis_target: str | None = None
 
     def set_promoted(self, promoted: Iterable[tuple[BankedAugmented, str | None]]) -> None:
         """Replace the promoted models: each serves in place of the model it names (or all).
@@ -295,7 +298,9 @@ class ModelBank:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"
             )
-        return cls(loaded, where=f"model store {folder}")
+        bank = cls(loaded, where=f"model store {folder}")
+        bank.axis_target = target
+        return bank
 
     def __contains__(self, model_id: str) -> bool:
         return model_id in self.models

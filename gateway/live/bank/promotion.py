@@ -255,6 +255,8 @@ class Promotions:
         entries: dict[str | None, ActiveEntry] = {}
         models: dict[str | None, BankedAugmented] = {}
         for entry in version.for_machine(self.machine.id):
+            if bank.axis_target not in (None, entry.target):
+                continue  # another axis's promoted model: its own bank takes it
             try:
                 models[entry.replaces] = check_promoted(
                     entry.document, self.machine, bank, entry.replaces, own

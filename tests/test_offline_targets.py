@@ -221,3 +221,16 @@ def test_an_axis_bank_takes_its_own_promoted_model_and_leaves_the_others(
         assert outcome.swapped == [published[target].model_id]
         assert bank.serving(f"mlr-{target}-all") == published[target].model_id
         assert proposals.get(published[other].id).status == PROMOTED
+
+
+def test_analyze_writes_each_targets_report_in_its_own_folder(
+    tmp_path: Path, axes_csv: Path
+) -> None:
+    done = gateway_in_process("analyze", axes_csv, "--model", "mlr", "--target", "x_um",
+                              "--target", "z_um", "--report", tmp_path / "report",
+                              "--no-progress")  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    for target in ("x_um", "z_um"):
+        page = tmp_path / "report" / target / "index.html"
+        assert page.is_file() and f"wrote {page}" in done.stdout
+        assert target in page.read_text(encoding="utf-8")

@@ -107,3 +107,28 @@ def stored_document(prepared, model, model_id: str, **changes: Any) -> dict[str,
         "software_version": "test",
     }
     return build_document(model, **(arguments | changes))
+
+
+#: Error weights of the three axes of :func:`write_axes_csv` (µm/°C per sensor rise).
+AXIS_WEIGHTS = {
+    "x_um": {"T2": 1.5, "T5": -0.8},
+    "y_um": {"T3": -2.0, "T7": 1.0},
+    "z_um": ERROR_WEIGHTS,
+}
+
+
+def write_axes_csv(path: Path, empty_rows: dict[str, int] | None = None, **kwargs) -> Path:
+    """Runs with three error columns (x_um, y_um, z_um), one per axis, from the same
+    temperatures; ``empty_rows``: an error column with one empty cell at that data row."""
+    names = list(AXIS_WEIGHTS)
+    tables = [make_runs(error_weights=AXIS_WEIGHTS[name], **kwargs) for name in names]
+    header = ["run", "time_s", "speed_rpm", *[f"T{i + 1}" for i in range(len(SENSOR_TAUS_S))]]
+    lines = [",".join([*header, *names])]
+    for k, row in enumerate(tables[0]):
+        cells = [f"{table[k][-1]:.6g}" for table in tables]
+        for column, at in (empty_rows or {}).items():
+            if at == k:
+                cells[names.index(column)] = ""
+        lines.append(",".join([row[0], *(f"{v:.6g}" for v in row[1:-1]), *cells]))
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path

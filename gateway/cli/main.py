@@ -35,6 +35,7 @@ from gateway.cli.options import (
     sensors_option,
     store_option,
     target_option,
+    targets_option,
     write_json,
 )
 from models.catalogue import (
@@ -77,7 +78,7 @@ def method_option(flag: str, help: str, also: tuple[str, ...] = ()) -> Callable[
 @method_option(
     "--method", "The fitting method; the papers' methods (mlr, grey-mlr, pca-quadratic) by name."
 )
-@target_option()
+@targets_option()
 @sensors_option()
 @click.option("--per-run", is_flag=True, help="One model per run, cross-evaluated on every run.")
 @click.option("--regime-column", help="Column that labels each run's speed regime.")
@@ -108,7 +109,7 @@ def method_option(flag: str, help: str, also: tuple[str, ...] = ()) -> Callable[
 def fit(
     data_csv: Path,
     method: str,
-    target: str,
+    targets: tuple[str, ...],
     sensors: str | None,
     per_run: bool,
     regime_column: str | None,
@@ -123,16 +124,18 @@ def fit(
     """Fit METHOD on DATA_CSV, validate it on held-out runs and save it to the store."""
     if per_run and regime_column:
         raise click.UsageError("--per-run and --regime-column exclude each other")
-    data, sensor_list = _load_reported(data_csv, target, sensors)
+    chosen, data, sensor_list = _load_targets(data_csv, targets, sensors)
     from models.data.recording_checks import refuse_constant_target
+    from models.data.targets import view
 
-    refuse_constant_target(data)
+    for target in chosen:
+        refuse_constant_target(view(data, target, sensor_list))
     # The fitting stack (scipy, scikit-learn) only once the file is known good.
-    from gateway.offline.fit import FitRequest, run_fit
+    from gateway.offline.fit import FitRequest, run_fit_targets
 
     request = _request(
         FitRequest,
-        (data_csv, method, target, sensor_list, reference, progress),
+        (data_csv, method, chosen[0], sensor_list, reference, progress),
         store_dir=store_dir,
         per_run=per_run,
         regime_column=regime_column,
@@ -140,23 +143,36 @@ def fit(
         max_bias_error_um=max_bias_error_um,
         collinearity=collinearity,
     )
-    write_json(json_out, run_fit(data, request, click.echo, _warn))
+    write_json(json_out, run_fit_targets(data, chosen, request, click.echo, _warn))
 
 
 def _warn(text: str) -> None:
     click.echo(text, err=True)
 
 
+def _load_targets(
+    data_csv: Path, targets: tuple[str, ...], sensors: str | None, sparse_target: bool = False
+) -> tuple[list[str], Any, list[str] | None]:
+    """The targets (``all`` expanded), the runs of DATA_CSV read once with every target
+    (:func:`_load_reported`) and the --sensors list."""
+    from models.data.targets import chosen_targets
+
+    chosen = chosen_targets(data_csv, targets)
+    data, sensor_list = _load_reported(data_csv, chosen, sensors, sparse_target)
+    return chosen, data, sensor_list
+
+
 def _load_reported(
-    data_csv: Path, target: str, sensors: str | None, sparse_target: bool = False
+    data_csv: Path, target: str | list[str], sensors: str | None, sparse_target: bool = False
 ) -> tuple[Any, list[str] | None]:
     """The runs of DATA_CSV (skipped rows, notes and remarks on the whole recording said on
-    stderr) and the --sensors list."""
-    from models.data.dataset import load_runs
+    stderr) and the --sensors list; several targets: read once with all of them."""
     from models.data.recording_checks import recording_remarks
+    from models.data.targets import load_targets
 
     sensor_list = parse_sensors(sensors)
-    data = load_runs(data_csv, target=target, sensors=sensor_list, sparse_target=sparse_target)
+    targets = [target] if isinstance(target, str) else target
+    data = load_targets(data_csv, targets, sensor_list, sparse_target)
     report_skipped(data)
     for remark in recording_remarks(data):
         _warn(f"warning: {remark}")
@@ -621,7 +637,7 @@ def export(
     "choice: add --nested for one that is not).",
     also=("auto",),
 )
-@target_option()
+@targets_option()
 @sensors_option("The model's declared temperature inputs, e.g. T1,T7 (default: every T<n>).")
 @reference_option(POLICIES)
 @json_option()
@@ -656,7 +672,7 @@ def export(
 def analyze(
     data_csv: Path,
     method: str,
-    target: str,
+    targets: tuple[str, ...],
     sensors: str | None,
     reference: str,
     json_out: Path | None,
@@ -668,13 +684,13 @@ def analyze(
     progress: bool | None,
 ) -> None:
     """Fit the model, trace its held-out residual to the effect it lacks, add it, compare."""
-    data, sensor_list = _load_reported(data_csv, target, sensors, sparse_target=probe_rows)
+    chosen, data, sensor_list = _load_targets(data_csv, targets, sensors, probe_rows)
     # The analysis stack (scipy, scikit-learn) only once the file is known good.
-    from gateway.offline.analyze import AnalyzeRequest, TooFewProbeRowsError, run_analyze
+    from gateway.offline.analyze import AnalyzeRequest, TooFewProbeRowsError, run_analyze_targets
 
     request = _request(
         AnalyzeRequest,
-        (data_csv, method, target, sensor_list, reference, progress),
+        (data_csv, method, chosen[0], sensor_list, reference, progress),
         store_dir=store_dir,
         report_dir=report_dir,
         tolerance_um=tolerance_um,
@@ -682,15 +698,15 @@ def analyze(
         nested=nested,
     )
     try:
-        result = run_analyze(data, request, click.echo)
+        result = run_analyze_targets(data, chosen, request, click.echo, _warn)
     except TooFewProbeRowsError as exc:
         raise click.UsageError(str(exc)) from None
-    write_json(json_out, result.as_dict())
+    write_json(json_out, result)
 
 
 @main.command()
 @click.argument("data_csv", type=click.Path(path_type=Path))
-@target_option()
+@targets_option()
 @method_option("--model", "The declared model (its sensors feed the base).")
 @sensors_option()
 @click.option(
@@ -730,7 +746,7 @@ def analyze(
 @input_errors_exit
 def replay(
     data_csv: Path,
-    target: str,
+    targets: tuple[str, ...],
     method: str,
     sensors: str | None,
     base: str,
@@ -742,17 +758,18 @@ def replay(
     progress: bool | None,
 ) -> None:
     """Replay measured runs causally through the online probe correction, leave-one-run-out."""
-    from gateway.offline.replay import run_replay
+    from gateway.offline.replay import run_replay_targets
+    from models.data.targets import chosen_targets
 
-    result = run_replay(
+    result = run_replay_targets(
         data_csv,
-        target,
+        chosen_targets(data_csv, targets),
         method,
         parse_sensors(sensors),
         intervals or (60.0,),
-        base,
-        augmented_file,
         click.echo,
+        base=base,
+        augmented_file=augmented_file,
         store_dir=store_dir,
         version=__version__,
         filter_kinds=filter_kinds,
@@ -766,26 +783,31 @@ def replay(
 @click.argument("data_csv", type=click.Path(path_type=Path))
 @click.option(
     "--model",
-    "model_spec",
+    "model_specs",
     required=True,
-    help="A model file (fit or analyze --store), or a model id looked up in --store.",
+    multiple=True,
+    help="A model file (fit or analyze --store), or a model id looked up in --store. "
+    "Repeatable: one model per target, each scoring the target it predicts.",
 )
 @store_option("The model store to look --model up in (its augmented/ folder too).")
-@target_option("Measured error column, µm (default: the model's target).", default=None)
+@targets_option("Measured error column, µm (default: the model's target).", default=None)
 @json_option()
 @input_errors_exit
 def score(
     data_csv: Path,
-    model_spec: str,
+    model_specs: tuple[str, ...],
     store_dir: Path | None,
-    target: str | None,
+    targets: tuple[str, ...],
     json_out: Path | None,
 ) -> None:
     """Apply a stored model to measured runs as the gateway would, without refitting."""
-    from gateway.offline.score import score as score_model
+    from gateway.offline.score import score_targets
+    from models.data.targets import chosen_targets
 
+    chosen = chosen_targets(data_csv, targets)
     write_json(
-        json_out, score_model(data_csv, model_spec, store_dir, target, click.echo, note=_warn)
+        json_out,
+        score_targets(data_csv, model_specs, store_dir, chosen, click.echo, note=_warn),
     )
 
 

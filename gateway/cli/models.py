@@ -105,8 +105,15 @@ def promote(proposal_id: str, store_dir: Path | None, config_path: Path | None) 
 @STORE_OPTION
 @CONFIG_OPTION
 @MACHINE_OPTION
+@click.option(
+    "--target",
+    help="Undo only the latest change of this target's promoted models (one axis of a "
+    "machine that compensates several, e.g. ch5_um); the other targets' stay as they are.",
+)
 @input_errors_exit
-def rollback(store_dir: Path | None, config_path: Path | None, machine_id: str | None) -> None:
+def rollback(
+    store_dir: Path | None, config_path: Path | None, machine_id: str | None, target: str | None
+) -> None:
     """Restore the promoted set in force before the current version (as a new version)."""
     from models.online.proposals import ProposalStore
 
@@ -114,7 +121,7 @@ def rollback(store_dir: Path | None, config_path: Path | None, machine_id: str |
     if others:
         raise ValueError("the configuration names several model stores: say which with --machine")
     version = ProposalStore(store_path).versions.rollback(
-        by=f"command line, {_who()}", wait_s=LOCK_WAIT_S
+        by=f"command line, {_who()}", wait_s=LOCK_WAIT_S, target=target
     )
     click.echo(f"{version.describe()}; a running gateway takes it within a cycle")
 

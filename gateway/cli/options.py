@@ -88,6 +88,22 @@ def target_option(help: str = "Measured error column, µm.", **changes: Any) -> 
     return click.option("--target", **_given(settings))
 
 
+def targets_option(
+    help: str = "Measured error column, µm.", default: tuple[str, ...] | None = ("error_um",)
+) -> Decorator:
+    """``--target``, repeatable: the error columns an offline command works on, each in its
+    own section (``all``: every error column of the file, a name ending in ``_um``)."""
+    return click.option(
+        "--target",
+        "targets",
+        multiple=True,
+        default=default,
+        show_default=default is not None,
+        help=f"{help} Repeatable; 'all': every error column of the file (a name ending "
+        "in _um), each target in its own section (JSON: a 'targets' object).",
+    )
+
+
 def _given(settings: dict[str, Any]) -> dict[str, Any]:
     """The settings but those given as None (click's own default then)."""
     return {key: value for key, value in settings.items() if value is not None}

@@ -11,10 +11,12 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from gateway import __version__
+from gateway.offline.targets import combined, each_target, say_heading
 from models.analysis import augmented
 from models.analysis.nested import AUTO_BASES, analyse_bases, nested_analysis
 from models.analysis.render import text_report
@@ -47,11 +49,38 @@ class AnalyzeRequest:
     nested: bool
 
 
+def run_analyze_targets(
+    data: MeasuredRuns,
+    targets: list[str],
+    request: AnalyzeRequest,
+    say: Callable[[str], None],
+    note: Callable[[str], None],
+) -> dict[str, Any]:
+    """:func:`run_analyze` for each target of ``data`` (read once, prepared once), one section
+    each, each target's report in a folder of its own under ``--report``; the command's
+    JSON (:func:`gateway.offline.targets.combined`)."""
+    results: dict[str, dict[str, Any]] = {}
+    runs = each_target(
+        data, targets, request.sensors, request.reference, request.progress, request.probe_rows
+    )
+    for one in runs:
+        say_heading(one, data, targets, say, note)
+        asked = replace(request, target=one.target)
+        if len(targets) > 1 and request.report_dir is not None:
+            asked = replace(asked, report_dir=request.report_dir / one.target)
+        results[one.target] = run_analyze(one.data, asked, say, one.prepared).as_dict()
+    return combined(results)
+
+
 def run_analyze(
-    data: MeasuredRuns, request: AnalyzeRequest, say: Callable[[str], None]
+    data: MeasuredRuns,
+    request: AnalyzeRequest,
+    say: Callable[[str], None],
+    prepared: Prepared | None = None,
 ) -> AnalysisResult:
-    """Analyse ``data`` as ``request`` says, print the report; the result (its JSON)."""
-    prepared, fit_rows = _prepared(data, request)
+    """Analyse ``data`` as ``request`` says, print the report; the result (its JSON).
+    ``prepared``: ``data`` already prepared (several targets)."""
+    prepared, fit_rows = _prepared(data, request, prepared)
     data_with_readings = None if fit_rows is not None else data
     data = prepared.data  # the readings of the sensors are let go: their rises are kept
     known = "" if fit_rows is None else f" ({int(fit_rows.sum())} with {request.target})"
@@ -101,9 +130,12 @@ def run_analyze(
     return result
 
 
-def _prepared(data: MeasuredRuns, request: AnalyzeRequest) -> tuple[Prepared, np.ndarray | None]:
+def _prepared(
+    data: MeasuredRuns, request: AnalyzeRequest, prepared: Prepared | None = None
+) -> tuple[Prepared, np.ndarray | None]:
     """The prepared runs, and with ``--probe-rows`` the rows that have the target."""
-    prepared = prepare(data, request.sensors, request.reference).without_sensor_readings()
+    if prepared is None:
+        prepared = prepare(data, request.sensors, request.reference).without_sensor_readings()
     if not request.probe_rows:
         return prepared, None
     # A probe measures the error itself: the target is used as measured.

@@ -8,12 +8,13 @@ only once the file is known good.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from gateway import __version__
 from gateway.offline.tables import accuracy_table, sigma_matrix_table
+from gateway.offline.targets import combined, each_target, say_heading
 from models.data.dataset import MeasuredRuns
 from models.data.features import Prepared, prepare
 from models.fit.forward import Forward
@@ -45,10 +46,12 @@ def run_fit(
     request: FitRequest,
     say: Callable[[str], None],
     warn: Callable[[str], None],
+    prepared: Prepared | None = None,
 ) -> dict[str, Any]:
     """Fit ``request.method`` on ``data``, save it to the store, print the validation;
-    return the command's JSON."""
-    prepared = prepare(data, request.sensors, request.reference).without_sensor_readings()
+    return the command's JSON. ``prepared``: ``data`` already prepared (several targets)."""
+    if prepared is None:
+        prepared = prepare(data, request.sensors, request.reference).without_sensor_readings()
     _say_inputs(prepared, request, say)
     outcome = fit_and_store(
         prepared,
@@ -77,6 +80,24 @@ def run_fit(
             for g, f in outcome.forward.items()
         },
     }
+
+
+def run_fit_targets(
+    data: MeasuredRuns,
+    targets: list[str],
+    request: FitRequest,
+    say: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> dict[str, Any]:
+    """:func:`run_fit` for each target of ``data`` (read once, prepared once), one section
+    each; the command's JSON (:func:`gateway.offline.targets.combined`)."""
+    results: dict[str, dict[str, Any]] = {}
+    runs = each_target(data, targets, request.sensors, request.reference, request.progress)
+    for one in runs:
+        say_heading(one, data, targets, say, warn)
+        asked = replace(request, target=one.target)
+        results[one.target] = run_fit(one.data, asked, say, warn, one.prepared)
+    return combined(results, {"method": request.method})
 
 
 def _say_inputs(prepared: Prepared, request: FitRequest, say: Callable[[str], None]) -> None:

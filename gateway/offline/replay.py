@@ -8,9 +8,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from gateway.offline.targets import TargetRuns, combined, each_target, say_heading
 from models.analysis import augmented
-from models.data.dataset import MeasuredRuns, load_runs
+from models.data.dataset import MeasuredRuns
 from models.data.features import Prepared, prepare
+from models.data.targets import load_targets
 from models.fit.metrics import accuracy
 from models.online import declared_fits
 from models.online.replay import (
@@ -61,6 +63,7 @@ def run_replay(
     filter_kinds: Sequence[str] = (),
     progress: bool = False,
     note: Callable[[str], None] | None = None,
+    loaded: TargetRuns | None = None,
 ) -> dict[str, Any]:
     """Replay DATA_CSV at every interval; print a table; return the JSON of contracts §6.
 
@@ -79,8 +82,7 @@ def run_replay(
         document = augmented.load(augmented_file)
         method = document["base"]["method"]
         base = "augmented"
-    data = _load_replayable(data_csv, target, sensors, intervals_min, note or say)
-    prepared = prepare(data, sensors)
+    data, prepared = _runs_of(loaded, data_csv, target, sensors, intervals_min, note or say)
     described = "lagged lag-ridge" if base == "lagged" and method == "lag-ridge" else base
     say(
         f"{data_csv.name}: {data.n_samples} rows, {len(data.run_ids)} runs, target {target} (µm), "
@@ -133,15 +135,64 @@ def run_replay(
     }
 
 
-def _load_replayable(
+def _runs_of(
+    loaded: TargetRuns | None,
     data_csv: Path,
     target: str,
     sensors: Sequence[str] | None,
     intervals_min: Sequence[float],
     note: Callable[[str], None],
+) -> tuple[MeasuredRuns, Prepared]:
+    """The target's runs and their preparation: ``loaded`` (read and prepared once for
+    several targets, :func:`run_replay_targets`), or DATA_CSV read for this target alone."""
+    if loaded is not None:
+        return loaded.data, loaded.prepared
+    data = _load_replayable(data_csv, [target], sensors, intervals_min, note)
+    return data, prepare(data, sensors)
+
+
+def run_replay_targets(
+    data_csv: Path,
+    targets: Sequence[str],
+    method: str,
+    sensors: Sequence[str] | None,
+    intervals_min: Sequence[float],
+    say: Callable[[str], None],
+    note: Callable[[str], None] | None = None,
+    **options: Any,
+) -> dict[str, Any]:
+    """:func:`run_replay` for each target (DATA_CSV read once, the rises taken once), one
+    section each; ``options``: run_replay's own (base, augmented_file, store_dir, ...).
+    The command's JSON (:func:`gateway.offline.targets.combined`)."""
+    data = _load_replayable(data_csv, targets, sensors, intervals_min, note or say)
+    progress = bool(options.get("progress"))
+    results: dict[str, dict[str, Any]] = {}
+    for one in each_target(data, targets, sensors, progress=progress, readings=True):
+        say_heading(one, data, targets, say, note or say)
+        results[one.target] = run_replay(
+            data_csv,
+            one.target,
+            method,
+            sensors,
+            intervals_min,
+            say=say,
+            note=note,
+            loaded=one,
+            **options,
+        )
+    return combined(results, {"model": method})
+
+
+def _load_replayable(
+    data_csv: Path,
+    targets: Sequence[str],
+    sensors: Sequence[str] | None,
+    intervals_min: Sequence[float],
+    note: Callable[[str], None],
 ) -> MeasuredRuns:
-    """The runs of DATA_CSV, refused when no interval would take a single probe."""
-    data = load_runs(data_csv, target=target, sensors=sensors)
+    """The runs of DATA_CSV (read once with every target), refused when no interval would
+    take a single probe."""
+    data = load_targets(data_csv, targets, sensors)
     for skipped in data.skipped:
         note(f"note: {skipped.describe()}")
     for text in data.notes:

@@ -22,7 +22,7 @@ error per run and pooled. It predicts the way the running gateway does:
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,11 +30,13 @@ from typing import Any
 import numpy as np
 
 from gateway.live.bank.model_bank import Banked, BankedAugmented, BankedModel
+from gateway.offline.targets import combined
 from models.analysis import augmented
 from models.base import ModelInputs
-from models.data.dataset import AMBIENT_COLUMN, HEADER_LINE, DataError, load_runs, read_header
+from models.data.dataset import AMBIENT_COLUMN, HEADER_LINE, DataError, MeasuredRuns, read_header
 from models.data.features import Prepared, prepare
 from models.data.references import first_rows
+from models.data.targets import load_targets, view
 from models.data.unit_ranges import SENSOR_PATTERN
 from models.fit.interval import coverage, span_excess, widened_um
 from models.fit.metrics import accuracy
@@ -273,17 +275,73 @@ def score(
 ) -> dict[str, Any]:
     """Score the model on DATA_CSV; print the table (``say``) and the notes on the data
     (``note``, default ``say``: the command gives stderr); return the JSON result."""
+    return score_targets(data_csv, [model_spec], store_dir, [target] if target else [], say, note)
+
+
+def score_targets(
+    data_csv: Path,
+    model_specs: Sequence[str],
+    store_dir: Path | None,
+    targets: Sequence[str],
+    say: Callable[[str], None],
+    note: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+    """Score each target with its model (:func:`pairs`), DATA_CSV read once with every
+    target and sensor; one section each; one target: today's JSON, several: keyed by
+    target under ``targets``."""
     note = note or say
-    scored = load_model(find_model(model_spec, store_dir))
-    target = target or scored.target
-    _require_model_sensors(Path(data_csv), scored)
-    data = load_runs(data_csv, target=target, sensors=needed_sensors(scored))
-    if scored.banked.sensors & {AMBIENT_COLUMN} and data.ambient_C is None:
-        raise ValueError(f"{data_csv}: the model needs an {AMBIENT_COLUMN} column; there is none")
+    models = [load_model(find_model(spec, store_dir)) for spec in model_specs]
+    paired = pairs(models, targets)
+    for scored in models:
+        _require_model_sensors(Path(data_csv), scored)
+    sensors = list(dict.fromkeys(s for scored in models for s in needed_sensors(scored)))
+    data = load_targets(data_csv, list(paired), sensors)
     for skipped in data.skipped:
         note(f"note: {skipped.describe()}")
     for text in data.notes:
         note(f"note: {data.source}: {text}")
+    results: dict[str, dict[str, Any]] = {}
+    for target, scored in paired.items():
+        one = view(data, target, needed_sensors(scored))
+        if len(paired) > 1:
+            say(f"\n=== target {target} ({len(results) + 1} of {len(paired)}) ===")
+            for skipped in one.skipped if one.n_samples != data.n_samples else ():
+                note(f"note: {target}: {skipped.describe()}")
+        results[target] = _score_one(scored, data_csv, one, say, note)
+    return combined(results)
+
+
+def pairs(models: Sequence[ScoredModel], targets: Sequence[str]) -> dict[str, ScoredModel]:
+    """Which model scores which target: one model, every target given (default its own);
+    several models, each its own target, and each target given needs exactly one model
+    that predicts it."""
+    if len(models) == 1:
+        return {target: models[0] for target in (targets or [models[0].target])}
+    by_target: dict[str, ScoredModel] = {}
+    for scored in models:
+        if scored.target in by_target:
+            raise ValueError(
+                f"--model {by_target[scored.target].banked.model_id} and "
+                f"{scored.banked.model_id} both predict {scored.target}: one model per target"
+            )
+        by_target[scored.target] = scored
+    missing = [target for target in targets if target not in by_target]
+    if missing:
+        have = ", ".join(f"{m.banked.model_id} ({m.target})" for m in models)
+        raise ValueError(f"--target {missing[0]}: no --model predicts it (models: {have})")
+    return {target: by_target[target] for target in (targets or by_target)}
+
+
+def _score_one(
+    scored: ScoredModel,
+    data_csv: Path,
+    data: MeasuredRuns,
+    say: Callable[[str], None],
+    note: Callable[[str], None],
+) -> dict[str, Any]:
+    """Score one model on one target's runs; print its table; its JSON object."""
+    if scored.banked.sensors & {AMBIENT_COLUMN} and data.ambient_C is None:
+        raise ValueError(f"{data_csv}: the model needs an {AMBIENT_COLUMN} column; there is none")
     prepared = prepare(data, needed_sensors(scored), scored.policy)
     predicted = predictions(scored, prepared)
     figures = run_figures(prepared, predicted)
@@ -296,7 +354,7 @@ def score(
         "model_file": str(scored.path),
         "kind": scored.kind,
         "method": scored.method,
-        "target": target,
+        "target": data.target,
         "data": str(data_csv),
         "reference": prepared.plan.describe(),
         "refit": False,

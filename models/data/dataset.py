@@ -276,6 +276,7 @@ def load_runs(
     target: str = DEFAULT_TARGET,
     sensors: Sequence[str] | None = None,
     sparse_target: bool = False,
+    also_targets: Sequence[str] = (),
 ) -> MeasuredRuns:
     """Read and check a measured-run CSV.
 
@@ -287,11 +288,16 @@ def load_runs(
         sparse_target: the target is known only at some rows (probe rows of a
             logged history): a row with an empty target is kept (NaN there);
             the values present are checked as always.
+        also_targets: more error columns read in the same pass, for a command on
+            several targets (:mod:`models.data.targets`); then a row with an empty
+            sensor, ambient or target cell is kept (NaN there) and each target's view
+            leaves out the rows its own single-target read would have skipped.
     """
     path = Path(path)
     names = read_header(path)
     sensor_names = [n for n in names if SENSOR_PATTERN.match(n)]
-    _require_columns(path, names, target, sensor_names, sensors)
+    for name in (target, *also_targets):
+        _require_columns(path, names, name, sensor_names, sensors)
     chosen_sensors = tuple(sensors) if sensors is not None else tuple(sensor_names)
 
     scanned = csv_text.scan(path, len(names))
@@ -301,12 +307,15 @@ def load_runs(
     if scanned == 0:
         raise DataError(path, HEADER_LINE + 1, None, "no data rows after the header")
 
-    needed = [TIME_COLUMN, SPEED_COLUMN, *chosen_sensors, target]
+    extra = [name for name in dict.fromkeys(also_targets) if name != target]
+    needed = [TIME_COLUMN, SPEED_COLUMN, *chosen_sensors, target, *extra]
     if AMBIENT_COLUMN in names:
         needed.append(AMBIENT_COLUMN)
     reader = _ColumnReader(path, names, needed, capacity=scanned)
     if sparse_target:
         reader.sparse = {target}
+    if also_targets:  # each target's view drops the rows its own read would skip
+        reader.sparse = set(needed) - {TIME_COLUMN, SPEED_COLUMN}
     table = reader.read()
     _check_runs(path, table.run, table.run_code, table.numeric[TIME_COLUMN], table.lines)
     return MeasuredRuns(

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from models.base import ModelInputs
 from models.data.dataset import MeasuredRuns
-from models.data.references import ReferencePlan, plan_references
+from models.data.references import ReferencePlan, error_origins, plan_references
 
 
 @dataclass(frozen=True)
@@ -64,3 +64,16 @@ def prepare(
         error_um=plan.error(data.error_um),
         plan=plan,
     )
+
+
+def retarget(shared: Prepared, data: MeasuredRuns) -> Prepared:
+    """``shared`` (another target's preparation of the same rows and sensors) for ``data``'s
+    target: the rises, recordings and reference rows do not depend on the target, only the
+    error and its origins do; the same figures as ``prepare`` of ``data``, without taking
+    the rises again."""
+    if data.n_samples != shared.data.n_samples:
+        raise ValueError("retarget: the target's rows differ from the prepared rows")
+    old = shared.plan
+    origins = error_origins(data.error_um, old.recording, old.reference_rows, data.speed_rpm)
+    plan = replace(old, error_origin_um=origins)
+    return Prepared(data=data, inputs=shared.inputs, error_um=plan.error(data.error_um), plan=plan)

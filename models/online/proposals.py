@@ -237,6 +237,12 @@ class ActiveEntry:
     def sha256(self) -> str:
         return str(self.document.get("sha256", ""))
 
+    @property
+    def target(self) -> str:
+        """The error column the model predicts (one axis of a machine that compensates
+        several): a promotion supersedes only an entry of the same target."""
+        return target_of(self.document)
+
     def to_json(self) -> dict[str, Any]:
         return {
             "proposal_id": self.proposal_id,
@@ -273,6 +279,7 @@ class Version:
     active: tuple[ActiveEntry, ...]
     proposal_id: str | None = None  # promote: the proposal promoted
     restores: int | None = None  # rollback: the version whose set this one restores
+    target: str | None = None  # rollback of one target's models only: that target
 
     def proposal_ids(self) -> set[str]:
         return {e.proposal_id for e in self.active}
@@ -285,7 +292,8 @@ class Version:
         what = {
             "start": "the store's own models",
             "promote": f"promoted {self.proposal_id}",
-            "rollback": f"rolled back to the set of version {self.restores}",
+            "rollback": f"rolled back to the set of version {self.restores}"
+            + (f" for target {self.target}" if self.target is not None else ""),
             "sign": f"the set of version {self.number - 1}, its models signed",
         }.get(self.action, self.action)
         return f"version {self.number}: {what}; promoted models: {models}"
@@ -301,6 +309,7 @@ class Version:
             "by": self.by,
             "proposal_id": self.proposal_id,
             "restores": self.restores,
+            **({"target": self.target} if self.target is not None else {}),
             "active": [e.to_json() for e in self.active],
         }
 
@@ -319,6 +328,7 @@ class Version:
                 active=tuple(ActiveEntry.from_json(e, where) for e in data["active"]),
                 proposal_id=None if data.get("proposal_id") is None else str(data["proposal_id"]),
                 restores=None if data.get("restores") is None else int(data["restores"]),
+                target=None if data.get("target") is None else str(data["target"]),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise ProposalError(f"{where}: field {exc} is missing or malformed") from None
@@ -588,11 +598,8 @@ class ModelVersions:
             entry = ActiveEntry(
                 proposal.id, proposal.machine_id, proposal.replaces, proposal.document
             )
-            kept = [
-                e
-                for e in current.active
-                if (e.machine_id, e.replaces) != (entry.machine_id, entry.replaces)
-            ]
+            place = (entry.machine_id, entry.replaces, entry.target)
+            kept = [e for e in current.active if (e.machine_id, e.replaces, e.target) != place]
             version = self._write(
                 action="promote",
                 current=current,
@@ -605,28 +612,81 @@ class ModelVersions:
             self.reconcile(version.created_s)
             return version
 
-    def rollback(self, by: str = "", time_s: float | None = None, wait_s: float = 0.0) -> Version:
+    def rollback(
+        self,
+        by: str = "",
+        time_s: float | None = None,
+        wait_s: float = 0.0,
+        target: str | None = None,
+    ) -> Version:
         """Restore the set in force before the current version, as a new version (StoreBusyError:
-        as :meth:`promote`)."""
+        as :meth:`promote`). ``target``: undo only the latest change of that target's promoted
+        models (one axis of a machine that compensates several), every other entry kept."""
         with self.locked(wait_s):
             current = self.current()
-            if current.previous is None:
+            if target is not None:
+                version = self._rollback_target(current, target, by, time_s)
+            elif current.previous is None:
                 raise ProposalError(
                     f"nothing to roll back in {self.folder.parent}: version {current.number} is "
                     "the store's own models"
                 )
-            restored = self.get(current.previous)
-            version = self._write(
-                action="rollback",
-                current=current,
-                previous=restored.previous,
-                active=restored.active,
-                by=by,
-                time_s=time_s,
-                restores=restored.number,
-            )
+            else:
+                restored = self.get(current.previous)
+                version = self._write(
+                    action="rollback",
+                    current=current,
+                    previous=restored.previous,
+                    active=restored.active,
+                    by=by,
+                    time_s=time_s,
+                    restores=restored.number,
+                )
             self.reconcile(version.created_s)
             return version
+
+    def _rollback_target(
+        self, current: Version, target: str, by: str, time_s: float | None
+    ) -> Version:
+        """A version whose ``target`` entries are those before that target's latest change
+        still in force (a rollback of this target undone before is passed over), the other
+        entries as they are; a plain rollback of it restores the set in force now."""
+        restored = self._before_target_change(current, target)
+        if restored is None:
+            raise ProposalError(
+                f"nothing to roll back for target {target} in {self.folder.parent}: no promoted "
+                "model of that target has been put in force"
+            )
+        others = [e for e in current.active if e.target != target]
+        return self._write(
+            action="rollback",
+            current=current,
+            previous=current.number,
+            active=(*others, *(e for e in restored.active if e.target == target)),
+            by=by,
+            time_s=time_s,
+            restores=restored.number,
+            target=target,
+        )
+
+    def _before_target_change(self, version: Version, target: str) -> Version | None:
+        """The version in force just before the latest change of ``target``'s entries that
+        led to ``version`` (None: they never changed)."""
+
+        def entries(of: Version) -> set[tuple[str, str]]:
+            return {(e.proposal_id, e.sha256) for e in of.active if e.target == target}
+
+        previous = version.previous
+        while previous is not None:
+            if version.action == "rollback" and version.target == target:
+                version = self.get(int(version.restores or 0))  # that change was undone
+            else:
+                before = self.get(previous)
+                if entries(before) != entries(version):
+                    return before
+                version = before
+            previous = version.previous
+        return None
 
     def refused_by_machine(
         self,
@@ -773,6 +833,7 @@ class ModelVersions:
         time_s: float | None,
         proposal_id: str | None = None,
         restores: int | None = None,
+        target: str | None = None,
     ) -> Version:
         """Write version ``current + 1`` and put it in force (replacing ``current.json`` is
         the commit); a version file left above the one in force is removed first."""
@@ -786,6 +847,7 @@ class ModelVersions:
             active=tuple(active),
             proposal_id=proposal_id,
             restores=restores,
+            target=target,
         )
         if not _write_new(self.folder / f"{version.number}.json", version.to_json()):
             raise ProposalError(f"{self.folder}: version {version.number} was written meanwhile")
@@ -794,6 +856,12 @@ class ModelVersions:
 
 
 # -- helpers --------------------------------------------------------------------------------
+
+
+def target_of(document: Mapping[str, Any]) -> str:
+    """The error column a model document predicts (``error_um`` when it names none)."""
+    named = document.get("target")
+    return str(named.get("name", "error_um")) if isinstance(named, Mapping) else "error_um"
 
 
 def _acquire(handle: int, path: Path, wait_s: float) -> None:

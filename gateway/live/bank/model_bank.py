@@ -247,7 +247,11 @@ class ModelBank:
             refuse_mixed_targets(same_name, where)
         #: Promoted models (:mod:`gateway.live.bank.promotion`): the id of the model each one serves
         #: in place of (None: every regime) → the promoted model's id.
-        self.promoted: dict[str | None, str] = {}
+        #: Keyed by (target, place): each axis of a multi-axis machine has its own places.
+        self.promoted: dict[tuple[str, str | None], str] = {}
+        #: The error column of an axis's bank (:meth:`from_store` with ``target``): promoted
+        #: models of the machine's other axes are theirs, neither taken nor refused here.
+        self.axis_target: str | None = None
 
     def set_promoted(self, promoted: Iterable[tuple[BankedAugmented, str | None]]) -> None:
         """Replace the promoted models: each serves in place of the model it names (or all).
@@ -260,13 +264,22 @@ class ModelBank:
         self.promoted = {}
         for banked, replaces in promoted:
             self.models[banked.model_id] = banked
-            self.promoted[replaces] = banked.model_id
+            self.promoted[(banked.target.name, replaces)] = banked.model_id
 
-    def serving(self, model_id: str | None) -> str | None:
-        """The id of the model that serves where the regime rules name ``model_id``."""
-        if model_id in self.promoted:
-            return self.promoted[model_id]
-        return self.promoted.get(None, model_id)
+    def serving(self, model_id: str | None, target: str | None = None) -> str | None:
+        """The id of the model that serves where the regime rules name ``model_id``: the
+        model promoted in its place, else the one promoted for every regime of its target
+        (``target``, or the named model's; None and no model: any target's)."""
+        named = self.models.get(model_id) if model_id is not None else None
+        if named is not None:
+            target = named.target.name
+        for (promoted_target, place), promoted_id in self.promoted.items():
+            if place == model_id and model_id is not None and target in (None, promoted_target):
+                return promoted_id
+        for (promoted_target, place), promoted_id in self.promoted.items():
+            if place is None and target in (None, promoted_target):
+                return promoted_id
+        return model_id
 
     @property
     def target(self) -> Target | None:
@@ -283,13 +296,19 @@ class ModelBank:
 
     @classmethod
     def from_store(
-        cls, folder: Path, ambient_sensor: str | None = None, several_targets: bool = False
+        cls,
+        folder: Path,
+        ambient_sensor: str | None = None,
+        several_targets: bool = False,
+        target: str | None = None,
     ) -> ModelBank:
         """Plain models from ``folder/*.json``, augmented ones from ``folder/augmented/*.json``.
 
         ``ambient_sensor``: the machine sensor feeding augmented models' ambient
         terms (default ``ambient_C``, which a machine without such a sensor lacks).
         ``several_targets``: a multi-axis machine's store (one unit per target name).
+        ``target``: only the models of one error column of a store that holds several
+        (as ``fit --target all --store`` writes it); every file is still loaded and checked.
         """
         if not folder.is_dir():
             raise ValueError(f"model store {folder}: no such folder")
@@ -306,11 +325,17 @@ class ModelBank:
             stored = augmented.load(path)
             check_named_after(path, str(stored.get("model_id")))
             loaded.append(BankedAugmented.from_document(stored, ambient_sensor or AMBIENT_COLUMN))
+        if target is not None:
+            loaded = [model for model in loaded if model.target.name == target]
+            if not loaded:
+                raise ValueError(f"model store {folder}: no model predicts target {target}")
         if not loaded:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"
             )
-        return cls(loaded, where=f"model store {folder}", several_targets=several_targets)
+        bank = cls(loaded, where=f"model store {folder}", several_targets=several_targets)
+        bank.axis_target = target
+        return bank
 
     def __contains__(self, model_id: str) -> bool:
         return model_id in self.models
@@ -372,7 +397,7 @@ class ModelBank:
         """``model_id`` (or the model promoted in its place) if all its sensors are good,
         else the best fallback, else None. ``target``: only a model predicting that error
         column serves (one axis of a multi-axis machine); None: any (a one-target bank)."""
-        served = self.serving(model_id)
+        served = self.serving(model_id, target)
         preferred = self.models.get(served) if served else None
         if target is not None and preferred is not None and preferred.target.name != target:
             preferred = self.models.get(model_id) if model_id else None  # promoted elsewhere

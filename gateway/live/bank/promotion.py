@@ -167,7 +167,8 @@ class Promotions:
         self.proposals_revision = 0  # bumped whenever ``proposals`` is refreshed
         self._version_key: tuple[int, int, int] | None = None
         self._proposals_key: tuple[int, int] | None = None
-        self._entries: dict[str | None, ActiveEntry] = {}  # what the bank holds, by place
+        #: what the bank holds, by (target, place)
+        self._entries: dict[tuple[str, str | None], ActiveEntry] = {}
         self._proposals_path = os.fspath(self.store.folder)  # stat-ed every cycle
         self._recover_pending = False  # a recovery found the lock held: tried next cycle
         self._recover_quiet = False  # ... and says so only if it is the one at start
@@ -254,14 +255,17 @@ class Promotions:
     def _apply(self, version: Version, bank: ModelBank, at_start: bool = False) -> SwapOutcome:
         outcome = SwapOutcome(version.number)
         own = _store_ids(bank)
-        entries: dict[str | None, ActiveEntry] = {}
-        models: dict[str | None, BankedAugmented] = {}
+        entries: dict[tuple[str, str | None], ActiveEntry] = {}
+        models: dict[tuple[str, str | None], BankedAugmented] = {}
         for entry in version.for_machine(self.machine.id):
+            if bank.axis_target not in (None, entry.target):
+                continue  # another axis's promoted model: its own bank takes it
+            place = (entry.target, entry.replaces)  # each axis has its own places
             try:
-                models[entry.replaces] = check_promoted(
+                models[place] = check_promoted(
                     entry.document, self.machine, bank, entry.replaces, own
                 )
-                entries[entry.replaces] = entry
+                entries[place] = entry
             except ValueError as exc:
                 outcome.refused[entry.proposal_id] = str(exc)
                 self.refused += 1
@@ -275,17 +279,17 @@ class Promotions:
                     exc,
                     self.refused,
                 )
-                old = self._entries.get(entry.replaces)
+                old = self._entries.get(place)
                 if old is not None:  # keep the one that served there
-                    entries[entry.replaces] = old
-                    models[entry.replaces] = _banked(bank, old)
+                    entries[place] = old
+                    models[place] = _banked(bank, old)
                 if self.running:
                     self._record_refusal(entry, str(exc), old)
         before = {place: e.sha256 for place, e in self._entries.items()}
         after = {place: e.sha256 for place, e in entries.items()}
         self.version = version.number
         if before != after:
-            bank.set_promoted((model, place) for place, model in models.items())
+            bank.set_promoted((model, place[1]) for place, model in models.items())
             self._entries = entries
             outcome.changed = True
             outcome.swapped = [m.model_id for m in models.values()]

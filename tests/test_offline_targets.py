@@ -221,6 +221,17 @@ def test_an_axis_bank_takes_its_own_promoted_model_and_leaves_the_others(
         assert outcome.swapped == [published[target].model_id]
         assert bank.serving(f"mlr-{target}-all") == published[target].model_id
         assert proposals.get(published[other].id).status == PROMOTED
+    # The live loop's one bank of every axis (several targets) takes both, each in its
+    # axis's own place: promoted for every regime, neither takes the other's.
+    bank = ModelBank.from_store(store, several_targets=True)
+    outcome = Promotions(machine, running=True).load(bank)
+    assert outcome.refused == {}, outcome.refused
+    assert sorted(outcome.swapped) == sorted(p.model_id for p in published.values())
+    for target in ("z_um", "x_um"):
+        assert bank.serving(f"mlr-{target}-all") == published[target].model_id
+        served = bank.usable(f"mlr-{target}-all", set(bank.get(f"mlr-{target}-all").sensors),
+                             target)  # fmt: skip
+        assert served is not None and served.model_id == published[target].model_id
 
 
 def test_analyze_writes_each_targets_report_in_its_own_folder(

@@ -24,6 +24,7 @@ checked too: secrets readable, ``state_dir`` and the stores writable.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 import re
@@ -346,8 +347,28 @@ class WhenUncertainSection(Strict):
         return self
 
 
-class CompensationSection(Strict):
-    enabled: bool = True
+#: The keys of one axis's write, kept per axis under ``compensation.axes``.
+AXIS_WRITE_KEYS = (
+    "macro",
+    "unit",
+    "sign",
+    "clamp_um",
+    "slew_um_per_min",
+    "deadband_um",
+    "decimals",
+    "hold_on_loss_s",
+    "fallback_ramp_um_per_min",
+    "when_uncertain",
+)
+#: Axis names: one upper-case letter of the machine's axes.
+AXIS_NAMES = "XYZUVWABC"
+#: The axis the single-axis form (``compensation.macro``) compensates.
+SINGLE_AXIS = "Z"
+
+
+class AxisWrite(Strict):
+    """How one axis's compensation is written: its macro, unit, limits and safe fallbacks."""
+
     macro: int = Field(default=500, ge=500, le=999)
     unit: Literal["mm", "um"] = "mm"
     sign: Literal[1, -1] = 1
@@ -355,15 +376,9 @@ class CompensationSection(Strict):
     slew_um_per_min: float = Field(default=20.0, gt=0)
     deadband_um: float = Field(default=0.5, ge=0)
     decimals: int = Field(default=4, ge=0, le=8)
-    handshake_macro: int | None = Field(default=None, ge=500, le=999)
-    probe_macro: int | None = Field(default=None, ge=500, le=999)  # measured error, µm
-    # Sign of life for the CNC: a count 1…9999 written every cycle the CNC is reached.
-    alive_macro: int | None = Field(default=None, ge=500, le=999)
     # No prediction: hold the value this long after the last prediction, then ramp to 0.
     hold_on_loss_s: float = Field(default=60.0, ge=0, allow_inf_nan=False)
     fallback_ramp_um_per_min: float | None = Field(default=None, gt=0, allow_inf_nan=False)
-    # Switched off (here or from SCADA): ramp #macro to 0 at the slew limit, or hold it.
-    on_disable: Literal["ramp", "hold"] = "ramp"
     # Above this interval half-width, hold or scale the compensation (off: None).
     when_uncertain: WhenUncertainSection | None = None
 
@@ -380,7 +395,7 @@ class CompensationSection(Strict):
         )
 
     @model_validator(mode="after")
-    def _safe(self) -> CompensationSection:
+    def _safe(self) -> AxisWrite:
         """Refuse what the CNC cannot hold and limits that would not limit."""
         um_per_unit = 1000.0 if self.unit == "mm" else 1.0
         if self.clamp_um / um_per_unit > MACRO_MAX_UNITS:
@@ -407,20 +422,101 @@ class CompensationSection(Strict):
                 f"{self.deadband_um:.10g} µm is not below clamp_um ({self.clamp_um:.10g} µm): "
                 "nothing would ever be written",
             )
-        roles = {"macro": self.macro}
-        for role in ("handshake_macro", "probe_macro", "alive_macro"):
-            number = getattr(self, role)
-            if number is None:
-                continue
-            for other, used in roles.items():
-                if number == used:
-                    raise KeyPathError((role,), f"#{number} is already the {other}; give its own")
-            roles[role] = number
         try:
             self.limits()
         except ValueError as exc:
             raise _located(exc, "CompensationLimits") from None
         return self
+
+
+class AxisSection(AxisWrite):
+    """One axis of ``compensation.axes``: its write, and the models that predict its error.
+
+    ``target`` (optional) is the error column every model of the axis predicts;
+    ``models`` maps a regime to this axis's model id, as ``models.regimes.models`` does
+    for the single-axis form; the regime itself is selected once for every axis.
+    """
+
+    macro: int = Field(ge=500, le=999)
+    target: str | None = Field(default=None, min_length=1)
+    models: dict[str, str] = Field(default_factory=dict)
+    fallback_model: str | None = None
+
+    def named_models(self) -> dict[str, str]:
+        """The model ids this axis names, by the key naming them (``models.<regime>``)."""
+        named = {f"models.{regime}": model_id for regime, model_id in self.models.items()}
+        if self.fallback_model is not None:
+            named["fallback_model"] = self.fallback_model
+        return named
+
+
+class CompensationSection(AxisWrite):
+    enabled: bool = True
+    handshake_macro: int | None = Field(default=None, ge=500, le=999)
+    probe_macro: int | None = Field(default=None, ge=500, le=999)  # measured error, µm
+    # Sign of life for the CNC: a count 1…9999 written every cycle the CNC is reached.
+    alive_macro: int | None = Field(default=None, ge=500, le=999)
+    # Switched off (here or from SCADA): ramp #macro to 0 at the slew limit, or hold it.
+    on_disable: Literal["ramp", "hold"] = "ramp"
+    #: Several axes, each with its own macro and models (None: the single-axis form, one
+    #: axis named Z written to ``macro``). The first axis is the primary one.
+    axes: dict[str, AxisSection] | None = None
+
+    @model_validator(mode="after")
+    def _axes(self) -> CompensationSection:
+        """With ``axes``, every per-axis key lives in its axis; the section's own
+        per-axis fields then read the first axis's (what a single-axis reader sees)."""
+        if self.axes is None:
+            return self
+        given = sorted(set(AXIS_WRITE_KEYS) & self.model_fields_set, key=AXIS_WRITE_KEYS.index)
+        if given:
+            raise KeyPathError(
+                (given[0],),
+                "is a per-axis key: with 'axes' give it in each axis (compensation.axes.<A>)",
+            )
+        if not self.axes:
+            raise KeyPathError(("axes",), "names no axis; give at least one, or leave 'axes' out")
+        macros: dict[int, str] = {}
+        for name, axis in self.axes.items():
+            if len(name) != 1 or name not in AXIS_NAMES:
+                raise KeyPathError(
+                    ("axes", name), f"axis name: one of {', '.join(AXIS_NAMES)} expected"
+                )
+            if axis.macro in macros:
+                raise KeyPathError(
+                    ("axes", name, "macro"),
+                    f"#{axis.macro} is already the macro of axis {macros[axis.macro]}; "
+                    "each axis needs its own",
+                )
+            macros[axis.macro] = name
+        first = next(iter(self.axes.values()))
+        for key in AXIS_WRITE_KEYS:  # a frozen section: set once, here, as pydantic does
+            self.__dict__[key] = getattr(first, key)
+        return self
+
+    @model_validator(mode="after")
+    def _own_roles(self) -> CompensationSection:
+        """The handshake, probe and alive macros are none of the axes' macros nor each other."""
+        roles = {
+            axis.macro: "macro" if self.axes is None else f"macro of axis {name}"
+            for name, axis in self.axis_writes().items()
+        }
+        for role in ("handshake_macro", "probe_macro", "alive_macro"):
+            number = getattr(self, role)
+            if number is None:
+                continue
+            if number in roles:
+                raise KeyPathError(
+                    (role,), f"#{number} is already the {roles[number]}; give its own"
+                )
+            roles[number] = role
+        return self
+
+    def axis_writes(self) -> dict[str, AxisWrite]:
+        """Each axis's write settings by axis name (the single-axis form: one, Z)."""
+        if self.axes is None:
+            return {SINGLE_AXIS: self}
+        return dict(self.axes)
 
 
 class OnlineCorrectionSection(Strict):
@@ -605,6 +701,56 @@ class MachineSection(Strict):
         return self
 
     @model_validator(mode="after")
+    def _axes_models(self) -> MachineSection:
+        """With ``compensation.axes`` each axis names its own models; the regime rules
+        (bands, window) stay shared, and no model serves two axes."""
+        axes = self.compensation.axes
+        if axes is None:
+            return self
+        regimes = self.models.regimes
+        for key in ("models", "fallback_model"):
+            if key in regimes.model_fields_set:
+                raise KeyPathError(
+                    ("models", "regimes", key),
+                    "with compensation.axes each axis names its models "
+                    f"(compensation.axes.<A>.{key}); leave it out here",
+                )
+        serving: dict[str, str] = {}
+        for name, axis in axes.items():
+            try:
+                dataclasses.replace(
+                    regimes.rules(), models=dict(axis.models), fallback_model=axis.fallback_model
+                )
+            except ValueError as exc:
+                message = str(exc).removeprefix("RegimeRules.models: ")
+                raise KeyPathError(("compensation", "axes", name, "models"), message) from None
+            for key, model_id in axis.named_models().items():
+                other = serving.setdefault(model_id, name)
+                if other != name:
+                    raise KeyPathError(
+                        ("compensation", "axes", name, *key.split(".")),
+                        f"model '{model_id}' already serves axis {other}: a model predicts "
+                        "one axis's error",
+                    )
+        return self
+
+    def axis_sections(self) -> dict[str, AxisSection]:
+        """Every axis compensated, by name, in the order written each cycle: the axes of
+        ``compensation.axes``, or the single-axis form as one axis named Z (its models
+        those of ``models.regimes``)."""
+        comp = self.compensation
+        if comp.axes is not None:
+            return dict(comp.axes)
+        regimes = self.models.regimes
+        single = AxisSection.model_construct(
+            **{key: getattr(comp, key) for key in AXIS_WRITE_KEYS},
+            target=None,
+            models=dict(regimes.models),
+            fallback_model=regimes.fallback_model,
+        )
+        return {SINGLE_AXIS: single}
+
+    @model_validator(mode="after")
     def _fits_sensors_and_cycle(self) -> MachineSection:
         """One missed read must not make a sensor stale; a fixed reference covers every sensor."""
         for name in self.sensor_names:
@@ -670,9 +816,13 @@ class MachineSection(Strict):
         return _same_host(modbus.host), modbus.port, modbus.device_id
 
     def written_macros(self) -> dict[str, int]:
-        """The macro variables the gateway writes on this machine's CNC, by key."""
+        """The macro variables the gateway writes on this machine's CNC, by key (below
+        ``compensation``, dotted: ``axes.X.macro``)."""
         comp = self.compensation
-        written = {"macro": comp.macro}
+        if comp.axes is None:
+            written = {"macro": comp.macro}
+        else:
+            written = {f"axes.{name}.macro": axis.macro for name, axis in comp.axes.items()}
         if comp.handshake_macro is not None:
             written["handshake_macro"] = comp.handshake_macro
         if comp.alive_macro is not None:
@@ -972,7 +1122,7 @@ class GatewayConfig(Strict):
                 if owner is not None:
                     host, port, _ = address
                     raise KeyPathError(
-                        ("machines", index, "compensation", key),
+                        ("machines", index, "compensation", *key.split(".")),
                         f"#{number} of the CNC at {host}:{port} is already written by machine "
                         f"'{owner[1]}' (machines[{owner[0]}]); each macro needs one writer",
                     )

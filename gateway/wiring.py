@@ -26,7 +26,14 @@ from drivers.cnc_modbus import ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from drivers.register_map import DeviceRegisters
 from drivers.transmitters import DeviceMap, ModbusConnection, TransmitterBus
-from gateway.config import GatewayConfig, MachineSection, login_limits, rtu_buses
+from drivers.yaml_loader import KeyPathError
+from gateway.config import (
+    SINGLE_AXIS,
+    GatewayConfig,
+    MachineSection,
+    login_limits,
+    rtu_buses,
+)
 from gateway.live.bank.model_bank import ModelBank
 from gateway.live.bank.promotion import Promotions, proposals_view
 from gateway.live.loop import MachineLoop
@@ -125,50 +132,111 @@ def build_cnc(machine: MachineSection, clock: Clock | None = None) -> CncClient:
 def load_located_bank(config: GatewayConfig, index: int) -> ModelBank:
     """:func:`load_bank` for ``config.machines[index]``; a refusal (no such store, no models,
     a bad signature, a regime naming a missing model) names the file and the line of that
-    machine's ``models.store``."""
+    machine's ``models.store`` (an axis's refusal: the line of that axis's key)."""
     loc = ("machines", index, "models", "store")
     store = config.machines[index].models.store
     if store.exists() and not store.is_dir():
         raise config.error_at(loc, f"{store} is a file; the model store folder was expected")
     try:
         return load_bank(config.machines[index])
+    except KeyPathError as exc:
+        raise config.error_at(("machines", index, *exc.key), str(exc)) from None
     except (ValueError, OSError) as exc:
         raise config.error_at(loc, str(exc)) from None
 
 
 def load_bank(machine: MachineSection) -> ModelBank:
-    """The machine's models, checked against its sensors and its regime rules (and their
-    signatures: ``models.signing``, ``models.signing_key_file``)."""
+    """The machine's models, checked against its sensors, its regime rules and its axes
+    (and their signatures: ``models.signing``, ``models.signing_key_file``)."""
     from models import signing
 
     signing.configure(machine.models.store, machine.models.signing_key_file, machine.models.signing)
     bank = ModelBank.from_store(
-        machine.models.store, ambient_sensor=ambient_sensor_of(machine.sensor_names)
+        machine.models.store,
+        ambient_sensor=ambient_sensor_of(machine.sensor_names),
+        several_targets=machine.compensation.axes is not None,
     )
     bank.check_sensors(machine.sensor_names)
     limits = machine.models
     refused = bank.refuse_sensitive(limits.sensor_accuracy_C, limits.max_bias_error_um)
     for refused_id, reason in refused.items():
         log.warning("machine %s: model %s refused: %s", machine.id, refused_id, reason)
-    rules = machine.models.regimes
-    named: dict[str, str | None] = {**rules.models, "fallback": rules.fallback_model}
-    for regime, model_id in named.items():
+    named = named_models(machine)
+    for (label, _), model_id in named.items():
         if model_id in refused:
             raise ValueError(
-                f"machine {machine.id}: regime '{regime}' names model '{model_id}', which is "
+                f"machine {machine.id}: {label} names model '{model_id}', which is "
                 f"refused: {refused[model_id]}; refit it (fit --method ridge or pls) or raise "
                 "the limit knowingly"
             )
     if not bank.models:
         raise ValueError(f"machine {machine.id}: every model in {machine.models.store} is refused")
     Promotions(machine).load(bank)  # the promoted set in force, checked like the rest
-    for regime, model_id in named.items():
+    for (label, _), model_id in named.items():
         if model_id is not None and model_id not in bank:
             raise ValueError(
-                f"machine {machine.id}: regime '{regime}' names model '{model_id}', "
+                f"machine {machine.id}: {label} names model '{model_id}', "
                 f"which is not in {machine.models.store} (have: {sorted(bank.models)})"
             )
+    axis_targets(machine, bank)
     return bank
+
+
+def named_models(machine: MachineSection) -> dict[tuple[str, str], str | None]:
+    """The model ids the regime rules name, by (what names it, axis): ``regime 'x'`` for
+    the single-axis form, ``axis X regime 'x'`` / ``axis X fallback`` for ``axes``."""
+    if machine.compensation.axes is None:
+        rules = machine.models.regimes
+        single = {**rules.models, "fallback": rules.fallback_model}
+        return {(f"regime '{regime}'", SINGLE_AXIS): i for regime, i in single.items()}
+    named: dict[tuple[str, str], str | None] = {}
+    for name, axis in machine.compensation.axes.items():
+        for regime, model_id in axis.models.items():
+            named[(f"axis {name} regime '{regime}'", name)] = model_id
+        named[(f"axis {name} fallback", name)] = axis.fallback_model
+    return named
+
+
+def axis_targets(machine: MachineSection, bank: ModelBank) -> dict[str, str | None]:
+    """The error column each axis compensates (None: the single-axis form, whose bank holds
+    one target). Refused, at the axis's key: an axis whose models predict another target
+    than its ``target`` or than each other, an axis no model of the store serves, and two
+    axes compensating one target."""
+    axes = machine.compensation.axes
+    if axes is None:
+        return {SINGLE_AXIS: None}
+    targets: dict[str, str | None] = {}
+    owners: dict[str, str] = {}
+    for name, axis in axes.items():
+        target, where = axis.target, ("compensation", "axes", name, "target")
+        for key, model_id in axis.named_models().items():
+            predicts = bank.get(model_id).target.name
+            if target is None:
+                target, where = predicts, ("compensation", "axes", name, *key.split("."))
+            elif predicts != target:
+                raise KeyPathError(
+                    ("compensation", "axes", name, *key.split(".")),
+                    f"model '{model_id}' predicts {predicts}, but axis {name} compensates "
+                    f"{target}; every model of an axis predicts its target",
+                )
+        if target is None:
+            raise KeyPathError(
+                ("compensation", "axes", name),
+                "names no model and no target: give fallback_model (or target)",
+            )
+        if not any(m.target.name == target for m in bank.models.values()):
+            raise KeyPathError(
+                where, f"no model in {machine.models.store} predicts {target} (axis {name})"
+            )
+        if target in owners:
+            raise KeyPathError(
+                where,
+                f"axis {name} would compensate {target}, which axis {owners[target]} "
+                "compensates: each axis its own error column",
+            )
+        owners[target] = name
+        targets[name] = target
+    return targets
 
 
 class Gateway:

@@ -12,10 +12,13 @@ of both kinds by id; when a sensor a model needs goes bad, the bank offers a
 *fallback*: another stored model that does without that sensor, preferring one
 fitted for the same regime, then the one with the lowest held-out RMSE.
 
-A machine compensates one quantity (one target, in one unit), so every model of
+A machine compensates one quantity per axis (one target, in one unit), so every model of
 a store must predict the same target in the same unit: a fallback fitted for
 another probe channel would put another channel's error into the macro. The bank
-refuses a store whose models disagree, naming each model and its target.
+refuses a store whose models disagree, naming each model and its target. A machine
+with several axes (``compensation.axes``) keeps every axis's models in one bank:
+there each target name must come in one unit, and an axis takes its model and its
+fallbacks among the models of its own target only (:meth:`ModelBank.usable`).
 """
 
 from __future__ import annotations
@@ -225,13 +228,23 @@ def refuse_mixed_targets(models: Iterable[Banked], where: str = "model store") -
 
 
 class ModelBank:
-    def __init__(self, models: Iterable[Banked], where: str = "model store") -> None:
+    def __init__(
+        self, models: Iterable[Banked], where: str = "model store", several_targets: bool = False
+    ) -> None:
         self.models: dict[str, Banked] = {}
         for model in models:
             if model.model_id in self.models:
                 raise ValueError(f"model id '{model.model_id}' is in the store twice")
             self.models[model.model_id] = model
-        refuse_mixed_targets(self.models.values(), where)
+        #: Models of several targets (a multi-axis machine): one unit per target name.
+        self.several_targets = several_targets
+        if not several_targets:
+            refuse_mixed_targets(self.models.values(), where)
+        by_name: dict[str, list[Banked]] = {}
+        for model in self.models.values():
+            by_name.setdefault(model.target.name, []).append(model)
+        for same_name in by_name.values():
+            refuse_mixed_targets(same_name, where)
         #: Promoted models (:mod:`gateway.live.bank.promotion`): the id of the model each one serves
         #: in place of (None: every regime) → the promoted model's id.
         self.promoted: dict[str | None, str] = {}
@@ -257,15 +270,26 @@ class ModelBank:
 
     @property
     def target(self) -> Target | None:
-        """The one target every model predicts (None for an empty bank)."""
+        """The one target every model predicts (None for an empty bank); for a bank of
+        several targets, the first model's."""
         return next((m.target for m in self.models.values()), None)
 
+    def targets_of(self, model_id: str | None = None) -> set[Target]:
+        """What a model served in place of ``model_id`` must predict: that model's target,
+        or (None, or a model not in the bank) any target of the bank's models."""
+        if model_id is not None and model_id in self.models:
+            return {self.models[model_id].target}
+        return {m.target for m in self.models.values()}
+
     @classmethod
-    def from_store(cls, folder: Path, ambient_sensor: str | None = None) -> ModelBank:
+    def from_store(
+        cls, folder: Path, ambient_sensor: str | None = None, several_targets: bool = False
+    ) -> ModelBank:
         """Plain models from ``folder/*.json``, augmented ones from ``folder/augmented/*.json``.
 
         ``ambient_sensor``: the machine sensor feeding augmented models' ambient
         terms (default ``ambient_C``, which a machine without such a sensor lacks).
+        ``several_targets``: a multi-axis machine's store (one unit per target name).
         """
         if not folder.is_dir():
             raise ValueError(f"model store {folder}: no such folder")
@@ -286,7 +310,7 @@ class ModelBank:
             raise ValueError(
                 f"model store {folder}: no model files (*.json, {augmented.FOLDER}/*.json)"
             )
-        return cls(loaded, where=f"model store {folder}")
+        return cls(loaded, where=f"model store {folder}", several_targets=several_targets)
 
     def __contains__(self, model_id: str) -> bool:
         return model_id in self.models
@@ -342,15 +366,26 @@ class ModelBank:
                 del self.models[model_id]
         return refused
 
-    def usable(self, model_id: str | None, good: set[str]) -> Banked | None:
+    def usable(
+        self, model_id: str | None, good: set[str], target: str | None = None
+    ) -> Banked | None:
         """``model_id`` (or the model promoted in its place) if all its sensors are good,
-        else the best fallback, else None."""
-        model_id = self.serving(model_id)
-        preferred = self.models.get(model_id) if model_id else None
+        else the best fallback, else None. ``target``: only a model predicting that error
+        column serves (one axis of a multi-axis machine); None: any (a one-target bank)."""
+        served = self.serving(model_id)
+        preferred = self.models.get(served) if served else None
+        if target is not None and preferred is not None and preferred.target.name != target:
+            preferred = self.models.get(model_id) if model_id else None  # promoted elsewhere
+        if preferred is not None and target is not None and preferred.target.name != target:
+            preferred = None
         if preferred is not None and preferred.sensors <= good:
             return preferred
         regime = preferred.regime if preferred is not None else None
-        candidates = [m for m in self.models.values() if m.sensors <= good]
+        candidates = [
+            m
+            for m in self.models.values()
+            if m.sensors <= good and (target is None or m.target.name == target)
+        ]
         if not candidates:
             return None
         return min(candidates, key=lambda m: (m.regime != regime, m.held_out_rmse_um, m.model_id))

@@ -11,7 +11,8 @@ A promoted model must pass the checks a model passes at start:
 
 - it loads and runs sample by sample (:class:`gateway.live.bank.model_bank.BankedAugmented`);
 - every sensor it needs is a channel of this machine (the ambient one included);
-- it predicts the bank's target in the bank's unit;
+- it predicts the bank's target in the bank's unit (several axes: the target of the
+  model it replaces, or one of the bank's);
 - one sensor off by ``models.sensor_accuracy_C`` moves it by at most
   ``models.max_bias_error_um`` (its steady-state slope: a held bias shifts a
   lag of that sensor by the same amount, so every term of the sensor counts);
@@ -94,9 +95,10 @@ def check_promoted(
             f"it needs sensor(s) {missing} that no transmitter channel of machine "
             f"{machine.id} provides (channels: {sorted(machine.sensor_names)})"
         )
-    target = bank.target
-    if target is not None and banked.target != target:
-        raise ValueError(f"it predicts {banked.target}, the machine compensates {target}")
+    targets = bank.targets_of(replaces)
+    if targets and banked.target not in targets:
+        compensated = ", ".join(sorted(map(str, targets)))
+        raise ValueError(f"it predicts {banked.target}, the machine compensates {compensated}")
     limits = machine.models
     slopes = bias_slopes_um_per_C(banked)
     if slopes:

@@ -451,6 +451,15 @@ class AxisSection(AxisWrite):
 
 
 class CompensationSection(AxisWrite):
+    """What the gateway writes to the CNC. The single-axis form gives one axis's keys
+    here (``macro``, ``unit``, ``clamp_um`` …, the Z axis, its models those of
+    ``models.regimes``). A machine that compensates several axes gives them under
+    ``axes`` instead, each with its own macro, limits and models (the per-axis keys are
+    then refused here); ``enabled``, ``handshake_macro``, ``alive_macro``,
+    ``probe_macro`` and ``on_disable`` stay machine-wide: one handshake bump per cycle
+    covers every axis's write, and the probe, the online correction and the residual
+    monitor work on the first axis."""
+
     enabled: bool = True
     handshake_macro: int | None = Field(default=None, ge=500, le=999)
     probe_macro: int | None = Field(default=None, ge=500, le=999)  # measured error, µm
@@ -460,7 +469,9 @@ class CompensationSection(AxisWrite):
     on_disable: Literal["ramp", "hold"] = "ramp"
     #: Several axes, each with its own macro and models (None: the single-axis form, one
     #: axis named Z written to ``macro``). The first axis is the primary one.
-    axes: dict[str, AxisSection] | None = None
+    axes: dict[str, AxisSection] | None = (
+        None  # axis name (X, Y, Z …) → its section; in write order
+    )
 
     @model_validator(mode="after")
     def _axes(self) -> CompensationSection:

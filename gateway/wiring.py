@@ -34,6 +34,7 @@ from gateway.config import (
     login_limits,
     rtu_buses,
 )
+from gateway.live.axis import axis_targets
 from gateway.live.bank.model_bank import ModelBank
 from gateway.live.bank.promotion import Promotions, proposals_view
 from gateway.live.loop import MachineLoop
@@ -195,48 +196,6 @@ def named_models(machine: MachineSection) -> dict[tuple[str, str], str | None]:
             named[(f"axis {name} regime '{regime}'", name)] = model_id
         named[(f"axis {name} fallback", name)] = axis.fallback_model
     return named
-
-
-def axis_targets(machine: MachineSection, bank: ModelBank) -> dict[str, str | None]:
-    """The error column each axis compensates (None: the single-axis form, whose bank holds
-    one target). Refused, at the axis's key: an axis whose models predict another target
-    than its ``target`` or than each other, an axis no model of the store serves, and two
-    axes compensating one target."""
-    axes = machine.compensation.axes
-    if axes is None:
-        return {SINGLE_AXIS: None}
-    targets: dict[str, str | None] = {}
-    owners: dict[str, str] = {}
-    for name, axis in axes.items():
-        target, where = axis.target, ("compensation", "axes", name, "target")
-        for key, model_id in axis.named_models().items():
-            predicts = bank.get(model_id).target.name
-            if target is None:
-                target, where = predicts, ("compensation", "axes", name, *key.split("."))
-            elif predicts != target:
-                raise KeyPathError(
-                    ("compensation", "axes", name, *key.split(".")),
-                    f"model '{model_id}' predicts {predicts}, but axis {name} compensates "
-                    f"{target}; every model of an axis predicts its target",
-                )
-        if target is None:
-            raise KeyPathError(
-                ("compensation", "axes", name),
-                "names no model and no target: give fallback_model (or target)",
-            )
-        if not any(m.target.name == target for m in bank.models.values()):
-            raise KeyPathError(
-                where, f"no model in {machine.models.store} predicts {target} (axis {name})"
-            )
-        if target in owners:
-            raise KeyPathError(
-                where,
-                f"axis {name} would compensate {target}, which axis {owners[target]} "
-                "compensates: each axis its own error column",
-            )
-        owners[target] = name
-        targets[name] = target
-    return targets
 
 
 class Gateway:

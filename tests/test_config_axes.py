@@ -89,6 +89,10 @@ def test_a_multi_axis_machine_loads_and_checks(tmp_path: Path, store: Path) -> N
     result = gateway("check-config", "--config", path)
     assert result.returncode == 0, result.stderr
     assert "machine vmc-3: 7 sensors, 3 models" in result.stdout
+    assert (
+        "compensation of axes Z z_um → #500 (mm), X x_um → #502 (um), Y y_um → #503 (mm)"
+        in result.stdout
+    )
 
 
 def test_the_single_axis_form_is_one_axis_named_z(tmp_path: Path, store: Path) -> None:

@@ -383,8 +383,7 @@ def check_config(config_path: Path, connect: bool) -> None:
         bank = load_located_bank(config, index)
         click.echo(
             f"machine {machine.id}: {len(machine.sensor_names)} sensors, "
-            f"{len(bank.models)} models in {machine.models.store} (target {bank.target}), "
-            f"compensation → #{machine.compensation.macro} ({machine.compensation.unit}), "
+            f"{len(bank.models)} models in {machine.models.store}{compensated(machine, bank)}, "
             f"{promotion_summary(machine)}, {signing_summary(machine)}"
         )
     if connect:
@@ -393,6 +392,21 @@ def check_config(config_path: Path, connect: bool) -> None:
             raise ValueError("; ".join(problems))
         click.echo("every CNC and transmitter answered")
     click.echo(f"{config_path}: ok")
+
+
+def compensated(machine, bank) -> str:
+    """`` (target …), compensation → #500 (mm)``; for ``compensation.axes`` each axis's
+    target and macro."""
+    comp = machine.compensation
+    if comp.axes is None:
+        return f" (target {bank.target}), compensation → #{comp.macro} ({comp.unit})"
+    from gateway.live.axis import axis_targets
+
+    targets = axis_targets(machine, bank)
+    axes = ", ".join(
+        f"{name} {targets[name]} → #{axis.macro} ({axis.unit})" for name, axis in comp.axes.items()
+    )
+    return f", compensation of axes {axes}"
 
 
 def signing_summary(machine) -> str:

@@ -7,22 +7,28 @@ Once per ``cycle_s`` of machine time:
    exception through the loop;
 2. flag each sensor's quality (range, rate, stuck, stale, transmitter fault,
    and plausibility against the other sensors, :mod:`gateway.live.plausibility`);
-3. classify the speed regime (with hysteresis) and take its model from the bank,
-   or a fallback fitted without a bad sensor, or none;
+3. classify the speed regime (with hysteresis, once for every axis) and take each
+   axis's model for it from the bank, or a fallback of the same target fitted without
+   a bad sensor, or none (:mod:`gateway.live.axis`: one machine compensates one axis,
+   Z, or every axis of ``compensation.axes``);
 4. predict the error rise (µm) from the temperature rises above the cold reference;
    every augmented model (lag terms, :mod:`gateway.live.bank.lag_state`) is advanced
    with this cycle's rises and speed whether it is selected or not, so a model
    switched in mid-shift has a warm state;
-5. read what the CNC macro holds (a value the gateway did not write is an
-   external change: logged, counted, and the policy moves on from it), let the
-   compensation policy decide the value (clamp, slew, deadband; with no
-   prediction it holds, then ramps to zero), write it to the CNC macro, read it
-   back, and only then count it as applied; then bump the handshake counter;
+5. for each axis in the configured order: read what its CNC macro holds (a value
+   the gateway did not write is an external change: logged, counted, and the policy
+   moves on from it), let the axis's compensation policy decide the value (clamp,
+   slew, deadband; with no prediction it holds, then ramps to zero), write it to the
+   macro, read it back, and only then count it as applied; then bump the handshake
+   counter once for the cycle's confirmed writes;
 6. write the next alive count (``compensation.alive_macro``), the CNC's sign that
    the gateway runs and reaches it, in every cycle the CNC answered.
 
 Nothing is written before the loop has read what the CNC macro holds, in the
 same cycle, so the slew limit starts from the value the machine really applies.
+The prediction rate bound (:meth:`Plausibility.check_prediction`), the probe, the
+online correction and the residual monitor work on the first axis; a sensor the
+rate bound blames is left out for every axis.
 Every cycle ends as a :class:`CycleRecord` handed to the sinks (logging, SCADA,
 tests).
 """
@@ -34,6 +40,7 @@ import contextlib
 import logging
 import math
 from collections.abc import Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
@@ -43,22 +50,23 @@ from drivers.clock import Clock
 from drivers.cnc import CncClient, CncError
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.config import MachineSection
+from gateway.live.axis import Axis, HandshakeToken, build_axes
 from gateway.live.bank.lag_state import EffectStates, WarmLags
 from gateway.live.bank.model_bank import Banked, BankedAugmented, ModelBank
 from gateway.live.bank.promotion import Promotions
 from gateway.live.interval import assess
 from gateway.live.plausibility import Plausibility
-from gateway.live.quality import Quality, QualityMonitor
-from gateway.live.record import CycleRecord, Sink, sink_name
+from gateway.live.quality import Quality, QualityMonitor, SensorCheck
+from gateway.live.record import AxisRecord, CycleRecord, Sink, sink_name
 from gateway.live.reference import TemperatureReference
 from gateway.live.scheduler import CycleScheduler, after_cycle
 from gateway.live.uncertainty_gate import UncertaintyGate
-from gateway.live.writeback import CompensationPolicy, Decision
+from gateway.live.writeback import CompensationPolicy
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
 from models.data.dataset import ambient_sensor_of
 from models.online.correction import CorrectionParams, OnlineCorrection
-from models.online.regime_rules import RegimeSelector
+from models.online.regime_rules import RegimeSelector, Selection
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +80,33 @@ STOP_GRACE_S = 0.5
 STATE_FLUSH_S = 5.0
 #: The alive count runs 1…ALIVE_WRAP and starts again at 1: far below what a macro holds.
 ALIVE_WRAP = 9999
+
+
+#: The per-axis fields of a record: the record's own repeat the first axis's.
+_AXIS_FIELDS = (
+    "model_id",
+    "predicted_um",
+    "target_um",
+    "applied_um",
+    "written_cnc",
+    "write_status",
+    "correction_um",
+    "interval_um",
+    "training_span",
+    "outside_inputs",
+    "uncertain",
+)
+
+
+@dataclass
+class _Inputs:
+    """This cycle's inputs every axis predicts from (the good set shrinks if the rate
+    bound blames a sensor)."""
+
+    good: set[str]
+    good_values: dict[str, float]
+    speed_rpm: float | None
+    augmented_um: Mapping[str, float | None]
 
 
 def next_alive_count(count: int) -> int:
@@ -114,12 +149,11 @@ class MachineLoop:
         self.promotions.load(bank)
         warm = WarmLags(self.sensors, ambient_sensor_of(self.sensors))
         self.effects = EffectStates(bank.augmented(), effect_file, warm=warm, writer=STATE)
-        self.policy: CompensationPolicy | None = None
         self.compensation_enabled = config.compensation.enabled
-        self.uncertainty_gate = UncertaintyGate(config.id, config.compensation.when_uncertain)
-        self.handshake = 0
-        self.failed_writes = 0
-        self.external_changes = 0
+        #: Every axis compensated, in the configured order (the single-axis form: one, Z).
+        self.axes = build_axes(config, bank, cnc, clock)
+        self.handshake_token = HandshakeToken(config.id, config.compensation.handshake_macro, cnc)
+        self._machine_failed_writes = 0  # writes of no axis's (the alive count)
         self.cycles = 0
         #: Link errors reported, summed over cycles (one per failing source per cycle).
         self.link_errors = 0
@@ -132,18 +166,44 @@ class MachineLoop:
         self._probe_basis: tuple[float, float] | None = None  # (predicted, applied) µm, last cycle
         self._link_down: set[str] = set()
         self._reverse_noted = False  # a negative (reverse) spindle speed was logged once
-        self._external_note = ""  # this cycle's external change, for the write status
-        #: The handshake count last written and answered (None: none, or unknown).
-        self._handshake_written: float | None = None
         #: The alive count the CNC last acknowledged (0: none yet).
         self.alive = 0
         self._alive_failing = False  # an alive write failed; logged once until one works
-        self._cnc_reached = False  # this cycle's read of the compensation macro was answered
         #: Machine time the cycle in progress (or the last one) was due at.
         self.due_s = 0.0
         #: How long after its due time that cycle started, s (the event loop's delay:
         #: the scheduler's tick, the loops released before it, any work holding the loop).
         self.start_late_s = 0.0
+
+    # --- counters and the primary axis ------------------------------------------------
+    @property
+    def primary(self) -> Axis:
+        """The first axis: the record's own fields, the probe, the online correction."""
+        return self.axes[0]
+
+    @property
+    def policy(self) -> CompensationPolicy | None:
+        return self.primary.policy
+
+    @property
+    def uncertainty_gate(self) -> UncertaintyGate:
+        return self.primary.uncertainty_gate
+
+    @property
+    def failed_writes(self) -> int:
+        """Failed writes of every axis, and of the alive count."""
+        return self._machine_failed_writes + sum(axis.failed_writes for axis in self.axes)
+
+    @property
+    def external_changes(self) -> int:
+        """External changes of every axis's macro, and of the handshake token."""
+        own = sum(axis.external_changes for axis in self.axes)
+        return own + self.handshake_token.external_changes
+
+    @property
+    def handshake(self) -> int:
+        """The handshake count last bumped."""
+        return self.handshake_token.count
 
     # --- one cycle ----------------------------------------------------------------------
     async def run_cycle(self) -> CycleRecord:
@@ -164,28 +224,12 @@ class MachineLoop:
         augmented_um = self.effects.advance(
             now, self.reference.available_rises_C(good_values), speed_rpm
         )
-
         selection = self.selector.update(now, speed_rpm) if speed_rpm is not None else None
+        regime = selection.regime if selection else None
         if selection is not None and selection.switched:
-            log.info(
-                "%s: regime %s → model %s (%s)",
-                self.config.id,
-                selection.regime,
-                selection.model_id,
-                selection.reason,
-            )
-        banked = self.bank.usable(selection.model_id if selection else None, good)
-        predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
-        rises = self.reference.available_rises_C(good_values)
-        suspect = self.plausibility.check_prediction(now, banked, rises, speed_rpm)
-        if suspect is not None:  # moved faster than heat can: not used; predict without it
-            checks[suspect.sensor] = self.quality.mark_implausible(suspect.sensor, suspect.reason)
-            good.discard(suspect.sensor)
-            good_values.pop(suspect.sensor, None)
-            banked = self.bank.usable(selection.model_id if selection else None, good)
-            predicted = self._predict(banked, good_values, speed_rpm, augmented_um)
-        self.plausibility.accept(now, self.reference.available_rises_C(good_values), speed_rpm)
-
+            self._log_switch(selection)
+        inputs = _Inputs(good, good_values, speed_rpm, augmented_um)
+        banked, predicted = self._checked_primary(now, regime, inputs, checks)
         record = CycleRecord(
             machine=self.config.id,
             time_s=now,
@@ -193,9 +237,9 @@ class MachineLoop:
             quality={n: c.quality.value for n, c in checks.items()},
             quality_reasons={n: c.reason for n, c in checks.items() if c.reason},
             speed_rpm=speed_rpm,
-            regime=selection.regime if selection else None,
-            model_id=banked.model_id if banked else None,
-            predicted_um=predicted,
+            regime=regime,
+            model_id=None,
+            predicted_um=None,
             target_um=None,
             applied_um=None,
             written_cnc=None,
@@ -204,20 +248,104 @@ class MachineLoop:
             stamp_s=stamp_s,
         )
         bad = sum(1 for c in checks.values() if c.quality is not Quality.GOOD)
-        interval = assess(
-            banked, predicted, self.reference.available_rises_C(good_values), speed_rpm, bad
-        )
-        record.interval_um = interval.half_width_um
-        record.training_span = interval.span
-        record.outside_inputs = interval.outside_inputs
-        corrected = self._corrected(now, banked, predicted, record)
-        await self._compensate(now, corrected, record)
+        aims = [
+            self._axis_aim(now, axis, regime, inputs, bad, banked, predicted) for axis in self.axes
+        ]
+        await self._compensate_axes(aims, record)
         await self._write_alive(record)
         await self._read_probe(record)
         self._online_update(now, predicted, record)
         self.cycles += 1
         self._deliver(record)
         return record
+
+    def _log_switch(self, selection: Selection) -> None:
+        if self.config.compensation.axes is None:
+            served = f"model {selection.model_id}"
+        else:
+            served = ", ".join(f"{a.name} {a.model_for(selection.regime)}" for a in self.axes)
+        log.info(
+            "%s: regime %s → %s (%s)", self.config.id, selection.regime, served, selection.reason
+        )
+
+    def _checked_primary(
+        self, now: float, regime: str | None, inputs: _Inputs, checks: dict[str, SensorCheck]
+    ) -> tuple[Banked | None, float | None]:
+        """The first axis's model and prediction, checked against the prediction rate bound
+        (:meth:`Plausibility.check_prediction`): a sensor whose own step moved it faster than
+        heat can is marked implausible for every axis, and the prediction made without it.
+        The other axes are predicted from the good sensors that remain."""
+        axis = self.primary
+        model_id = axis.model_for(regime)
+        banked = self.bank.usable(model_id, inputs.good, axis.target)
+        predicted = self._predict(banked, inputs)
+        rises = self.reference.available_rises_C(inputs.good_values)
+        suspect = self.plausibility.check_prediction(now, banked, rises, inputs.speed_rpm)
+        if suspect is not None:  # moved faster than heat can: not used; predict without it
+            checks[suspect.sensor] = self.quality.mark_implausible(suspect.sensor, suspect.reason)
+            inputs.good.discard(suspect.sensor)
+            inputs.good_values.pop(suspect.sensor, None)
+            banked = self.bank.usable(model_id, inputs.good, axis.target)
+            predicted = self._predict(banked, inputs)
+        self.plausibility.accept(
+            now, self.reference.available_rises_C(inputs.good_values), inputs.speed_rpm
+        )
+        return banked, predicted
+
+    def _axis_aim(
+        self,
+        now: float,
+        axis: Axis,
+        regime: str | None,
+        inputs: _Inputs,
+        bad: int,
+        primary: Banked | None,
+        primary_um: float | None,
+    ) -> tuple[Axis, AxisRecord, float | None]:
+        """One axis's model, prediction and interval; its aim (the first axis's with the
+        online correction added)."""
+        if axis is self.primary:
+            banked, predicted = primary, primary_um
+        else:
+            banked = self.bank.usable(axis.model_for(regime), inputs.good, axis.target)
+            predicted = self._predict(banked, inputs)
+        rec = AxisRecord(
+            axis=axis.name,
+            macro=axis.macro,
+            model_id=banked.model_id if banked else None,
+            predicted_um=predicted,
+        )
+        rises = self.reference.available_rises_C(inputs.good_values)
+        interval = assess(banked, predicted, rises, inputs.speed_rpm, bad)
+        rec.interval_um = interval.half_width_um
+        rec.training_span = interval.span
+        rec.outside_inputs = interval.outside_inputs
+        if axis is self.primary:
+            predicted = self._corrected(now, banked, predicted, rec)
+        return axis, rec, predicted
+
+    async def _compensate_axes(
+        self, aims: Sequence[tuple[Axis, AxisRecord, float | None]], record: CycleRecord
+    ) -> None:
+        """Every axis's write in the configured order, then one handshake bump if any was
+        confirmed; the record gets every axis (multi-axis) and the first axis's fields."""
+        comp = self.config.compensation
+        macros = [axis.macro for axis in self.axes]
+        self.handshake_token.new_cycle()
+        for axis, rec, aim in aims:
+            await axis.compensate(
+                aim, rec, self.handshake_token, self.compensation_enabled, comp.on_disable, macros
+            )
+        if any(axis.confirmed for axis in self.axes):
+            problem = await self.handshake_token.bump()
+            for axis, rec, _ in aims:
+                if problem and axis.confirmed:
+                    rec.write_status += f"; {problem}"
+        first = aims[0][1]
+        for name in _AXIS_FIELDS:
+            setattr(record, name, getattr(first, name))
+        if comp.axes is not None:
+            record.axes = {rec.axis: rec for _, rec, _ in aims}
 
     def _swap_promoted(self) -> None:
         """Between cycles: take a newly promoted (or rolled back) set into the bank.
@@ -311,137 +439,23 @@ class MachineLoop:
             log.info("%s: %s: recovered", self.config.id, source)
         self._link_down = set(failures)
 
-    def _predict(
-        self,
-        banked: Banked | None,
-        good_values: dict[str, float],
-        speed_rpm: float | None,
-        augmented_um: Mapping[str, float | None],
-    ) -> float | None:
+    def _predict(self, banked: Banked | None, inputs: _Inputs) -> float | None:
         if banked is None:
             return None
         if isinstance(banked, BankedAugmented):
-            return augmented_um[banked.model_id]  # stepped with this cycle's inputs above
+            return inputs.augmented_um[banked.model_id]  # stepped with this cycle's inputs
         sensors = tuple(banked.model.sensors_used_)
-        rises = self.reference.rises_C(good_values, sensors)
+        rises = self.reference.rises_C(inputs.good_values, sensors)
+        speed_rpm = inputs.speed_rpm
         if rises is None or (banked.model.uses_speed and speed_rpm is None):
             return None
-        inputs = ModelInputs(
+        model_inputs = ModelInputs(
             rise_C=np.array([rises]),
             sensors=sensors,
             speed_rpm=np.array([speed_rpm if speed_rpm is not None else 0.0]),
         )
-        value = float(banked.model.predict(inputs)[0])
+        value = float(banked.model.predict(model_inputs)[0])
         return value if math.isfinite(value) else None
-
-    # --- the write path -----------------------------------------------------------------
-    async def _compensate(self, now: float, predicted: float | None, record: CycleRecord) -> None:
-        """Read the macro, decide, write, read back: one macro read before any write.
-
-        Times given to the policy are taken at the CNC (after the read, right before
-        the write, after the read-back), not at the cycle start, so the slew limit
-        holds between writes as the CNC receives them, however late a slow
-        transmitter or link made a write.
-        """
-        comp = self.config.compensation
-        held, read_error = await self._read_held(comp.macro)
-        self._cnc_reached = held is not None
-        if self.policy is None:
-            if held is None:
-                record.write_status = f"waiting for the CNC: {read_error}"
-                return
-            self._start_policy(held)
-        elif held is not None:
-            self._observe_cnc(held, record)
-        policy = self.policy
-        assert policy is not None
-        record.applied_um = policy.applied_um
-        if not self.compensation_enabled and comp.on_disable == "hold":
-            policy.hold(self.clock.now())
-            held_text = "unknown" if held is None else f"{policy.applied_um:.1f} µm"
-            record.write_status = self._status(f"disabled: #{comp.macro} held at {held_text}")
-            return
-        write_s = self.clock.now()
-        predicted = self.uncertainty_gate.aim(predicted, record.interval_um, policy.applied_um)
-        record.uncertain = self.uncertainty_gate.active
-        decision = policy.decide(write_s, predicted, enabled=self.compensation_enabled)
-        record.target_um = decision.target_um
-        if not decision.write:
-            record.write_status = self._status(f"no write: {decision.reason}")
-            return
-        if held is None:  # what the CNC holds is unknown: never write blind
-            self._write_failed(write_s, f"not written: {read_error}", record)
-            return
-        await self._write(decision, record)
-
-    async def _write(self, decision: Decision, record: CycleRecord) -> None:
-        """Write the decided value unless the CNC's macro (read again right before) or the
-        handshake token changed since the cycle's read; read it back, confirm, handshake."""
-        comp = self.config.compensation
-        policy = self.policy
-        assert policy is not None
-        if not await self._handshake_is_ours(record):
-            return
-        try:
-            guarded = await self.cnc.write_macro_if(
-                comp.macro, decision.value_cnc, policy.holds_applied
-            )
-            if not guarded.written:  # changed since the cycle's read: the CNC's value stays
-                self._observe_cnc((self.clock.now(), guarded.held), record)
-                record.write_status = self._status(
-                    f"not written: #{comp.macro} changed at the CNC just before the write"
-                )
-                return
-            read_back = await self.cnc.read_macro(comp.macro)
-        except CncError as exc:
-            self._write_failed(self.clock.now(), f"write failed: {exc}", record)
-            return
-        confirmed_s = self.clock.now()
-        if not policy.same_on_cnc(read_back, decision.value_cnc):
-            self._write_failed(
-                confirmed_s,
-                f"read-back mismatch: wrote {decision.value_cnc}, CNC holds {read_back}",
-                record,
-            )
-            if math.isfinite(read_back):  # the CNC holds something else: that is the truth
-                self._observe_cnc((confirmed_s, read_back), record)
-                record.write_status = self._status(record.write_status)
-            return
-        policy.confirm(confirmed_s, policy.from_cnc(read_back))
-        record.applied_um = policy.applied_um
-        record.written_cnc = decision.value_cnc
-        record.write_status = self._status(f"ok: {decision.reason}")
-        await self._bump_handshake(record)
-
-    async def _bump_handshake(self, record: CycleRecord) -> None:
-        """After a confirmed write: the next handshake count, remembered as the token.
-
-        Written only over the count the gateway wrote last (read in the same session, as
-        #500 is): a reset that landed since the token was checked stays at the CNC, and
-        the next cycle's check sees it as any other reset.
-        """
-        macro = self.config.compensation.handshake_macro
-        if macro is None:
-            return
-        previous, self._handshake_written = self._handshake_written, None
-        self.handshake += 1
-        count = float(self.handshake)
-        try:
-            if previous is None:  # no count of the gateway's there to keep
-                await self.cnc.write_macro(macro, count)
-            else:
-                guarded = await self.cnc.write_macro_if(macro, count, lambda v: v == previous)
-                if not guarded.written:
-                    self._handshake_written = previous  # the next check finds the change
-                    record.write_status += (
-                        f"; handshake not written: #{macro} holds {guarded.held}, "
-                        f"changed at the CNC since the gateway wrote {previous}"
-                    )
-                    return
-        except CncError as exc:
-            record.write_status += f"; handshake failed: {exc}"
-            return
-        self._handshake_written = count
 
     async def _write_alive(self, record: CycleRecord) -> None:
         """The next alive count in ``compensation.alive_macro``: the gateway runs and
@@ -457,13 +471,13 @@ class MachineLoop:
         the CNC gets the count after the last one it had, none invented meanwhile.
         """
         macro = self.config.compensation.alive_macro
-        if macro is None or not self._cnc_reached:
+        if macro is None or not any(axis.reached for axis in self.axes):
             return
         count = next_alive_count(self.alive)
         try:
             await self.cnc.write_macro(macro, float(count))
         except (CncError, ValueError) as exc:  # ValueError: a macro the driver cannot map
-            self.failed_writes += 1
+            self._machine_failed_writes += 1
             note = f"alive count not written to #{macro}: {exc}"
             record.write_status = "; ".join(filter(None, [record.write_status, note]))
             if not self._alive_failing:
@@ -474,92 +488,6 @@ class MachineLoop:
         if self._alive_failing:
             self._alive_failing = False
             log.info("%s: alive count written to #%d again", self.config.id, macro)
-
-    async def _handshake_is_ours(self, record: CycleRecord) -> bool:
-        """The handshake macro as an ownership token: before writing again, it must
-        still hold the count the gateway wrote last. Anything else (an operator or a
-        CNC programme reset it) is an external change: this cycle writes nothing, and
-        the next one moves on from what the CNC holds and writes a new count. With no
-        count written yet (start, a failed handshake write) there is no token to check.
-        """
-        macro = self.config.compensation.handshake_macro
-        ours = self._handshake_written
-        if macro is None or ours is None:
-            return True
-        try:
-            value = await self.cnc.read_macro(macro)
-        except CncError as exc:
-            self._write_failed(self.clock.now(), f"not written: {exc}", record)
-            return False
-        if value == ours:
-            return True
-        self._handshake_written = None
-        self.external_changes += 1
-        note = f"external change: handshake macro #{macro} holds {value}, the gateway wrote {ours}"
-        self._external_note = "; ".join(filter(None, [self._external_note, note]))
-        log.warning(
-            "%s: %s; #%d is not written this cycle (external changes: %d)",
-            self.config.id,
-            note,
-            self.config.compensation.macro,
-            self.external_changes,
-        )
-        record.write_status = self._status("not written: the handshake is not the gateway's")
-        return False
-
-    def _status(self, text: str) -> str:
-        """``text``, prefixed with this cycle's external change if there was one."""
-        prefix, self._external_note = self._external_note, ""
-        return f"{prefix}; {text}" if prefix else text
-
-    async def _read_held(self, macro: int) -> tuple[tuple[float, float] | None, str]:
-        """(time read, value) of what the CNC macro holds, or None and why not."""
-        try:
-            value = await self.cnc.read_macro(macro)
-        except CncError as exc:
-            return None, f"CNC macro #{macro} not read: {exc}"
-        return (self.clock.now(), value), ""
-
-    def _observe_cnc(self, held: tuple[float, float], record: CycleRecord) -> None:
-        """Compare what the CNC holds with what the gateway applied; log a change once."""
-        assert self.policy is not None
-        read_s, value = held
-        change = self.policy.observe(read_s, value)
-        record.applied_um = self.policy.applied_um
-        if change is None:
-            return
-        self.external_changes += 1
-        note = (
-            f"external change: CNC macro #{self.config.compensation.macro} holds {value} "
-            f"({change.held_um:.1f} µm), the gateway had applied {change.believed_um:.1f} µm"
-        )
-        self._external_note = note
-        self._warn_never_written(value)
-        log.warning(
-            "%s: %s; compensation moves on from the CNC's value at the slew limit "
-            "(external changes: %d)",
-            self.config.id,
-            note,
-            self.external_changes,
-        )
-
-    def _warn_never_written(self, value: float) -> bool:
-        """Say so when the CNC holds a value the gateway would never write (beyond the
-        clamp, infinite): a typo at the control (1.0 typed in mm where µm was meant) or
-        a corrupted variable. The compensation moves from it within the clamp."""
-        assert self.policy is not None
-        why = self.policy.never_written(value)
-        if why is None:
-            return False
-        log.warning(
-            "%s: CNC macro #%d holds %r (%s): a value the gateway would never write; "
-            "compensation moves from it back within the clamp",
-            self.config.id,
-            self.config.compensation.macro,
-            value,
-            why,
-        )
-        return True
 
     async def _read_probe(self, record: CycleRecord) -> None:
         """The CNC's probe macro (µm): a new value is a measurement of the real error."""
@@ -575,7 +503,7 @@ class MachineLoop:
             record.probe_error_um = value
 
     def _corrected(
-        self, now: float, banked: Banked | None, predicted: float | None, record: CycleRecord
+        self, now: float, banked: Banked | None, predicted: float | None, record: AxisRecord
     ) -> float | None:
         """The prediction plus the online correction (bounded, decayed in silence).
 
@@ -621,31 +549,6 @@ class MachineLoop:
                 outcome.reason,
                 self.online.refused,
             )
-
-    def _start_policy(self, held: tuple[float, float]) -> None:
-        """The policy starts from what the CNC applies now (a vacant macro: 0)."""
-        _, value = held
-        limits = self.config.compensation.limits()
-        probe = CompensationPolicy(limits)
-        start_um = probe.from_cnc(value) if math.isfinite(value) else 0.0
-        self.policy = CompensationPolicy(limits, start_um=start_um)
-        if self._warn_never_written(value):
-            self.external_changes += 1
-        log.info(
-            "%s: CNC macro #%d holds %s; compensation starts from %.2f µm",
-            self.config.id,
-            self.config.compensation.macro,
-            value,
-            start_um,
-        )
-
-    def _write_failed(self, now: float, reason: str, record: CycleRecord) -> None:
-        assert self.policy is not None
-        self.policy.reject(now, reason)
-        self.failed_writes += 1
-        record.applied_um = self.policy.applied_um
-        record.write_status = self._status(reason)
-        log.warning("%s: %s (failed writes: %d)", self.config.id, reason, self.failed_writes)
 
     # --- running ------------------------------------------------------------------------
     async def run(

@@ -52,7 +52,7 @@ from simulator.record import DEFAULT_PROGRAMS, record
 from simulator.serve import SimulatedPlant, SimulatorConfig
 
 #: The axes the demo compensates, in write order (the first is the primary axis).
-DEMO_AXES: tuple[str, ...] = ("Z",)
+DEMO_AXES: tuple[str, ...] = ("Z", "X", "Y")
 
 TRAINING_REGIME = {
     name: ("constant" if name.startswith("const") else "variable") for name in DEFAULT_PROGRAMS
@@ -242,7 +242,10 @@ async def demo(
     write_trace(workdir / "trace.csv", closed.trace)
     _say_errors(result, workdir, f"{4 if effect is None else 5}/{steps}", say)
     if effect is None:
-        monitor_result = run_monitor_phase(store_dir, None, seed, version, say, 5, steps)
+        primary = store_dir
+        if tuple(axes) != ("Z",):
+            primary = _target_store(store_dir, targets["Z"], workdir / "models-z")
+        monitor_result = run_monitor_phase(primary, None, seed, version, say, 5, steps)
     assert monitor_result is not None
     result["monitor"] = monitor_result
     for key in ("without_probes", "online_correction", "after_promotion"):
@@ -258,6 +261,19 @@ def _clear_store(store_dir: Path) -> None:
         path.unlink()
     for folder in ("augmented", "proposals", "versions"):
         shutil.rmtree(store_dir / folder, ignore_errors=True)
+
+
+def _target_store(store_dir: Path, target: str, dest: Path) -> Path:
+    """``dest``: a store of ``target``'s models alone (copies of the signed files).
+
+    The residual monitor serves the primary axis, through a single-axis bank, which
+    takes the models of one target.
+    """
+    dest.mkdir(parents=True, exist_ok=True)
+    _clear_store(dest)
+    for path in store_dir.glob(f"mlr-{target}-*.json"):
+        shutil.copy2(path, dest / path.name)
+    return dest
 
 
 def _demo_plant(

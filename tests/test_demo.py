@@ -41,7 +41,7 @@ def test_demo_compensates_an_unseen_programme_and_reports_the_contract(tmp_path:
     assert axes["Z"]["compensated_peak_um"] == report["compensated_peak_um"]
     for axis in report["axes_compensated"]:
         figures = axes[axis]
-        assert figures["compensated_rmse_um"] < 0.35 * figures["uncompensated_rmse_um"], axis
+        assert figures["compensated_rmse_um"] < 0.5 * figures["uncompensated_rmse_um"], axis
     assert "per axis, RMS and max |error| at the tool" in result.stdout
     # The next day: with no hidden effect the online correction has nothing to take out,
     # and the demo says why, with the figures that show it.

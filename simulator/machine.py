@@ -6,7 +6,10 @@ write to (``write_macro``, see :mod:`simulator.link`). Closed loop: the value a
 client writes to the compensation macro (default #500, in mm) shifts the tool,
 so the measured error is
 
-    error = Z growth − sign · #500 · (µm per CNC unit) + probe noise.
+    error = Z growth − sign · #500 · (µm per CNC unit) + probe noise,
+
+and the same per X/Y axis (``axes`` in machine.yaml, :mod:`simulator.axes`): that
+axis's growth minus its own compensation macro (#502 for X, #504 for Y by default).
 
 With ``ageing`` (machine.yaml) the Z growth also drifts over machine days: the
 bearing's share scaled by 1 + preload_gain_per_day · days, plus
@@ -27,6 +30,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
+from simulator.axes import AxisFaces
 from simulator.effects import HiddenEffects
 from simulator.faults import SensorFault
 from simulator.link import (
@@ -37,8 +41,8 @@ from simulator.link import (
     RunMode,
     check_macro_number,
 )
-from simulator.noise import PROBE, SENSORS, MachineNoise
-from simulator.params import NODES, MachineParams
+from simulator.noise import PROBE, SENSORS, MachineNoise, axis_probe_stream
+from simulator.params import NODES, Compensation, MachineParams
 from simulator.programs import SpeedProgram
 from simulator.thermal import ThermalNetwork
 
@@ -75,6 +79,7 @@ class SimulatedMachine:
         self.sensors_C = self.mix @ self.nodes_C
         self.ambient_decay = math.exp(-params.sub_step_s / params.ambient_sensor.lag_s)
         self.ambient_sensor_C = params.ambient_C
+        self.faces = AxisFaces(params.axes, params.sub_step_s, params.ambient_C)
         self.macros: dict[int, float] = dict.fromkeys(range(MACRO_FIRST, MACRO_LAST + 1), 0.0)
         self.faults: list[SensorFault] = []
         self.probe_error_um: float | None = None
@@ -111,6 +116,7 @@ class SimulatedMachine:
         air[NODES.index("column")] = room
         self.nodes_C = self.network.step(self.nodes_C, speed, air, coolant)
         self.effects.advance_lag(self.nodes_C[NODES.index("shaft")], h)
+        self.faces.step(self.nodes_C)
         self.sensors_C = self.sensor_decay * self.sensors_C + (1 - self.sensor_decay) * (
             self.mix @ self.nodes_C
         )
@@ -123,6 +129,8 @@ class SimulatedMachine:
             self._next_probe_s += self.params.probe.period_s
             self.probe_error_um = self.measured_error_um()
             self.macros[self.params.probe.macro] = self.probe_error_um
+            for name, axis in self.params.axes.items():
+                self.macros[axis.probe_macro] = self.axis_measured_error_um(name)
 
     # --- physics read-outs ------------------------------------------------------------
     def growth_um(self) -> float:
@@ -154,8 +162,40 @@ class SimulatedMachine:
         return 1.0 + self.params.ageing.preload_gain_per_day * self.age_days
 
     def applied_compensation_um(self) -> float:
-        comp = self.params.compensation
+        return self._applied_um(self.params.compensation)
+
+    def _applied_um(self, comp: Compensation) -> float:
         return comp.sign * self.macros[comp.macro] * comp.um_per_unit
+
+    # --- X and Y ----------------------------------------------------------------------
+    def axis_growth_um(self, axis: str) -> float:
+        """Growth along ``axis`` (µm) before compensation; ``Z`` is :meth:`growth_um`."""
+        if axis == "Z":
+            return self.growth_um()
+        return self.faces.growth_um()[self._axis(axis)]
+
+    def axis_true_error_um(self, axis: str) -> float:
+        """Error along ``axis`` at the tool after that axis's compensation, without noise."""
+        if axis == "Z":
+            return self.true_error_um()
+        return self.axis_growth_um(axis) - self._applied_um(self.params.axes[axis].compensation)
+
+    def axis_measured_error_um(self, axis: str) -> float:
+        """What the probe measures along ``axis``: its true error plus its own probe noise."""
+        if axis == "Z":
+            return self.measured_error_um()
+        noise = self.noise.normal(axis_probe_stream(axis), self.sample_index, 1)[0]
+        return self.axis_true_error_um(axis) + float(noise) * self.params.probe.noise_um
+
+    @property
+    def axis_names(self) -> tuple[str, ...]:
+        """Every axis with a growth: Z, then the X/Y axes of the parameters in order."""
+        return ("Z", *self.params.axes)
+
+    def _axis(self, axis: str) -> str:
+        if axis not in self.params.axes:
+            raise ValueError(f"no axis '{axis}' (axes: {', '.join(self.axis_names)})")
+        return axis
 
     def true_error_um(self) -> float:
         """Error at the tool after the CNC applied the compensation, without probe noise."""

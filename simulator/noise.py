@@ -18,7 +18,8 @@ same seed and programme see the same noise.
 
 Streams: ``SENSORS`` gives one value per transmitter channel, in the machine's
 channel order (the sensors of ``machine.yaml``, then the ambient sensor);
-``PROBE`` gives the probe's measurement noise.
+``PROBE`` gives the probe's measurement noise in Z, :func:`axis_probe_stream` in
+X or Y (a stream of its own per axis, so adding an axis leaves Z's noise alone).
 """
 
 from __future__ import annotations
@@ -29,6 +30,12 @@ SENSORS = 0
 PROBE = 1
 
 _WORD = (1 << 64) - 1
+_AXIS_PROBES = 0x100
+
+
+def axis_probe_stream(axis: str) -> int:
+    """The probe-noise stream of axis ``axis`` (one letter): fixed by its name."""
+    return _AXIS_PROBES + ord(axis)
 
 
 class MachineNoise:

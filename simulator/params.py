@@ -7,6 +7,7 @@ bad value is refused with the file, the line and the key path.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -44,12 +45,17 @@ class Sensor(Strict):
     @field_validator("mix")
     @classmethod
     def _weights(cls, mix: dict[str, float]) -> dict[str, float]:
-        unknown = set(mix) - set(NODES)
-        if unknown:
-            raise ValueError(f"unknown node(s) {sorted(unknown)}; nodes are {list(NODES)}")
-        if abs(sum(mix.values()) - 1.0) > 1e-9 or min(mix.values()) < 0:
-            raise ValueError(f"weights must be ≥ 0 and sum to 1, got {mix}")
-        return mix
+        return node_weights(mix)
+
+
+def node_weights(mix: dict[str, float]) -> dict[str, float]:
+    """A mix of the network's nodes: known nodes, weights ≥ 0 summing to 1."""
+    unknown = set(mix) - set(NODES)
+    if unknown:
+        raise ValueError(f"unknown node(s) {sorted(unknown)}; nodes are {list(NODES)}")
+    if abs(sum(mix.values()) - 1.0) > 1e-9 or min(mix.values()) < 0:
+        raise ValueError(f"weights must be ≥ 0 and sum to 1, got {mix}")
+    return mix
 
 
 class AmbientSensor(Strict):
@@ -90,6 +96,39 @@ class Compensation(Strict):
     @property
     def um_per_unit(self) -> float:
         return 1000.0 if self.unit == "mm" else 1.0
+
+
+AXIS_NAME = re.compile(r"^[XY]$")
+
+
+class AxisFace(Strict):
+    """One face of the head or column: a first-order lag of a mix of the network's nodes."""
+
+    mix: dict[str, float]
+    tau_s: float = Field(gt=0)
+
+    @field_validator("mix")
+    @classmethod
+    def _weights(cls, mix: dict[str, float]) -> dict[str, float]:
+        return node_weights(mix)
+
+
+class AxisGrowth(Strict):
+    """A growth across the machine (X or Y): ``um_per_K`` × (hot face − cold face).
+
+    The two faces lag the network's nodes with their own mixes and time constants,
+    so the growth follows a temperature *difference*, not the Z growth's sum of rises.
+    ``column`` names its error column in recordings (``*_um``); the CNC takes its
+    compensation at ``compensation.macro`` and the probe publishes its measured
+    error at ``probe_macro``.
+    """
+
+    column: str = Field(pattern=r"^[a-z][a-z0-9_]*_um$")
+    um_per_K: float
+    hot_face: AxisFace
+    cold_face: AxisFace
+    compensation: Compensation
+    probe_macro: int = Field(ge=500, le=999)
 
 
 class ThermalLag(Strict):
@@ -143,6 +182,7 @@ class MachineParams(Strict):
     compensation: Compensation
     effects: Effects
     ageing: Ageing = Ageing()
+    axes: dict[str, AxisGrowth] = Field(default_factory=dict)
     sub_step_s: float = Field(gt=0, le=60)
 
     @model_validator(mode="after")
@@ -161,7 +201,22 @@ class MachineParams(Strict):
             raise ValueError(
                 f"growth_um_per_K: unknown nodes {set(self.growth_um_per_K) - set(NODES)}"
             )
+        self._axes_distinct()
         return self
+
+    def _axes_distinct(self) -> None:
+        """Axis names X/Y; no two axes (nor Z) share a column, a compensation or probe macro."""
+        columns, macros = {"error_um"}, {self.compensation.macro, self.probe.macro}
+        for name, axis in self.axes.items():
+            if not AXIS_NAME.match(name):
+                raise ValueError(f"axes: '{name}': expected X or Y (Z is growth_um_per_K)")
+            if axis.column in columns:
+                raise ValueError(f"axes.{name}.column: '{axis.column}' is already used")
+            for macro in (axis.compensation.macro, axis.probe_macro):
+                if macro in macros:
+                    raise ValueError(f"axes.{name}: macro #{macro} is already used")
+                macros.add(macro)
+            columns.add(axis.column)
 
 
 def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:

@@ -7,6 +7,9 @@ test days would be. Like a real thermal test, every run opens with
 starts: the readings the probe is zeroed on. Rows are sampled every
 ``sample_s`` seconds; temperatures are written at the transmitters' register
 resolution (0.1 °C) and the error at 0.01 µm. The same seed gives the same bytes.
+
+The Z error is ``error_um``; each X/Y axis of the parameters adds its own error
+column after it (``x_um``, ``y_um`` by default), measured by the same probe.
 """
 
 from __future__ import annotations
@@ -43,14 +46,16 @@ class Recording:
         out = io.StringIO()
         out.write(",".join(self.header) + "\n")
         for row in self.rows:
-            run, time_s, speed, *temps, ambient, error = row
+            errors = len(self.header) - self.header.index("error_um")
+            run, time_s, speed, *temps = row[:-errors]
+            *temps, ambient = temps
             cells = [
                 run,
                 f"{time_s:.0f}",
                 f"{speed:.0f}",
                 *(f"{t:.1f}" for t in temps),
                 f"{ambient:.1f}",
-                f"{error:.2f}",
+                *(f"{error:.2f}" for error in row[-errors:]),
             ]
             out.write(",".join(cells) + "\n")
         return out.getvalue()
@@ -85,7 +90,9 @@ def record(
         )
     seeds = np.random.SeedSequence(seed).spawn(len(programs))
     sensors = tuple(params.sensors)
-    header = ("run", "time_s", "speed_rpm", *sensors, "ambient_C", "error_um")
+    axes = tuple(params.axes)
+    errors = ("error_um", *(params.axes[a].column for a in axes))
+    header = ("run", "time_s", "speed_rpm", *sensors, "ambient_C", *errors)
     rows: list[tuple] = []
     for run, programme, child in zip(run_ids(programs), programs, seeds, strict=True):
         program = SpeedProgram(programme.name, ((REST_BEFORE_S, 0.0), *programme.segments))
@@ -102,6 +109,7 @@ def record(
                     *(readings[name].value_C for name in sensors),
                     readings[AMBIENT_CHANNEL].value_C,
                     machine.measured_error_um(),
+                    *(machine.axis_measured_error_um(a) for a in axes),
                 )
             )
     return Recording(header, rows)

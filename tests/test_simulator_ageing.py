@@ -169,8 +169,9 @@ def soak_errors(ageing: dict | None, days: float = 4.0) -> tuple[np.ndarray, np.
     """(time_s, error_um) of a constant-4000 r/min run over ``days``, sampled hourly."""
     params = PARAMS if ageing is None else load_params({"ageing": ageing})
     soak = SpeedProgram("soak", ((days * DAY_S, 4000.0),))
-    rows = record(params, [soak], seed=9, sample_s=3600.0).rows
-    return np.array([r[1] for r in rows]), np.array([r[-1] for r in rows])
+    recording = record(params, [soak], seed=9, sample_s=3600.0)
+    error = recording.header.index("error_um")
+    return np.array([r[1] for r in recording.rows]), np.array([r[error] for r in recording.rows])
 
 
 def test_coolant_offset_grows_by_its_rate_per_machine_day() -> None:
@@ -233,8 +234,9 @@ def test_ageing_from_a_params_file_on_the_cli(tmp_path: Path) -> None:
         "--sample-s", 300, "--params", params,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr
-    table = np.loadtxt(aged, delimiter=",", skiprows=1, usecols=(1, -1))
-    golden = np.loadtxt(GOLDEN, delimiter=",", skiprows=1, usecols=(1, -1))
+    error = GOLDEN.read_text(encoding="utf-8").splitlines()[0].split(",").index("error_um")
+    table = np.loadtxt(aged, delimiter=",", skiprows=1, usecols=(1, error))
+    golden = np.loadtxt(GOLDEN, delimiter=",", skiprows=1, usecols=(1, error))
     np.testing.assert_array_equal(table[:, 0], golden[:, 0])
     expected = 0.5 * (30.0 + table[:, 0] / DAY_S)
     np.testing.assert_allclose(table[:, 1] - golden[:, 1], expected, atol=0.011)

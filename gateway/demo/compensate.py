@@ -2,15 +2,16 @@
 
 1. Record training runs on the simulated machine (paper 002's six programmes:
    three speed spectra, three constant speeds), labelled by regime.
-2. Fit models: one per regime (``variable``, ``constant``), one on all runs,
-   and one without each sensor (fallbacks for sensor faults).
+2. Fit models for each axis's error column (Z ``error_um``, X ``x_um``, Y ``y_um``):
+   one per regime (``variable``, ``constant``), one on all runs, and one without
+   each sensor (fallbacks for sensor faults).
 3. Serve the machine over its protocols (Modbus TCP transmitters, an OPC UA
    CNC) and run the gateway's compensation loop against it on an accelerated
    clock, through a random production programme the fit never saw.
-4. Report the thermal error at the tool with and without compensation. The
-   "without" error is the machine's own Z growth over the same run (what the
-   tool would see if the macro stayed at 0); the "with" error is growth minus
-   the compensation the CNC applied.
+4. Report the thermal error at the tool with and without compensation, per
+   axis. The "without" error is the machine's own growth along the axis over the
+   same run (what the tool would see if the macro stayed at 0); the "with" error
+   is growth minus the compensation the CNC applied to that axis.
 
 The plant–loop pairing (:class:`simulator.closed_loop.ClosedLoop`) lives in the
 simulator, so the integration tests step the same pairing cycle by cycle on a
@@ -34,6 +35,7 @@ from gateway.config import (
     MonitorSection,
     OnlineCorrectionSection,
 )
+from gateway.demo.axis_table import axis_table
 from gateway.live.loop import MachineLoop
 from gateway.live.record import Sink
 from gateway.outputs.sinks import Outputs
@@ -49,6 +51,9 @@ from simulator.programs import program_by_name
 from simulator.record import DEFAULT_PROGRAMS, record
 from simulator.serve import SimulatedPlant, SimulatorConfig
 
+#: The axes the demo compensates, in write order (the first is the primary axis).
+DEMO_AXES: tuple[str, ...] = ("Z", "X", "Y")
+
 TRAINING_REGIME = {
     name: ("constant" if name.startswith("const") else "variable") for name in DEFAULT_PROGRAMS
 }
@@ -63,14 +68,34 @@ def write_training_data(path: Path, seed: int) -> None:
     path.write_text("\n".join(rows) + "\n", encoding="utf-8")
 
 
-def fit_models(training_csv: Path, store_dir: Path, version: str) -> list[str]:
+def axis_targets() -> dict[str, str]:
+    """Each axis's error column in the simulated machine's recordings (Z: ``error_um``)."""
+    params = load_params()
+    return {"Z": "error_um", **{name: axis.column for name, axis in params.axes.items()}}
+
+
+def axis_macros() -> dict[str, int]:
+    """The macro through which the simulated CNC applies each axis's compensation."""
+    params = load_params()
+    return {
+        "Z": params.compensation.macro,
+        **{name: axis.compensation.macro for name, axis in params.axes.items()},
+    }
+
+
+def fit_models(
+    training_csv: Path, store_dir: Path, version: str, targets: Sequence[str] = ("error_um",)
+) -> list[str]:
+    """Per error column: the per-regime models, the model of all runs, the sensor fallbacks."""
     store = ModelStore(store_dir)
-    prepared = prepare(load_runs(training_csv))
-    saved = fit_and_store(
-        prepared, "mlr", store, regime_column="regime", software_version=version
-    ).saved
-    saved |= fit_and_store(prepared, "mlr", store, software_version=version).saved
-    saved |= fit_sensor_fallbacks(prepared, "mlr", store, software_version=version)
+    saved: dict[str, Path] = {}
+    for target in targets:
+        prepared = prepare(load_runs(training_csv, target=target))
+        saved |= fit_and_store(
+            prepared, "mlr", store, regime_column="regime", software_version=version
+        ).saved
+        saved |= fit_and_store(prepared, "mlr", store, software_version=version).saved
+        saved |= fit_sensor_fallbacks(prepared, "mlr", store, software_version=version)
     return sorted(saved)
 
 
@@ -80,30 +105,46 @@ def machine_config(
     transmitters: list[dict[str, Any]],
     cnc: dict[str, Any],
     cycle_s: float,
+    axes: Sequence[str] = ("Z",),
 ) -> MachineSection:
-    """The demo machine: per-regime models with the whole-run model as fallback."""
+    """The demo machine: per-regime models with the whole-run model as fallback.
+
+    ``("Z",)`` is the single-axis form (today's ``compensation.macro``); more axes give
+    ``compensation.axes``, each with its own macro, error column and models.
+    """
+    write = {"unit": "mm", "clamp_um": 50.0, "slew_um_per_min": 20.0}
+    regimes: dict[str, Any] = {"window_s": 1200, "constant_tolerance_rpm": 100, "min_dwell_s": 600}
+    compensation: dict[str, Any] = dict(write)
+    if tuple(axes) == ("Z",):
+        compensation["macro"] = 500
+        regimes |= axis_models("error_um")
+    else:
+        targets, macros = axis_targets(), axis_macros()
+        compensation = {
+            "axes": {
+                axis: {"macro": macros[axis], "target": targets[axis], **write}
+                | axis_models(targets[axis])
+                for axis in axes
+            }
+        }
     return MachineSection.model_validate(
         {
             "id": "vmc-demo",
             "cycle_s": cycle_s,
             "transmitters": transmitters,
             "cnc": cnc,
-            "compensation": {"macro": 500, "unit": "mm", "clamp_um": 50.0, "slew_um_per_min": 20.0},
-            "models": {
-                "store": str(store_dir),
-                "regimes": {
-                    "window_s": 1200,
-                    "constant_tolerance_rpm": 100,
-                    "min_dwell_s": 600,
-                    "models": {
-                        "variable": "mlr-error_um-variable",
-                        "constant": "mlr-error_um-constant",
-                    },
-                    "fallback_model": "mlr-error_um-all",
-                },
-            },
+            "compensation": compensation,
+            "models": {"store": str(store_dir), "regimes": regimes},
         }
     )
+
+
+def axis_models(target: str) -> dict[str, Any]:
+    """The regime → model map and fallback of the models fitted for ``target``."""
+    return {
+        "models": {"variable": f"mlr-{target}-variable", "constant": f"mlr-{target}-constant"},
+        "fallback_model": f"mlr-{target}-all",
+    }
 
 
 async def open_loop(
@@ -144,19 +185,29 @@ async def demo(
     version: str = "unknown",
     say: Any = print,
     effect: str | None = None,
+    axes: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """The demo of the module docstring; with ``effect``, the machine hides that effect
     (the training runs do not have it, so the models lack it), and before the
-    compensated run the residual monitor finds it and its proposal is promoted."""
+    compensated run the residual monitor finds it and its proposal is promoted.
+
+    ``axes``: the axes compensated (default :data:`DEMO_AXES`; Z alone with ``effect``,
+    whose monitor and promotion serve the primary axis)."""
+    if axes is None:
+        axes = ("Z",) if effect is not None else DEMO_AXES
     workdir.mkdir(parents=True, exist_ok=True)
     training = workdir / "training.csv"
     store_dir = workdir / "models"
     steps = 5
     say(f"1/{steps} recording six training runs on the simulated machine → {training}")
     write_training_data(training, seed)
-    say(f"2/{steps} fitting models (per regime, all runs, one without each sensor) → {store_dir}")
+    targets = {axis: target for axis, target in axis_targets().items() if axis in axes}
+    say(
+        f"2/{steps} fitting models for {', '.join(f'{a} ({t})' for a, t in targets.items())}: "
+        f"per regime, all runs, one without each sensor → {store_dir}"
+    )
     _clear_store(store_dir)
-    models = fit_models(training, store_dir, version)
+    models = fit_models(training, store_dir, version, tuple(targets.values()))
     main_models = ", ".join(m for m in models if "without" not in m)
     say(f"    {len(models)} models: {main_models}, and one without each sensor")
     monitor_result = None
@@ -166,13 +217,13 @@ async def demo(
     clock = AcceleratedClock(speedup)
     unseen = program_by_name(program)
     plant = _demo_plant(program, seed, effect, speedup, clock)
-    machine = _demo_machine(plant, store_dir, cycle_s, effect)
+    machine = _demo_machine(plant, store_dir, cycle_s, effect, axes)
     hours = unseen.duration_s / 3600.0
     with_what = "" if effect is None else ", the promoted model and the online correction"
     say(
-        f"{3 if effect is None else 4}/{steps} compensating programme '{program}' (not in the "
-        f"training data{with_what}, {hours:.1f} h of machine time at ×{speedup:g}: about "
-        f"{unseen.duration_s / speedup:.0f} s)"
+        f"{3 if effect is None else 4}/{steps} compensating {', '.join(axes)} through programme "
+        f"'{program}' (not in the training data{with_what}, {hours:.1f} h of machine time at "
+        f"×{speedup:g}: about {unseen.duration_s / speedup:.0f} s)"
     )
     closed = await _compensate(plant, machine, clock, workdir, unseen.duration_s)
     result: dict[str, Any] = dict(closed.trace.summary())
@@ -184,12 +235,17 @@ async def demo(
             "regime_switches": [list(s) for s in closed.loop.selector.switches],
             "failed_writes": closed.loop.failed_writes,
             "models_used": sorted({r.model_id for r in closed.trace.records if r.model_id}),
+            "axes_compensated": list(axes),
+            "axes": closed.trace.axis_summary(),
         }
     )
     write_trace(workdir / "trace.csv", closed.trace)
     _say_errors(result, workdir, f"{4 if effect is None else 5}/{steps}", say)
     if effect is None:
-        monitor_result = run_monitor_phase(store_dir, None, seed, version, say, 5, steps)
+        primary = store_dir
+        if tuple(axes) != ("Z",):
+            primary = _target_store(store_dir, targets["Z"], workdir / "models-z")
+        monitor_result = run_monitor_phase(primary, None, seed, version, say, 5, steps)
     assert monitor_result is not None
     result["monitor"] = monitor_result
     for key in ("without_probes", "online_correction", "after_promotion"):
@@ -205,6 +261,19 @@ def _clear_store(store_dir: Path) -> None:
         path.unlink()
     for folder in ("augmented", "proposals", "versions"):
         shutil.rmtree(store_dir / folder, ignore_errors=True)
+
+
+def _target_store(store_dir: Path, target: str, dest: Path) -> Path:
+    """``dest``: a store of ``target``'s models alone (copies of the signed files).
+
+    The residual monitor serves the primary axis, through a single-axis bank, which
+    takes the models of one target.
+    """
+    dest.mkdir(parents=True, exist_ok=True)
+    _clear_store(dest)
+    for path in store_dir.glob(f"mlr-{target}-*.json"):
+        shutil.copy2(path, dest / path.name)
+    return dest
 
 
 def _demo_plant(
@@ -238,7 +307,11 @@ def _demo_plant(
 
 
 def _demo_machine(
-    plant: SimulatedPlant, store_dir: Path, cycle_s: float, effect: str | None
+    plant: SimulatedPlant,
+    store_dir: Path,
+    cycle_s: float,
+    effect: str | None,
+    axes: Sequence[str] = ("Z",),
 ) -> MachineSection:
     """The gateway's configuration of that machine, over its protocols."""
     assert plant.tcp_transmitters is not None and plant.cnc_opcua is not None
@@ -257,6 +330,7 @@ def _demo_machine(
         ],
         cnc={"opcua": {"endpoint": plant.cnc_opcua.endpoint, "timeout_s": 2.0}},
         cycle_s=cycle_s,
+        axes=axes,
     )
     if effect is None:
         return machine
@@ -302,7 +376,7 @@ async def _compensate(
 
 def _say_errors(result: dict[str, Any], workdir: Path, step: str, say: Any) -> None:
     """The thermal error at the tool with and without compensation, and where it is logged."""
-    say(f"{step} thermal error at the tool (µm), over the protocols:")
+    say(f"{step} thermal error at the tool in Z (µm), over the protocols:")
     for label, key in (
         ("without compensation", "uncompensated"),
         ("with compensation", "compensated"),
@@ -310,6 +384,9 @@ def _say_errors(result: dict[str, Any], workdir: Path, step: str, say: Any) -> N
         peak, rmse = result[f"{key}_peak_um"], result[f"{key}_rmse_um"]
         say(f"    {label:22s} peak {peak:6.2f}   RMSE {rmse:6.2f}")
     say(f"    peak reduced by {result['reduction_pct']:.1f} % over {result['cycles']} cycles")
+    say("    per axis, RMS and max |error| at the tool (µm):")
+    for line in axis_table(result["axes"], result["axes_compensated"]):
+        say(line)
     say(f"    per-cycle trace: {workdir / 'trace.csv'}")
     say(f"    every cycle logged to the local store {workdir / 'points.sqlite'}")
 
@@ -353,6 +430,9 @@ def run_monitor_phase(
 
 
 def write_trace(path: Path, trace: Trace) -> None:
+    """One row per cycle; Z's columns first, then each other axis's pair
+    (``uncompensated_x_um``, ``compensated_x_um``, …)."""
+    others = [axis for axis in trace.axes_um if axis != "Z"]
     with path.open("w", newline="", encoding="utf-8") as out:
         writer = csv.writer(out)
         writer.writerow(
@@ -366,10 +446,21 @@ def write_trace(path: Path, trace: Trace) -> None:
                 "uncompensated_um",
                 "compensated_um",
                 "write_status",
+                *(
+                    f"{kind}_{axis.lower()}_um"
+                    for axis in others
+                    for kind in ("uncompensated", "compensated")
+                ),
             ]
         )
-        for t, without, with_, rec in zip(
-            trace.time_s, trace.uncompensated_um, trace.compensated_um, trace.records, strict=True
+        for k, (t, without, with_, rec) in enumerate(
+            zip(
+                trace.time_s,
+                trace.uncompensated_um,
+                trace.compensated_um,
+                trace.records,
+                strict=True,
+            )
         ):
             writer.writerow(
                 [
@@ -384,5 +475,6 @@ def write_trace(path: Path, trace: Trace) -> None:
                     f"{without:.2f}",
                     f"{with_:.2f}",
                     rec.write_status,
+                    *(f"{trace.axes_um[axis][i][k]:.2f}" for axis in others for i in (0, 1)),
                 ]
             )

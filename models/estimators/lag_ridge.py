@@ -19,7 +19,8 @@ one on the speed terms, a ridge with one penalty on every term, a lasso on the
 sensors and their 30 min lags, a lasso on the sensors and the speed powers with their
 30 min lags whose intercept is held at 0 µm),
 by a doubly nested leave-one-run-out, each run that continues a recording scored as
-a new recording too (its cold start, :func:`with_cold_starts`), so the choice holds
+the opening of a new recording carried on through the runs after it too (its cold start,
+:func:`with_cold_starts`), so the choice holds
 on a later file (above 10 training runs the inner folds are
 5 folds of consecutive runs, :func:`models.estimators.ridge_pls.inner_groups`). The
 chosen structures are stacked with weights on the simplex (a weight of 1 is one
@@ -459,8 +460,8 @@ class LagRidgeModel(ThermalModel):
                     "errors over the training runs, each run predicted by every structure "
                     "fitted on the other training runs with its penalty chosen on those "
                     "alone: as the recording carried it, and as a new recording (its own "
-                    "cold reference, lags from its first sample) for each run that "
-                    "continues a recording"
+                    "cold reference, lags from its first sample) opened at each run that "
+                    "continues a recording and carried on to the recording's end"
                     if self.inner_rmse_um_
                     else "the only candidate"
                 ),

@@ -19,7 +19,8 @@ one on the speed terms, a ridge with one penalty on every term, a lasso on the
 sensors and their 30 min lags, a lasso on the sensors and the speed powers with their
 30 min lags whose intercept is held at 0 µm),
 by a doubly nested leave-one-run-out, each run that continues a recording scored as
-a new recording too (its cold start, :func:`with_cold_starts`), so the choice holds
+the opening of a new recording carried on through the runs after it too (its cold start,
+:func:`with_cold_starts`), so the choice holds
 on a later file (above 10 training runs the inner folds are
 5 folds of consecutive runs, :func:`models.estimators.ridge_pls.inner_groups`). The
 chosen structures are stacked with weights on the simplex (a weight of 1 is one
@@ -217,17 +218,20 @@ def candidate_paths(
 def with_cold_starts(
     inputs: ModelInputs, y: np.ndarray, labels: np.ndarray
 ) -> tuple[ModelInputs, np.ndarray, np.ndarray, np.ndarray | None]:
-    """``inputs`` and ``y`` with a cold start of every training run that continues a
-    recording appended: (inputs, y, labels, cold), the appended rows labelled −1 (never
-    fitted on) and marked in ``cold`` with their run's group (−1 elsewhere).
+    """``inputs`` and ``y`` with the cold starts of the training runs appended: (inputs, y,
+    labels, cold), the appended rows labelled −1 (never fitted on) and marked in ``cold``
+    with the group of the run they copy (−1 elsewhere, and on a copied row left out).
 
-    A cold start is the run as a gateway meets it on a new recording: its rises taken
-    from its own reference rows (:func:`models.data.references.reference_rows`), every lag
-    started at its first sample, its error from an origin of its own where its at-rest
-    lead-in reads more than 1 µm (:func:`models.data.references.error_origins`). Scoring
-    each structure on these too makes the choice one that holds on a later recording,
-    where a term that leans on the history of one long recording (a 24 h lag) fails.
-    Runs that open a recording, and runs with rows left out, are not copied.
+    A cold start is a new recording opened at a training run that continues a recording,
+    as a gateway meets a later file: from that run on to the end of the recording, its
+    rises taken from that run's own reference rows
+    (:func:`models.data.references.reference_rows`), every lag started at its first
+    sample, its error from an origin of its own where its at-rest lead-in reads more than
+    1 µm (:func:`models.data.references.error_origins`). The new recording is carried on
+    through the runs after it, as a later file of several runs is: a lag that leans on
+    the history of the one long recording (a 24 h lag) fails there, and more so in the
+    second run after the start than in the first. Runs that open a recording, and runs
+    with rows left out, start no copy (a copy runs through a left-out run unscored).
     """
     if inputs.run_index is None or inputs.time_s is None:
         return inputs, y, labels, None
@@ -235,30 +239,40 @@ def with_cold_starts(
     run = inputs.run_index
     opening = np.isin(run, run[first_rows(recording)])
     partial = np.isin(run, run[labels < 0])
-    copied = ~opening & ~partial
-    if not copied.any():
+    starts = first_rows(run)[~opening & ~partial]
+    starts = np.unique(starts)
+    if starts.size == 0:
         return inputs, y, labels, None
-    part = inputs.take(copied)
-    runs = part.run_index
-    assert runs is not None and part.time_s is not None  # a mix scored on runs has both
-    position = np.unique(runs, return_inverse=True)[1]
-    reference = reference_rows(position, part.time_s, part.speed_rpm)
-    rise = part.rise_C.copy()
-    for k in range(position.max() + 1):
-        own = position == k
-        rise[own] -= rise[own & reference].mean(axis=0)
-    y_cold = y[copied] - error_origins(y[copied], position, reference, part.speed_rpm)[position]
+    parts: list[ModelInputs] = []
+    rises, targets, colds = [], [], []
+    row = np.arange(inputs.n_samples)
+    for start in starts:
+        copied = (recording == recording[start]) & (row >= start)
+        part = inputs.take(copied)
+        assert part.time_s is not None  # a mix scored on runs has its times
+        one = np.zeros(part.n_samples, dtype=int)
+        reference = reference_rows(one, part.time_s, part.speed_rpm)
+        rises.append(part.rise_C - part.rise_C[reference].mean(axis=0))
+        targets.append(y[copied] - error_origins(y[copied], one, reference, part.speed_rpm)[0])
+        colds.append(labels[copied])
+        parts.append(part)
     offset = int(run.max()) + 1
+    first_recording = int(recording.max()) + 1
     joined = ModelInputs(
-        rise_C=np.vstack([inputs.rise_C, rise]),
+        rise_C=np.vstack([inputs.rise_C, *rises]),
         sensors=inputs.sensors,
-        speed_rpm=np.r_[inputs.speed_rpm, part.speed_rpm],
-        run_index=np.r_[run, runs + offset],
-        time_s=np.r_[inputs.time_s, part.time_s],
-        recording=np.r_[recording, int(recording.max()) + 1 + position],
+        speed_rpm=np.concatenate([inputs.speed_rpm, *(p.speed_rpm for p in parts)]),
+        run_index=np.concatenate(
+            [run, *(p.run_index + offset * (k + 1) for k, p in enumerate(parts))]
+        ),
+        time_s=np.concatenate([inputs.time_s, *(p.time_s for p in parts)]),
+        recording=np.concatenate(
+            [recording, *(np.full(p.n_samples, first_recording + k) for k, p in enumerate(parts))]
+        ),
     )
-    cold = np.r_[np.full(inputs.n_samples, -1), labels[copied]]
-    return joined, np.r_[y, y_cold], np.r_[labels, np.full(part.n_samples, -1)], cold
+    cold = np.concatenate([np.full(inputs.n_samples, -1), *colds])
+    extra = cold.size - inputs.n_samples
+    return joined, np.concatenate([y, *targets]), np.r_[labels, np.full(extra, -1)], cold
 
 
 def _without_constant_speed(
@@ -446,8 +460,8 @@ class LagRidgeModel(ThermalModel):
                     "errors over the training runs, each run predicted by every structure "
                     "fitted on the other training runs with its penalty chosen on those "
                     "alone: as the recording carried it, and as a new recording (its own "
-                    "cold reference, lags from its first sample) for each run that "
-                    "continues a recording"
+                    "cold reference, lags from its first sample) opened at each run that "
+                    "continues a recording and carried on to the recording's end"
                     if self.inner_rmse_um_
                     else "the only candidate"
                 ),

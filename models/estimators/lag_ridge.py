@@ -249,7 +249,7 @@ def with_cold_starts(
     for start in starts:
         copied = (recording == recording[start]) & (row >= start)
         part = inputs.take(copied)
-        assert part.time_s is not None  # a mix scored on runs has its times
+        assert part.time_s is not None and part.run_index is not None  # taken from inputs'
         one = np.zeros(part.n_samples, dtype=int)
         reference = reference_rows(one, part.time_s, part.speed_rpm)
         rises.append(part.rise_C - part.rise_C[reference].mean(axis=0))

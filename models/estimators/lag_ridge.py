@@ -249,7 +249,7 @@ def with_cold_starts(
     for start in starts:
         copied = (recording == recording[start]) & (row >= start)
         part = inputs.take(copied)
-        assert part.time_s is not None and part.run_index is not None  # taken from inputs'
+        assert part.time_s is not None  # a mix scored on runs has its times
         one = np.zeros(part.n_samples, dtype=int)
         reference = reference_rows(one, part.time_s, part.speed_rpm)
         rises.append(part.rise_C - part.rise_C[reference].mean(axis=0))
@@ -263,7 +263,7 @@ def with_cold_starts(
         sensors=inputs.sensors,
         speed_rpm=np.concatenate([inputs.speed_rpm, *(p.speed_rpm for p in parts)]),
         run_index=np.concatenate(
-            [run, *(p.run_index + offset * (k + 1) for k, p in enumerate(parts))]
+            [run, *(np.asarray(p.run_index) + offset * (k + 1) for k, p in enumerate(parts))]
         ),
         time_s=np.concatenate([inputs.time_s, *(p.time_s for p in parts)]),
         recording=np.concatenate(

@@ -540,9 +540,15 @@ def parse_time_s(value: str | None) -> float | None:
 @click.option("--to", "stop", help="End, exclusive (ISO 8601 or Unix s); default: now.")
 @click.option("--machine", help="Machine id (default: the only machine in the config).")
 @config_option()
+@progress_option()
 @input_errors_exit
 def export(
-    out_csv: Path, start: str | None, stop: str | None, machine: str | None, config_path: Path
+    out_csv: Path,
+    start: str | None,
+    stop: str | None,
+    machine: str | None,
+    config_path: Path,
+    progress: bool | None,
 ) -> None:
     """Write logged data as a measured-run CSV (for fit and analyze)."""
     from gateway.config import load_config
@@ -579,7 +585,9 @@ def export(
         source = LocalStore(config.logging.local_store, set_aside_damaged=False)
         where = f"local store {config.logging.local_store}"
     try:
-        result = export_runs(source, machine, parse_time_s(start), parse_time_s(stop), out_csv)
+        shown = sys.stderr.isatty() if progress is None else progress
+        window_s = (parse_time_s(start), parse_time_s(stop))
+        result = export_runs(source, machine, *window_s, out_csv, progress=shown)
     except ExportError as exc:
         raise ValueError(str(exc)) from None
     finally:
@@ -759,6 +767,7 @@ def replay(
 @store_option("The model store to look --model up in (its augmented/ folder too).")
 @target_option("Measured error column, µm (default: the model's target).", default=None)
 @json_option()
+@progress_option()
 @input_errors_exit
 def score(
     data_csv: Path,
@@ -766,12 +775,15 @@ def score(
     store_dir: Path | None,
     target: str | None,
     json_out: Path | None,
+    progress: bool | None,
 ) -> None:
     """Apply a stored model to measured runs as the gateway would, without refitting."""
     from gateway.offline.score import score as score_model
 
+    shown = sys.stderr.isatty() if progress is None else progress
     write_json(
-        json_out, score_model(data_csv, model_spec, store_dir, target, click.echo, note=_warn)
+        json_out,
+        score_model(data_csv, model_spec, store_dir, target, click.echo, _warn, shown),
     )
 
 

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
+from tqdm import tqdm
 
 from models.analysis.format import change_text, p_text
 from models.analysis.result import CandidateResult, StepResult, gain_pct
@@ -102,7 +103,9 @@ def evaluate_inside(analysis: ResidualAnalysis, family: EffectFamily) -> InsideE
     y = analysis.y
     predicted = np.zeros(y.size)
     chosen = []
-    for rows in analysis.folds.rows:
+    bar = tqdm(analysis.folds.rows, desc=f"{family.effect} inside lag-ridge", unit="fold",
+               disable=not analysis.progress, leave=False, mininterval=0)  # fmt: skip
+    for rows in bar:
         train = analysis.fit_rows.copy()
         train[rows] = False
         best: tuple[float, int, np.ndarray] | None = None

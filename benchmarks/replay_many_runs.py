@@ -50,9 +50,11 @@ def timed_replay(tree: Path, csv: Path, out: Path) -> dict[str, float]:
 
 
 def differences(a, b, path: str = "") -> list[str]:
-    """Where two JSON results differ by more than 1e-9 (elapsed time aside)."""
+    """Where two JSON results differ by more than 1e-9 (elapsed time aside; a field only the
+    newer result has is listed by :func:`added`, not here)."""
     if isinstance(a, dict) and isinstance(b, dict):
-        keys = (a.keys() | b.keys()) - {"elapsed_s"}
+        keys = (a.keys() & b.keys()) - {"elapsed_s"}
+        keys |= a.keys() - b.keys()  # a field the newer result lost is a difference
         return [d for k in sorted(keys) for d in differences(a.get(k), b.get(k), f"{path}/{k}")]
     if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
         pairs = enumerate(zip(a, b, strict=True))
@@ -60,6 +62,11 @@ def differences(a, b, path: str = "") -> list[str]:
     if isinstance(a, float) and isinstance(b, float):
         return [] if abs(a - b) <= 1e-9 else [f"{path}: {a} vs {b}"]
     return [] if a == b else [f"{path}: {a!r} vs {b!r}"]
+
+
+def added(old: dict, new: dict) -> list[str]:
+    """Top-level fields of the newer result the older one did not have."""
+    return sorted(new.keys() - old.keys())
 
 
 def main() -> None:
@@ -99,6 +106,8 @@ def main() -> None:
                 "within_limit": now["wall_s"] <= LIMIT_S,
                 "figures_equal_to_1e-9": not diffs,
                 "differences": diffs[:10],
+                "fields_added": added(old, new),
+                "forward_rmse_um": (new.get("forward") or {}).get("pooled", {}).get("rmse_um"),
                 "online_rmse_um": {
                     f"{row['probe_interval_min']:g} min": round(row["rmse_um"], 3)
                     for row in new["online"]

@@ -231,3 +231,36 @@ def test_the_default_fitted_on_c1_c4_holds_on_c5_c6_as_a_new_recording(tmp_path:
         if channel == "ch1_um":
             assert rmse["lag-ridge"] <= 1.05 * min(rmse["ridge"], rmse["mlr"]), rmse
         assert rmse["lag-ridge"] <= rmse["mlr"], (channel, rmse)
+
+
+def test_replay_reports_the_forward_figure_fit_reports(tmp_path: Path) -> None:
+    """``replay --json`` carries the declared model's forward figure beside its
+    leave-one-run-out ones: each later cycle from the earlier ones only, the same
+    figures ``fit`` reports for that model, and said on the terminal."""
+    fit_json, replay_json = tmp_path / "fit.json", tmp_path / "replay.json"
+    done = gateway_in_process(
+        "fit", DATA, "--target", "ch5_um", "--method", "mlr", "--store", tmp_path / "store",
+        "--json", fit_json, "--no-progress",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    done = gateway_in_process(
+        "replay", DATA, "--target", "ch5_um", "--model", "mlr", "--base", "declared",
+        "--json", replay_json, "--no-progress",
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    fitted = json.loads(fit_json.read_text())["forward"]["all"]
+    replayed = json.loads(replay_json.read_text())
+    forward = replayed["forward"]
+    assert forward["model"] == "mlr" and forward["unit"] == "run"
+    assert list(forward["per_fold"]) == ["c4_5000rpm", "c5_3500rpm", "c6_steps"]
+    assert forward["trained_on"] == fitted["trained_on"]
+    for unit, figures in fitted["per_fold"].items():
+        assert forward["per_fold"][unit]["rmse_um"] == pytest.approx(figures["rmse_um"], rel=1e-9)
+    against = forward["against_loro"]
+    assert against["loro_rmse_um_same_runs"] == pytest.approx(
+        fitted["against_loro"]["loro_rmse_um_same_runs"], rel=1e-9
+    )
+    # Its leave-one-run-out counterpart is the replay's own offline figure on those runs.
+    assert replayed["offline"]["rmse_um"] > 0
+    assert "forward (no probes; each later run predicted by the mlr model" in done.stdout
+    assert f"{forward['pooled']['rmse_um']:.2f} µm" in done.stdout

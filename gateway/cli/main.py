@@ -570,9 +570,15 @@ def parse_time_s(value: str | None) -> float | None:
 @click.option("--to", "stop", help="End, exclusive (ISO 8601 or Unix s); default: now.")
 @click.option("--machine", help="Machine id (default: the only machine in the config).")
 @config_option()
+@progress_option()
 @input_errors_exit
 def export(
-    out_csv: Path, start: str | None, stop: str | None, machine: str | None, config_path: Path
+    out_csv: Path,
+    start: str | None,
+    stop: str | None,
+    machine: str | None,
+    config_path: Path,
+    progress: bool | None,
 ) -> None:
     """Write logged data as a measured-run CSV (for fit and analyze)."""
     from gateway.config import load_config
@@ -609,7 +615,9 @@ def export(
         source = LocalStore(config.logging.local_store, set_aside_damaged=False)
         where = f"local store {config.logging.local_store}"
     try:
-        result = export_runs(source, machine, parse_time_s(start), parse_time_s(stop), out_csv)
+        shown = sys.stderr.isatty() if progress is None else progress
+        window_s = (parse_time_s(start), parse_time_s(stop))
+        result = export_runs(source, machine, *window_s, out_csv, progress=shown)
     except ExportError as exc:
         raise ValueError(str(exc)) from None
     finally:
@@ -792,6 +800,7 @@ def replay(
 @store_option("The model store to look --model up in (its augmented/ folder too).")
 @targets_option("Measured error column, µm (default: the model's target).", default=None)
 @json_option()
+@progress_option()
 @input_errors_exit
 def score(
     data_csv: Path,
@@ -799,15 +808,17 @@ def score(
     store_dir: Path | None,
     targets: tuple[str, ...],
     json_out: Path | None,
+    progress: bool | None,
 ) -> None:
     """Apply a stored model to measured runs as the gateway would, without refitting."""
     from gateway.offline.score import score_targets
     from models.data.targets import chosen_targets
 
     chosen = chosen_targets(data_csv, targets)
+    shown = sys.stderr.isatty() if progress is None else progress
     write_json(
         json_out,
-        score_targets(data_csv, model_specs, store_dir, chosen, click.echo, note=_warn),
+        score_targets(data_csv, model_specs, store_dir, chosen, click.echo, _warn, shown),
     )
 
 

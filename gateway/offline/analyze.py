@@ -182,6 +182,7 @@ def _forward(
     figure (``result``'s before) (None with ``--probe-rows`` or too few runs)."""
     from models.estimators.registry import make_model
     from models.fit.forward import disagreement, forward_validate
+    from models.fit.forward_progress import counted
 
     if data is None:
         return None
@@ -189,7 +190,8 @@ def _forward(
     def factory():
         return make_model(method, request.sensors)
 
-    forward = forward_validate(factory, prepared, data, request.sensors)
+    with counted(factory, prepared, request.progress) as made:
+        forward = forward_validate(made, prepared, data, request.sensors)
     if forward is None:
         return None
     agreement = disagreement(forward, result.predicted_before_um, result.measured_um, result.run)

@@ -47,6 +47,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
+from tqdm import tqdm
+
 from gateway.outputs.influx import InfluxReader
 from gateway.outputs.local_store import LocalStore
 from gateway.outputs.points import (
@@ -95,18 +97,54 @@ def export_runs(
     cycle_s: float | None = None,
     gap_factor: float = 10.0,
     good_only: bool = True,
+    progress: bool = False,
 ) -> ExportResult:
     """Write the measured-run CSV of ``machine`` for machine time ``start_s ≤ t < stop_s``.
 
     ``start_s``/``stop_s`` are machine seconds (``None``: unbounded); ``epoch_s``
     must be the one the points were made with (:func:`gateway.outputs.points.to_time_ns`).
+    ``progress``: a bar over the export's steps (each measurement read, the rows, the
+    file) on stderr.
     """
     out_csv = Path(out_csv)
     start_ns = None if start_s is None else to_time_ns(start_s, epoch_s)
     stop_ns = None if stop_s is None else to_time_ns(stop_s, epoch_s)
 
+    bar = tqdm(total=len(EXPORT_STEPS), desc="export", unit="step", disable=not progress,
+               leave=False, mininterval=0)  # fmt: skip
+    with bar:
+        return _export(points_source, machine, (start_ns, stop_ns), out_csv, epoch_s,
+                       cycle_s, gap_factor, good_only, bar)  # fmt: skip
+
+
+#: The steps of an export its progress bar counts.
+EXPORT_STEPS = ("read cycles", "read temperatures", "read probes", "assemble rows", "write")
+
+
+def _export(
+    points_source: PointSource,
+    machine: str,
+    window_ns: tuple[int | None, int | None],
+    out_csv: Path,
+    epoch_s: float,
+    cycle_s: float | None,
+    gap_factor: float,
+    good_only: bool,
+    bar: tqdm,
+) -> ExportResult:
+    """:func:`export_runs`, one step of ``bar`` at a time."""
+
+    def step() -> None:
+        bar.set_postfix_str(f"{EXPORT_STEPS[bar.n]} done", refresh=False)
+        bar.update(1)
+
     def read(measurement: str) -> list[Point]:
-        return points_source.query(measurement, machine=machine, start_ns=start_ns, stop_ns=stop_ns)
+        start_ns, stop_ns = window_ns
+        points = points_source.query(
+            measurement, machine=machine, start_ns=start_ns, stop_ns=stop_ns
+        )
+        step()
+        return points
 
     cycles = read(CYCLE_MEASUREMENT)
     temperatures = read(TEMPERATURE_MEASUREMENT)
@@ -132,7 +170,9 @@ def export_runs(
         values = readings.get(time_ns, {})
         cells = [speed.get(time_ns), *(values.get(s) for s in layout.exported)]
         rows.append((run_of[row], round(time_ns / NS_PER_S - epoch_s, 6), cells, error[row]))
+    step()
     incomplete = _write_csv(out_csv, layout.columns, rows)
+    step()
     return ExportResult(
         path=out_csv,
         columns=layout.columns,

@@ -8,15 +8,22 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from gateway.offline.targets import TargetRuns, combined, each_target, say_heading
 from models.analysis import augmented
+from models.base import ThermalModel
 from models.data.dataset import MeasuredRuns
 from models.data.features import Prepared, prepare
 from models.data.targets import load_targets
+from models.estimators.registry import make_model
+from models.fit.forward import disagreement, forward_validate
+from models.fit.forward_progress import counted
 from models.fit.metrics import accuracy
 from models.online import declared_fits
 from models.online.replay import (
     DEFAULT_KINDS,
+    declared_heldout,
     filter_choice,
     fit_for_store,
     offline_accuracy,
@@ -92,7 +99,9 @@ def run_replay(
         (note or say)(SAME_FILE_NOTE)
     if base == "declared":  # every base fit of every interval, once, on every core
         declared_fits.prefill(prepared, method, sensors, progress)
-    offline = offline_accuracy(prepared, method, sensors)
+    loro_predicted = declared_heldout(prepared, method, sensors)
+    offline = offline_accuracy(prepared, method, sensors, loro_predicted)
+    forward = forward_figure(data, prepared, method, sensors, loro_predicted, progress)
     online = [
         replay_interval(
             prepared,
@@ -109,6 +118,7 @@ def run_replay(
     rows = [r.as_dict() for r in online]
     _say_table(method, offline, rows, say)
     _say_interval(offline.get("interval"), say)
+    _say_forward(forward, say)
     stored = None
     if store_dir is not None:
         if base != "lagged":
@@ -127,12 +137,59 @@ def run_replay(
         "base": {"kind": base, "description": BASE_DESCRIPTIONS[described]},
         "augmented_model": None if document is None else document["model_id"],
         "offline": offline,
+        "forward": forward,
         "online": rows,
         "filter_kinds_offered": list(filter_kinds),
         "reference": prepared.plan.describe(),
         "stored_model": stored,
         "elapsed_s": round(elapsed, 2),
     }
+
+
+def forward_figure(
+    data: MeasuredRuns,
+    prepared: Prepared,
+    method: str,
+    sensors: Sequence[str] | None,
+    loro_predicted: np.ndarray,
+    progress: bool = False,
+) -> dict[str, Any] | None:
+    """The declared model's forward figure (each later recording, or run, predicted by the
+    model fitted on the earlier ones only, started as a new recording, no probes) and how
+    it compares with its leave-one-run-out figure on the same runs, as ``fit`` reports it
+    (None: too few runs)."""
+
+    def factory() -> ThermalModel:
+        return make_model(method, sensors)
+
+    with counted(factory, prepared, progress) as made:
+        forward = forward_validate(made, prepared, data, sensors)
+    if forward is None:
+        return None
+    agreement = disagreement(forward, loro_predicted, prepared.error_um, prepared.data.run)
+    return {
+        **forward.as_dict(),
+        "model": method,
+        "of": "the declared model, fitted as fit fits it, without probes",
+        "against_loro": agreement.as_dict(),
+        "note": agreement.sentence(),
+    }
+
+
+def _say_forward(forward: dict[str, Any] | None, say: Callable[[str], None]) -> None:
+    """The forward figure beside the leave-one-run-out ones: pooled, then per unit."""
+    if forward is None:
+        say("forward: too few runs for a forward figure")
+        return
+    say(
+        f"forward (no probes; each later {forward['unit']} predicted by the {forward['model']} "
+        f"model fitted on the earlier ones only, started as a new recording): "
+        f"{forward['pooled']['rmse_um']:.2f} µm"
+    )
+    for unit, figures in forward["per_fold"].items():
+        say(f"  {unit:<14} {figures['rmse_um']:6.2f} µm")
+    prefix = "warning: " if forward["against_loro"]["disagree"] else ""
+    say(f"{prefix}{forward['note']}")
 
 
 def _runs_of(

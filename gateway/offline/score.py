@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from tqdm import tqdm
 
 from gateway.live.bank.model_bank import Banked, BankedAugmented, BankedModel
 from gateway.offline.targets import combined
@@ -154,18 +155,25 @@ def needed_sensors(scored: ScoredModel) -> list[str]:
     return [s for s in banked.stream().sensors if s != AMBIENT_COLUMN]
 
 
-def predictions(scored: ScoredModel, prepared: Prepared) -> np.ndarray:
-    """The model's prediction at every row, µm (NaN where a stream had no complete input)."""
+def predictions(scored: ScoredModel, prepared: Prepared, progress: bool = False) -> np.ndarray:
+    """The model's prediction at every row, µm (NaN where a stream had no complete input);
+    ``progress``: a bar over the rows a stream steps through (stderr)."""
     if isinstance(scored.banked, BankedModel):
         inputs = prepared.inputs
         plain = ModelInputs(
             rise_C=inputs.rise_C, sensors=inputs.sensors, speed_rpm=inputs.speed_rpm
         )
         return np.asarray(scored.banked.model.predict(plain), dtype=float)
-    return streamed(scored.banked, prepared)
+    return streamed(scored.banked, prepared, progress)
 
 
-def streamed(banked: BankedAugmented, prepared: Prepared) -> np.ndarray:
+def _rows_bar(n: int, what: str, progress: bool) -> tqdm:
+    """A bar over ``n`` rows, redrawn at every 1 % of them (a fast loop still shows it move)."""
+    return tqdm(range(n), desc=what, unit="row", disable=not progress, leave=False,
+                mininterval=0, miniters=max(n // 100, 1))  # fmt: skip
+
+
+def streamed(banked: BankedAugmented, prepared: Prepared, progress: bool = False) -> np.ndarray:
     """Every row stepped in order through the model's stream, as the live loop steps it;
     each recording (a cold start) starts a fresh stream, the runs within it carry on."""
     data, plan = prepared.data, prepared.plan
@@ -175,7 +183,7 @@ def streamed(banked: BankedAugmented, prepared: Prepared) -> np.ndarray:
     starts = first_rows(plan.recording)
     out = np.full(data.n_samples, np.nan)
     stream = banked.stream()
-    for k in range(data.n_samples):
+    for k in _rows_bar(data.n_samples, "rows stepped through the model", progress):
         if starts[k] == k:
             stream = banked.stream()
         row = dict(zip(names, map(float, rises[k]), strict=True))
@@ -220,7 +228,9 @@ def run_figures(prepared: Prepared, predicted: np.ndarray) -> dict[str, dict[str
     return figures
 
 
-def half_widths(scored: ScoredModel, prepared: Prepared) -> np.ndarray | None:
+def half_widths(
+    scored: ScoredModel, prepared: Prepared, progress: bool = False
+) -> np.ndarray | None:
     """The interval's half-width at every row (µm), widened as the live loop widens it for
     inputs outside the training span; None when the model holds no calibration."""
     if scored.interval is None:
@@ -228,7 +238,7 @@ def half_widths(scored: ScoredModel, prepared: Prepared) -> np.ndarray | None:
     inputs = prepared.inputs
     stored = scored.training_range or {}
     out = np.empty(inputs.n_samples)
-    for k in range(inputs.n_samples):
+    for k in _rows_bar(inputs.n_samples, "rows' interval widths", progress):
         rises = dict(zip(inputs.sensors, map(float, inputs.rise_C[k]), strict=True))
         excess, _ = span_excess(stored, rises, float(inputs.speed_rpm[k]))
         out[k] = widened_um(scored.interval, excess, 0)
@@ -236,11 +246,11 @@ def half_widths(scored: ScoredModel, prepared: Prepared) -> np.ndarray | None:
 
 
 def interval_figures(
-    scored: ScoredModel, prepared: Prepared, predicted: np.ndarray
+    scored: ScoredModel, prepared: Prepared, predicted: np.ndarray, progress: bool = False
 ) -> dict[str, Any] | None:
     """Coverage (share of rows inside predicted ± half-width) and mean width, µm, per run
     and pooled; None when the model holds no calibration (interval unknown)."""
-    widths = half_widths(scored, prepared)
+    widths = half_widths(scored, prepared, progress)
     if widths is None or scored.interval is None:
         return None
     measured = prepared.error_um
@@ -272,10 +282,14 @@ def score(
     target: str | None,
     say: Callable[[str], None],
     note: Callable[[str], None] | None = None,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Score the model on DATA_CSV; print the table (``say``) and the notes on the data
-    (``note``, default ``say``: the command gives stderr); return the JSON result."""
-    return score_targets(data_csv, [model_spec], store_dir, [target] if target else [], say, note)
+    (``note``, default ``say``: the command gives stderr); return the JSON result.
+    ``progress``: bars over the rows (stderr)."""
+    return score_targets(
+        data_csv, [model_spec], store_dir, [target] if target else [], say, note, progress
+    )
 
 
 def score_targets(
@@ -285,10 +299,11 @@ def score_targets(
     targets: Sequence[str],
     say: Callable[[str], None],
     note: Callable[[str], None] | None = None,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Score each target with its model (:func:`pairs`), DATA_CSV read once with every
     target and sensor; one section each; one target: today's JSON, several: keyed by
-    target under ``targets``."""
+    target under ``targets``. ``progress``: bars over the rows (stderr)."""
     note = note or say
     models = [load_model(find_model(spec, store_dir)) for spec in model_specs]
     paired = pairs(models, targets)
@@ -307,7 +322,7 @@ def score_targets(
             say(f"\n=== target {target} ({len(results) + 1} of {len(paired)}) ===")
             for skipped in one.skipped if one.n_samples != data.n_samples else ():
                 note(f"note: {target}: {skipped.describe()}")
-        results[target] = _score_one(scored, data_csv, one, say, note)
+        results[target] = _score_one(scored, data_csv, one, say, note, progress)
     return combined(results)
 
 
@@ -338,15 +353,16 @@ def _score_one(
     data: MeasuredRuns,
     say: Callable[[str], None],
     note: Callable[[str], None],
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Score one model on one target's runs; print its table; its JSON object."""
     if scored.banked.sensors & {AMBIENT_COLUMN} and data.ambient_C is None:
         raise ValueError(f"{data_csv}: the model needs an {AMBIENT_COLUMN} column; there is none")
     prepared = prepare(data, needed_sensors(scored), scored.policy)
-    predicted = predictions(scored, prepared)
+    predicted = predictions(scored, prepared, progress)
     figures = run_figures(prepared, predicted)
     found = excursions(scored, prepared)
-    interval = interval_figures(scored, prepared, predicted)
+    interval = interval_figures(scored, prepared, predicted, progress)
     for line in report_lines(scored, prepared, figures, found) + interval_lines(interval):
         (note if line.startswith("note:") else say)(line)
     return {

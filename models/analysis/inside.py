@@ -15,7 +15,14 @@ column (its rise and its lags, penalised and chosen like the others), and the
 base is refitted with it on each fold's training runs and predicts the held-out
 run. A family with several variants (drift from the run's or the recording's
 start) takes, in each fold, the variant whose fit scores best on that fold's
-training runs alone (lag-ridge's own nested leave-one-run-out score). A
+training runs alone (lag-ridge's own nested leave-one-run-out score).
+
+The families lag-ridge holds among its own terms (``HELD_FAMILIES``: a thermal lag
+of the sensors used, n and n², their lags) are given to it the same way, every
+column of a variant as an input: fitted on few runs, its structure and penalty
+choice can leave such an effect out. Their τ is the one the loop beside the base
+chooses in each fold on that fold's training runs (one lag-ridge fit per fold, not
+one per τ). A
 candidate is believed by the rules of :mod:`models.analysis.search` where they
 apply to held-out predictions: the shape within runs falls by at least
 ``MIN_GAIN_PCT`` and the plain RMSE falls; at least half the folds improve; and
@@ -34,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy import stats
+from tqdm import tqdm
 
 from models.analysis.format import change_text, p_text
 from models.analysis.result import CandidateResult, StepResult, gain_pct
@@ -47,8 +55,13 @@ if TYPE_CHECKING:
     from models.base import ModelInputs
     from models.data.lag_terms import EffectFamily, Variant
 
-#: The families whose terms are inputs lag-ridge does not have (the others it holds).
+#: The families whose terms are inputs lag-ridge does not have.
 INPUT_FAMILIES = ("drift", "ambient", "unused_sensor")
+#: The families whose terms lag-ridge holds among its own, yet may leave out with few runs
+#: (its structure and penalties chosen on them): each variant's columns (a lag of every
+#: sensor used at one τ; n and n²; their lags at one τ) given to it as inputs, the τ chosen
+#: in each fold by lag-ridge's own nested score, like drift's origin.
+HELD_FAMILIES = ("thermal_lag", "speed_direct", "unsensed_heat")
 INSIDE_COLUMN = "__effect"
 
 
@@ -61,7 +74,8 @@ class InsideEvaluation:
 
 def input_families(analysis: ResidualAnalysis) -> list[EffectFamily]:
     """The candidate families as inputs: drift as it is, ambient as its rise (lag-ridge
-    lags it itself), each unused column as its own candidate."""
+    lags it itself), each unused column as its own candidate, each of them one column (its
+    variant's first); a held family's variants with every column."""
     from models.data.lag_terms import EffectFamily
 
     families = []
@@ -71,22 +85,34 @@ def input_families(analysis: ResidualAnalysis) -> list[EffectFamily]:
             families.append(EffectFamily(family.effect, family.label, direct[:1]))
         elif family.effect == "unused_sensor":
             families += [EffectFamily(family.effect, family.label, (v,)) for v in family.variants]
-        elif family.effect == "drift":
+        elif family.effect in ("drift", *HELD_FAMILIES):
             families.append(family)
-    return [f for f in families if f.variants]
+    one_input = [
+        f if f.effect in HELD_FAMILIES
+        else replace(f, variants=tuple(map(_first_column, f.variants)))
+        for f in families
+    ]  # fmt: skip
+    return [f for f in one_input if f.variants]
+
+
+def _first_column(variant: Variant) -> Variant:
+    """The variant with its first column only (an input family's one input)."""
+    build = variant.build
+    return replace(variant, build=lambda: np.asarray(build(), dtype=float)[:, :1])
 
 
 def with_input(analysis: ResidualAnalysis, variant: Variant) -> tuple[ModelInputs, list[str]]:
-    """The analysis's inputs with the variant's first column as one more input, and the
-    sensors lag-ridge is then given (the base's own and that column)."""
+    """The analysis's inputs with the variant's columns (:func:`input_families`') as more
+    inputs, and the sensors lag-ridge is then given (the base's own and those columns)."""
     prepared = analysis.prepared
-    column = np.asarray(variant.build(), dtype=float)[:, :1]
+    columns = np.asarray(variant.build(), dtype=float).reshape(prepared.data.n_samples, -1)
+    names = [INSIDE_COLUMN] + [f"{INSIDE_COLUMN}{k}" for k in range(1, columns.shape[1])]
     inputs = replace(
         prepared.inputs,
-        rise_C=np.column_stack([prepared.inputs.rise_C, column]),
-        sensors=(*prepared.inputs.sensors, INSIDE_COLUMN),
+        rise_C=np.column_stack([prepared.inputs.rise_C, columns]),
+        sensors=(*prepared.inputs.sensors, *names),
     )
-    return inputs, [*analysis.base.used_sensors, INSIDE_COLUMN]
+    return inputs, [*analysis.base.used_sensors, *names]
 
 
 def fitted_inside_prediction(analysis: ResidualAnalysis, variant: Variant) -> np.ndarray:
@@ -102,11 +128,16 @@ def evaluate_inside(analysis: ResidualAnalysis, family: EffectFamily) -> InsideE
     y = analysis.y
     predicted = np.zeros(y.size)
     chosen = []
-    for rows in analysis.folds.rows:
+    preset = _preset_choice(analysis, family)
+    bar = tqdm(analysis.folds.rows, desc=f"{family.effect} inside lag-ridge", unit="fold",
+               disable=not analysis.progress, leave=False, mininterval=0)  # fmt: skip
+    for fold, rows in enumerate(bar):
         train = analysis.fit_rows.copy()
         train[rows] = False
         best: tuple[float, int, np.ndarray] | None = None
-        for vi, variant in enumerate(family.variants):
+        offered = range(len(family.variants)) if preset is None else (preset[fold],)
+        for vi in offered:
+            variant = family.variants[vi]
             inputs, sensors = with_input(analysis, variant)
             model = make_model("lag-ridge", sensors).fit_rows(inputs, y, train)
             score = _inner_score(model)
@@ -116,6 +147,16 @@ def evaluate_inside(analysis: ResidualAnalysis, family: EffectFamily) -> InsideE
         chosen.append(best[1])
         predicted[rows] = best[2]
     return InsideEvaluation(family, predicted, chosen)
+
+
+def _preset_choice(analysis: ResidualAnalysis, family: EffectFamily) -> list[int] | None:
+    """Per fold, the τ of a held family with several (:data:`HELD_FAMILIES`) as the loop
+    beside the base chooses it on that fold's training runs (least squares on the base's
+    terms and the variant's, inner folds): one lag-ridge refit per fold instead of one per
+    τ. None: each variant is refitted and lag-ridge's own nested score chooses."""
+    if family.effect not in HELD_FAMILIES or len(family.variants) < 2:
+        return None
+    return list(analysis.evaluate([], family).chosen)
 
 
 def inside_step(

@@ -160,7 +160,9 @@ class BaseDesigns:
         prepared: Prepared,
         folds: Folds,
         fit_rows: np.ndarray | None = None,
+        progress: bool = False,
     ):
+        """``progress``: a bar over the folds fitted (on stderr)."""
         self.method = method
         self.sensors = None if sensors is None else list(sensors)
         self.prepared = prepared
@@ -172,7 +174,9 @@ class BaseDesigns:
             self.models = [probe.fit_rows(prepared.inputs, prepared.error_um, usable)]
         else:
             self.models = []
-            for rows in folds.rows:
+            bar = tqdm(folds.rows, desc="base model folds", unit="fold", disable=not progress,
+                       leave=False, mininterval=0)  # fmt: skip
+            for rows in bar:
                 train = usable.copy()
                 train[rows] = False
                 model = make_model(method, self.sensors)
@@ -216,7 +220,7 @@ class ResidualAnalysis:
         self.folds = Folds.of(prepared, None if fit_rows is None else self.fit_rows)
         self._yy = np.array([self.y[part] @ self.y[part] for part in self.folds.parts])
         self.progress = progress
-        self.base = BaseDesigns(method, sensors, prepared, self.folds, fit_rows)
+        self.base = BaseDesigns(method, sensors, prepared, self.folds, fit_rows, progress)
         self.families = candidate_families(prepared, self.base.used_sensors)
         # An input effect found inside a lag-ridge base (models.analysis.inside), if any.
         self.inside: Variant | None = None

@@ -85,13 +85,43 @@ def ridge_solutions(
     scale: np.ndarray,
     y_mean: float,
 ) -> list[np.ndarray]:
-    """[intercept, coefficients] for every ratio and, within it, every penalty."""
+    """[intercept, coefficients] for every ratio and, within it, every penalty.
+
+    The speed terms' systems of every grid point are solved in one batched call (the
+    same LAPACK solve per point as :meth:`TwoGroupRidge.solve`, without a Python call
+    and its checks each: a fold's 105 points cost about a tenth as much)."""
+    grid = [(penalty, ratio) for ratio in ratios for penalty in penalties]
+    if not solver.speed.any():
+        solutions = [solver.solve(penalty, ratio) for penalty, ratio in grid]
+    else:
+        solutions = _batched_solutions(solver, grid)
     path = []
-    for ratio in ratios:
-        for penalty in penalties:
-            b = solver.solve(penalty, ratio) / scale
-            path.append(np.r_[y_mean - mean @ b, b])
+    for u in solutions:
+        b = u / scale
+        path.append(np.r_[y_mean - mean @ b, b])
     return path
+
+
+def _batched_solutions(solver: TwoGroupRidge, grid: list[tuple[float, float]]) -> list[np.ndarray]:
+    """:meth:`TwoGroupRidge.solve` at every (penalty, ratio) of ``grid``, the speed systems
+    stacked into one solve."""
+    reduced = [solver._reduced(penalty) for penalty, _ in grid]
+    k = int(solver.speed.sum())
+    systems = np.empty((len(grid), k, k))
+    rhs = np.empty((len(grid), k, 1))
+    diagonal = np.arange(k)
+    for i, ((penalty, ratio), (_, schur, shift)) in enumerate(zip(grid, reduced, strict=True)):
+        np.subtract(solver.speed_block, schur, out=systems[i])
+        systems[i, diagonal, diagonal] += solver.n * penalty * ratio
+        rhs[i, :, 0] = solver.speed_cross - shift
+    speed_parts = np.linalg.solve(systems, rhs)[:, :, 0]
+    solutions = []
+    for (d, _, _), u_speed in zip(reduced, speed_parts, strict=True):
+        u = np.empty(solver.sensor.size)
+        u[solver.speed] = u_speed
+        u[solver.sensor] = solver.vectors @ (d * (solver.projected - solver.coupling.T @ u_speed))
+        solutions.append(u)
+    return solutions
 
 
 def square_root_rows(zz: np.ndarray, zy: np.ndarray, yy: float) -> tuple[np.ndarray, np.ndarray]:

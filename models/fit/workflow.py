@@ -27,6 +27,7 @@ from models.estimators.sensor_relations import fit_relations
 from models.fit.conditioning import DEFAULT_SENSOR_ACCURACY_C, Conditioning, assess
 from models.fit.crossval import Validation, cross_evaluate, cross_validate, fold_labels
 from models.fit.forward import Disagreement, Forward, disagreement, forward_validate
+from models.fit.forward_progress import counted
 from models.fit.interval import calibrate, forward_scaled_residuals
 from models.fit.ranking import RegimeReport, SigmaRow, rank_regimes
 from models.store import ModelStore, build_document
@@ -99,7 +100,7 @@ def fit_and_store(
         model_id = model_id_for(method, data.target, label)
         if validation is not None:
             outcome.validations[group] = validation
-            _validate_forward(outcome, group, factory, part, data_with_readings, sensors)
+            _validate_forward(outcome, group, factory, part, data_with_readings, sensors, progress)
         summary = getattr(model, "summary", None)
         if callable(summary):
             outcome.summaries[model_id] = summary()
@@ -134,12 +135,14 @@ def _validate_forward(
     prepared: Prepared,
     data: MeasuredRuns | None,
     sensors: Sequence[str] | None,
+    progress: bool = False,
 ) -> None:
     """The forward figure of ``group`` (every run; none without the readings) and how it
-    compares with leave-one-run-out."""
+    compares with leave-one-run-out; ``progress``: a bar over its folds."""
     if data is None or prepared.data.n_samples != data.n_samples:
         return
-    forward = forward_validate(factory, prepared, data, sensors)
+    with counted(factory, prepared, progress) as made:
+        forward = forward_validate(made, prepared, data, sensors)
     if forward is None:
         return
     validation = outcome.validations[group]

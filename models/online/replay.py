@@ -545,16 +545,27 @@ def _choose_lagged(
     return _fit_lagged(features, best[1], train_runs)
 
 
-def offline_accuracy(
-    prepared: Prepared, method: str, sensors: Sequence[str] | None
-) -> dict[str, Any]:
-    """The declared model as ``fit`` validates it (leave-one-run-out, no probes), with
-    its calibrated interval's coverage, each run against the width calibrated on the
-    others (:func:`models.fit.interval.calibrate`; ``interval`` None with too few rows)."""
+def declared_heldout(prepared: Prepared, method: str, sensors: Sequence[str] | None) -> np.ndarray:
+    """Every run predicted by the declared model fitted on the other runs (as ``fit``)."""
     predicted = np.empty(prepared.data.n_samples)
     for run in prepared.data.run_ids:
         test = prepared.data.run == run
         predicted[test] = declared_fits.prediction(prepared, method, sensors, ~test)[test]
+    return predicted
+
+
+def offline_accuracy(
+    prepared: Prepared,
+    method: str,
+    sensors: Sequence[str] | None,
+    predicted: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """The declared model as ``fit`` validates it (leave-one-run-out, no probes), with
+    its calibrated interval's coverage, each run against the width calibrated on the
+    others (:func:`models.fit.interval.calibrate`; ``interval`` None with too few rows).
+    ``predicted``: :func:`declared_heldout`'s, when the caller has it already."""
+    if predicted is None:
+        predicted = declared_heldout(prepared, method, sensors)
     acc = accuracy(prepared.error_um, predicted)
     calibration = calibrate(prepared.error_um, predicted, prepared.data.run, prepared.inputs)
     return {"rmse_um": acc.rmse_um, "max_abs_um": acc.max_abs_um, "interval": calibration}

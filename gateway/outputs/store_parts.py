@@ -56,11 +56,12 @@ def arrays_of(rows: Sequence[Row]) -> dict[str, np.ndarray]:
     return arrays
 
 
-def write_part(rows: Sequence[Row], path: Path) -> int:
-    """Write ``rows`` as the Parquet file ``path`` (atomically, flushed); its size in bytes.
-    On failure (a full disk) nothing is left behind."""
+def write_part(rows: Sequence[Row] | dict[str, np.ndarray], path: Path) -> int:
+    """Write ``rows`` (or their columns) as the Parquet file ``path`` (atomically,
+    flushed); its size in bytes. On failure (a full disk) nothing is left behind."""
     sql = f"SELECT {TYPED_SELECT} FROM batch ORDER BY {SORT}"
-    _copy(sql, path, f"ROW_GROUP_SIZE {ROW_GROUP_ROWS}", arrays_of(rows))
+    batch = rows if isinstance(rows, dict) else arrays_of(rows)
+    _copy(sql, path, f"ROW_GROUP_SIZE {ROW_GROUP_ROWS}", batch)
     return path.stat().st_size
 
 
@@ -127,13 +128,17 @@ def literal(value: object) -> str:
 
 
 def scan(
-    files: Sequence[Path], staged: Sequence[Row], where: str, select: str, order: str
+    files: Sequence[Path],
+    staged: Sequence[Row] | dict[str, np.ndarray],
+    where: str,
+    select: str,
+    order: str,
 ) -> duckdb.DuckDBPyConnection:
     """A DuckDB connection holding the view ``w``: the rows of the parts ``files`` and
     the ``staged`` rows that meet ``where`` (SQL with literals). With ``select`` it has
     also executed ``SELECT select FROM w`` ordered by ``order``, to fetch from; the
     caller runs any other query on ``w`` and closes it."""
-    staged_batch = arrays_of(staged)  # noqa: F841  (scanned by name)
+    staged_batch = staged if isinstance(staged, dict) else arrays_of(staged)  # noqa: F841
     db = duckdb.connect()
     try:
         db.execute("SET threads = 1")

@@ -53,7 +53,7 @@ from gateway.outputs import store_log, store_parts
 from gateway.outputs.points import Point
 from gateway.outputs.sqlite_ring import SqliteRing
 from gateway.outputs.store_migrate import migrate_json_points
-from gateway.outputs.store_rows import COLUMNS, TAGS, TIME_INDEX, Row, point_of, row_of
+from gateway.outputs.store_rows import COLUMNS, TAGS, Row, point_of
 
 log = logging.getLogger(__name__)
 
@@ -217,26 +217,28 @@ class LocalStore:
                 self._newest_ns = max(self._newest_ns, newest)
             return not self._ring.failing
         self._newest_ns = max(self._newest_ns, newest)
-        kept = self._commit([row_of(p) for p in points])
+        kept = self._commit(store_log.columns_of(points))
         if kept and self.compact():
             self.merge_days()
             self._keep_within_cap()
         return kept
 
-    def _commit(self, rows: list[Row]) -> bool:
-        """Append ``rows`` to the open period's segments (one record per period), within
-        the size cap; False when the disk refused them (counted, logged once)."""
+    def _commit(self, columns: store_log.Columns) -> bool:
+        """Append ``columns`` to the open period's segments (one record per period),
+        within the size cap; False when the disk refused them (counted, logged once)."""
         self._keep_within_cap()
-        by_period: dict[int, list[Row]] = {}
-        period_ns = PART_S * NS
-        for row in rows:
-            by_period.setdefault(row[TIME_INDEX] // period_ns, []).append(row)  # type: ignore[operator]
+        periods = np.array(columns["time_ns"], dtype=np.int64) // (PART_S * NS)
         try:
             with self._append_lock:
-                for period, period_rows in by_period.items():
-                    self._segment(period * period_ns).append(period_rows)
+                for period in np.unique(periods):
+                    if len(periods) and periods.min() == periods.max():
+                        part = columns  # the usual commit: one period
+                    else:
+                        rows = np.nonzero(periods == period)[0]
+                        part = {c: [v[i] for i in rows] for c, v in columns.items()}
+                    self._segment(int(period) * PART_S * NS).append(part)
         except OSError as exc:
-            self._lost(len(rows), exc)
+            self._lost(len(periods), exc)
             return False
         if self._failing:
             self._failing = self._ring.failing = False
@@ -284,7 +286,7 @@ class LocalStore:
         """Commit the queued points now (the commit thread does it every interval)."""
         with self._queue_lock:
             points, self._queue = self._queue, []
-        return self._commit([row_of(p) for p in points]) if points else True
+        return self._commit(store_log.columns_of(points)) if points else True
 
     def _run(self, interval_s: float) -> None:
         """The commit thread: commit, then close any period due; a compaction that fails
@@ -529,8 +531,9 @@ class LocalStore:
                     fresh = store_log.Segment(
                         path.with_name(f"{path.name.split('-', 1)[0]}-{time.time_ns()}.log"), True
                     )
-                    rows = list(zip(*(columns[c][keep] for c in COLUMNS), strict=True))
-                    fresh.append([tuple(store_log.plain(v) for v in r) for r in rows])
+                    fresh.append(
+                        {c: [store_log.plain(v) for v in columns[c][keep]] for c in COLUMNS}
+                    )
                     self._open[fresh.path.name] = fresh
                 with self._ring.transaction() as db:
                     db.execute("INSERT OR IGNORE INTO closed_logs VALUES (?)", (path.name,))

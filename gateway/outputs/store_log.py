@@ -29,7 +29,16 @@ from pathlib import Path
 
 import numpy as np
 
-from gateway.outputs.store_rows import COLUMNS, FLOAT_FIELDS, INT_FIELDS, TIME_INDEX, Row
+from gateway.outputs.points import Point
+from gateway.outputs.store_rows import (
+    COLUMNS,
+    FLOAT_FIELDS,
+    INT_FIELDS,
+    TAGS,
+    TEXT_FIELDS,
+    TIME_INDEX,
+    row_of,
+)
 
 MAGIC = b"GWL1"
 HEADER = struct.Struct("<4sII")
@@ -43,8 +52,6 @@ KEY_COLUMNS = COLUMNS[:TIME_INDEX]  # measurement, the tags, tags_extra
 _NUMBERS = frozenset((*FLOAT_FIELDS, *INT_FIELDS, "time_ns"))
 NUMBER_COLUMNS = tuple(c for c in COLUMNS if c in _NUMBERS)
 TEXT_COLUMNS = tuple(c for c in COLUMNS[TIME_INDEX:] if c not in _NUMBERS)
-_NUMBER_SLOTS = [COLUMNS.index(c) for c in NUMBER_COLUMNS]
-_TEXT_SLOTS = [COLUMNS.index(c) for c in TEXT_COLUMNS]
 _NULL = np.iinfo(np.int64).min  # an empty number among integers
 
 
@@ -105,20 +112,84 @@ def _number_column(
     return ["s", k, dtype], data, (k, ints)
 
 
-def encode(rows: Sequence[Row], chain: Chain, duplicates: bool) -> bytes:
-    """One record of ``rows`` (one period's points of a commit); ``chain`` is updated."""
-    keys = [r[:TIME_INDEX] for r in rows]
+Columns = dict[str, list]
+_TAG_SET = frozenset(TAGS)
+_FLOAT_SET = frozenset(FLOAT_FIELDS)
+_INT_SET = frozenset(INT_FIELDS)
+_TEXT_SET = frozenset(TEXT_FIELDS)
+
+
+def columns_of(points: Sequence[Point]) -> Columns:
+    """The typed columns of ``points``, each row as :func:`row_of` makes it.
+
+    Written for speed (it runs for every point the gateway logs): points of one shape
+    (measurement, tag and field names) are gathered as value tuples and turned into
+    columns with ``zip``, so a point costs a tuple, not a Python step per value; a
+    shape with a value outside its typed column takes :func:`row_of` point by point."""
+    groups: dict[tuple, tuple[list, list]] = {}
+    for p in points:
+        shape = (p.measurement, tuple(p.tags), tuple(p.fields))
+        group = groups.get(shape)
+        if group is None:
+            group = groups[shape] = ([], [])
+        group[0].append((p.time_ns, *p.tags.values(), *p.fields.values()))
+        group[1].append(p)
+    out: Columns = {c: [] for c in COLUMNS}
+    for shape, (rows, group_points) in groups.items():
+        if not _extend_typed(out, shape, rows):
+            for row in map(row_of, group_points):
+                for column, value in zip(out.values(), row, strict=True):
+                    column.append(value)
+    return out
+
+
+def _typed_column(name: str, values: tuple) -> bool:
+    """Whether every value of field ``name`` fits its typed column."""
+    kinds = set(map(type, values))
+    if name in _FLOAT_SET:
+        return kinds == {float} and bool(np.isfinite(np.array(values, dtype=float)).all())
+    if name in _INT_SET:
+        return kinds == {int} and all(-(2**63) <= v < 2**63 for v in values)
+    return name in _TEXT_SET and kinds == {str}
+
+
+def _extend_typed(out: Columns, shape: tuple, rows: list[tuple]) -> bool:
+    """Append the rows of one shape to ``out`` column by column; False (nothing
+    appended) when a tag or field of it is outside the typed columns."""
+    measurement, tag_names, field_names = shape
+    if not _TAG_SET.issuperset(tag_names):
+        return False
+    columns = list(zip(*rows, strict=True))
+    named = dict(zip((*tag_names, *field_names), columns[1:], strict=True))
+    if not all(_typed_column(f, named[f]) for f in field_names):
+        return False
+    n = len(rows)
+    out["measurement"].extend([measurement] * n)
+    for tag in TAGS:
+        out[tag].extend(named.get(tag, ("",) * n))
+    out["tags_extra"].extend([""] * n)
+    out["time_ns"].extend(columns[0])
+    for name in COLUMNS[TIME_INDEX + 1 : -1]:
+        out[name].extend(named.get(name, (None,) * n))
+    out["fields_extra"].extend([None] * n)
+    return True
+
+
+def encode(columns: Columns, chain: Chain, duplicates: bool) -> bytes:
+    """One record of ``columns`` (one period's points of a commit); ``chain`` is updated."""
+    keys = [columns[c] for c in KEY_COLUMNS]
+    n = len(columns["time_ns"])
     same = chain.keys is not None and keys == chain.keys
-    doc: dict[str, object] = {"text": [[r[i] for r in rows] for i in _TEXT_SLOTS]}
+    doc: dict[str, object] = {"text": [columns[c] for c in TEXT_COLUMNS]}
     if not same:
-        doc["keys"] = [list(c) for c in zip(*keys, strict=True)] if rows else []
+        doc["keys"] = keys
     numbers: list[list] = []
     blobs: list[bytes] = []
     earlier: dict[str, np.ndarray] = {}
     ints: dict[str, tuple[int, np.ndarray]] = {}
-    for name, slot in zip(NUMBER_COLUMNS, _NUMBER_SLOTS, strict=True):
+    for name in NUMBER_COLUMNS:
         dtype = np.int64 if name == "time_ns" else float
-        values = np.array([r[slot] for r in rows], dtype=dtype)
+        values = np.array(columns[name], dtype=dtype)
         described, data, as_ints = _number_column(name, values, earlier, chain if same else None)
         numbers.append([*described, len(data)])
         blobs.append(data)
@@ -129,7 +200,7 @@ def encode(rows: Sequence[Row], chain: Chain, duplicates: bool) -> bytes:
     doc["numbers"] = numbers
     text = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode()
     flags = (SAME_KEYS if same else 0) | (DUPLICATES if duplicates else 0)
-    payload = zlib.compress(_BODY.pack(len(rows), len(text), flags) + text + b"".join(blobs), LEVEL)
+    payload = zlib.compress(_BODY.pack(n, len(text), flags) + text + b"".join(blobs), LEVEL)
     chain.keys, chain.ints = keys, ints
     return HEADER.pack(MAGIC, len(payload), zlib.crc32(payload)) + payload
 
@@ -208,8 +279,8 @@ def read_segment(path: Path) -> tuple[list[dict[str, np.ndarray]], bool, int, Ch
         columns, flagged = decode(payload, chain)
         found.append(columns)
         duplicates |= flagged
-    if chain.keys is not None:  # as row tuples, as encode compares them
-        chain.keys = list(zip(*chain.keys, strict=True))
+    if chain.keys is not None:  # as lists, as encode compares them
+        chain.keys = [list(c) for c in chain.keys]
     return found, duplicates, end, chain
 
 
@@ -246,14 +317,14 @@ class Segment:
         self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
         self.size = os.fstat(self.fd).st_size
 
-    def append(self, rows: Sequence[Row]) -> None:
-        """Append ``rows`` as one record, flushed to the disk (``sync``); on failure (a
+    def append(self, columns: Columns) -> None:
+        """Append ``columns`` as one record, flushed to the disk (``sync``); on failure (a
         full disk) the segment is cut back to its whole records and the error raised."""
-        keys = [r[: TIME_INDEX + 1] for r in rows]
+        keys = list(zip(*(columns[c] for c in COLUMNS[: TIME_INDEX + 1]), strict=True))
         fresh = set(keys)
         duplicates = len(fresh) < len(keys) or not self.keys.isdisjoint(fresh)
         chain = Chain(self.chain.keys, self.chain.ints)
-        record = encode(rows, chain, duplicates)
+        record = encode(columns, chain, duplicates)
         try:
             written = os.write(self.fd, record)
             if written != len(record):

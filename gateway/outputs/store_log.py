@@ -49,6 +49,7 @@ LEVEL = 6  # zlib level: 6 writes 20 % less than 1 for a few µs a machine-secon
 SCALES = range(7)  # decimals tried for a number column stored as integers
 
 KEY_COLUMNS = COLUMNS[:TIME_INDEX]  # measurement, the tags, tags_extra
+SORT_KEYS = ("measurement", *TAGS, "tags_extra")  # a part's order (then time)
 _NUMBERS = frozenset((*FLOAT_FIELDS, *INT_FIELDS, "time_ns"))
 NUMBER_COLUMNS = tuple(c for c in COLUMNS if c in _NUMBERS)
 TEXT_COLUMNS = tuple(c for c in COLUMNS[TIME_INDEX:] if c not in _NUMBERS)
@@ -61,6 +62,7 @@ class Chain:
 
     keys: list | None = None
     ints: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)
+    text: list = field(default_factory=list)  # the text field columns
 
 
 def _as_ints(values: np.ndarray) -> tuple[int, np.ndarray] | None:
@@ -180,7 +182,13 @@ def encode(columns: Columns, chain: Chain, duplicates: bool) -> bytes:
     keys = [columns[c] for c in KEY_COLUMNS]
     n = len(columns["time_ns"])
     same = chain.keys is not None and keys == chain.keys
-    doc: dict[str, object] = {"text": [columns[c] for c in TEXT_COLUMNS]}
+    text = [columns[c] for c in TEXT_COLUMNS]
+    doc: dict[str, object] = {
+        "text": [
+            0 if same and i < len(chain.text) and column == chain.text[i] else column
+            for i, column in enumerate(text)
+        ]
+    }  # 0: the record before's column
     if not same:
         doc["keys"] = keys
     numbers: list[list] = []
@@ -198,10 +206,10 @@ def encode(columns: Columns, chain: Chain, duplicates: bool) -> bytes:
         if as_ints is not None:
             ints[name] = as_ints
     doc["numbers"] = numbers
-    text = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode()
+    head = json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode()
     flags = (SAME_KEYS if same else 0) | (DUPLICATES if duplicates else 0)
-    payload = zlib.compress(_BODY.pack(n, len(text), flags) + text + b"".join(blobs), LEVEL)
-    chain.keys, chain.ints = keys, ints
+    payload = zlib.compress(_BODY.pack(n, len(head), flags) + head + b"".join(blobs), LEVEL)
+    chain.keys, chain.ints, chain.text = keys, ints, text
     return HEADER.pack(MAGIC, len(payload), zlib.crc32(payload)) + payload
 
 
@@ -248,9 +256,16 @@ def decode(payload: bytes, chain: Chain) -> tuple[dict[str, np.ndarray], bool]:
         columns[name], as_ints = _decode_numbers(described[:-1], blob, n, name, columns, chain)
         if as_ints is not None:
             ints[name] = as_ints
-    for name, values in zip(TEXT_COLUMNS, doc["text"], strict=True):
-        columns[name] = np.array(values, dtype=object) if n else np.array([], dtype=object)
-    chain.keys, chain.ints = key_columns, ints
+    text = []
+    for i, (name, values) in enumerate(zip(TEXT_COLUMNS, doc["text"], strict=True)):
+        if values == 0:
+            column = chain.text[i]
+        else:
+            column = np.empty(n, dtype=object)
+            column[:] = values
+        columns[name] = column
+        text.append(column)
+    chain.keys, chain.ints, chain.text = key_columns, ints, text
     return {c: columns[c] for c in COLUMNS}, bool(flags & DUPLICATES)
 
 
@@ -281,6 +296,7 @@ def read_segment(path: Path) -> tuple[list[dict[str, np.ndarray]], bool, int, Ch
         duplicates |= flagged
     if chain.keys is not None:  # as lists, as encode compares them
         chain.keys = [list(c) for c in chain.keys]
+        chain.text = [list(c) for c in chain.text]
     return found, duplicates, end, chain
 
 
@@ -289,6 +305,33 @@ def concatenate(batches: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarra
     if not batches:
         return {c: _empty(c) for c in COLUMNS}
     return {c: np.concatenate([b[c] for b in batches]) for c in COLUMNS}
+
+
+def ordered_columns(batches: Sequence[dict[str, np.ndarray]]) -> dict[str, np.ndarray] | None:
+    """The ``batches`` as one set of columns sorted as a part is (by series, then time),
+    when every batch holds the same series in the same rows — as a steady fleet's
+    seconds do — so no sort of the whole period is needed (each row's place is known
+    from its batch and its row); else None. A column is written once, in place."""
+    if not batches:
+        return None
+    first, count = batches[0], len(batches)
+    n = len(first["time_ns"])
+    for batch in batches[1:]:
+        if len(batch["time_ns"]) != n or any(batch[c] is not first[c] for c in KEY_COLUMNS):
+            return None
+    keys = list(zip(*(first[c] for c in SORT_KEYS), first["time_ns"].tolist(), strict=True))
+    within = np.array(sorted(range(n), key=keys.__getitem__), dtype=np.int64)
+    out: dict[str, np.ndarray] = {}
+    for name in COLUMNS:
+        if all(batch[name] is first[name] for batch in batches):
+            out[name] = np.repeat(first[name][within], count)
+            continue
+        column = np.empty(n * count, dtype=first[name].dtype)
+        grid = column.reshape(n, count)
+        for r, batch in enumerate(batches):
+            grid[:, r] = batch[name][within]
+        out[name] = column
+    return out
 
 
 def _empty(column: str) -> np.ndarray:
@@ -323,7 +366,7 @@ class Segment:
         keys = list(zip(*(columns[c] for c in COLUMNS[: TIME_INDEX + 1]), strict=True))
         fresh = set(keys)
         duplicates = len(fresh) < len(keys) or not self.keys.isdisjoint(fresh)
-        chain = Chain(self.chain.keys, self.chain.ints)
+        chain = Chain(self.chain.keys, self.chain.ints, self.chain.text)
         record = encode(columns, chain, duplicates)
         try:
             written = os.write(self.fd, record)

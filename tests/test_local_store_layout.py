@@ -199,3 +199,37 @@ def test_a_closed_day_is_merged_into_one_part_with_every_point(tmp_path: Path) -
         seconds = Counter(_second_of(p) for p in store.query("spindle_temperature"))
         assert set(seconds) == set(range(0, 6300, 3)) and set(seconds.values()) == {9}
         assert len(store) == 2100 * 12
+
+
+def _bytes_written() -> int:
+    """Bytes this process has passed to ``write()`` (``wchar`` of /proc/self/io)."""
+    with open("/proc/self/io") as stream:
+        return next(int(line.split()[1]) for line in stream if line.startswith("wchar:"))
+
+
+def test_each_second_writes_about_what_the_store_keeps(tmp_path: Path) -> None:
+    """20 machines' simulated cycles committed once a second (fsynced, as the gateway
+    commits) for a 10-minute period, closed into its part: every byte written — the
+    open period's appends, the part and its per-minute history — at most 3 times
+    what the part and history keep (an open period in SQLite wrote 100 times more)."""
+    from benchmarks.store_engines import Stream, stream_ns
+
+    stream = Stream(20)
+    seconds = [stream.second(s) for s in range(600)]
+    before = _bytes_written()
+    path = tmp_path / "points.sqlite"
+    with LocalStore(path, synchronous="FULL", commit_interval_s=3600.0) as store:
+        for batches in seconds:
+            for points in batches:
+                store.write(points)
+            store.flush()  # the commit thread's once a second
+        store.compact(stream_ns(600 + 700))
+        assert len(store) == 20 * 600 * 11
+    written = _bytes_written() - before
+    kept = sum(
+        p.stat().st_size
+        for folder in (tmp_path / "points.sqlite.parts", tmp_path / "points.sqlite.history")
+        for p in folder.iterdir()
+    )
+    assert not list((tmp_path / "points.sqlite.open").iterdir())  # the period closed
+    assert written <= 3 * kept, f"{written} bytes written for {kept} kept"

@@ -350,11 +350,11 @@ class Segment:
         self.path = path
         self.sync = sync
         self.chain = Chain()
-        self.keys: set[tuple] = set()
+        self.latest: dict[tuple, int] = {}  # each series' latest time written
         if path.exists():
             batches, _, end, self.chain = read_segment(path)
             for columns in batches:
-                self.keys.update(_row_keys(columns))
+                _later_only(self.latest, [columns[c] for c in KEY_COLUMNS], columns["time_ns"])
             with path.open("rb+") as stream:
                 stream.truncate(end)
         self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
@@ -363,9 +363,8 @@ class Segment:
     def append(self, columns: Columns) -> None:
         """Append ``columns`` as one record, flushed to the disk (``sync``); on failure (a
         full disk) the segment is cut back to its whole records and the error raised."""
-        keys = list(zip(*(columns[c] for c in COLUMNS[: TIME_INDEX + 1]), strict=True))
-        fresh = set(keys)
-        duplicates = len(fresh) < len(keys) or not self.keys.isdisjoint(fresh)
+        latest = dict(self.latest)
+        duplicates = not _later_only(latest, [columns[c] for c in KEY_COLUMNS], columns["time_ns"])
         chain = Chain(self.chain.keys, self.chain.ints, self.chain.text)
         record = encode(columns, chain, duplicates)
         try:
@@ -379,16 +378,25 @@ class Segment:
             raise
         self.size += len(record)
         self.chain = chain
-        self.keys |= fresh
+        self.latest = latest
 
     def close(self) -> None:
         os.close(self.fd)
 
 
-def _row_keys(columns: dict[str, np.ndarray]) -> list[tuple]:
-    """Each row's identity (measurement, tags, tags_extra, time) as ``row[:TIME+1]``."""
-    key_columns = [columns[c] for c in COLUMNS[: TIME_INDEX + 1]]
-    return [(*k[:-1], int(k[-1])) for k in zip(*key_columns, strict=True)]
+def _later_only(latest: dict[tuple, int], keys: list, times: Sequence[int]) -> bool:
+    """Whether every row is later than its series' latest time in ``latest`` (then no
+    row can repeat an identity written before); ``latest`` updated. A row at or before
+    it (a repeat, or a clock stepped back) makes the segment's rows merged on read.
+    Kept per series, not per row: a period of 200 machines holds 2 200 entries."""
+    later = True
+    for series, time_ns in zip(zip(*keys, strict=True), times, strict=True):
+        before = latest.get(series)
+        if before is not None and time_ns <= before:
+            later = False
+        else:
+            latest[series] = int(time_ns)
+    return later
 
 
 def merge_duplicates(columns: dict[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -19,8 +19,11 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import pytest
+
 from gateway.offline.export import export_runs
-from gateway.outputs.local_store import DAY_NS, LocalStore, parts_folder
+from gateway.outputs import local_store
+from gateway.outputs.local_store import DAY_NS, LocalStore, history_folder, parts_folder
 from gateway.outputs.points import Point, probe_point
 from tests.json_layout_store import JsonLocalStore
 from tests.store_writer import EPOCH_S, STEP_S, second_points
@@ -233,3 +236,22 @@ def test_each_second_writes_about_what_the_store_keeps(tmp_path: Path) -> None:
     )
     assert not list((tmp_path / "points.sqlite.open").iterdir())  # the period closed
     assert written <= 3 * kept, f"{written} bytes written for {kept} kept"
+
+
+def test_a_day_of_large_parts_is_left_as_it_is(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Parts of at least :data:`MERGE_BELOW_BYTES` on average compress as well alone:
+    their day is not rewritten, every point still read."""
+    monkeypatch.setattr(local_store, "MERGE_BELOW_BYTES", 1)  # every part counts as large
+    with LocalStore(tmp_path / "points.sqlite") as store:
+        for second in range(0, 3000, 3):  # 3000 × 30 s: a day and more
+            store.write(second_points(second))
+        now_ns = second_points(3000)[0].time_ns
+        store.compact(now_ns)
+        store.merge_days(now_ns)
+        parts = list(parts_folder(store.path).iterdir())
+        assert len(parts) == 3000 * 30 // 600  # one part a 10-minute period
+        assert len(list(history_folder(store.path).iterdir())) == len(parts)
+        seconds = Counter(_second_of(p) for p in store.query("spindle_temperature"))
+        assert set(seconds) == set(range(0, 3000, 3)) and set(seconds.values()) == {9}

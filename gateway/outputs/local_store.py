@@ -23,7 +23,8 @@ Layout (one row per point, typed columns: :mod:`gateway.outputs.store_rows`):
   transaction with the names of the segments it came from, which are removed after
   it (a crash before leaves an unregistered part, after it listed segments: both
   removed at the next start, and readers skip listed segments).
-  The parts of a closed day are merged into one (:meth:`LocalStore.merge_days`);
+  The parts of a closed day are merged into one when they are small (a few machines:
+  :meth:`LocalStore.merge_days`; a large fleet's parts compress as well alone);
   each part has its per-minute history beside it (``<file>.history/``: count, min,
   mean and max of every number), kept ``history_retention_s`` and dropped last at
   the size cap. Readers (``export``, the console's worker process) take the list of parts and the
@@ -69,6 +70,10 @@ PART_S = 600  # seconds of points per Parquet part
 LATE_S = 60  # a period is closed this long after its end (points of slower machines)
 NS = 1_000_000_000
 DAY_NS = 86_400 * NS  # the parts of a closed (UTC) day are merged into one
+#: ... when they are small: 10 machines' hour took 1.48 bytes a value as one part
+#: against 1.79 in 10-minute parts, but 200 machines' 20 minutes (2.9 MB parts) 1 %
+#: less for 2.3 s of CPU and every byte written again.
+MERGE_BELOW_BYTES = 1_000_000  # the mean size of a day's parts below which they merge
 MAX_EVICTIONS = 100  # oldest parts one write may drop to get under the cap
 READ_ATTEMPTS = 3  # a reader whose parts were merged or aged out meanwhile reads again
 SNAPSHOT_ATTEMPTS = 10  # a reader whose segments were closed meanwhile reads again
@@ -419,7 +424,8 @@ class LocalStore:
 
     def merge_days(self, now_ns: int | None = None) -> int:
         """Merge the parts (and history parts) of each day closed before ``now_ns`` into
-        one each (better compression, fewer files to open); the files merged."""
+        one each (better compression, fewer files to open) when they average under
+        :data:`MERGE_BELOW_BYTES`; the files merged."""
         now_ns = self._newest_ns if now_ns is None else now_ns
         before = (now_ns - LATE_S * NS) // DAY_NS * DAY_NS
         merged = 0
@@ -430,7 +436,7 @@ class LocalStore:
 
     def _merge_table(self, table: str, folder: Path, before_ns: int) -> int:
         found = self._db.execute(
-            f"SELECT name, first_ns, last_ns, rows FROM {table} WHERE last_ns < ? "
+            f"SELECT name, first_ns, last_ns, rows, bytes FROM {table} WHERE last_ns < ? "
             "ORDER BY first_ns",
             (before_ns,),
         ).fetchall()
@@ -439,7 +445,7 @@ class LocalStore:
             days.setdefault(part[1] // DAY_NS, []).append(part)
         merged = 0
         for parts in days.values():
-            if len(parts) < 2:
+            if len(parts) < 2 or sum(p[4] for p in parts) >= MERGE_BELOW_BYTES * len(parts):
                 continue
             first, last = parts[0][1], max(p[2] for p in parts)
             name = f"{first}-{last}-{time.time_ns()}.parquet"

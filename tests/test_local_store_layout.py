@@ -255,3 +255,27 @@ def test_a_day_of_large_parts_is_left_as_it_is(
         assert len(list(history_folder(store.path).iterdir())) == len(parts)
         seconds = Counter(_second_of(p) for p in store.query("spindle_temperature"))
         assert set(seconds) == set(range(0, 3000, 3)) and set(seconds.values()) == {9}
+
+
+def test_a_record_cut_short_is_never_read_and_the_writer_cuts_it_off(tmp_path: Path) -> None:
+    """A crash mid-append leaves part of a record at a segment's end (here: the first
+    half of the next second's record, then a whole record with one byte changed):
+    readers stop before it, and the next writer appends after the last whole record."""
+    path = tmp_path / "points.sqlite"
+    with LocalStore(path, synchronous="FULL", commit_interval_s=3600.0) as store:
+        for second in range(5):
+            store.write(second_points(second))
+            store.flush()
+    (segment,) = (tmp_path / "points.sqlite.open").iterdir()
+    whole = segment.read_bytes()
+    with LocalStore(tmp_path / "other.sqlite", synchronous="FULL") as other:
+        other.write(second_points(5))
+    (record,) = (tmp_path / "other.sqlite.open").iterdir()
+    torn = record.read_bytes()
+    for tail in (torn[: len(torn) // 2], torn[:-1] + bytes([torn[-1] ^ 1])):
+        segment.write_bytes(whole + tail)
+        assert set(_stored_seconds(path)) == set(range(5))  # the tail is not read
+    with LocalStore(path, synchronous="FULL") as store:
+        store.write(second_points(6))
+    assert segment.read_bytes().startswith(whole)  # the tail cut off, the record after
+    assert set(_stored_seconds(path)) == {0, 1, 2, 3, 4, 6}

@@ -15,7 +15,7 @@ Layout (one row per point, typed columns: :mod:`gateway.outputs.store_rows`):
   flushes it to the disk before the next, so a SIGKILL or a power cut loses at most
   the points not yet committed (the gateway commits once a second, off the event
   loop: ``commit_interval_s``), and a record cut short is never read; a second costs
-  about what it stores (2.7 bytes written per byte kept, parts and day merge
+  about what it stores (1.8 bytes written per byte kept, parts and history
   included, against 140-170 with the period's rows in SQLite's WAL);
 * each **closed period** is compacted into one immutable Parquet (zstd) file in
   ``<file>.parts/`` (:mod:`gateway.outputs.store_parts`), 1.3–1.8 bytes a value measured,

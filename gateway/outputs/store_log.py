@@ -342,6 +342,40 @@ def _empty(column: str) -> np.ndarray:
     return np.array([], dtype=object)
 
 
+@dataclass
+class SeriesTimes:
+    """Each series' latest time written to a segment: whether new rows may repeat an
+    identity written before (their segment's rows are then merged on read).
+
+    Kept per series (2 200 entries for 200 machines), and for a steady fleet — the
+    same series in the same rows as the record before, each later — checked with one
+    array comparison, not a step per row; the record before's times are folded into
+    the table only when the series change."""
+
+    latest: dict[tuple, int] = field(default_factory=dict)
+    keys: list | None = None  # the record before's key columns (each series once)
+    times: np.ndarray | None = None  # and its times
+
+    def after(self, keys: list, times: Sequence[int]) -> tuple[bool, SeriesTimes]:
+        """Whether every row is later than its series' latest time, and the state after
+        the rows (``self`` is left as it was: the append may still fail)."""
+        stamps = np.asarray(times, dtype=np.int64)
+        if (
+            self.keys is not None
+            and self.times is not None
+            and len(stamps) == len(self.times)
+            and keys == self.keys
+            and bool((stamps > self.times).all())
+        ):
+            return True, SeriesTimes(self.latest, keys, stamps)
+        latest = dict(self.latest)
+        if self.keys is not None and self.times is not None:
+            _later_only(latest, self.keys, self.times)
+        later = _later_only(latest, keys, stamps)
+        once = len(set(zip(*keys, strict=True))) == len(stamps)
+        return later, SeriesTimes(latest, keys if once else None, stamps if once else None)
+
+
 class Segment:
     """One open segment file, appended by the writer (its whole records kept, a torn
     tail cut off when opened)."""
@@ -350,11 +384,12 @@ class Segment:
         self.path = path
         self.sync = sync
         self.chain = Chain()
-        self.latest: dict[tuple, int] = {}  # each series' latest time written
+        self.times = SeriesTimes()
         if path.exists():
             batches, _, end, self.chain = read_segment(path)
             for columns in batches:
-                _later_only(self.latest, [columns[c] for c in KEY_COLUMNS], columns["time_ns"])
+                keys = [columns[c].tolist() for c in KEY_COLUMNS]
+                _, self.times = self.times.after(keys, columns["time_ns"])
             with path.open("rb+") as stream:
                 stream.truncate(end)
         self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
@@ -363,8 +398,8 @@ class Segment:
     def append(self, columns: Columns) -> None:
         """Append ``columns`` as one record, flushed to the disk (``sync``); on failure (a
         full disk) the segment is cut back to its whole records and the error raised."""
-        latest = dict(self.latest)
-        duplicates = not _later_only(latest, [columns[c] for c in KEY_COLUMNS], columns["time_ns"])
+        later, times = self.times.after([columns[c] for c in KEY_COLUMNS], columns["time_ns"])
+        duplicates = not later
         chain = Chain(self.chain.keys, self.chain.ints, self.chain.text)
         record = encode(columns, chain, duplicates)
         try:
@@ -378,7 +413,7 @@ class Segment:
             raise
         self.size += len(record)
         self.chain = chain
-        self.latest = latest
+        self.times = times
 
     def close(self) -> None:
         os.close(self.fd)

@@ -62,7 +62,7 @@ class Chain:
 
     keys: list | None = None
     ints: dict[str, tuple[int, np.ndarray]] = field(default_factory=dict)
-    text: list = field(default_factory=list)  # the text field columns
+    text: dict = field(default_factory=dict)  # the text field columns by name
 
 
 def _as_ints(values: np.ndarray) -> tuple[int, np.ndarray] | None:
@@ -182,16 +182,13 @@ def encode(columns: Columns, chain: Chain, duplicates: bool) -> bytes:
     keys = [columns[c] for c in KEY_COLUMNS]
     n = len(columns["time_ns"])
     same = chain.keys is not None and keys == chain.keys
-    text = [columns[c] for c in TEXT_COLUMNS]
-    doc: dict[str, object] = {
-        "text": [
-            0 if same and i < len(chain.text) and column == chain.text[i] else column
-            for i, column in enumerate(text)
-        ]
+    text = {c: columns[c] for c in TEXT_COLUMNS}
+    doc: dict[str, object] = {  # columns by name: a column added later reads as empty
+        "text": {c: 0 if same and v == chain.text.get(c) else v for c, v in text.items()}
     }  # 0: the record before's column
     if not same:
-        doc["keys"] = keys
-    numbers: list[list] = []
+        doc["keys"] = dict(zip(KEY_COLUMNS, keys, strict=True))
+    numbers: dict[str, list] = {}
     blobs: list[bytes] = []
     earlier: dict[str, np.ndarray] = {}
     ints: dict[str, tuple[int, np.ndarray]] = {}
@@ -199,7 +196,7 @@ def encode(columns: Columns, chain: Chain, duplicates: bool) -> bytes:
         dtype = np.int64 if name == "time_ns" else float
         values = np.array(columns[name], dtype=dtype)
         described, data, as_ints = _number_column(name, values, earlier, chain if same else None)
-        numbers.append([*described, len(data)])
+        numbers[name] = [*described, len(data)]
         blobs.append(data)
         if name != "time_ns":
             earlier[name] = values
@@ -244,29 +241,31 @@ def decode(payload: bytes, chain: Chain) -> tuple[dict[str, np.ndarray], bool]:
     if flags & SAME_KEYS:
         key_columns = chain.keys
     else:
-        key_columns = [np.array(c, dtype=object) for c in doc["keys"]] or [
-            np.array([], dtype=object) for _ in KEY_COLUMNS
-        ]
+        key_columns = [_texts(doc["keys"].get(c), n, "") for c in KEY_COLUMNS]
     assert key_columns is not None, "a record refers to keys before the segment's first"
     columns: dict[str, np.ndarray] = dict(zip(KEY_COLUMNS, key_columns, strict=True))
     ints: dict[str, tuple[int, np.ndarray]] = {}
-    for name, described in zip(NUMBER_COLUMNS, doc["numbers"], strict=True):
+    for name, described in doc["numbers"].items():
         blob = body[offset : offset + described[-1]]
         offset += described[-1]
         columns[name], as_ints = _decode_numbers(described[:-1], blob, n, name, columns, chain)
         if as_ints is not None:
             ints[name] = as_ints
-    text = []
-    for i, (name, values) in enumerate(zip(TEXT_COLUMNS, doc["text"], strict=True)):
-        if values == 0:
-            column = chain.text[i]
-        else:
-            column = np.empty(n, dtype=object)
-            column[:] = values
-        columns[name] = column
-        text.append(column)
+    for name in NUMBER_COLUMNS:  # a column the record does not name: empty
+        columns.setdefault(name, np.full(n, np.nan))
+    text = {}
+    for name in TEXT_COLUMNS:
+        values = doc["text"].get(name)
+        text[name] = columns[name] = chain.text[name] if values == 0 else _texts(values, n, None)
     chain.keys, chain.ints, chain.text = key_columns, ints, text
     return {c: columns[c] for c in COLUMNS}, bool(flags & DUPLICATES)
+
+
+def _texts(values: list | None, n: int, empty: str | None) -> np.ndarray:
+    """A text column of a record (``empty`` in every row when the record lacks it)."""
+    column = np.empty(n, dtype=object)
+    column[:] = [empty] * n if values is None else values
+    return column
 
 
 def records(path: Path) -> Iterator[tuple[int, bytes]]:
@@ -296,7 +295,7 @@ def read_segment(path: Path) -> tuple[list[dict[str, np.ndarray]], bool, int, Ch
         duplicates |= flagged
     if chain.keys is not None:  # as lists, as encode compares them
         chain.keys = [list(c) for c in chain.keys]
-        chain.text = [list(c) for c in chain.text]
+        chain.text = {c: list(v) for c, v in chain.text.items()}
     return found, duplicates, end, chain
 
 

@@ -53,6 +53,7 @@ sys.path.insert(0, str(ROOT))
 import duckdb  # noqa: E402
 import numpy as np  # noqa: E402
 
+from gateway.config import LoggingSection  # noqa: E402
 from gateway.offline.export import export_runs  # noqa: E402
 from gateway.outputs.local_store import LocalStore  # noqa: E402
 from gateway.outputs.points import Point, points_from_record  # noqa: E402
@@ -65,6 +66,7 @@ from tests.records import written_record  # noqa: E402
 EPOCH_S = 1.7e9
 DEFAULT_CAP_BYTES = 8_000_000_000
 SECONDS_PER_YEAR = 365 * 86_400
+DAY_NS = 86_400 * 10**9
 
 
 def simulator_rows() -> list[dict[str, float]]:
@@ -175,7 +177,7 @@ def run(name: str, folder: Path, stream: Stream, seconds: int) -> dict:
         store = DuckFile(folder / "points.duckdb")
     points = values = 0
     making = caller = 0.0
-    c0, w0 = time.process_time(), wchar()
+    c0, io0 = time.process_time(), wchar()
     for s in range(seconds):
         m0 = time.thread_time()
         batches = stream.second(s)
@@ -193,13 +195,14 @@ def run(name: str, folder: Path, stream: Stream, seconds: int) -> dict:
             store.compact()
     if isinstance(store, LocalStore):
         store.compact(stream_ns(seconds + 700))  # the last closed period, as later cycles would
+        store.merge_days(stream_ns(seconds) + DAY_NS)  # its day closed: parts merged (rewritten)
     store.close()  # type: ignore[attr-defined]
     cpu = time.process_time() - c0 - making
     parts = history = None
     if isinstance(store, LocalStore):
         parts = disk_bytes(folder / "points.sqlite.parts")
         history = disk_bytes(folder / "points.sqlite.history")
-    written = wchar() - w0
+    written = wchar() - io0
     stored = disk_bytes(folder)
     cycles = stream.machines * seconds
     return {
@@ -257,6 +260,12 @@ def main() -> None:
     parser.add_argument("--machines", type=int, default=200)
     parser.add_argument("--seconds", type=int, default=1800)
     parser.add_argument("--project-machines", type=int, default=10)
+    parser.add_argument(
+        "--raw-retention-days",
+        type=float,
+        default=LoggingSection().local_store_retention_days,
+        help="age of the 1-s points kept in the projection (the minute history: a year)",
+    )
     parser.add_argument("--folder", type=Path, default=None)
     parser.add_argument(
         "--candidates", nargs="+", default=["json-sqlite", "typed-parquet", "duckdb-file"]
@@ -272,11 +281,13 @@ def main() -> None:
             result = run(name, folder, stream, args.seconds)
             if name != "duckdb-file":
                 result.update(reads(name, folder, args.seconds))
-            # The store's lasting growth: its parts (the SQLite file holds one open period).
-            per_s = result["bytes_per_machine_s"]
+            # The store's lasting growth: its parts (the open period is a constant), the
+            # 1-s parts kept --raw-retention-days and the minute history the whole year.
+            per_year = result["bytes_per_machine_s"] * SECONDS_PER_YEAR
             if result["parts_bytes_per_machine_s"] is not None:
-                per_s = result["parts_bytes_per_machine_s"] + result["history_bytes_per_machine_s"]
-            per_year = per_s * SECONDS_PER_YEAR
+                raw_s = min(SECONDS_PER_YEAR, args.raw_retention_days * 86_400)
+                per_year = result["parts_bytes_per_machine_s"] * raw_s
+                per_year += result["history_bytes_per_machine_s"] * SECONDS_PER_YEAR
             result["projection_bytes"] = round(args.project_machines * per_year)
             result["projection_within_cap"] = result["projection_bytes"] <= DEFAULT_CAP_BYTES
             results.append(result)
@@ -291,7 +302,8 @@ def main() -> None:
             f"{r['written_per_stored']:15} {r['cpu_us_per_machine_cycle']:8}"
         )
     print(
-        f"projection: {args.project_machines} machines × 1 year at 1 s, "
+        f"projection: {args.project_machines} machines × 1 year at 1 s "
+        f"(1-s points kept {args.raw_retention_days:g} days, minutes a year), "
         "MB: " + ", ".join(f"{r['candidate']} {r['projection_bytes'] / 1e6:.0f}" for r in results)
     )
 

@@ -946,10 +946,10 @@ class LoggingSection(Strict):
     buffer_max_points: int = Field(default=2_000_000, ge=1000)
     # Retention (deploy/README.md, "Disk use"): points older than *_retention_days go,
     # and the oldest go while a file holds more than *_max_mb (10⁶ bytes), checked every
-    # retention_interval_s. Defaults: a 16 GB edge disk; the store holds 9-11 months of
-    # ten machines at 1 Hz (typed Parquet parts, docs/benchmarks.md), the buffer days
-    # (~150 bytes a point).
-    local_store_retention_days: float = Field(default=365.0, gt=0)
+    # retention_interval_s. Defaults: a 16 GB edge disk; the local store keeps the 1-s
+    # points 180 days and their per-minute history for years: a year of ten machines
+    # at 1 Hz projects to 4.6 GB (docs/benchmarks.md); the buffer days (~150 bytes a point).
+    local_store_retention_days: float = Field(default=180.0, gt=0)
     local_store_max_mb: float = Field(default=8000.0, ge=1)
     # The local store's per-minute history (min/mean/max of every number) outlives its
     # 1-s points: kept this long, and dropped last when the store is at its size cap.

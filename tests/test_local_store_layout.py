@@ -19,8 +19,11 @@ import time
 from collections import Counter
 from pathlib import Path
 
+import pytest
+
 from gateway.offline.export import export_runs
-from gateway.outputs.local_store import DAY_NS, LocalStore, parts_folder
+from gateway.outputs import local_store
+from gateway.outputs.local_store import DAY_NS, LocalStore, history_folder, parts_folder
 from gateway.outputs.points import Point, probe_point
 from tests.json_layout_store import JsonLocalStore
 from tests.store_writer import EPOCH_S, STEP_S, second_points
@@ -188,14 +191,91 @@ def test_a_closed_day_is_merged_into_one_part_with_every_point(tmp_path: Path) -
         for second in range(0, 6300, 3):  # 6300 × 30 s: two days and more
             store.write(second_points(second))
         now_ns = second_points(6300)[0].time_ns
-        store.compact(now_ns)
-        before = store.query("spindle_temperature")
-        parts = len(list(parts_folder(store.path).iterdir()))
-        assert store.merge_days(now_ns) > 0
+        store.compact(now_ns)  # each write closed its periods and merged closed days
+        store.merge_days(now_ns)
         days = Counter(
             int(p.name.split("-")[0]) // DAY_NS for p in parts_folder(store.path).iterdir()
         )
         closed = [n for day, n in days.items() if day < (now_ns - 60 * 10**9) // DAY_NS]
         assert len(closed) >= 2 and set(closed) == {1}  # a closed day: one part
-        assert sum(days.values()) < parts / 10
-        assert store.query("spindle_temperature") == before and len(store) == 2100 * 12
+        assert sum(days.values()) < 316 / 10  # written as 316 parts of 10 minutes
+        seconds = Counter(_second_of(p) for p in store.query("spindle_temperature"))
+        assert set(seconds) == set(range(0, 6300, 3)) and set(seconds.values()) == {9}
+        assert len(store) == 2100 * 12
+
+
+def _bytes_written() -> int:
+    """Bytes this process has passed to ``write()`` (``wchar`` of /proc/self/io)."""
+    with open("/proc/self/io") as stream:
+        return next(int(line.split()[1]) for line in stream if line.startswith("wchar:"))
+
+
+def test_each_second_writes_about_what_the_store_keeps(tmp_path: Path) -> None:
+    """20 machines' simulated cycles committed once a second (fsynced, as the gateway
+    commits) for a 10-minute period, closed into its part: every byte written — the
+    open period's appends, the part and its per-minute history — at most 3 times
+    what the part and history keep (an open period in SQLite wrote 100 times more)."""
+    from benchmarks.store_engines import Stream, stream_ns
+
+    stream = Stream(20)
+    seconds = [stream.second(s) for s in range(600)]
+    before = _bytes_written()
+    path = tmp_path / "points.sqlite"
+    with LocalStore(path, synchronous="FULL", commit_interval_s=3600.0) as store:
+        for batches in seconds:
+            for points in batches:
+                store.write(points)
+            store.flush()  # the commit thread's once a second
+        store.compact(stream_ns(600 + 700))
+        assert len(store) == 20 * 600 * 11
+    written = _bytes_written() - before
+    kept = sum(
+        p.stat().st_size
+        for folder in (tmp_path / "points.sqlite.parts", tmp_path / "points.sqlite.history")
+        for p in folder.iterdir()
+    )
+    assert not list((tmp_path / "points.sqlite.open").iterdir())  # the period closed
+    assert written <= 3 * kept, f"{written} bytes written for {kept} kept"
+
+
+def test_a_day_of_large_parts_is_left_as_it_is(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Parts of at least :data:`MERGE_BELOW_BYTES` on average compress as well alone:
+    their day is not rewritten, every point still read."""
+    monkeypatch.setattr(local_store, "MERGE_BELOW_BYTES", 1)  # every part counts as large
+    with LocalStore(tmp_path / "points.sqlite") as store:
+        for second in range(0, 3000, 3):  # 3000 × 30 s: a day and more
+            store.write(second_points(second))
+        now_ns = second_points(3000)[0].time_ns
+        store.compact(now_ns)
+        store.merge_days(now_ns)
+        parts = list(parts_folder(store.path).iterdir())
+        assert len(parts) == 3000 * 30 // 600  # one part a 10-minute period
+        assert len(list(history_folder(store.path).iterdir())) == len(parts)
+        seconds = Counter(_second_of(p) for p in store.query("spindle_temperature"))
+        assert set(seconds) == set(range(0, 3000, 3)) and set(seconds.values()) == {9}
+
+
+def test_a_record_cut_short_is_never_read_and_the_writer_cuts_it_off(tmp_path: Path) -> None:
+    """A crash mid-append leaves part of a record at a segment's end (here: the first
+    half of the next second's record, then a whole record with one byte changed):
+    readers stop before it, and the next writer appends after the last whole record."""
+    path = tmp_path / "points.sqlite"
+    with LocalStore(path, synchronous="FULL", commit_interval_s=3600.0) as store:
+        for second in range(5):
+            store.write(second_points(second))
+            store.flush()
+    (segment,) = (tmp_path / "points.sqlite.open").iterdir()
+    whole = segment.read_bytes()
+    with LocalStore(tmp_path / "other.sqlite", synchronous="FULL") as other:
+        other.write(second_points(5))
+    (record,) = (tmp_path / "other.sqlite.open").iterdir()
+    torn = record.read_bytes()
+    for tail in (torn[: len(torn) // 2], torn[:-1] + bytes([torn[-1] ^ 1])):
+        segment.write_bytes(whole + tail)
+        assert set(_stored_seconds(path)) == set(range(5))  # the tail is not read
+    with LocalStore(path, synchronous="FULL") as store:
+        store.write(second_points(6))
+    assert segment.read_bytes().startswith(whole)  # the tail cut off, the record after
+    assert set(_stored_seconds(path)) == {0, 1, 2, 3, 4, 6}

@@ -40,6 +40,7 @@ def _typed(column: str) -> str:
 
 TYPED_SELECT = ", ".join(_typed(c) for c in COLUMNS)
 SORT = "measurement, machine, sensor, quality, regime, model_id, tags_extra, time_ns"
+ORDERED = "__ordered__"  # a key of columns already in SORT's order (no sort needed)
 
 
 def arrays_of(rows: Sequence[Row]) -> dict[str, np.ndarray]:
@@ -56,11 +57,13 @@ def arrays_of(rows: Sequence[Row]) -> dict[str, np.ndarray]:
     return arrays
 
 
-def write_part(rows: Sequence[Row], path: Path) -> int:
-    """Write ``rows`` as the Parquet file ``path`` (atomically, flushed); its size in bytes.
-    On failure (a full disk) nothing is left behind."""
-    sql = f"SELECT {TYPED_SELECT} FROM batch ORDER BY {SORT}"
-    _copy(sql, path, f"ROW_GROUP_SIZE {ROW_GROUP_ROWS}", arrays_of(rows))
+def write_part(rows: Sequence[Row] | dict[str, np.ndarray], path: Path) -> int:
+    """Write ``rows`` (or their columns) as the Parquet file ``path`` (atomically,
+    flushed); its size in bytes. On failure (a full disk) nothing is left behind."""
+    batch = dict(rows) if isinstance(rows, dict) else arrays_of(rows)
+    ordered = batch.pop(ORDERED, None) is not None  # already in the part's order
+    sql = f"SELECT {TYPED_SELECT} FROM batch" + ("" if ordered else f" ORDER BY {SORT}")
+    _copy(sql, path, f"ROW_GROUP_SIZE {ROW_GROUP_ROWS}", batch)
     return path.stat().st_size
 
 
@@ -127,13 +130,17 @@ def literal(value: object) -> str:
 
 
 def scan(
-    files: Sequence[Path], staged: Sequence[Row], where: str, select: str, order: str
+    files: Sequence[Path],
+    staged: Sequence[Row] | dict[str, np.ndarray],
+    where: str,
+    select: str,
+    order: str,
 ) -> duckdb.DuckDBPyConnection:
     """A DuckDB connection holding the view ``w``: the rows of the parts ``files`` and
     the ``staged`` rows that meet ``where`` (SQL with literals). With ``select`` it has
     also executed ``SELECT select FROM w`` ordered by ``order``, to fetch from; the
     caller runs any other query on ``w`` and closes it."""
-    staged_batch = arrays_of(staged)  # noqa: F841  (scanned by name)
+    staged_batch = staged if isinstance(staged, dict) else arrays_of(staged)  # noqa: F841
     db = duckdb.connect()
     try:
         db.execute("SET threads = 1")

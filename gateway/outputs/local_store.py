@@ -802,7 +802,7 @@ def read_segments(paths: list[Path], ordered: bool = False) -> dict[str, np.ndar
         duplicates |= flagged
     if duplicates:
         return store_log.merge_duplicates(store_log.concatenate(batches))
-    found = store_log.ordered_columns(batches) if ordered else None
-    if found is None:
+    in_order = store_log.ordered_columns(batches) if ordered else None
+    if in_order is None:
         return store_log.concatenate(batches)
-    return {**found, store_parts.ORDERED: found["time_ns"][:0]}
+    return {**in_order, store_parts.ORDERED: in_order["time_ns"][:0]}

@@ -355,7 +355,7 @@ class SeriesTimes:
     keys: list | None = None  # the record before's key columns (each series once)
     times: np.ndarray | None = None  # and its times
 
-    def after(self, keys: list, times: Sequence[int]) -> tuple[bool, SeriesTimes]:
+    def after(self, keys: list, times: Sequence[int] | np.ndarray) -> tuple[bool, SeriesTimes]:
         """Whether every row is later than its series' latest time, and the state after
         the rows (``self`` is left as it was: the append may still fail)."""
         stamps = np.asarray(times, dtype=np.int64)
@@ -418,7 +418,7 @@ class Segment:
         os.close(self.fd)
 
 
-def _later_only(latest: dict[tuple, int], keys: list, times: Sequence[int]) -> bool:
+def _later_only(latest: dict[tuple, int], keys: list, times: Sequence[int] | np.ndarray) -> bool:
     """Whether every row is later than its series' latest time in ``latest`` (then no
     row can repeat an identity written before); ``latest`` updated. A row at or before
     it (a repeat, or a clock stepped back) makes the segment's rows merged on read.

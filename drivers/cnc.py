@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
 
@@ -55,6 +55,10 @@ class CncError(Exception):
     """A CNC call failed; the message names the endpoint and what failed."""
 
 
+#: What :meth:`CncClient.read_macros` gives each macro: its value, or why it was not read.
+MacroReads = dict[int, "float | CncError"]
+
+
 class CncRefusedError(CncError):
     """The CNC answered but refused the request (unknown node, illegal address, bad value).
 
@@ -73,6 +77,13 @@ class CncClient(Protocol):
     async def write_macro(self, number: int, value: float) -> None: ...
 
     async def read_macro(self, number: int) -> float: ...
+
+    async def read_macros(self, numbers: Sequence[int]) -> MacroReads:
+        """Macros #numbers in as few requests as the protocol allows (OPC UA: one Read;
+        Modbus: one read per span of close registers), so a machine's axes cost one
+        request, not one each. A macro the CNC refuses is a :class:`CncRefusedError` in
+        its own entry and the others are read; a link failure raises :class:`CncError`."""
+        ...
 
     async def write_macro_if(
         self, number: int, value: float, holds: Callable[[float], bool]

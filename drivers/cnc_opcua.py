@@ -16,7 +16,7 @@ import asyncio
 import math
 import socket
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -27,7 +27,13 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.backoff import Backoff
-from drivers.cnc import CncRefusedError, GuardedWrite, ReconnectingSession, SpeedReading
+from drivers.cnc import (
+    CncRefusedError,
+    GuardedWrite,
+    MacroReads,
+    ReconnectingSession,
+    SpeedReading,
+)
 from drivers.opcua_common import node_id
 
 T = TypeVar("T")
@@ -198,6 +204,31 @@ class OpcUaCnc(ReconnectingSession[_Session]):
             f"reading macro #{number} ({self._macro_id(number)})",
             _refusals_as_cnc(lambda session: self._read_on(session, number)),
         )
+
+    async def read_macros(self, numbers: Sequence[int]) -> MacroReads:
+        """Macros #numbers in one Read request (one ReadValueId a node). A node the server
+        answers with a refusal status (unknown node, not readable) or a value that is not
+        a number is that macro's :class:`CncRefusedError` alone; each type read is
+        remembered for writes, as :meth:`read_macro` does."""
+        wanted = list(dict.fromkeys(numbers))
+
+        async def read(session: _Session) -> MacroReads:
+            nodes = [self._macro(session, number) for number in wanted]
+            datavalues = await session.client.read_attributes(nodes)
+            results: MacroReads = {}
+            for number, datavalue in zip(wanted, datavalues, strict=True):
+                try:
+                    results[number] = _number(datavalue, self._macro_id(number))
+                except CncRefusedError as exc:
+                    results[number] = CncRefusedError(
+                        f"{self._where}: reading macro #{number} refused: {exc}"
+                    )
+                    continue
+                _learn_type(session, number, datavalue)
+            return results
+
+        listed = ", ".join(f"#{number}" for number in wanted)
+        return await self._call(f"reading macros {listed}", _refusals_as_cnc(read))
 
     async def write_macro_if(
         self, number: int, value: float, holds: Callable[[float], bool]

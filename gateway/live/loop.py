@@ -15,12 +15,13 @@ Once per ``cycle_s`` of machine time:
    every augmented model (lag terms, :mod:`gateway.live.bank.lag_state`) is advanced
    with this cycle's rises and speed whether it is selected or not, so a model
    switched in mid-shift has a warm state;
-5. for each axis in the configured order: read what its CNC macro holds (a value
-   the gateway did not write is an external change: logged, counted, and the policy
-   moves on from it), let the axis's compensation policy decide the value (clamp,
-   slew, deadband; with no prediction it holds, then ramps to zero), write it to the
-   macro, read it back, and only then count it as applied; then bump the handshake
-   counter once for the cycle's confirmed writes;
+5. read what every axis's CNC macro holds, in one request (a value the gateway did
+   not write is an external change: logged, counted, and the policy moves on from
+   it); for each axis in the configured order let its compensation policy decide the
+   value (clamp, slew, deadband; with no prediction it holds, then ramps to zero) and
+   write it to the macro, guarded by a read of that macro right before the write;
+   read every written macro back in one request, and only then count each value as
+   applied; then bump the handshake counter once for the cycle's confirmed writes;
 6. write the next alive count (``compensation.alive_macro``), the CNC's sign that
    the gateway runs and reaches it, in every cycle the CNC answered.
 
@@ -47,7 +48,7 @@ from typing import TypeVar
 import numpy as np
 
 from drivers.clock import Clock
-from drivers.cnc import CncClient, CncError
+from drivers.cnc import CncClient, CncError, MacroReads
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.config import MachineSection
 from gateway.live.axis import Axis, HandshakeToken, build_axes
@@ -61,7 +62,7 @@ from gateway.live.record import AxisRecord, CycleRecord, Sink, sink_name
 from gateway.live.reference import TemperatureReference
 from gateway.live.scheduler import CycleScheduler, after_cycle
 from gateway.live.uncertainty_gate import UncertaintyGate
-from gateway.live.writeback import CompensationPolicy
+from gateway.live.writeback import CompensationPolicy, Decision
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
 from models.data.dataset import ambient_sensor_of
@@ -328,15 +329,28 @@ class MachineLoop:
     async def _compensate_axes(
         self, aims: Sequence[tuple[Axis, AxisRecord, float | None]], record: CycleRecord
     ) -> None:
-        """Every axis's write in the configured order, then one handshake bump if any was
-        confirmed; the record gets every axis (multi-axis) and the first axis's fields."""
+        """Every axis's macro read in one request; every axis's decision and guarded write
+        in the configured order; every written macro read back in one request and each
+        confirmed on its own; then one handshake bump if any was confirmed. The record gets
+        every axis (multi-axis) and the first axis's fields."""
         comp = self.config.compensation
         macros = [axis.macro for axis in self.axes]
         self.handshake_token.new_cycle()
+        held = await read_each(self.cnc, macros)
+        read_s = self.clock.now()
+        written: list[tuple[Axis, AxisRecord, Decision]] = []
         for axis, rec, aim in aims:
-            await axis.compensate(
-                aim, rec, self.handshake_token, self.compensation_enabled, comp.on_disable, macros
+            decision = axis.decide(
+                held[axis.macro], read_s, aim, rec, self.compensation_enabled, comp.on_disable
             )
+            if decision is not None and await axis.write(
+                decision, rec, self.handshake_token, macros
+            ):
+                written.append((axis, rec, decision))
+        if written:
+            read_back = await read_each(self.cnc, [axis.macro for axis, _, _ in written])
+            for axis, rec, decision in written:
+                axis.confirm(decision, read_back[axis.macro], rec)
         if any(axis.confirmed for axis in self.axes):
             problem = await self.handshake_token.bump()
             for axis, rec, _ in aims:
@@ -617,6 +631,15 @@ class MachineLoop:
         for bus in self.buses:
             await bus.close()
         await self.cnc.close()
+
+
+async def read_each(cnc: CncClient, macros: Sequence[int]) -> MacroReads:
+    """Every macro's value or error, in one :meth:`CncClient.read_macros` call; a failure
+    of the whole call (the link) is every macro's error."""
+    try:
+        return await cnc.read_macros(macros)
+    except CncError as exc:
+        return dict.fromkeys(macros, exc)
 
 
 async def read_together(

@@ -634,9 +634,12 @@ class MachineLoop:
 
 
 async def read_each(cnc: CncClient, macros: Sequence[int]) -> MacroReads:
-    """Every macro's value or error, in one :meth:`CncClient.read_macros` call; a failure
-    of the whole call (the link) is every macro's error."""
+    """Every macro's value or error, in one :meth:`CncClient.read_macros` call (one macro:
+    :meth:`CncClient.read_macro`, the single-axis path as lean as it was); a failure of
+    the whole call (the link) is every macro's error."""
     try:
+        if len(macros) == 1:
+            return {macros[0]: await cnc.read_macro(macros[0])}
         return await cnc.read_macros(macros)
     except CncError as exc:
         return dict.fromkeys(macros, exc)

@@ -18,7 +18,9 @@ from pathlib import Path
 import pytest
 
 from drivers.clock import ManualClock
+from gateway.config import MachineSection
 from gateway.live.record import CycleRecord
+from simulator.servers.opcua_cnc import CncOpcUaServer
 from tests.axes_rig import axes_store
 from tests.counting_proxy import CountingProxy
 from tests.test_axes_live import CNCS, HOST, MODEL_SENSORS, Bench, run
@@ -76,3 +78,52 @@ def test_a_cycle_reads_every_axis_in_one_request_and_reads_back_in_one(
         assert dict(sent) == expected, (n, statuses)
     print(f"{cnc_kind}: axes written per cycle {writing}")
     assert 3 in writing  # cycles with every axis writing were counted
+
+
+class UnservedY(CountedBench):
+    """Y's macro configured as #520, a node this OPC UA CNC does not serve (it serves
+    #500–#515): every read of it is refused with BadNodeIdUnknown."""
+
+    def __init__(self, clock: ManualClock) -> None:
+        super().__init__("opcua", clock)
+        self.server = CncOpcUaServer(self.cnc, port=self.cnc_port, macro_range=(500, 515))
+
+    def machine(self, store: Path) -> MachineSection:
+        machine = super().machine(store)
+        axes = machine.compensation.axes
+        assert axes is not None
+        axes = {**axes, "Y": axes["Y"].model_copy(update={"macro": 520})}
+        compensation = machine.compensation.model_copy(update={"axes": axes})
+        return machine.model_copy(update={"compensation": compensation})
+
+
+def test_an_axis_whose_macro_read_is_refused_waits_alone_in_the_shared_read(store: Path) -> None:
+    async def body() -> tuple[list[CycleRecord], list[Counter[str]], UnservedY]:
+        b = UnservedY(ManualClock())
+        records, sent = [], []
+        try:
+            await b.start(store)
+            for _ in range(6):
+                before = Counter(b.proxy.counts)
+                records.append(await b.cycle())
+                sent.append(b.proxy.counts - before)
+        finally:
+            await b.stop()
+        return records, sent, b
+
+    records, sent, b = run(body)
+    for record in records:
+        status = record.axes["Y"].write_status
+        assert status.startswith("waiting for the CNC: CNC macro #520 not read"), status
+        assert "BadNodeIdUnknown" in status
+    assert b.loop is not None and b.loop.axes[2].policy is None  # never started blind
+    assert 520 not in b.cnc.received
+    # Z and X read in the same request as Y, and compensate all the same.
+    assert any(r.axes["Z"].write_status.startswith("ok") for r in records)
+    assert any(r.axes["X"].write_status.startswith("ok") for r in records)
+    assert b.cnc.held_um("Z") == pytest.approx(records[-1].axes["Z"].predicted_um, abs=0.5)
+    assert b.cnc.macros[502] == pytest.approx(-12.0)  # X at its clamp
+    assert b.loop.cnc.health.reconnects == 0 and b.loop.cnc.health.total_failures == 0
+    for record, counts in zip(records[1:], sent[1:], strict=True):
+        n = sum(a.write_status.startswith("ok") for a in record.axes.values())
+        assert counts["read"] == (5 + n if n else 2), (n, counts)

@@ -51,12 +51,24 @@ class GuardedWrite:
     written: bool
 
 
+@dataclass(frozen=True)
+class MacroWrite:
+    """One write of :meth:`CncClient.write_macros_if`: ``value`` to macro #``number`` only
+    if ``holds`` what the macro holds right before."""
+
+    number: int
+    value: float
+    holds: Callable[[float], bool]
+
+
 class CncError(Exception):
     """A CNC call failed; the message names the endpoint and what failed."""
 
 
 #: What :meth:`CncClient.read_macros` gives each macro: its value, or why it was not read.
 MacroReads = dict[int, "float | CncError"]
+#: What :meth:`CncClient.write_macros_if` gives each macro: its guarded write, or its error.
+GuardedWrites = dict[int, "GuardedWrite | CncError"]
 
 
 class CncRefusedError(CncError):
@@ -92,6 +104,16 @@ class CncClient(Protocol):
         the write go over one session with nothing awaited between them, so a value
         someone else put there is not overwritten unseen (only one landing between the
         read's reply and the write's arrival is)."""
+        ...
+
+    async def write_macros_if(self, writes: Sequence[MacroWrite]) -> GuardedWrites:
+        """Each write as :meth:`write_macro_if` does it: its macro read, and written only if
+        the read holds, with nothing awaited between that read's reply and that write's
+        request. OPC UA: one Read of every macro, then one Write of those that hold;
+        Modbus: each macro's read and write in turn (one write over several macros would
+        also overwrite the registers between them). A macro the CNC refuses is its own
+        :class:`CncRefusedError`; a link failure is every macro's :class:`CncError` not
+        yet answered (OPC UA: raised)."""
         ...
 
     async def close(self) -> None: ...

@@ -32,7 +32,9 @@ from drivers.cnc import (
     CncError,
     CncRefusedError,
     GuardedWrite,
+    GuardedWrites,
     MacroReads,
+    MacroWrite,
     ReconnectingSession,
     SpeedReading,
 )
@@ -161,6 +163,22 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
         return await self._call(
             f"checking and writing macro #{number} (register {register})", read_then_write
         )
+
+    async def write_macros_if(self, writes: Sequence[MacroWrite]) -> GuardedWrites:
+        """Each macro's FC3 read and, if it holds, its FC16 write (:meth:`write_macro_if`), in
+        turn: a macro's failure is its own entry, and a write that landed is never reported
+        lost because a later macro's link failed."""
+        for write in writes:
+            self._encoded(write.number, write.value)  # ValueError before any I/O
+        results: GuardedWrites = {}
+        for write in writes:
+            try:
+                results[write.number] = await self.write_macro_if(
+                    write.number, write.value, write.holds
+                )
+            except CncError as exc:
+                results[write.number] = exc
+        return results
 
     def _encoded(self, number: int, value: float) -> tuple[int, list[int]]:
         """First register and float32 words of macro #number = ``value``; a non-finite

@@ -3,11 +3,12 @@
 The three-axis bench of :mod:`tests.test_axes_live` with a counting proxy
 (:mod:`tests.counting_proxy`) between the gateway and the simulated CNC. Every axis's
 macro is read in one request at the cycle start and every written macro read back in
-one request after the writes; each write keeps its own read right before it. So a
-cycle in which ``n`` axes write sends 5 + n reads (speed, the axes' macros, the
-handshake check, n guards, the read-back, the handshake's guard) and n + 2 writes
-(n axes, the handshake, the alive count), where one read per axis held, one guard
-and one read-back per axis made 6 + 2n reads.
+one request after the writes; each write keeps its own read right before it. Over
+Modbus TCP a cycle in which ``n`` axes write sends 5 + n reads (speed, the axes' macros,
+the handshake check, n guards, the read-back, the handshake's guard) and n + 2 writes
+(n axes, the handshake, the alive count), where one read per axis held, one guard and
+one read-back per axis made 6 + 2n reads. Over OPC UA the guards are one Read and the
+writes one Write right after it: 6 reads and 3 writes for any n.
 """
 
 from __future__ import annotations
@@ -74,7 +75,11 @@ def test_a_cycle_reads_every_axis_in_one_request_and_reads_back_in_one(
         assert not any(s.startswith(("not written", "write failed")) for s in statuses)
         n = sum(s.startswith("ok") for s in statuses)
         writing.append(n)
-        expected = {"read": 5 + n, "write": n + 2} if n else {"read": 2, "write": 1}
+        expected = {"read": 2, "write": 1}  # the speed, the axes' macros; the alive count
+        if n and cnc_kind == "opcua":  # the guards in one Read, the writes in one Write
+            expected = {"read": 6, "write": 3}
+        elif n:  # Modbus: each guarded write its own read and write
+            expected = {"read": 5 + n, "write": n + 2}
         assert dict(sent) == expected, (n, statuses)
     print(f"{cnc_kind}: axes written per cycle {writing}")
     assert 3 in writing  # cycles with every axis writing were counted
@@ -126,4 +131,4 @@ def test_an_axis_whose_macro_read_is_refused_waits_alone_in_the_shared_read(stor
     assert b.loop.cnc.health.reconnects == 0 and b.loop.cnc.health.total_failures == 0
     for record, counts in zip(records[1:], sent[1:], strict=True):
         n = sum(a.write_status.startswith("ok") for a in record.axes.values())
-        assert counts["read"] == (5 + n if n else 2), (n, counts)
+        assert counts["read"] == (6 if n else 2), (n, counts)

@@ -1,4 +1,5 @@
-"""``CncClient.read_macros``: several macros in one request, each refusal its own.
+"""``CncClient.read_macros`` and ``write_macros_if``: several macros in one request,
+each refusal its own.
 
 Against real servers: the simulator's OPC UA and Modbus TCP CNCs and a plain asyncua
 server holding macros in several types, with a counting proxy (:mod:`tests.counting_proxy`)
@@ -9,12 +10,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import Counter
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
 
 import pytest
+from asyncua import Server, ua
 
-from drivers.cnc import CncClient, CncError, CncRefusedError
+from drivers.cnc import CncClient, CncError, CncRefusedError, GuardedWrite, MacroWrite
 from drivers.cnc_modbus import MACRO_SPAN_REGISTERS, ModbusCnc
 from drivers.cnc_opcua import OpcUaCnc
 from simulator.link import FixedLink
@@ -22,7 +25,7 @@ from simulator.servers.modbus_cnc import CncModbusServer
 from simulator.servers.opcua_cnc import CncOpcUaServer
 from tests.counting_proxy import CountingProxy
 from tests.ports import free_tcp_port
-from tests.test_drivers_cnc import HOST, run, snapshot, typed_macro_server
+from tests.test_drivers_cnc import HOST, NAMESPACE, run, snapshot, typed_macro_server
 
 MACROS = {500: 0.0125, 502: -0.0375, 503: 2.0, 510: 1.5, 530: -4.25, 600: 7.0, 999: 3.0}
 
@@ -150,5 +153,116 @@ def test_modbus_reads_close_macros_in_one_request_and_far_ones_in_their_own() ->
                     assert cnc.health.total_failures == 0
                 finally:
                     await cnc.close()
+
+    run(body)
+
+
+# -- several guarded writes at once --------------------------------------------------
+
+
+async def guarded_server(port: int) -> Server:
+    """A plain asyncua CNC: #500 and #502 writable Doubles, #501 a read-only Double (its
+    write is refused with its own status code in the Write's results)."""
+    server = Server()
+    await server.init()
+    server.set_endpoint(f"opc.tcp://{HOST}:{port}/cnc")
+    server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+    ns = await server.register_namespace(NAMESPACE)
+    for number, writable in ((500, True), (501, False), (502, True)):
+        nodeid = f"Macro.{number}"
+        node = await server.nodes.objects.add_variable(
+            ua.NodeId(nodeid, ns),
+            ua.QualifiedName(nodeid, ns),
+            ua.Variant(0.5, ua.VariantType.Double),
+        )
+        if writable:
+            await node.set_writable()
+    await server.start()
+    return server
+
+
+def test_opcua_guarded_writes_go_as_one_read_and_one_write_each_macro_its_own_outcome() -> None:
+    async def body() -> None:
+        port = free_tcp_port()
+        server = await guarded_server(port)
+        try:
+            async with counted(port, "opcua") as proxy:
+                cnc = OpcUaCnc(f"opc.tcp://{HOST}:{proxy.port}/cnc", timeout_s=1.0)
+                try:
+                    await cnc.read_macro(500)  # connect first: only the guarded writes counted
+                    before = Counter(proxy.counts)
+                    outcome = await cnc.write_macros_if(
+                        [
+                            MacroWrite(500, 1.5, lambda held: held == 0.5),
+                            MacroWrite(501, 2.0, lambda held: held == 0.5),
+                            MacroWrite(502, 3.0, lambda held: held == 9.0),  # not what it holds
+                        ]
+                    )
+                    assert dict(proxy.counts - before) == {"read": 1, "write": 1}
+                    assert outcome[500] == GuardedWrite(0.5, written=True)
+                    refused = outcome[501]
+                    assert isinstance(refused, CncRefusedError) and "#501" in str(refused)
+                    assert outcome[502] == GuardedWrite(0.5, written=False)
+                    assert await cnc.read_macros([500, 501, 502]) == {500: 1.5, 501: 0.5, 502: 0.5}
+                    assert cnc.health.reconnects == 0 and cnc.health.total_failures == 0
+                    with pytest.raises(ValueError):  # nothing sent when one value is not finite
+                        await cnc.write_macros_if(
+                            [MacroWrite(500, 1.0, bool), MacroWrite(502, math.nan, bool)]
+                        )
+                    assert await cnc.read_macro(500) == 1.5
+                finally:
+                    await cnc.close()
+        finally:
+            await server.stop()
+
+    run(body)
+
+
+class ProtectedLink(FixedLink):
+    """The simulator's machine with one write-protected macro: its OPC UA server answers a
+    Write holding that node with a fault of the whole request."""
+
+    def __init__(self, protected: int) -> None:
+        super().__init__(dataclasses.replace(snapshot(), macros={500: 0.0, 502: 0.0, 503: 0.0}))
+        self.protected = protected
+
+    def write_macro(self, number: int, value: float) -> None:
+        if number == self.protected:
+            raise ValueError(f"macro #{number} is write-protected")
+        super().write_macro(number, value)
+
+
+@pytest.mark.parametrize("cnc_kind", ["opcua", "modbus"])
+def test_a_refused_macro_fails_alone_among_guarded_writes(cnc_kind: str) -> None:
+    async def body() -> None:
+        link = ProtectedLink(502)
+        port = free_tcp_port()
+        server = (
+            CncOpcUaServer(link, port=port)
+            if cnc_kind == "opcua"
+            else CncModbusServer(link, host=HOST, port=port)
+        )
+        async with server:
+            await server.publish()
+            cnc: CncClient = (
+                OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=1.0)
+                if cnc_kind == "opcua"
+                else ModbusCnc(HOST, port, timeout_s=1.0)
+            )
+            try:
+                outcome = await cnc.write_macros_if(
+                    [
+                        MacroWrite(n, v, lambda held: held == 0.0)
+                        for n, v in ((500, 0.25), (502, 0.5), (503, 0.75))
+                    ]
+                )
+                assert outcome[500] == GuardedWrite(0.0, written=True)
+                assert isinstance(outcome[502], CncRefusedError)
+                assert outcome[503] == GuardedWrite(0.0, written=True)
+                assert sorted(link.writes) == [(500, 0.25), (503, 0.75)]  # each once
+                assert await cnc.read_macros([500, 502, 503]) == {500: 0.25, 502: 0.0, 503: 0.75}
+                assert cnc.health.reconnects == 0
+            finally:
+                await cnc.close()
 
     run(body)

@@ -25,7 +25,7 @@ import math
 from collections.abc import Sequence
 
 from drivers.clock import Clock
-from drivers.cnc import CncClient, CncError
+from drivers.cnc import CncClient, CncError, GuardedWrite, MacroWrite
 from drivers.yaml_loader import KeyPathError
 from gateway.config import AxisSection, MachineSection
 from gateway.live.bank.model_bank import ModelBank
@@ -163,7 +163,8 @@ class Axis:
     # --- the write path -----------------------------------------------------------------
     # The loop reads every axis's macro in one request at the cycle start, writes each
     # axis that needs it (each write guarded by its own read right before it), then reads
-    # every written macro back in one request: :meth:`decide`, :meth:`write`, :meth:`confirm`.
+    # every written macro back in one request: :meth:`decide`, :meth:`may_write`,
+    # :meth:`written`, :meth:`confirm`.
     def decide(
         self,
         held: float | CncError,
@@ -210,13 +211,10 @@ class Axis:
             return None
         return decision
 
-    async def write(
-        self, decision: Decision, rec: AxisRecord, handshake: HandshakeToken, macros: Sequence[int]
-    ) -> bool:
-        """Write the decided value unless the handshake is not the gateway's or the CNC's
-        macro (read again right before, in the same session) changed since the cycle's
-        read. True: written, to be read back and confirmed (:meth:`confirm`)."""
-        kind, text = await handshake.check(macros)
+    def may_write(self, handshake: tuple[str, str], rec: AxisRecord) -> bool:
+        """The cycle's handshake verdict (:meth:`HandshakeToken.check`) lets this axis
+        write; else ``rec`` and the counters say why not."""
+        kind, text = handshake
         if kind == "unread":
             self._write_failed(self.clock.now(), text, rec)
             return False
@@ -224,14 +222,18 @@ class Axis:
             self._external_note = "; ".join(filter(None, [self._external_note, text]))
             rec.write_status = self._status("not written: the handshake is not the gateway's")
             return False
-        policy = self.policy
-        assert policy is not None
-        try:
-            guarded = await self.cnc.write_macro_if(
-                self.macro, decision.value_cnc, policy.holds_applied
-            )
-        except CncError as exc:
-            self._write_failed(self.clock.now(), f"write failed: {exc}", rec)
+        return True
+
+    def guarded_write(self, decision: Decision) -> MacroWrite:
+        """The decided value, to be written only over the value the gateway applied."""
+        assert self.policy is not None
+        return MacroWrite(self.macro, decision.value_cnc, self.policy.holds_applied)
+
+    def written(self, guarded: GuardedWrite | CncError, rec: AxisRecord) -> bool:
+        """The outcome of the guarded write (its read right before it, in the same
+        session): True when written, to be read back and confirmed (:meth:`confirm`)."""
+        if isinstance(guarded, CncError):
+            self._write_failed(self.clock.now(), f"write failed: {guarded}", rec)
             return False
         if not guarded.written:  # changed since the cycle's read: the CNC's value stays
             self._observe_cnc((self.clock.now(), guarded.held), rec)

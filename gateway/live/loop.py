@@ -48,7 +48,7 @@ from typing import TypeVar
 import numpy as np
 
 from drivers.clock import Clock
-from drivers.cnc import CncClient, CncError, MacroReads
+from drivers.cnc import CncClient, CncError, GuardedWrites, MacroReads, MacroWrite
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.config import MachineSection
 from gateway.live.axis import Axis, HandshakeToken, build_axes
@@ -329,28 +329,11 @@ class MachineLoop:
     async def _compensate_axes(
         self, aims: Sequence[tuple[Axis, AxisRecord, float | None]], record: CycleRecord
     ) -> None:
-        """Every axis's macro read in one request; every axis's decision and guarded write
-        in the configured order; every written macro read back in one request and each
-        confirmed on its own; then one handshake bump if any was confirmed. The record gets
-        every axis (multi-axis) and the first axis's fields."""
+        """Every axis's write (:meth:`_write_axes`), then one handshake bump if any was
+        confirmed. The record gets every axis (multi-axis) and the first axis's fields."""
         comp = self.config.compensation
-        macros = [axis.macro for axis in self.axes]
         self.handshake_token.new_cycle()
-        held = await read_each(self.cnc, macros)
-        read_s = self.clock.now()
-        written: list[tuple[Axis, AxisRecord, Decision]] = []
-        for axis, rec, aim in aims:
-            decision = axis.decide(
-                held[axis.macro], read_s, aim, rec, self.compensation_enabled, comp.on_disable
-            )
-            if decision is not None and await axis.write(
-                decision, rec, self.handshake_token, macros
-            ):
-                written.append((axis, rec, decision))
-        if written:
-            read_back = await read_each(self.cnc, [axis.macro for axis, _, _ in written])
-            for axis, rec, decision in written:
-                axis.confirm(decision, read_back[axis.macro], rec)
+        await self._write_axes(aims, comp.on_disable)
         if any(axis.confirmed for axis in self.axes):
             problem = await self.handshake_token.bump()
             for axis, rec, _ in aims:
@@ -361,6 +344,33 @@ class MachineLoop:
             setattr(record, name, getattr(first, name))
         if comp.axes is not None:
             record.axes = {rec.axis: rec for _, rec, _ in aims}
+
+    async def _write_axes(
+        self, aims: Sequence[tuple[Axis, AxisRecord, float | None]], on_disable: str
+    ) -> None:
+        """Read every axis's macro (one request), decide each, write the decided values
+        (each guarded by its own read right before it: OPC UA one Read and one Write for
+        every axis), read the written macros back (one request) and confirm each."""
+        macros = [axis.macro for axis in self.axes]
+        held = await read_each(self.cnc, macros)
+        read_s = self.clock.now()
+        decided: list[tuple[Axis, AxisRecord, Decision]] = []
+        for axis, rec, aim in aims:
+            decision = axis.decide(
+                held[axis.macro], read_s, aim, rec, self.compensation_enabled, on_disable
+            )
+            if decision is not None:
+                decided.append((axis, rec, decision))
+        if not decided:
+            return
+        verdict = await self.handshake_token.check(macros)
+        decided = [(a, r, d) for a, r, d in decided if a.may_write(verdict, r)]
+        guarded = await write_each(self.cnc, [a.guarded_write(d) for a, _, d in decided])
+        written = [(a, r, d) for a, r, d in decided if a.written(guarded[a.macro], r)]
+        if written:
+            read_back = await read_each(self.cnc, [axis.macro for axis, _, _ in written])
+            for axis, rec, decision in written:
+                axis.confirm(decision, read_back[axis.macro], rec)
 
     def _swap_promoted(self) -> None:
         """Between cycles: take a newly promoted (or rolled back) set into the bank.
@@ -643,6 +653,19 @@ async def read_each(cnc: CncClient, macros: Sequence[int]) -> MacroReads:
         return await cnc.read_macros(macros)
     except CncError as exc:
         return dict.fromkeys(macros, exc)
+
+
+async def write_each(cnc: CncClient, writes: Sequence[MacroWrite]) -> GuardedWrites:
+    """Every guarded write's outcome, in one :meth:`CncClient.write_macros_if` call (one
+    write: :meth:`CncClient.write_macro_if`, the single-axis path as lean as it was); a
+    failure of the whole call (the link) is every macro's error."""
+    try:
+        if len(writes) == 1:
+            (one,) = writes
+            return {one.number: await cnc.write_macro_if(one.number, one.value, one.holds)}
+        return await cnc.write_macros_if(writes) if writes else {}
+    except CncError as exc:
+        return {write.number: exc for write in writes}
 
 
 async def read_together(

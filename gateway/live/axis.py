@@ -6,11 +6,12 @@ A machine compensates one axis (the single-axis form: Z, written to
 its own prediction; the loop reads what every axis's macro holds in one request
 (:meth:`CncClient.read_macros`), each :class:`Axis` lets its own
 :class:`CompensationPolicy` decide (clamp, slew, deadband; with no prediction: hold,
-then ramp to zero) and writes with :meth:`CncClient.write_macro_if` (its own read right
-before its write); the written macros are read back in one request, and each axis
-counts its value as applied only once its read-back holds it. An axis whose model is
-missing, or whose read or write fails, holds and ramps on its own; the others keep
-compensating.
+then ramp to zero); the decided values go with :meth:`CncClient.write_macros_if`, each
+guarded by a read of its macro right before its write (over OPC UA every axis's guard
+in one Read and every write in one Write); the written macros are read back in one
+request, and each axis counts its value as applied only once its read-back holds it.
+An axis whose model is missing, or whose read or write fails, holds and ramps on its
+own; the others keep compensating.
 
 The handshake macro is one for the machine (:class:`HandshakeToken`): checked once
 per cycle before the first write (a count the gateway did not write stops every
@@ -161,10 +162,10 @@ class Axis:
         return None if regime is None else self.rules.model_for(regime)
 
     # --- the write path -----------------------------------------------------------------
-    # The loop reads every axis's macro in one request at the cycle start, writes each
-    # axis that needs it (each write guarded by its own read right before it), then reads
-    # every written macro back in one request: :meth:`decide`, :meth:`may_write`,
-    # :meth:`written`, :meth:`confirm`.
+    # The loop reads every axis's macro in one request at the cycle start, writes the
+    # axes that need it (each write guarded by a read right before it), then reads every
+    # written macro back in one request: :meth:`decide`, :meth:`may_write`,
+    # :meth:`guarded_write`, :meth:`written`, :meth:`confirm`.
     def decide(
         self,
         held: float | CncError,
@@ -179,7 +180,10 @@ class Axis:
         (``rec`` says why).
 
         Nothing is decided to be written when the read failed: what the CNC holds is
-        unknown, and the CNC never gets a value written blind.
+        unknown, and the CNC never gets a value written blind. Times given to the policy
+        are taken at the CNC (after the read, at the decision, after the read-back), not
+        at the cycle start, so the slew limit holds between writes as the CNC receives
+        them, however late a slow transmitter or link made a write.
         """
         self.confirmed = False
         self.reached = not isinstance(held, CncError)

@@ -19,7 +19,8 @@ Once per ``cycle_s`` of machine time:
    not write is an external change: logged, counted, and the policy moves on from
    it); for each axis in the configured order let its compensation policy decide the
    value (clamp, slew, deadband; with no prediction it holds, then ramps to zero) and
-   write it to the macro, guarded by a read of that macro right before the write;
+   write it to the macro, guarded by a read of that macro right before the write
+   (over OPC UA every axis's guard in one Read, every write in one Write);
    read every written macro back in one request, and only then count each value as
    applied; then bump the handshake counter once for the cycle's confirmed writes;
 6. write the next alive count (``compensation.alive_macro``), the CNC's sign that

@@ -17,7 +17,9 @@ rate limits that never bind, sensor noise σ 0.2 °C so the values change each c
 the plausibility rules' thresholds out of the way of that noise).
 The cost is this process's CPU time (``time.process_time``) across the cycle, not the
 wall time (which is mostly waiting on the simulator); ``ratio`` is the median CPU of a
-three-axis cycle over that of a one-axis cycle (target ≤ 1.5).
+three-axis cycle over that of a one-axis cycle (target ≤ 1.5). ``requests_per_cycle``
+counts the requests this process put on the wire per measured cycle (the transmitters'
+Modbus TCP reads and every CNC request), counted where each driver sends one.
 
     .venv/bin/python benchmarks/axes_cycle_cost.py [--cycles 300] [--cnc modbus|opcua]
 """
@@ -58,6 +60,30 @@ from gateway.live.loop import MachineLoop  # noqa: E402
 from gateway.wiring import build_buses, build_cnc, load_bank  # noqa: E402
 
 THREE_AXES = ("Z", "X", "Y")
+
+
+class RequestCounter:
+    """Counts every request this process sends: each Modbus TCP request
+    (``TcpTransactions._send``, transmitters and CNC) and each OPC UA service request."""
+
+    def __init__(self) -> None:
+        self.sent = 0
+        from asyncua.client.ua_client import UASocketProtocol
+
+        from drivers.modbus_tcp import TcpTransactions
+
+        for cls, name in ((TcpTransactions, "_send"), (UASocketProtocol, "_send_request")):
+            setattr(cls, name, self._counted(getattr(cls, name)))
+
+    def _counted(self, send: Any) -> Any:
+        def counted(*args: Any, **kwargs: Any) -> Any:
+            self.sent += 1
+            return send(*args, **kwargs)
+
+        return counted
+
+
+REQUESTS: RequestCounter | None = None
 WARM_UP_CYCLES = 20  # quality needs 3 good checks; the first write starts each policy
 
 
@@ -151,8 +177,11 @@ def wrote_every_axis(record: Any, axes: int) -> bool:
     return all(a.write_status.startswith("ok") for a in record.axes.values())
 
 
-async def measure_block(name: str, machine: MachineSection, cycles: int) -> list[float]:
-    """CPU seconds of ``cycles`` cycles that wrote every axis, on a fresh loop."""
+async def measure_block(
+    name: str, machine: MachineSection, cycles: int, requests: list[int]
+) -> list[float]:
+    """CPU seconds of ``cycles`` cycles that wrote every axis, on a fresh loop; the
+    requests each of them sent are appended to ``requests``."""
     # The loop's own clock moves one cycle (1 s) per cycle, so its slew budget and
     # hold timers see 1 s cycles; the cycles themselves run back to back.
     clock = ManualClock()
@@ -169,11 +198,14 @@ async def measure_block(name: str, machine: MachineSection, cycles: int) -> list
                 break
             await asyncio.sleep(PACE_S)  # the simulator publishes new values in between
             clock.advance(machine.cycle_s)
+            assert REQUESTS is not None
+            sent = REQUESTS.sent
             start = time.process_time()
             record = await loop.run_cycle()
             spent = time.process_time() - start
             if wrote_every_axis(record, len(machine.axis_sections())):
                 cpu.append(spent)
+                requests.append(REQUESTS.sent - sent)
     finally:
         await loop.close()
     if len(cpu) < cycles:
@@ -192,6 +224,8 @@ def summary_us(samples: list[float]) -> dict[str, float]:
 
 
 async def main_async(args: argparse.Namespace) -> dict[str, Any]:
+    global REQUESTS
+    REQUESTS = RequestCounter()
     folder = Path(tempfile.mkdtemp(prefix="axes-cycle-cost-"))
     write_training_data(folder / "training.csv", seed=1)
     targets = axis_targets()
@@ -210,10 +244,11 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
             "three_axes": section(folder / "xyz", ports, args.cnc, THREE_AXES),
         }
         cpu: dict[str, list[float]] = {name: [] for name in machines}
+        requests: dict[str, list[int]] = {name: [] for name in machines}
         blocks = max(1, args.cycles // args.block)
         for _ in range(blocks):
             for name, machine in machines.items():
-                cpu[name] += await measure_block(name, machine, args.block)
+                cpu[name] += await measure_block(name, machine, args.block, requests[name])
     except BaseException:
         if simulator.poll() is not None:
             print((folder / "simulator.log").read_text()[-3000:], file=sys.stderr)
@@ -222,6 +257,8 @@ async def main_async(args: argparse.Namespace) -> dict[str, Any]:
         simulator.terminate()
         simulator.wait(timeout=10)
     one, three = summary_us(cpu["one_axis"]), summary_us(cpu["three_axes"])
+    for name, summary in (("one_axis", one), ("three_axes", three)):
+        summary["requests_per_cycle"] = round(float(np.mean(requests[name])), 2)
     return {
         "cnc_protocol": args.cnc,
         "one_axis": one,

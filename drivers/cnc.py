@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from typing import Generic, Protocol, TypeVar
 
@@ -51,8 +51,24 @@ class GuardedWrite:
     written: bool
 
 
+@dataclass(frozen=True)
+class MacroWrite:
+    """One write of :meth:`CncClient.write_macros_if`: ``value`` to macro #``number`` only
+    if ``holds`` what the macro holds right before."""
+
+    number: int
+    value: float
+    holds: Callable[[float], bool]
+
+
 class CncError(Exception):
     """A CNC call failed; the message names the endpoint and what failed."""
+
+
+#: What :meth:`CncClient.read_macros` gives each macro: its value, or why it was not read.
+MacroReads = dict[int, "float | CncError"]
+#: What :meth:`CncClient.write_macros_if` gives each macro: its guarded write, or its error.
+GuardedWrites = dict[int, "GuardedWrite | CncError"]
 
 
 class CncRefusedError(CncError):
@@ -74,6 +90,13 @@ class CncClient(Protocol):
 
     async def read_macro(self, number: int) -> float: ...
 
+    async def read_macros(self, numbers: Sequence[int]) -> MacroReads:
+        """Macros #numbers in as few requests as the protocol allows (OPC UA: one Read;
+        Modbus: one read per span of close registers), so a machine's axes cost one
+        request, not one each. A macro the CNC refuses is a :class:`CncRefusedError` in
+        its own entry and the others are read; a link failure raises :class:`CncError`."""
+        ...
+
     async def write_macro_if(
         self, number: int, value: float, holds: Callable[[float], bool]
     ) -> GuardedWrite:
@@ -81,6 +104,16 @@ class CncClient(Protocol):
         the write go over one session with nothing awaited between them, so a value
         someone else put there is not overwritten unseen (only one landing between the
         read's reply and the write's arrival is)."""
+        ...
+
+    async def write_macros_if(self, writes: Sequence[MacroWrite]) -> GuardedWrites:
+        """Each write as :meth:`write_macro_if` does it: its macro read, and written only if
+        the read holds, with nothing awaited between that read's reply and that write's
+        request. OPC UA: one Read of every macro, then one Write of those that hold;
+        Modbus: each macro's read and write in turn (one write over several macros would
+        also overwrite the registers between them). A macro the CNC refuses is its own
+        :class:`CncRefusedError`; a link failure is every macro's :class:`CncError` not
+        yet answered (OPC UA: raised)."""
         ...
 
     async def close(self) -> None: ...

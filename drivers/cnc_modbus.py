@@ -23,12 +23,21 @@ from __future__ import annotations
 import functools
 import math
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import TypeVar
 
 from drivers.backoff import Backoff
 from drivers.bus_hub import Silence
-from drivers.cnc import CncRefusedError, GuardedWrite, ReconnectingSession, SpeedReading
+from drivers.cnc import (
+    CncError,
+    CncRefusedError,
+    GuardedWrite,
+    GuardedWrites,
+    MacroReads,
+    MacroWrite,
+    ReconnectingSession,
+    SpeedReading,
+)
 from drivers.modbus_tcp import Step, read_step
 from drivers.register_map import DeviceRegisters, MacroLayout
 from drivers.schema import RegisterMap, Workarounds, check_cnc_map, cnc_map
@@ -44,6 +53,8 @@ from drivers.transmitters import (
 T = TypeVar("T")
 
 _FLOAT32_MAX = 3.4028234663852886e38
+#: The most registers one read of several macros covers (macros farther apart: more reads).
+MACRO_SPAN_REGISTERS = 32
 
 
 class ModbusCnc(ReconnectingSession[ModbusConnection]):
@@ -153,6 +164,22 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
             f"checking and writing macro #{number} (register {register})", read_then_write
         )
 
+    async def write_macros_if(self, writes: Sequence[MacroWrite]) -> GuardedWrites:
+        """Each macro's FC3 read and, if it holds, its FC16 write (:meth:`write_macro_if`), in
+        turn: a macro's failure is its own entry, and a write that landed is never reported
+        lost because a later macro's link failed."""
+        for write in writes:
+            self._encoded(write.number, write.value)  # ValueError before any I/O
+        results: GuardedWrites = {}
+        for write in writes:
+            try:
+                results[write.number] = await self.write_macro_if(
+                    write.number, write.value, write.holds
+                )
+            except CncError as exc:
+                results[write.number] = exc
+        return results
+
     def _encoded(self, number: int, value: float) -> tuple[int, list[int]]:
         """First register and float32 words of macro #number = ``value``; a non-finite
         value or one beyond float32 raises ``ValueError`` before any I/O."""
@@ -169,6 +196,51 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
             f"reading macro #{number} (register {register})",
             functools.partial(self._read_macro, register=register),
         )
+
+    async def read_macros(self, numbers: Sequence[int]) -> MacroReads:
+        """Macros #numbers, one FC3 read per span of at most ``MACRO_SPAN_REGISTERS``
+        registers (the registers between them read and dropped). A span the CNC refuses
+        (an unmapped register inside it) is read again macro by macro, so only the
+        macro it refuses is that macro's :class:`CncRefusedError`."""
+        registers = {number: self.macro_register(number) for number in dict.fromkeys(numbers)}
+        spans = _spans(sorted(registers.values()), self._macros.width)
+
+        async def read(link: ModbusConnection) -> MacroReads:
+            results: MacroReads = {}
+            for start, count in spans:
+                inside = [n for n, r in registers.items() if start <= r < start + count]
+                try:
+                    words = await self._read_span(link, start, count)
+                except CncRefusedError as exc:
+                    if len(inside) == 1:
+                        results[inside[0]] = self._refused(inside[0], exc)
+                        continue
+                    for number in inside:  # which one is refused: each on its own
+                        try:
+                            results[number] = await self._read_macro(link, registers[number])
+                        except CncRefusedError as one:
+                            results[number] = self._refused(number, one)
+                    continue
+                for number in inside:
+                    offset = registers[number] - start
+                    results[number] = self._macros.decode(
+                        words[offset : offset + self._macros.width]
+                    )
+            return results
+
+        listed = ", ".join(f"#{number}" for number in registers)
+        return await self._call(f"reading macros {listed}", read)
+
+    def _refused(self, number: int, exc: CncRefusedError) -> CncError:
+        register = self.macro_register(number)
+        return CncRefusedError(
+            f"{self._where}: reading macro #{number} (register {register}) refused: {exc}"
+        )
+
+    async def _read_span(self, link: ModbusConnection, start: int, count: int) -> list[int]:
+        if self._chains_on(link):  # read_step builds each shape once
+            return await self._chained(link, ((read_step(3, start, count, self.device_id),),))
+        return await self._paced(lambda: link.read_holding_registers(start, count, self.device_id))
 
     async def _read_macro(self, link: ModbusConnection, register: int) -> float:
         width = self._macros.width
@@ -223,3 +295,17 @@ class ModbusCnc(ReconnectingSession[ModbusConnection]):
             return await send()
         except ModbusRefusedError as exc:
             raise CncRefusedError(str(exc)) from exc
+
+
+def _spans(registers: Sequence[int], width: int) -> list[tuple[int, int]]:
+    """(first register, count) of the reads covering macros that start at ``registers``
+    (sorted): consecutive macros share a read while it spans at most
+    ``MACRO_SPAN_REGISTERS``."""
+    spans: list[tuple[int, int]] = []
+    for register in registers:
+        if spans and register + width - spans[-1][0] <= max(MACRO_SPAN_REGISTERS, width):
+            start = spans[-1][0]
+            spans[-1] = (start, register + width - start)
+        else:
+            spans.append((register, width))
+    return spans

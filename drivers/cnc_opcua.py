@@ -15,8 +15,9 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+import struct
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -27,7 +28,15 @@ from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
 from drivers.backoff import Backoff
-from drivers.cnc import CncRefusedError, GuardedWrite, ReconnectingSession, SpeedReading
+from drivers.cnc import (
+    CncRefusedError,
+    GuardedWrite,
+    GuardedWrites,
+    MacroReads,
+    MacroWrite,
+    ReconnectingSession,
+    SpeedReading,
+)
 from drivers.opcua_common import node_id
 
 T = TypeVar("T")
@@ -199,6 +208,31 @@ class OpcUaCnc(ReconnectingSession[_Session]):
             _refusals_as_cnc(lambda session: self._read_on(session, number)),
         )
 
+    async def read_macros(self, numbers: Sequence[int]) -> MacroReads:
+        """Macros #numbers in one Read request (one ReadValueId a node). A node the server
+        answers with a refusal status (unknown node, not readable) or a value that is not
+        a number is that macro's :class:`CncRefusedError` alone; each type read is
+        remembered for writes, as :meth:`read_macro` does."""
+        wanted = list(dict.fromkeys(numbers))
+
+        async def read(session: _Session) -> MacroReads:
+            nodes = [self._macro(session, number) for number in wanted]
+            datavalues = await session.client.read_attributes(nodes)
+            results: MacroReads = {}
+            for number, datavalue in zip(wanted, datavalues, strict=True):
+                try:
+                    results[number] = _number(datavalue, self._macro_id(number))
+                except CncRefusedError as exc:
+                    results[number] = CncRefusedError(
+                        f"{self._where}: reading macro #{number} refused: {exc}"
+                    )
+                    continue
+                _learn_type(session, number, datavalue)
+            return results
+
+        listed = ", ".join(f"#{number}" for number in wanted)
+        return await self._call(f"reading macros {listed}", _refusals_as_cnc(read))
+
     async def write_macro_if(
         self, number: int, value: float, holds: Callable[[float], bool]
     ) -> GuardedWrite:
@@ -220,6 +254,96 @@ class OpcUaCnc(ReconnectingSession[_Session]):
             _refusals_as_cnc(read_then_write),
         )
 
+    async def write_macros_if(self, writes: Sequence[MacroWrite]) -> GuardedWrites:
+        """One Read of every macro, then one Write of those whose read holds, in the same
+        session with nothing awaited between the Read's response and the Write request (as
+        :meth:`write_macro_if`, for several macros at once). A node refused on the read or
+        on the write (its own status code) is that macro's :class:`CncRefusedError`."""
+        for write in writes:
+            _check_finite(write.number, write.value)
+
+        async def read_then_write(session: _Session) -> GuardedWrites:
+            nodes = [self._macro(session, write.number) for write in writes]
+            datavalues = await session.client.read_attributes(nodes)
+            results: GuardedWrites = {}
+            ready: list[tuple[MacroWrite, float, ua.DataValue]] = []
+            for write, datavalue in zip(writes, datavalues, strict=True):
+                try:
+                    held = _number(datavalue, self._macro_id(write.number))
+                    _learn_type(session, write.number, datavalue)
+                    if not write.holds(held):
+                        results[write.number] = GuardedWrite(held, written=False)
+                        continue
+                    ready.append((write, held, self._datavalue(session, write.number, write.value)))
+                except CncRefusedError as exc:
+                    results[write.number] = self._write_refused(write.number, str(exc))
+            if ready:
+                await self._write_ready(session, ready, results)
+            return {write.number: results[write.number] for write in writes}
+
+        listed = ", ".join(f"#{write.number}" for write in writes)
+        return await self._call(
+            f"checking and writing macros {listed}", _refusals_as_cnc(read_then_write)
+        )
+
+    async def _write_ready(
+        self,
+        session: _Session,
+        ready: list[tuple[MacroWrite, float, ua.DataValue]],
+        results: GuardedWrites,
+    ) -> None:
+        """One Write of every macro whose read held; each node's status is its outcome. A
+        server that answers one node's refusal with a fault of the whole request may have
+        written the nodes before it: each macro is then read again and written on its own
+        (:meth:`_write_again`), so the refused one fails alone."""
+        nodeids = [self._macro(session, write.number).nodeid for write, _, _ in ready]
+        try:
+            statuses = await session.client.uaclient.write_attributes(
+                nodeids, [datavalue for _, _, datavalue in ready]
+            )
+        except ua.UaStatusCodeError as exc:
+            if exc.code not in _REFUSALS:
+                raise
+            for write, held, datavalue in ready:
+                results[write.number] = await self._write_again(session, write, held, datavalue)
+            return
+        for (write, held, _), status in zip(ready, statuses, strict=True):
+            if status.is_good():
+                results[write.number] = GuardedWrite(held, written=True)
+            elif status.value in _REFUSALS:
+                results[write.number] = self._write_refused(write.number, status.name)
+            else:
+                raise ua.UaStatusCodeError(status.value)
+
+    async def _write_again(
+        self, session: _Session, write: MacroWrite, held: float, datavalue: ua.DataValue
+    ) -> GuardedWrite | CncRefusedError:
+        """After a refused Write of several macros: this macro read again, and written only
+        if the read holds. One that moved from what it held to the value sent was written
+        by that Write; one that held the value sent already is written again (its
+        refusal, if it is the refused one, is its own failure)."""
+        try:
+            now = await self._read_on(session, write.number)
+            sent = _as_held(datavalue)
+            if now == sent and held != sent:
+                return GuardedWrite(held, written=True)
+            if not write.holds(now):
+                return GuardedWrite(now, written=False)
+            await self._write_on(session, write.number, write.value)
+        except CncRefusedError as exc:
+            return self._write_refused(write.number, str(exc))
+        except ua.UaStatusCodeError as exc:
+            if exc.code not in _REFUSALS:
+                raise
+            return self._write_refused(write.number, ua.StatusCode(exc.code).name)
+        return GuardedWrite(now, written=True)
+
+    def _write_refused(self, number: int, why: str) -> CncRefusedError:
+        return CncRefusedError(
+            f"{self._where}: checking and writing macro #{number} ({self._macro_id(number)}) "
+            f"refused: {why}"
+        )
+
     async def _read_on(self, session: _Session, number: int) -> float:
         """One Read of macro #number's value; its type is remembered for writes."""
         datavalue = await self._macro(session, number).read_data_value()
@@ -229,14 +353,18 @@ class OpcUaCnc(ReconnectingSession[_Session]):
 
     async def _write_on(self, session: _Session, number: int, value: float) -> None:
         """One Write of macro #number as the type learned from a read of it."""
+        datavalue = self._datavalue(session, number, value)
+        await self._macro(session, number).write_value(datavalue)
+
+    def _datavalue(self, session: _Session, number: int, value: float) -> ua.DataValue:
+        """``value`` as the type learned from a read of macro #number (a Double or Float)."""
         vtype = session.macro_types[number]
         if vtype not in WRITABLE_TYPES:
             raise CncRefusedError(
                 f"{self._macro_id(number)} holds a {vtype.name}; the compensation writes "
                 "a Double or a Float"
             )
-        datavalue = ua.DataValue(ua.Variant(float(value), vtype))
-        await self._macro(session, number).write_value(datavalue)
+        return ua.DataValue(ua.Variant(float(value), vtype))
 
     # -- session life cycle ---------------------------------------------------------
 
@@ -348,6 +476,16 @@ def _learn_type(session: _Session, number: int, datavalue: ua.DataValue) -> None
         session.macro_types[number] = variant.VariantType
     else:
         session.macro_types[number] = ua.VariantType.Double
+
+
+def _as_held(datavalue: ua.DataValue) -> float:
+    """The value of a DataValue to write as the server holds it (a Float: float32)."""
+    variant = datavalue.Value
+    assert variant is not None
+    value = float(variant.Value)
+    if variant.VariantType == ua.VariantType.Float:
+        return float(struct.unpack("<f", struct.pack("<f", value))[0])
+    return value
 
 
 def _number(datavalue: ua.DataValue, node: str) -> float:

@@ -3,11 +3,15 @@
 A machine compensates one axis (the single-axis form: Z, written to
 ``compensation.macro``) or several (``compensation.axes``). Every cycle the loop
 (:mod:`gateway.live.loop`) polls once, selects the regime once and hands each axis
-its own prediction; each :class:`Axis` then reads what its macro holds, lets its own
+its own prediction; the loop reads what every axis's macro holds in one request
+(:meth:`CncClient.read_macros`), each :class:`Axis` lets its own
 :class:`CompensationPolicy` decide (clamp, slew, deadband; with no prediction: hold,
-then ramp to zero), writes with :meth:`CncClient.write_macro_if`, reads back and only
-then counts the value as applied. An axis whose model is missing or whose write
-fails holds and ramps on its own; the others keep compensating.
+then ramp to zero); the decided values go with :meth:`CncClient.write_macros_if`, each
+guarded by a read of its macro right before its write (over OPC UA every axis's guard
+in one Read and every write in one Write); the written macros are read back in one
+request, and each axis counts its value as applied only once its read-back holds it.
+An axis whose model is missing, or whose read or write fails, holds and ramps on its
+own; the others keep compensating.
 
 The handshake macro is one for the machine (:class:`HandshakeToken`): checked once
 per cycle before the first write (a count the gateway did not write stops every
@@ -22,7 +26,7 @@ import math
 from collections.abc import Sequence
 
 from drivers.clock import Clock
-from drivers.cnc import CncClient, CncError
+from drivers.cnc import CncClient, CncError, GuardedWrite, MacroWrite
 from drivers.yaml_loader import KeyPathError
 from gateway.config import AxisSection, MachineSection
 from gateway.live.bank.model_bank import ModelBank
@@ -158,40 +162,46 @@ class Axis:
         return None if regime is None else self.rules.model_for(regime)
 
     # --- the write path -----------------------------------------------------------------
-    async def compensate(
+    # The loop reads every axis's macro in one request at the cycle start, writes the
+    # axes that need it (each write guarded by a read right before it), then reads every
+    # written macro back in one request: :meth:`decide`, :meth:`may_write`,
+    # :meth:`guarded_write`, :meth:`written`, :meth:`confirm`.
+    def decide(
         self,
+        held: float | CncError,
+        read_s: float,
         predicted: float | None,
         rec: AxisRecord,
-        handshake: HandshakeToken,
         enabled: bool,
         on_disable: str,
-        macros: Sequence[int],
-    ) -> None:
-        """Read the macro, decide, write, read back: one macro read before any write.
+    ) -> Decision | None:
+        """From what the macro holds (read at ``read_s``, or why it was not read) and the
+        prediction: start or update the policy and decide; the decision to write, or None
+        (``rec`` says why).
 
-        Times given to the policy are taken at the CNC (after the read, right before
-        the write, after the read-back), not at the cycle start, so the slew limit
-        holds between writes as the CNC receives them, however late a slow
-        transmitter or link made a write.
+        Nothing is decided to be written when the read failed: what the CNC holds is
+        unknown, and the CNC never gets a value written blind. Times given to the policy
+        are taken at the CNC (after the read, at the decision, after the read-back), not
+        at the cycle start, so the slew limit holds between writes as the CNC receives
+        them, however late a slow transmitter or link made a write.
         """
         self.confirmed = False
-        held, read_error = await self._read_held()
-        self.reached = held is not None
+        self.reached = not isinstance(held, CncError)
         if self.policy is None:
-            if held is None:
-                rec.write_status = f"waiting for the CNC: {read_error}"
-                return
-            self._start_policy(held)
-        elif held is not None:
-            self._observe_cnc(held, rec)
+            if isinstance(held, CncError):
+                rec.write_status = f"waiting for the CNC: {self._unread(held)}"
+                return None
+            self._start_policy((read_s, held))
+        elif not isinstance(held, CncError):
+            self._observe_cnc((read_s, held), rec)
         policy = self.policy
         assert policy is not None
         rec.applied_um = policy.applied_um
         if not enabled and on_disable == "hold":
             policy.hold(self.clock.now())
-            held_text = "unknown" if held is None else f"{policy.applied_um:.1f} µm"
+            held_text = "unknown" if isinstance(held, CncError) else f"{policy.applied_um:.1f} µm"
             rec.write_status = self._status(f"disabled: #{self.macro} held at {held_text}")
-            return
+            return None
         write_s = self.clock.now()
         predicted = self.uncertainty_gate.aim(predicted, rec.interval_um, policy.applied_um)
         rec.uncertain = self.uncertainty_gate.active
@@ -199,40 +209,52 @@ class Axis:
         rec.target_um = decision.target_um
         if not decision.write:
             rec.write_status = self._status(f"no write: {decision.reason}")
-            return
-        if held is None:  # what the CNC holds is unknown: never write blind
-            self._write_failed(write_s, f"not written: {read_error}", rec)
-            return
-        kind, text = await handshake.check(macros)
+            return None
+        if isinstance(held, CncError):  # what the CNC holds is unknown: never write blind
+            self._write_failed(write_s, f"not written: {self._unread(held)}", rec)
+            return None
+        return decision
+
+    def may_write(self, handshake: tuple[str, str], rec: AxisRecord) -> bool:
+        """The cycle's handshake verdict (:meth:`HandshakeToken.check`) lets this axis
+        write; else ``rec`` and the counters say why not."""
+        kind, text = handshake
         if kind == "unread":
             self._write_failed(self.clock.now(), text, rec)
-            return
+            return False
         if kind == "external":
             self._external_note = "; ".join(filter(None, [self._external_note, text]))
             rec.write_status = self._status("not written: the handshake is not the gateway's")
-            return
-        await self._write(decision, rec)
+            return False
+        return True
 
-    async def _write(self, decision: Decision, rec: AxisRecord) -> None:
-        """Write the decided value unless the CNC's macro (read again right before) changed
-        since the cycle's read; read it back and confirm."""
+    def guarded_write(self, decision: Decision) -> MacroWrite:
+        """The decided value, to be written only over the value the gateway applied."""
+        assert self.policy is not None
+        return MacroWrite(self.macro, decision.value_cnc, self.policy.holds_applied)
+
+    def written(self, guarded: GuardedWrite | CncError, rec: AxisRecord) -> bool:
+        """The outcome of the guarded write (its read right before it, in the same
+        session): True when written, to be read back and confirmed (:meth:`confirm`)."""
+        if isinstance(guarded, CncError):
+            self._write_failed(self.clock.now(), f"write failed: {guarded}", rec)
+            return False
+        if not guarded.written:  # changed since the cycle's read: the CNC's value stays
+            self._observe_cnc((self.clock.now(), guarded.held), rec)
+            rec.write_status = self._status(
+                f"not written: #{self.macro} changed at the CNC just before the write"
+            )
+            return False
+        return True
+
+    def confirm(self, decision: Decision, read_back: float | CncError, rec: AxisRecord) -> None:
+        """Count the written value as applied only if the CNC's read-back holds it."""
         policy = self.policy
         assert policy is not None
-        try:
-            guarded = await self.cnc.write_macro_if(
-                self.macro, decision.value_cnc, policy.holds_applied
-            )
-            if not guarded.written:  # changed since the cycle's read: the CNC's value stays
-                self._observe_cnc((self.clock.now(), guarded.held), rec)
-                rec.write_status = self._status(
-                    f"not written: #{self.macro} changed at the CNC just before the write"
-                )
-                return
-            read_back = await self.cnc.read_macro(self.macro)
-        except CncError as exc:
-            self._write_failed(self.clock.now(), f"write failed: {exc}", rec)
-            return
         confirmed_s = self.clock.now()
+        if isinstance(read_back, CncError):
+            self._write_failed(confirmed_s, f"write failed: {read_back}", rec)
+            return
         if not policy.same_on_cnc(read_back, decision.value_cnc):
             self._write_failed(
                 confirmed_s,
@@ -254,13 +276,8 @@ class Axis:
         prefix, self._external_note = self._external_note, ""
         return f"{prefix}; {text}" if prefix else text
 
-    async def _read_held(self) -> tuple[tuple[float, float] | None, str]:
-        """(time read, value) of what the CNC macro holds, or None and why not."""
-        try:
-            value = await self.cnc.read_macro(self.macro)
-        except CncError as exc:
-            return None, f"CNC macro #{self.macro} not read: {exc}"
-        return (self.clock.now(), value), ""
+    def _unread(self, exc: CncError) -> str:
+        return f"CNC macro #{self.macro} not read: {exc}"
 
     def _observe_cnc(self, held: tuple[float, float], rec: AxisRecord) -> None:
         """Compare what the CNC holds with what the gateway applied; log a change once."""

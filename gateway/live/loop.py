@@ -15,12 +15,14 @@ Once per ``cycle_s`` of machine time:
    every augmented model (lag terms, :mod:`gateway.live.bank.lag_state`) is advanced
    with this cycle's rises and speed whether it is selected or not, so a model
    switched in mid-shift has a warm state;
-5. for each axis in the configured order: read what its CNC macro holds (a value
-   the gateway did not write is an external change: logged, counted, and the policy
-   moves on from it), let the axis's compensation policy decide the value (clamp,
-   slew, deadband; with no prediction it holds, then ramps to zero), write it to the
-   macro, read it back, and only then count it as applied; then bump the handshake
-   counter once for the cycle's confirmed writes;
+5. read what every axis's CNC macro holds, in one request (a value the gateway did
+   not write is an external change: logged, counted, and the policy moves on from
+   it); for each axis in the configured order let its compensation policy decide the
+   value (clamp, slew, deadband; with no prediction it holds, then ramps to zero) and
+   write it to the macro, guarded by a read of that macro right before the write
+   (over OPC UA every axis's guard in one Read, every write in one Write);
+   read every written macro back in one request, and only then count each value as
+   applied; then bump the handshake counter once for the cycle's confirmed writes;
 6. write the next alive count (``compensation.alive_macro``), the CNC's sign that
    the gateway runs and reaches it, in every cycle the CNC answered.
 
@@ -47,7 +49,7 @@ from typing import TypeVar
 import numpy as np
 
 from drivers.clock import Clock
-from drivers.cnc import CncClient, CncError
+from drivers.cnc import CncClient, CncError, GuardedWrites, MacroReads, MacroWrite
 from drivers.transmitters import ChannelResult, TransmitterBus
 from gateway.config import MachineSection
 from gateway.live.axis import Axis, HandshakeToken, build_axes
@@ -61,7 +63,7 @@ from gateway.live.record import AxisRecord, CycleRecord, Sink, sink_name
 from gateway.live.reference import TemperatureReference
 from gateway.live.scheduler import CycleScheduler, after_cycle
 from gateway.live.uncertainty_gate import UncertaintyGate
-from gateway.live.writeback import CompensationPolicy
+from gateway.live.writeback import CompensationPolicy, Decision
 from gateway.process.file_writer import STATE
 from models.base import ModelInputs
 from models.data.dataset import ambient_sensor_of
@@ -328,15 +330,11 @@ class MachineLoop:
     async def _compensate_axes(
         self, aims: Sequence[tuple[Axis, AxisRecord, float | None]], record: CycleRecord
     ) -> None:
-        """Every axis's write in the configured order, then one handshake bump if any was
-        confirmed; the record gets every axis (multi-axis) and the first axis's fields."""
+        """Every axis's write (:meth:`_write_axes`), then one handshake bump if any was
+        confirmed. The record gets every axis (multi-axis) and the first axis's fields."""
         comp = self.config.compensation
-        macros = [axis.macro for axis in self.axes]
         self.handshake_token.new_cycle()
-        for axis, rec, aim in aims:
-            await axis.compensate(
-                aim, rec, self.handshake_token, self.compensation_enabled, comp.on_disable, macros
-            )
+        await self._write_axes(aims, comp.on_disable)
         if any(axis.confirmed for axis in self.axes):
             problem = await self.handshake_token.bump()
             for axis, rec, _ in aims:
@@ -347,6 +345,33 @@ class MachineLoop:
             setattr(record, name, getattr(first, name))
         if comp.axes is not None:
             record.axes = {rec.axis: rec for _, rec, _ in aims}
+
+    async def _write_axes(
+        self, aims: Sequence[tuple[Axis, AxisRecord, float | None]], on_disable: str
+    ) -> None:
+        """Read every axis's macro (one request), decide each, write the decided values
+        (each guarded by its own read right before it: OPC UA one Read and one Write for
+        every axis), read the written macros back (one request) and confirm each."""
+        macros = [axis.macro for axis in self.axes]
+        held = await read_each(self.cnc, macros)
+        read_s = self.clock.now()
+        decided: list[tuple[Axis, AxisRecord, Decision]] = []
+        for axis, rec, aim in aims:
+            decision = axis.decide(
+                held[axis.macro], read_s, aim, rec, self.compensation_enabled, on_disable
+            )
+            if decision is not None:
+                decided.append((axis, rec, decision))
+        if not decided:
+            return
+        verdict = await self.handshake_token.check(macros)
+        decided = [(a, r, d) for a, r, d in decided if a.may_write(verdict, r)]
+        guarded = await write_each(self.cnc, [a.guarded_write(d) for a, _, d in decided])
+        written = [(a, r, d) for a, r, d in decided if a.written(guarded[a.macro], r)]
+        if written:
+            read_back = await read_each(self.cnc, [axis.macro for axis, _, _ in written])
+            for axis, rec, decision in written:
+                axis.confirm(decision, read_back[axis.macro], rec)
 
     def _swap_promoted(self) -> None:
         """Between cycles: take a newly promoted (or rolled back) set into the bank.
@@ -617,6 +642,31 @@ class MachineLoop:
         for bus in self.buses:
             await bus.close()
         await self.cnc.close()
+
+
+async def read_each(cnc: CncClient, macros: Sequence[int]) -> MacroReads:
+    """Every macro's value or error, in one :meth:`CncClient.read_macros` call (one macro:
+    :meth:`CncClient.read_macro`, the single-axis path as lean as it was); a failure of
+    the whole call (the link) is every macro's error."""
+    try:
+        if len(macros) == 1:
+            return {macros[0]: await cnc.read_macro(macros[0])}
+        return await cnc.read_macros(macros)
+    except CncError as exc:
+        return dict.fromkeys(macros, exc)
+
+
+async def write_each(cnc: CncClient, writes: Sequence[MacroWrite]) -> GuardedWrites:
+    """Every guarded write's outcome, in one :meth:`CncClient.write_macros_if` call (one
+    write: :meth:`CncClient.write_macro_if`, the single-axis path as lean as it was); a
+    failure of the whole call (the link) is every macro's error."""
+    try:
+        if len(writes) == 1:
+            (one,) = writes
+            return {one.number: await cnc.write_macro_if(one.number, one.value, one.holds)}
+        return await cnc.write_macros_if(writes) if writes else {}
+    except CncError as exc:
+        return {write.number: exc for write in writes}
 
 
 async def read_together(

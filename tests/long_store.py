@@ -48,7 +48,7 @@ def cycle_points(machine: str, m: int, i: int, time_ns: int) -> list[Point]:
                 {**tags, "sensor": sensor, "quality": quality},
                 {"value_C": value},
                 time_ns,
-            )  # fmt: skip
+            )
         )
     if i % 3:
         error = round(5.0 + 0.01 * (i % 997) - m, 4)

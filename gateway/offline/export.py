@@ -88,11 +88,11 @@ class ExportResult:
 
 
 #: Points read at once, about: the export holds one time slice of points (and a bounded
-#: count of cycle intervals), whatever the window's length. A slice starts an hour long
+#: count of cycle intervals), whatever the window's length. A slice starts 10 minutes long
 #: and is halved after one of more points, doubled (to 4 h at most) after one of under a
 #: quarter; a slice without points jumps to the next logged point.
 SLICE_POINTS = 50_000
-FIRST_SLICE_S = 3600
+FIRST_SLICE_S = 600
 MAX_SLICE_S = 4 * 3600
 
 

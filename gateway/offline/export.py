@@ -41,7 +41,7 @@ import csv
 import re
 import tempfile
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -94,6 +94,7 @@ class ExportResult:
 SLICE_POINTS = 50_000
 FIRST_SLICE_S = 600
 MAX_SLICE_S = 4 * 3600
+DAY_S = 86_400
 
 
 def export_runs(
@@ -186,7 +187,18 @@ class _SliceReader:
                 return
             span = (stop_ns, last_ns)
             if not self.read_points:  # skip a pause: on from the next logged point
-                span = time_span(self.machine, stop_ns, last_ns + 1)
+                span = self._next_span(time_span, stop_ns, last_ns)
+
+    def _next_span(
+        self, time_span: Callable[..., tuple[int, int] | None], start_ns: int, last_ns: int
+    ) -> tuple[int, int] | None:
+        """From the first point at or after ``start_ns`` to ``last_ns``: looked for in the
+        next day first, so a nightly pause does not scan the rest of the window."""
+        day_ns = DAY_S * NS_PER_S
+        found = time_span(self.machine, start_ns, min(last_ns + 1, start_ns + day_ns))
+        if found is None and start_ns + day_ns <= last_ns:
+            found = time_span(self.machine, start_ns + day_ns, last_ns + 1)
+        return None if found is None else (found[0], last_ns)
 
     def read(self, measurement: str, slice_ns: tuple[int | None, int | None]) -> list[Point]:
         start_ns, stop_ns = slice_ns

@@ -32,6 +32,11 @@ A machine with several axes logs one ``spindle_cycle`` point per axis and cycle 
 every axis's point, so each cycle is still one row whatever the axes, and no axis's
 values are mixed into another's (``error_um`` is the probe's, of the first axis).
 
+The window is read in time slices of about :data:`SLICE_POINTS` points, twice: the
+cycle times first (their count, the sensors, the median cycle from a bounded count of
+intervals), then the rows, spooled beside the output until the columns are known. The
+memory an export takes does not grow with its window (a year of history on the edge box).
+
 The file passes :func:`models.data.dataset.load_runs`.
 """
 
@@ -129,7 +134,12 @@ def export_runs(
     reader = _SliceReader(points_source, machine, (start_ns, stop_ns), slice_points)
     bar = tqdm(total=len(EXPORT_STEPS), desc="export", unit="step", disable=not progress,
                leave=False, mininterval=0)  # fmt: skip
-    with bar, tempfile.TemporaryFile("w+", encoding="utf-8", newline="") as spool:
+    out_csv.parent.mkdir(parents=True, exist_ok=True)
+    # The rows wait beside the output (as large as it), not in a /tmp that may be in RAM.
+    with (
+        bar,
+        tempfile.TemporaryFile("w+", encoding="utf-8", newline="", dir=out_csv.parent) as spool,
+    ):
         return _export(reader, out_csv, epoch_s, cycle_s, gap_factor, good_only, bar, spool)
 
 

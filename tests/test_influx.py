@@ -335,6 +335,29 @@ def test_export_from_influxdb_matches_the_local_store(
     assert len(runs.run_ids) == 2 and runs.time_s[0] == 50.0
 
 
+def test_export_from_influxdb_in_slices_is_the_same_file(
+    server: InfluxServer, bucket: str, tmp_path: Path
+) -> None:
+    """40 minutes of cycles and a pause, read with Flux in slices of about 2000 points
+    (a few minutes each, slice boundaries inside the runs): the file of one local read."""
+    records = make_records("vmc-2", 1500) + make_records("vmc-2", 900, start_s=2400.0)
+    points = [p for r in records for p in points_from_record(r, EPOCH_S)]
+    points += [probe_point(r.machine, r.time_s + 0.3, true_error_um(r), EPOCH_S) for r in records]
+    writer = writer_for(server, bucket)
+    writer.write_sync(points)
+    writer.close()
+    with LocalStore(tmp_path / "series.sqlite") as store:
+        store.write(points)
+        local = export_runs(store, "vmc-2", None, None, tmp_path / "local.csv", EPOCH_S,
+                            slice_points=10**9)  # fmt: skip
+    reader = InfluxReader(server.url, server.token, server.org, bucket)
+    sliced = export_runs(reader, "vmc-2", None, None, tmp_path / "sliced.csv", EPOCH_S,
+                         slice_points=2000)  # fmt: skip
+    reader.close()
+    assert sliced == dataclasses.replace(local, path=sliced.path) and len(sliced.runs) == 2
+    assert (tmp_path / "sliced.csv").read_bytes() == (tmp_path / "local.csv").read_bytes()
+
+
 KILLED_WRITER = """
 import sys
 sys.path.insert(0, {root!r})

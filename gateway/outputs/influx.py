@@ -293,6 +293,34 @@ class InfluxReader:
         points.sort(key=lambda p: (p.time_ns, sorted(p.tags.items())))
         return points
 
+    def time_span(
+        self, machine: str | None = None, start_ns: int | None = None, stop_ns: int | None = None
+    ) -> tuple[int, int] | None:
+        """The first and last time of the points (of ``machine``) in the window, or None:
+        each series' first and last point (Flux ``first``/``last``), the extremes of those."""
+        times = []
+        for selector in ("first", "last"):
+            flux = self._range_flux(machine, start_ns, stop_ns) + (
+                f"\n  |> {selector}()\n  |> map(fn: (r) => ({{_time_ns: int(v: r._time)}}))"
+            )
+            for table in self._query_api.query(flux, org=self.org):
+                times += [int(record.values["_time_ns"]) for record in table.records]
+        return (min(times), max(times)) if times else None
+
+    def _range_flux(self, machine: str | None, start_ns: int | None, stop_ns: int | None) -> str:
+        start = 0 if start_ns is None else int(start_ns)
+        stop = MAX_TIME_NS if stop_ns is None else int(stop_ns)
+        machine_filter = (
+            ""
+            if machine is None
+            else f"\n  |> filter(fn: (r) => r.machine == {_flux_string(machine)})"
+        )
+        return (
+            f"from(bucket: {_flux_string(self.bucket)})\n"
+            f"  |> range(start: time(v: {start}), stop: time(v: {stop}))"
+            f"{machine_filter}"
+        )
+
     def close(self) -> None:
         self._client.close()
 

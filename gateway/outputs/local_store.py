@@ -486,6 +486,23 @@ class LocalStore:
         finally:
             db.close()
 
+    def time_span(
+        self, machine: str | None = None, start_ns: int | None = None, stop_ns: int | None = None
+    ) -> tuple[int, int] | None:
+        """The first and last time of the points (of ``machine``) in the window
+        ``start_ns ≤ time < stop_ns``, or None: where a reader in time slices starts and ends."""
+        self.flush()
+        with self._lock:
+            select = "MIN(time_ns), MAX(time_ns)"
+            db = read_window(self._db, self.parts, None, machine, start_ns, stop_ns, select, "")
+        try:
+            row = db.fetchone()
+        finally:
+            db.close()
+        if row is None or row[0] is None:
+            return None
+        return int(row[0]), int(row[1])
+
     def machines(self) -> list[str]:
         self.flush()
         with self._lock:

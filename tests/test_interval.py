@@ -166,12 +166,39 @@ def fl_fit(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
     return {"document": document, "score": json.loads(out.read_text()), "stdout": done.stdout}
 
 
-def test_fl_leave_one_run_out_coverage_in_band(fl_fit: dict) -> None:
+@pytest.fixture(scope="module")
+def fl_whole(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict]:
+    """The default fitted on the whole recording (its six cycles), the three channels in
+    one command: each model's stored interval document."""
+    store = tmp_path_factory.mktemp("interval-fl-whole") / "store"
+    targets = ("--target", "ch1_um", "--target", "ch3_um", "--target", "ch5_um")
+    done = gateway_in_process("fit", FL, *targets, "--store", store, "--no-progress")
+    assert done.returncode == 0, done.stderr
+    return {
+        target: json.loads((store / f"lag-ridge-{target}-all.json").read_text("utf-8"))
+        for target in ("ch1_um", "ch3_um", "ch5_um")
+    }
+
+
+@pytest.mark.parametrize("target", ["ch1_um", "ch3_um", "ch5_um"])
+def test_fl_leave_one_cycle_out_coverage_in_band(fl_whole: dict, target: str) -> None:
+    """Leave-one-cycle-out on the whole recording: each cycle against the width calibrated
+    on the other five cycles' held-out residuals, pooled; and the stored rule likewise."""
+    interval = fl_whole[target]["interval"]
+    assert interval["nominal_coverage"] == 0.9
+    assert len(interval["per_run_coverage"]) == 6
+    assert BAND[0] <= interval["heldout_coverage"] <= BAND[1], interval
+    assert BAND[0] <= interval["stored_rule_check"]["both"] <= BAND[1], interval
+
+
+def test_fl_c1_c4_stored_rule_checked_in_band(fl_fit: dict) -> None:
+    """Fitted on c1–c4 only: the stored rule (larger of the two quantiles) on c1–c4's own
+    held-out predictions, each run against the rule calibrated on the others. (With four
+    runs, each calibrated on three, the leave-one-run-out quantile alone is not checked
+    here: the whole recording's six cycles check it above.)"""
     interval = fl_fit["document"]["interval"]
     assert interval["nominal_coverage"] == 0.9
     assert interval["half_width_um"] > 0
-    assert BAND[0] <= interval["heldout_coverage"] <= BAND[1], interval
-    # the stored rule (larger of the two quantiles) on c1–c4's own held-out predictions
     check = interval["stored_rule_check"]
     assert check["n_samples"] == interval["n_samples"] + 2 * 1920  # c3 and c4 forward
     assert BAND[0] <= check["both"] <= BAND[1], check

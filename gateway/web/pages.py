@@ -19,7 +19,8 @@ from gateway.web.live import LiveBoard
 
 log = logging.getLogger(__name__)
 
-WINDOWS_H = (1, 8, 24)
+#: The machine page's windows (h): 720 is 30 days, drawn from the per-minute history.
+WINDOWS_H = (1, 8, 24, 720)
 TEMPLATES = jinja2.Environment(
     loader=jinja2.PackageLoader("gateway.web", "templates"),
     autoescape=jinja2.select_autoescape(default=True),
@@ -138,8 +139,9 @@ class Pages:
         )
 
     def _max_age_s(self, hours: int) -> float:
-        """A longer window may be older: 15 s for 1 h, 2 min for 8 h, 6 min for 24 h."""
-        return self.renderer.cache_s * hours
+        """A longer window may be older: 15 s for 1 h, 2 min for 8 h, 6 min for 24 h,
+        15 min for 30 days."""
+        return self.renderer.cache_s * min(hours, 60)
 
     async def machine(self, request: web.Request) -> web.Response:
         machine, hours = self._machine(request), self._window_h(request)

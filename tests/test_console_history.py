@@ -98,7 +98,10 @@ def test_the_history_gives_each_columns_lowest_and_highest_of_every_row(store: P
     assert view.cycles == full.cycles == CYCLES
     assert view.events == series.events(full)
     assert view.quality_changes == full.quality_changes
-    assert np.array_equal(view.probe_error_um, full.probe_error_um)
+    probes = (view.probe_t_s, view.probe_error_um)
+    assert len(probes[0]) < len(full.probe_t_s)  # a column's extremes kept
+    expected = _columns(full.probe_t_s, full.probe_error_um, start_ns, width_ns)
+    assert _columns(*probes, start_ns, width_ns) == expected
 
 
 def test_the_30_day_page_plots_the_history_once_the_1s_rows_aged_out(tmp_path: Path) -> None:

@@ -539,7 +539,7 @@ def history_view(
     The 90 % interval's edges are each column's outer bound (lowest prediction less
     the widest interval, highest plus it)."""
     axes = dict(axes or {})
-    found, _, _ = history_window_of(path, machine, window_s, columns)
+    found, start_ns, width_ns = history_window_of(path, machine, window_s, columns)
     keys = _keys_of({**found.cycle_lines, **found.predicted_minutes}, list(axes))
     lines = _history_lines(found, keys[None], cnc_um_per_unit)
     by_axis = _split_axes(found.changes, list(axes))
@@ -552,6 +552,8 @@ def history_view(
         at = np.searchsorted(minutes[0], found.probes[0] // 60_000_000_000 * 60_000_000_000)
         at = np.clip(at, 0, len(minutes[0]) - 1)
         residual = found.probes[1] - minutes[1][at]
+    keep = _probe_extremes(found.probes[0], (found.probes[1], residual), start_ns, width_ns)
+    probe_t, residual = probe_t[keep], residual[keep]
     changes = [(t / NS_PER_S, str(s), f"{b} → {a}") for t, s, b, a in found.flips]
     events = _cycle_events(by_axis[None].t_s, by_axis[None].write_status, by_axis[None].link_errors)
     events += [(t, "sensor flag", f"{sensor}: {change}") for t, sensor, change in changes]
@@ -562,7 +564,7 @@ def history_view(
         lines={n: _seconds(s) for n, s in lines.items()},
         temperatures_C={s: _seconds(v) for s, v in found.temperatures_C.items()},
         probe_t_s=probe_t,
-        probe_error_um=found.probes[1],
+        probe_error_um=found.probes[1][keep],
         probe_residual_um=residual,
         events=_newest_first(events),
         quality_changes=changes,
@@ -575,6 +577,22 @@ def history_view(
             for axis, factor in axes.items()
         },
     )
+
+
+def _probe_extremes(
+    t_ns: np.ndarray, values: tuple[np.ndarray, ...], start_ns: int, width_ns: int
+) -> np.ndarray:
+    """The probes (indices, by time) holding a column's lowest or highest of any of
+    ``values``: a month of probes every 2 min is 21 600 markers, at most 4 a column."""
+    column = (t_ns - start_ns) // width_ns
+    kept = []
+    for y in values:
+        order = np.lexsort((y, column))
+        ordered = column[order]
+        starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(order) else order
+        ends = np.r_[starts[1:], len(order)] - 1 if len(order) else order
+        kept += [order[starts], order[ends]]
+    return np.unique(np.concatenate(kept)) if kept else np.zeros(0, dtype=np.int64)
 
 
 def _history_lines(found: HistoryWindow, keys: list, cnc_um_per_unit: float) -> dict[str, Series]:

@@ -106,10 +106,17 @@ _LINES = (
 _CHANGES = (
     "SELECT time_ns, {fields}, write_status, link_errors, tags_extra FROM (SELECT *, "
     "lag(write_status) OVER s AS before, lag(coalesce(link_errors, 0) > 0) OVER s AS down, "
-    "row_number() OVER s AS n FROM w WHERE measurement = '{measurement}' "
+    "row_number() OVER s AS n FROM w WHERE measurement = '{measurement}' AND {where} "
     "WINDOW s AS (PARTITION BY tags_extra ORDER BY time_ns)) WHERE n = 1 "
     "OR before IS DISTINCT FROM write_status OR down <> (coalesce(link_errors, 0) > 0) "
     "ORDER BY time_ns"
+)
+#: Each 10-minute bucket's states (write status, link down): only buckets where the
+#: state changes, and the bucket before each, need the ordered scan above.
+BUCKET_NS = 600 * 1_000_000_000
+_STATES = (
+    "SELECT DISTINCT time_ns // {bucket} AS b, tags_extra, write_status, "
+    "coalesce(link_errors, 0) > 0 FROM w WHERE measurement = '{measurement}' ORDER BY b"
 )
 _FLIPS = (
     "SELECT time_ns, sensor, before, quality FROM (SELECT time_ns, sensor, quality, "
@@ -161,7 +168,8 @@ def _grouped(db: duckdb.DuckDBPyConnection, start_ns: int, width_ns: int) -> His
         predicted_minutes=_predicted_minutes(db),
     )
     fields = ", ".join(CYCLE_NUMBERS)
-    changes = db.execute(_CHANGES.format(fields=fields, measurement=CYCLE_MEASUREMENT))
+    where = _changing_buckets(db)
+    changes = db.execute(_CHANGES.format(fields=fields, measurement=CYCLE_MEASUREMENT, where=where))
     window.changes = [list(c) for c in zip(*changes.fetchall(), strict=True)]
     flipping = db.execute(
         "SELECT sensor FROM m WHERE measurement = ? GROUP BY sensor "
@@ -173,6 +181,26 @@ def _grouped(db: duckdb.DuckDBPyConnection, start_ns: int, width_ns: int) -> His
         query = _FLIPS.format(measurement=TEMPERATURE_MEASUREMENT, names=names)
         window.flips = db.execute(query).fetchall()
     return window
+
+
+def _changing_buckets(db: duckdb.DuckDBPyConnection) -> str:
+    """SQL selecting the cycle rows of the buckets where a series' state may change
+    (more than one state in it, or another than the bucket before) and the bucket
+    before each: elsewhere the state stays as it was, so no event begins there."""
+    rows = db.execute(_STATES.format(bucket=BUCKET_NS, measurement=CYCLE_MEASUREMENT))
+    states: dict[tuple[object, int], set] = {}
+    for bucket, tag, status, down in rows.fetchall():
+        states.setdefault((tag, bucket), set()).add((status, down))
+    wanted: set[int] = set()
+    last: dict[object, set] = {}
+    for (tag, bucket), found in sorted(states.items(), key=lambda kv: kv[0][1]):
+        if len(found) > 1 or last.get(tag) != found:
+            wanted.update((bucket - 1, bucket))
+        last[tag] = found
+    if not wanted:
+        return "FALSE"
+    listed = ", ".join(str(b) for b in sorted(wanted))
+    return f"time_ns // {BUCKET_NS} IN ({listed})"
 
 
 def _pairs(rows: list, low: int) -> Series:

@@ -74,7 +74,7 @@ class StubGateway:
     """The parts of :class:`gateway.wiring.Gateway` the console reads."""
 
     def __init__(self, machines: list[str], store: Path) -> None:
-        comp = SimpleNamespace(unit="mm", sign=1)
+        comp = SimpleNamespace(unit="mm", sign=1, axes=None)
         self.loops = [
             SimpleNamespace(
                 config=SimpleNamespace(id=m, compensation=comp),
@@ -279,8 +279,8 @@ async def main_async(args: argparse.Namespace, folder: Path) -> dict[str, Any]:
     url = f"http://127.0.0.1:{port}"
     try:
         if args.only_page:
-            page = await machine_page(console, url, machines[0], store)
-            return {"converted_s": converted_s, "machine_page_24h_1hz": page}
+            page = await machine_page(console, url, machines[0], store, args.hours)
+            return {"converted_s": converted_s, f"machine_page_{args.hours}h_1hz": page}
         await measure(console, machines, 3.0)  # warm-up
         alone = [await measure(console, machines, args.window_s)]
         watched = []
@@ -373,6 +373,7 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3, help="windows with browsers")
     parser.add_argument("--only-page", action="store_true", help="the machine page part only")
     parser.add_argument("--days", type=int, default=1, help="days of 1 Hz points in the store")
+    parser.add_argument("--hours", type=int, default=24, help="the machine page's window")
     args = parser.parse_args()
     import uvloop
 

@@ -19,7 +19,9 @@ from gateway.web.live import LiveBoard
 
 log = logging.getLogger(__name__)
 
-WINDOWS_H = (1, 8, 24)
+#: The machine page's windows (h): 720 is 30 days, drawn from the per-minute history.
+WINDOWS_H = (1, 8, 24, 720)
+LONGEST_RAW_H = 24
 TEMPLATES = jinja2.Environment(
     loader=jinja2.PackageLoader("gateway.web", "templates"),
     autoescape=jinja2.select_autoescape(default=True),
@@ -120,9 +122,15 @@ class Pages:
             hours = int(request.query.get("h", "1"))
         except ValueError:
             hours = 0
-        if hours not in WINDOWS_H:
-            raise web.HTTPBadRequest(text=f"h must be one of {WINDOWS_H}")
+        if hours not in self._windows_h():
+            raise web.HTTPBadRequest(text=f"h must be one of {self._windows_h()}")
         return hours
+
+    def _windows_h(self) -> tuple[int, ...]:
+        """The windows offered: 30 days only from the local store (its per-minute
+        history); from InfluxDB every row would be read."""
+        local = self.backend.source()[0] == "local"
+        return WINDOWS_H if local else tuple(h for h in WINDOWS_H if h <= LONGEST_RAW_H)
 
     async def _drawn(self, machine: str, hours: int) -> tuple[str, list]:
         """The window's SVG and events, read and drawn once in the plot process."""
@@ -138,8 +146,9 @@ class Pages:
         )
 
     def _max_age_s(self, hours: int) -> float:
-        """A longer window may be older: 15 s for 1 h, 2 min for 8 h, 6 min for 24 h."""
-        return self.renderer.cache_s * hours
+        """A longer window may be older: 15 s for 1 h, 2 min for 8 h, 6 min for 24 h,
+        15 min for 30 days."""
+        return self.renderer.cache_s * min(hours, 60)
 
     async def machine(self, request: web.Request) -> web.Response:
         machine, hours = self._machine(request), self._window_h(request)
@@ -149,7 +158,7 @@ class Pages:
             request,
             machine=machine,
             hours=hours,
-            windows=WINDOWS_H,
+            windows=self._windows_h(),
             row=self.board.row(machine),
             events=found,
             stamp=int(time.time() // self._max_age_s(hours)),

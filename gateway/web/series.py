@@ -34,6 +34,7 @@ from gateway.outputs.points import (
     PROBE_MEASUREMENT,
     TEMPERATURE_MEASUREMENT,
 )
+from gateway.web.store_history import HistoryWindow, column_width_ns, history_window, minute_floor
 from gateway.web.store_window import temperature_envelopes, window_columns, window_rows
 
 #: ("local", path) or ("influx", url, token, org, bucket, timeout_s): picklable for the worker.
@@ -51,6 +52,13 @@ MAX_EVENTS = 200
 #: Pixel columns of a plot: the envelope keeps two points per column.
 COLUMNS = 900
 PARTS = ("cycles", "temps", "probes")
+#: A local-store window whose plot columns are at least this long (7.5 h and more at
+#: 900 columns: the 8 h, 24 h and 30-day pages) is read from the per-minute history: a
+#: minute is then at most two pixel columns. Measured on a day of 1 Hz data: 8 h
+#: 0.34 s from the 1-s rows, 0.12 s from the history; 24 h 0.39 s, 0.09 s; a shorter
+#: window reads the 1-s rows (1 h: 0.16 s), its columns finer than a minute.
+HISTORY_COLUMN_S = 30.0
+HISTORY_FROM_S = HISTORY_COLUMN_S * COLUMNS
 
 Event = tuple[float, str, str]
 Series = tuple[np.ndarray, np.ndarray]
@@ -364,6 +372,10 @@ def machine_view(
     axes in configured order, each with its CNC value's µm per unit; its main lines are
     "the" series (the first axis, see the module docstring), each axis's are apart."""
     axes = dict(axes or {})
+    if spec[0] == "local" and aggregate and stop_s - start_s >= HISTORY_FROM_S:
+        return history_view(
+            Path(spec[1]), machine, (start_s, stop_s), cnc_um_per_unit, columns, axes
+        )
     start_ns, stop_ns = int(start_s * NS_PER_S), int(stop_s * NS_PER_S)
     if spec[0] == "local" and aggregate:
         path = Path(spec[1])
@@ -479,3 +491,127 @@ def events(data: MachineSeries) -> list[Event]:
         (t, "sensor flag", f"{sensor}: {change}") for t, sensor, change in data.quality_changes
     ]
     return _newest_first(found)
+
+
+def history_window_of(
+    path: Path, machine: str, window_s: tuple[float, float], columns: int = COLUMNS
+) -> tuple[HistoryWindow, int, int]:
+    """The local store's window ``(start_s, stop_s)`` from its per-minute history, its
+    start on a minute and its columns whole minutes (so the history's envelope is exact):
+    the window, its start and its column width (ns)."""
+    start_s, stop_s = window_s
+    start_ns = minute_floor(int(start_s * NS_PER_S))
+    width_ns = column_width_ns(stop_s - start_s, columns)
+    found = history_window(path, machine, start_ns, int(stop_s * NS_PER_S), width_ns)
+    return found, start_ns, width_ns
+
+
+def _merged(series: list[Series]) -> Series:
+    """Several envelopes (the first axis's and the untagged rows') as one, by time."""
+    t = np.concatenate([s[0] for s in series]) if series else np.zeros(0, dtype=np.int64)
+    y = np.concatenate([s[1] for s in series]) if series else np.zeros(0)
+    order = np.argsort(t, kind="stable")
+    return t[order], y[order]
+
+
+def _keys_of(found: Mapping[object, object], axes: Sequence[str]) -> dict[str | None, list]:
+    """The tag sets of "the" series (key None) and of each axis (the module docstring)."""
+    known: dict[object, str | None] = {}
+    keys: dict[str | None, list] = {None: [], **{a: [] for a in axes}}
+    for tag in found:
+        axis = _axis_of(tag, known)
+        if axis is None or (axes and axis == axes[0]):
+            keys[None].append(tag)
+        if axis is not None and axis in keys:
+            keys[axis].append(tag)
+    return keys
+
+
+def history_view(
+    path: Path,
+    machine: str,
+    window_s: tuple[float, float],
+    cnc_um_per_unit: float,
+    columns: int = COLUMNS,
+    axes: Mapping[str, float] | None = None,
+) -> MachineView:
+    """:func:`machine_view` of a long local-store window from the per-minute history.
+    The 90 % interval's edges are each column's outer bound (lowest prediction less
+    the widest interval, highest plus it)."""
+    axes = dict(axes or {})
+    found, start_ns, width_ns = history_window_of(path, machine, window_s, columns)
+    keys = _keys_of({**found.cycle_lines, **found.predicted_minutes}, list(axes))
+    lines = _history_lines(found, keys[None], cnc_um_per_unit)
+    by_axis = _split_axes(found.changes, list(axes))
+    probe_t = found.probes[0] / NS_PER_S
+    minutes = _merged(
+        [found.predicted_minutes[k] for k in keys[None] if k in found.predicted_minutes]
+    )
+    residual = np.zeros(len(probe_t))
+    if len(minutes[0]) and len(probe_t):
+        at = np.searchsorted(minutes[0], found.probes[0] // 60_000_000_000 * 60_000_000_000)
+        at = np.clip(at, 0, len(minutes[0]) - 1)
+        residual = found.probes[1] - minutes[1][at]
+    keep = _probe_extremes(found.probes[0], (found.probes[1], residual), start_ns, width_ns)
+    probe_t, residual = probe_t[keep], residual[keep]
+    changes = [(t / NS_PER_S, str(s), f"{b} → {a}") for t, s, b, a in found.flips]
+    events = _cycle_events(by_axis[None].t_s, by_axis[None].write_status, by_axis[None].link_errors)
+    events += [(t, "sensor flag", f"{sensor}: {change}") for t, sensor, change in changes]
+    for axis in list(axes)[1:]:
+        events += _axis_write_events(axis, by_axis[axis])
+    return MachineView(
+        cycles=sum(found.cycles.get(k, 0) for k in keys[None]),
+        lines={n: _seconds(s) for n, s in lines.items()},
+        temperatures_C={s: _seconds(v) for s, v in found.temperatures_C.items()},
+        probe_t_s=probe_t,
+        probe_error_um=found.probes[1][keep],
+        probe_residual_um=residual,
+        events=_newest_first(events),
+        quality_changes=changes,
+        axis_lines={
+            axis: {
+                n: _seconds(s)
+                for n, s in _history_lines(found, keys[axis], factor).items()
+                if n in ("predicted_um", "applied_um", "cnc_um")
+            }
+            for axis, factor in axes.items()
+        },
+    )
+
+
+def _probe_extremes(
+    t_ns: np.ndarray, values: tuple[np.ndarray, ...], start_ns: int, width_ns: int
+) -> np.ndarray:
+    """The probes (indices, by time) holding a column's lowest or highest of any of
+    ``values``: a month of probes every 2 min is 21 600 markers, at most 4 a column."""
+    column = (t_ns - start_ns) // width_ns
+    kept = []
+    for y in values:
+        order = np.lexsort((y, column))
+        ordered = column[order]
+        starts = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]]) if len(order) else order
+        ends = np.r_[starts[1:], len(order)] - 1 if len(order) else order
+        kept += [order[starts], order[ends]]
+    return np.unique(np.concatenate(kept)) if kept else np.zeros(0, dtype=np.int64)
+
+
+def _history_lines(found: HistoryWindow, keys: list, cnc_um_per_unit: float) -> dict[str, Series]:
+    """The page's cycle lines of the tag sets ``keys`` from the history's envelopes."""
+
+    def line(name: str) -> Series:
+        return _merged([found.cycle_lines[k][name] for k in keys if k in found.cycle_lines])
+
+    lines = {n: line(n) for n in ("speed_rpm", "predicted_um", "applied_um", "correction_um")}
+    t, cnc = line("written_cnc")
+    lines["cnc_um"] = (t, cnc * cnc_um_per_unit)
+    # the interval's outer bound per column: the column's pairs are (low, high)
+    pt, predicted = lines["predicted_um"]
+    it, width = line("interval_um")
+    if len(it) and len(it) == len(pt):
+        widest = np.repeat(np.maximum(width[0::2], width[1::2]), 2)
+        lines["interval_low_um"] = (pt[0::2], predicted[0::2] - widest[0::2])
+        lines["interval_high_um"] = (pt[1::2], predicted[1::2] + widest[1::2])
+    else:
+        empty = (np.zeros(0, dtype=np.int64), np.zeros(0))
+        lines["interval_low_um"] = lines["interval_high_um"] = empty
+    return lines

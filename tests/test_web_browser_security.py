@@ -12,14 +12,14 @@ import asyncio
 import json
 import logging
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 import pytest
+from selenium.common.exceptions import WebDriverException
 from selenium.webdriver.common.by import By
-from selenium.webdriver.support.expected_conditions import staleness_of
 from selenium.webdriver.support.wait import WebDriverWait
 
 from gateway.scada.login_throttle import ThrottlePolicy
@@ -84,7 +84,22 @@ def submit_login(driver: Any, url: str, user: str, password: str) -> None:
     driver.find_element(By.ID, "password").send_keys(password)
     button = driver.find_element(By.ID, "login")
     button.click()
-    WebDriverWait(driver, 20).until(staleness_of(button))  # the answer's page has loaded
+    WebDriverWait(driver, 20).until(left_document(button))  # the answer's page has loaded
+
+
+def left_document(element: Any) -> Callable[[Any], bool]:
+    """A wait condition: ``element`` is no longer in the page. Selenium's ``staleness_of``
+    expects StaleElementReferenceException; Chrome may instead answer "Node with given id
+    does not belong to the document" while the next page replaces it: gone as well."""
+
+    def gone(_driver: Any) -> bool:
+        try:
+            element.is_enabled()
+        except WebDriverException:  # stale, or Chrome's node-not-in-document answer
+            return True
+        return False
+
+    return gone
 
 
 def logged_in(driver: Any) -> bool:

@@ -11,7 +11,10 @@ the single-axis form, whose outputs are those of one axis as they always were.
 
 from __future__ import annotations
 
+from typing import Literal
+
 from gateway.config import AxisSection, MachineSection
+from gateway.limits import UM_PER_UNIT
 
 
 def _axes(machine: MachineSection) -> dict[str, AxisSection]:
@@ -28,10 +31,11 @@ def axis_macros(machine: MachineSection) -> dict[str, int]:
     return {name: axis.macro for name, axis in _axes(machine).items()}
 
 
+def cnc_um_per_unit(unit: Literal["mm", "um"], sign: int) -> float:
+    """µm of compensation per unit of the value a macro holds (its unit and sign)."""
+    return UM_PER_UNIT[unit] * sign
+
+
 def axis_cnc_um_per_unit(machine: MachineSection) -> dict[str, float]:
-    """Each configured axis's µm per unit of the value its macro holds: 1000 × sign for
-    mm, sign for µm."""
-    return {
-        name: (1000.0 if axis.unit == "mm" else 1.0) * float(axis.sign)
-        for name, axis in _axes(machine).items()
-    }
+    """Each configured axis's µm per unit of the value its macro holds."""
+    return {name: cnc_um_per_unit(axis.unit, axis.sign) for name, axis in _axes(machine).items()}

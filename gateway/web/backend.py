@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
-from gateway.outputs.axes import axis_cnc_um_per_unit
+from gateway.outputs.axes import axis_cnc_um_per_unit, cnc_um_per_unit
 from gateway.outputs.health import integer_counters
 from gateway.web.series import SourceSpec
 
@@ -61,7 +61,7 @@ class Backend:
 
     def cnc_um_per_unit(self, machine: str) -> float:
         comp = self.loop(machine).config.compensation
-        return (1000.0 if comp.unit == "mm" else 1.0) * comp.sign
+        return cnc_um_per_unit(comp.unit, comp.sign)
 
     def axes(self, machine: str) -> dict[str, float]:
         """A multi-axis machine's axes in configured order, each with its CNC value's µm

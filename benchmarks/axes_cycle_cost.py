@@ -30,7 +30,6 @@ import argparse
 import asyncio
 import json
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -40,13 +39,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from loop_latency import PACE_S, free_port, wait_for_port  # noqa: E402
+from loop_latency import PACE_S, free_port  # noqa: E402
+from loop_latency import start_simulator as simulator_at  # noqa: E402
 
 from drivers.clock import ManualClock  # noqa: E402
 from gateway.config import MachineSection, QualitySection, SensorSection  # noqa: E402
@@ -88,39 +87,10 @@ WARM_UP_CYCLES = 20  # quality needs 3 good checks; the first write starts each 
 
 
 def start_simulator(folder: Path, ports: dict[str, int]) -> subprocess.Popen[bytes]:
-    """The simulated machine in its own process, on the other core when there are two.
-
-    Its clock runs ×400: the sensors' noise is drawn per 5 s of machine time, so every
-    30 ms cycle meets new readings (and a new compensation to write).
-    """
-    config = {
-        "simulator": {
-            "program": "const6000",
-            "speedup": 400,
-            "publish_period_s": 0.01,
-            "machine": {"sensor_noise_C": 0.2},
-            "transmitters": {
-                "tcp": {
-                    "port": ports["bus"],
-                    "devices": [
-                        {"device_id": 1, "channels": [f"T{i}" for i in range(1, 9)]},
-                        {"device_id": 2, "channels": ["T9", "ambient"]},
-                    ],
-                }
-            },
-            "cnc": {"opcua": {"port": ports["opcua"]}, "modbus": {"port": ports["modbus"]}},
-        }
-    }
-    path = folder / "simulator.yaml"
-    path.write_text(yaml.safe_dump(config))
-    command = [sys.executable, "-m", "gateway", "simulate", "--config", str(path)]
-    if (os.cpu_count() or 1) > 1 and shutil.which("taskset"):
-        command = ["taskset", "-c", "1", *command]
-    log = (folder / "simulator.log").open("w")
-    proc = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-    for port in ports.values():
-        wait_for_port(port)
-    return proc
+    """The simulated machine (:func:`loop_latency.start_simulator`) with its clock at ×400:
+    the sensors' noise is drawn per 5 s of machine time, so every 30 ms cycle meets new
+    readings (and a new compensation to write)."""
+    return simulator_at(folder, ports, speedup=400)
 
 
 def section(store: Path, ports: dict[str, int], cnc: str, axes: Sequence[str]) -> MachineSection:

@@ -72,11 +72,14 @@ def wait_for_port(port: int, timeout_s: float = 30.0) -> None:
     raise TimeoutError(f"nothing listens on port {port}")
 
 
-def start_simulator(folder: Path, ports: dict[str, int]) -> subprocess.Popen[bytes]:
+def start_simulator(
+    folder: Path, ports: dict[str, int], speedup: float = 1
+) -> subprocess.Popen[bytes]:
+    """The simulated machine in its own process, on the other core when there are two."""
     config = {
         "simulator": {
             "program": "const6000",
-            "speedup": 1,
+            "speedup": speedup,
             "publish_period_s": 0.01,
             # Noisy sensors: the readings, and so the compensation, change every cycle,
             # so every measured cycle writes and reads back.

@@ -37,6 +37,10 @@ def store(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return rig.fit_store(tmp_path_factory.mktemp("interval-live"))
 
 
+#: Wall seconds a transmitter or the CNC may take to answer (machine time is stepped).
+LINK_TIMEOUT_S = 5.0
+
+
 def served_plant(clock: ManualClock, program: SpeedProgram) -> SimulatedPlant:
     plant = SimulatedPlant(
         SimulatorConfig.model_validate(
@@ -55,7 +59,15 @@ def served_plant(clock: ManualClock, program: SpeedProgram) -> SimulatedPlant:
 
 
 def machine(plant: SimulatedPlant, store: Path, compensation: dict | None) -> MachineSection:
-    entry = rig.machine_entry("m1", plant, store, cnc="opcua", cycle_s=CYCLE_S, stale_s=1e6)
+    # The runs are compared cycle by cycle: a read timed out on a loaded machine would
+    # change one run's path, so the links wait as long as a loaded CI machine needs.
+    tcp = plant.config.transmitters.tcp
+    assert tcp is not None
+    bus = rig.tcp_bus("127.0.0.1", tcp.port, timeout_s=LINK_TIMEOUT_S)
+    entry = rig.machine_entry(
+        "m1", plant, store, cnc="opcua", cycle_s=CYCLE_S, stale_s=1e6, transmitters=[bus]
+    )
+    entry["cnc"]["opcua"]["timeout_s"] = LINK_TIMEOUT_S
     entry["models"]["regimes"] = {"models": {}, "fallback_model": TRAINED_MODEL}
     entry["compensation"].update(compensation or {})
     return MachineSection.model_validate(entry)

@@ -14,7 +14,7 @@ def test_demo_compensates_an_unseen_programme_and_reports_the_contract(tmp_path:
     out = tmp_path / "demo.json"
     workdir = tmp_path / "demo"
     result = gateway(
-        "demo", "--json", out, "--speedup", 1500, "--cycle-s", 30, "--workdir", workdir,
+        "demo", "--json", out, "--speedup", 750, "--cycle-s", 30, "--workdir", workdir,
         timeout_s=180,
     )  # fmt: skip
     assert result.returncode == 0, result.stderr

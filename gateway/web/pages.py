@@ -3,6 +3,7 @@ beyond choosing what to show)."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from datetime import datetime
@@ -16,6 +17,7 @@ from gateway.web import plots
 from gateway.web.auth import COOKIE, SESSION, Auth, Session, csrf_ok, same_origin
 from gateway.web.backend import Backend
 from gateway.web.live import LiveBoard
+from gateway.web.series import MachineView
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +50,7 @@ class Pages:
         self.renderer = renderer
         self.reports_dir = reports_dir
         self.secure = secure
+        self._drawing: set[asyncio.Task[str]] = set()
 
     def page(self, name: str, request: web.Request, **context: Any) -> web.Response:
         session: Session | None = request.get(SESSION)
@@ -132,11 +135,11 @@ class Pages:
         local = self.backend.source()[0] == "local"
         return WINDOWS_H if local else tuple(h for h in WINDOWS_H if h <= LONGEST_RAW_H)
 
-    async def _drawn(self, machine: str, hours: int) -> tuple[str, list]:
-        """The window's SVG and events, read and drawn once in the plot process."""
+    async def _view(self, machine: str, hours: int) -> MachineView:
+        """The window as the page shows it, read once in the plot process."""
         return await self.renderer.render(
             ("machine", machine, hours),
-            plots.render_machine,
+            plots.read_machine_view,
             self.backend.source(),
             machine,
             hours * 3600.0,
@@ -145,6 +148,29 @@ class Pages:
             max_age_s=self._max_age_s(hours),
         )
 
+    async def _plot(self, machine: str, hours: int) -> str:
+        """The window's SVG, drawn from the cached view in the plot process."""
+        view = await self._view(machine, hours)
+        return await self.renderer.render(
+            ("machine-plot", machine, hours),
+            plots.draw_machine,
+            view,
+            machine,
+            max_age_s=self._max_age_s(hours),
+        )
+
+    def _draw_ahead(self, machine: str, hours: int) -> None:
+        """Start drawing the plot now: the browser asks for it once it has the page."""
+        task = asyncio.create_task(self._plot(machine, hours))
+        self._drawing.add(task)
+        task.add_done_callback(self._drawn)
+
+    def _drawn(self, task: asyncio.Task[str]) -> None:
+        """A drawing ahead is done; its failure, if any, is the plot request's to report."""
+        self._drawing.discard(task)
+        if not task.cancelled():
+            task.exception()
+
     def _max_age_s(self, hours: int) -> float:
         """A longer window may be older: 15 s for 1 h, 2 min for 8 h, 6 min for 24 h,
         15 min for 30 days."""
@@ -152,7 +178,8 @@ class Pages:
 
     async def machine(self, request: web.Request) -> web.Response:
         machine, hours = self._machine(request), self._window_h(request)
-        _, found = await self._drawn(machine, hours)
+        view = await self._view(machine, hours)
+        self._draw_ahead(machine, hours)
         return self.page(
             "machine.html",
             request,
@@ -160,13 +187,13 @@ class Pages:
             hours=hours,
             windows=self._windows_h(),
             row=self.board.row(machine),
-            events=found,
+            events=view.events,
             stamp=int(time.time() // self._max_age_s(hours)),
         )
 
     async def machine_plot(self, request: web.Request) -> web.Response:
         machine, hours = self._machine(request), self._window_h(request)
-        svg, _ = await self._drawn(machine, hours)
+        svg = await self._plot(machine, hours)
         return web.Response(text=svg, content_type="image/svg+xml")
 
     # -- proposals ------------------------------------------------------------------

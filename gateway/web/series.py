@@ -105,6 +105,8 @@ class MachineView:
     #: a multi-axis machine's axes in configured order → that axis's predicted_um,
     #: applied_um and cnc_um lines (empty for a single-axis machine)
     axis_lines: dict[str, dict[str, Series]] = field(default_factory=dict)
+    #: the window read, (start, stop) in Unix s; None: the lines' own extent
+    window_s: tuple[float, float] | None = None
 
 
 @dataclass
@@ -416,6 +418,7 @@ def machine_view(
         events=_newest_first(found),
         quality_changes=changes,
         axis_lines=axis_lines,
+        window_s=(start_s, stop_s),
     )
 
 
@@ -576,6 +579,7 @@ def history_view(
             }
             for axis, factor in axes.items()
         },
+        window_s=window_s,
     )
 
 

@@ -21,7 +21,7 @@ from selenium.webdriver.common.by import By
 
 from gateway.outputs.local_store import LocalStore, history_folder, parts_folder
 from gateway.outputs.points import NS_PER_S, points_from_record, probe_point
-from gateway.web import series
+from gateway.web import series, store_history
 from gateway.web.series import HISTORY_FROM_S, machine_view, read_machine
 from tests.browser import chromium
 from tests.test_console_axes import SINGLE, VIEWER, Served
@@ -172,3 +172,53 @@ def test_from_influxdb_the_30_day_window_is_refused(tmp_path: Path) -> None:
     finally:
         served.close()
     assert status == 400 and text == "h must be one of (1, 8, 24)"
+
+
+def test_the_events_are_the_same_read_by_time_ranges_or_by_a_list_of_buckets(
+    store: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The buckets where a write status may change are read as time ranges (pruned to
+    their own row groups), or, past ``MAX_RANGES`` runs of them, as one span and a
+    list: both give the events of reading every row."""
+    window = (EPOCH_S, EPOCH_S + CYCLES)
+    spec = ("local", str(store))
+    by_ranges = machine_view(spec, "m1", *window, 1000.0, COLUMNS).events
+    monkeypatch.setattr(store_history, "MAX_RANGES", 0)
+    by_list = machine_view(spec, "m1", *window, 1000.0, COLUMNS).events
+    every = series.events(read_machine(spec, "m1", *window, 1000.0))
+    kinds = {kind for _, kind, _ in every}
+    assert {"source fault", "reconnected", "sensor flag"} <= kinds
+    assert by_ranges == by_list == every
+
+
+def test_sparse_write_refusals_are_each_found_in_their_own_time_range(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A day of steady writing with three refusals hours apart: three separate runs of
+    buckets are read, each as its own time range, and the events are those of every row."""
+    records = make_records("m1", CYCLES, sensors=("T1", "T2"))
+    for record in records:
+        record.link_errors = []
+        record.quality = dict.fromkeys(record.quality, "good")
+    refused = (2000, 14_000, 26_000)
+    for i in refused:
+        records[i].write_status = "refused: readback differs"
+    path = tmp_path / "points.sqlite"
+    with LocalStore(path) as local:
+        local.write([p for record in records for p in points_from_record(record, EPOCH_S)])
+        local.compact(int((EPOCH_S + CYCLES) * NS_PER_S))
+    spec, window = ("local", str(path)), (EPOCH_S, EPOCH_S + CYCLES)
+    read: list[str] = []
+    ranges = store_history._bucket_ranges
+
+    def recorded(buckets: list[int]) -> str:
+        read.append(ranges(buckets))
+        return read[-1]
+
+    monkeypatch.setattr(store_history, "_bucket_ranges", recorded)
+    view = machine_view(spec, "m1", *window, 1000.0, COLUMNS)
+    assert read and read[0].count(" OR ") >= 2  # the first bucket and each refusal's
+    every = series.events(read_machine(spec, "m1", *window, 1000.0))
+    writes = sorted(t - EPOCH_S for t, kind, _ in view.events if kind == "write")
+    assert writes == [float(i) for i in refused]
+    assert view.events == every

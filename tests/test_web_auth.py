@@ -23,7 +23,7 @@ OPERATOR = ScadaUser("olga", "op-secret-7", "operator")
 
 def gateway_of(machines: list[str], tmp_path: Path) -> Any:
     """What the console reads of a gateway: its loops' ids and settings (no cycles run)."""
-    comp = SimpleNamespace(unit="mm", sign=1)
+    comp = SimpleNamespace(unit="mm", sign=1, axes=None)
     loops = [
         SimpleNamespace(
             config=SimpleNamespace(id=m, compensation=comp),

@@ -75,6 +75,7 @@ def _copy(sql: str, path: Path, options: str, batch: dict[str, np.ndarray] | Non
     db = duckdb.connect()
     try:
         db.execute("SET threads = 1")
+        db.execute("SET parquet_metadata_cache = true")
         db.execute(f"COPY ({sql}) TO '{tmp}' (FORMAT parquet, COMPRESSION zstd, {options})")
         with tmp.open("rb+") as stream:
             os.fsync(stream.fileno())
@@ -144,6 +145,7 @@ def scan(
     db = duckdb.connect()
     try:
         db.execute("SET threads = 1")
+        db.execute("SET parquet_metadata_cache = true")
         db.execute(f"CREATE TEMP TABLE staged AS SELECT {TYPED_SELECT} FROM staged_batch")
         sources = ["SELECT * FROM staged"]
         if files:

@@ -146,6 +146,20 @@ def _axis_panel(panel: _Panel, axis: str, lines: Mapping[str, Series]) -> None:
     panel.ax.set_ylabel(f"{axis} compensation (µm)")
 
 
+def _probes(panel: _Panel, data: MachineView) -> None:
+    """Each probe a marker; more probes than the plot has columns (a month of probes
+    every 2 min: the column's extremes, thousands) as lines through them, which read
+    the same at that density and cost the drawing and the browser a fraction."""
+    t = data.probe_t_s
+    if len(t) > COLUMNS:
+        panel.line((t, data.probe_error_um), "probe measured")
+        panel.line((t, data.probe_residual_um), "residual", linestyle=":")
+    elif len(t):
+        dates = panel.days(t)
+        panel.ax.plot(dates, data.probe_error_um, "o", markersize=4, label="probe measured")
+        panel.ax.plot(dates, data.probe_residual_um, "x", markersize=5, label="residual")
+
+
 def machine_svg(data: MachineView, title: str) -> str:
     """The machine page's panels: temperatures, speed, compensation (a multi-axis
     machine's first axis), one per further axis, probes.
@@ -179,10 +193,7 @@ def _machine_svg(data: MachineView, title: str) -> str:
     comp.ax.set_ylabel(f"{next(iter(data.axis_lines), 'Z')} compensation (µm)")
     for panel, axis in zip(axis_panels, further, strict=True):
         _axis_panel(panel, axis, data.axis_lines[axis])
-    if len(data.probe_t_s):
-        dates = probe.days(data.probe_t_s)
-        probe.ax.plot(dates, data.probe_error_um, "o", markersize=4, label="probe measured")
-        probe.ax.plot(dates, data.probe_residual_um, "x", markersize=5, label="residual")
+    _probes(probe, data)
     probe.ax.axhline(0.0, color="grey", linewidth=0.5)
     probe.ax.set_ylabel("probe error (µm)")
     probe.ax.set_xlabel("local time")

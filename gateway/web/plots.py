@@ -39,7 +39,7 @@ TICK_STEPS_H = (1 / 6, 0.25, 0.5, 1, 2, 3, 6, 12, 24, 48, 72, 120, 168)
 MAX_TICKS = 8
 SECONDS_PER_DAY = 86_400.0
 #: matplotlib settings of the machine page's SVG (:func:`machine_svg`)
-SVG_STYLE = {"svg.fonttype": "none", "path.simplify_threshold": 0.5}
+SVG_STYLE: dict[str, Any] = {"svg.fonttype": "none", "path.simplify_threshold": 0.5}
 
 
 def _dates(t: np.ndarray) -> list[datetime]:
@@ -169,7 +169,7 @@ def machine_svg(data: MachineView, title: str) -> str:
     is then about 420 kB instead of 650 kB, which the browser also decodes faster."""
     import matplotlib
 
-    with matplotlib.rc_context(SVG_STYLE):
+    with matplotlib.rc_context(SVG_STYLE):  # type: ignore[arg-type]
         return _machine_svg(data, title)
 
 

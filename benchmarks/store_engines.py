@@ -59,7 +59,7 @@ from gateway.outputs.local_store import LocalStore  # noqa: E402
 from gateway.outputs.points import Point, points_from_record  # noqa: E402
 from gateway.outputs.store_parts import TYPED_SELECT, arrays_of  # noqa: E402
 from gateway.outputs.store_rows import row_of  # noqa: E402
-from gateway.process.event_loop import freeze_startup_heap  # noqa: E402
+from gateway.process.gc_tuning import frozen_startup_heap  # noqa: E402
 from gateway.web.series import machine_view  # noqa: E402
 from tests.json_layout_store import JsonLocalStore  # noqa: E402
 from tests.records import written_record  # noqa: E402
@@ -178,27 +178,28 @@ def run(name: str, folder: Path, stream: Stream, seconds: int) -> dict:
         store = DuckFile(folder / "points.duckdb")
     points = values = 0
     making = caller = 0.0
-    freeze_startup_heap()  # as a gateway process does before its loop starts
-    c0, io0 = time.process_time(), wchar()
-    for s in range(seconds):
-        m0 = time.thread_time()
-        batches = stream.second(s)
-        making += time.thread_time() - m0
-        w0 = time.thread_time()
-        for batch_points in batches:
-            store.write(batch_points)  # type: ignore[attr-defined]
-            points += len(batch_points)
-            values += sum(len(p.fields) for p in batch_points)
-        caller += time.thread_time() - w0  # what the sink's thread (the event loop) spends
-        if isinstance(store, DuckFile):
-            store.commit()
-        elif isinstance(store, LocalStore):
-            store.flush()
-            store.compact()
-    if isinstance(store, LocalStore):
-        store.compact(stream_ns(seconds + 700))  # the last closed period, as later cycles would
-        store.merge_days(stream_ns(seconds) + DAY_NS)  # its day closed: parts merged (rewritten)
-    store.close()  # type: ignore[attr-defined]
+    # the gateway runs its cycles with its start-up heap frozen and young passes rarer
+    with frozen_startup_heap():
+        c0, io0 = time.process_time(), wchar()
+        for s in range(seconds):
+            m0 = time.thread_time()
+            batches = stream.second(s)
+            making += time.thread_time() - m0
+            w0 = time.thread_time()
+            for batch_points in batches:
+                store.write(batch_points)  # type: ignore[attr-defined]
+                points += len(batch_points)
+                values += sum(len(p.fields) for p in batch_points)
+            caller += time.thread_time() - w0  # what the sink's thread (the event loop) spends
+            if isinstance(store, DuckFile):
+                store.commit()
+            elif isinstance(store, LocalStore):
+                store.flush()
+                store.compact()
+        if isinstance(store, LocalStore):
+            store.compact(stream_ns(seconds + 700))  # the last closed period, as later cycles would
+            store.merge_days(stream_ns(seconds) + DAY_NS)  # its day closed: parts merged
+        store.close()  # type: ignore[attr-defined]
     cpu = time.process_time() - c0 - making
     parts = history = None
     if isinstance(store, LocalStore):

@@ -7,19 +7,11 @@ measured side by side with Telegraf on 1000 simulated Modbus TCP machines
 (benchmarks/poll_vs_telegraf.py), the poll's CPU per request fell from 1.72× to
 1.40× Telegraf's. asyncio's own loop stays one config key away (``event_loop:
 asyncio``), for a platform uvloop does not build on or a fault to rule out.
-
-Before the loop starts, what the process holds by then (every imported module: numpy,
-DuckDB, asyncua, pymodbus, some 100 000 objects) is moved out of the garbage
-collector's reach (``gc.freeze``): none of it is ever garbage, and a full collection,
-which the cycles' allocations trigger every few seconds, walked all of it, 30–50 ms a
-time on the loop's thread. Measured on the local store's write path (200 machines,
-``benchmarks/store_engines.py``): its collections took 21 µs a machine-cycle, 3.5 after.
 """
 
 from __future__ import annotations
 
 import asyncio
-import gc
 from collections.abc import Callable, Coroutine
 from typing import Any, Literal, TypeVar
 
@@ -42,13 +34,6 @@ def loop_factory(name: EventLoopName = DEFAULT) -> Callable[[], asyncio.Abstract
 
 
 def run(main: Coroutine[Any, Any, T], name: EventLoopName = DEFAULT) -> T:
-    """``asyncio.run(main)`` on a loop of that kind, the process's heap so far frozen."""
-    freeze_startup_heap()
+    """``asyncio.run(main)`` on a loop of that kind."""
     with asyncio.Runner(loop_factory=loop_factory(name)) as runner:
         return runner.run(main)
-
-
-def freeze_startup_heap() -> None:
-    """Collect what is garbage now, then keep the rest out of every later collection."""
-    gc.collect()
-    gc.freeze()

@@ -264,6 +264,7 @@ def chromium_load(
         return None
     sys.path.insert(0, str(ROOT))
     from selenium.webdriver.common.by import By
+    from selenium.webdriver.support.ui import WebDriverWait
 
     from tests.browser import chromium
 
@@ -279,7 +280,8 @@ def chromium_load(
                 clear()
             started = time.perf_counter()
             driver.get(f"{url}/machines/{machine}?h={hours}")
-            plot = driver.find_element(By.ID, "plot")
+            found = WebDriverWait(driver, 30).until(lambda d: d.find_elements(By.ID, "plot"))
+            plot = found[0]
             while not driver.execute_script("return arguments[0].complete", plot):
                 time.sleep(0.02)
             loads.append(round(time.perf_counter() - started, 3))
@@ -427,7 +429,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         result = uvloop.run(main_async(args, Path(tmp)))
     result["machine"] = {"cpus": os.cpu_count(), "python": platform.python_version()}
-    result["args"] = vars(args)
+    result["args"] = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
     print(json.dumps(result, indent=2))
 
 

@@ -158,6 +158,11 @@ def test_machine_view_keeps_each_axis_apart_and_the_main_lines_are_the_first(
         assert refusals == [(start + 200, "write (Y)", "refused: read-back differs")]
 
 
+#: The overview's axis entries matching a selector: (axis, text shown, held), in one read.
+_AXES = """return [...document.querySelectorAll(arguments[0])].map(
+    s => [s.dataset.axis, s.innerText.trim(), s.classList.contains('held')]);"""
+
+
 def test_the_page_shows_each_axis_and_plots_it_and_the_overview_lists_them(
     served: Served,
 ) -> None:
@@ -176,15 +181,13 @@ def test_the_page_shows_each_axis_and_plots_it_and_the_overview_lists_them(
         driver.get(served.url + f"/machines/{SINGLE}")
         single_tables = driver.find_elements(By.CSS_SELECTOR, "table#axes")
         driver.get(served.url + "/")
-        overview = [
-            (s.get_attribute("data-axis"), s.text, "held" in s.get_attribute("class"))
-            for s in driver.find_elements(By.CSS_SELECTOR, f"#row-{MULTI} .axes .axis")
-        ]
-        single_axes = driver.find_elements(By.CSS_SELECTOR, f"#row-{SINGLE} .axes .axis")
+        # read in one script: the live stream may redraw the rows between two reads
+        overview = [tuple(a) for a in driver.execute_script(_AXES, f"#row-{MULTI} .axes .axis")]
+        single_axes = driver.execute_script(_AXES, f"#row-{SINGLE} .axes .axis")
         served.record(multi_record(1000, time.time()))  # the live stream updates the axes
         first = f"#row-{MULTI} .axes .axis[data-axis='Z']"
         deadline = time.monotonic() + 20
-        while driver.find_element(By.CSS_SELECTOR, first).text != "Z 10.0 / 10.0":
+        while [a[1] for a in driver.execute_script(_AXES, first)] != ["Z 10.0 / 10.0"]:
             assert time.monotonic() < deadline, "the overview's axes not updated within 20 s"
             time.sleep(0.1)
     finally:

@@ -34,8 +34,12 @@ from gateway.web.series import (
 )
 
 #: Steps of the machine page's time ticks (hours): the first giving at most
-#: ``MAX_TICKS`` ticks over the window (1 h: every 10 min ... 30 days: every 5 days).
-TICK_STEPS_H = (1 / 6, 0.25, 0.5, 1, 2, 3, 6, 12, 24, 48, 72, 120, 168)
+#: ``MAX_TICKS`` ticks over the plot (1 h: every 10 min ... 30 days: every 5 days; a
+#: machine logging for a minute: every 10 s).
+TICK_STEPS_H = (
+    *(s / 3600 for s in (10, 30, 60, 120, 300, 600, 900, 1800)),
+    *(1, 2, 3, 6, 12, 24, 48, 72, 120, 168),
+)
 MAX_TICKS = 8
 SECONDS_PER_DAY = 86_400.0
 #: matplotlib settings of the machine page's SVG (:func:`machine_svg`)
@@ -74,12 +78,12 @@ class LocalDays:
         step_h = next((h for h in TICK_STEPS_H if span_h / h <= MAX_TICKS), TICK_STEPS_H[-1])
         step = step_h / 24
         at = np.arange(np.ceil(low / step) * step, high, step)
-        pattern = "%d %b" if step_h >= 24 else "%H:%M"
+        pattern = "%d %b" if step_h >= 24 else "%H:%M:%S" if step_h < 1 / 60 else "%H:%M"
         stamps = np.round(at * SECONDS_PER_DAY).astype(np.int64)
         labels = [time.strftime(pattern, time.gmtime(int(x))) for x in stamps]
         if step_h < 24:  # the day under each midnight and under the first tick
             labels = [
-                time.strftime("%H:%M\n%d %b", time.gmtime(int(x)))
+                time.strftime(f"{pattern}\n%d %b", time.gmtime(int(x)))
                 if k == 0 or x % 86_400 == 0
                 else label
                 for k, (x, label) in enumerate(zip(stamps, labels, strict=True))
@@ -87,15 +91,22 @@ class LocalDays:
         return at, labels
 
 
-def _window_of(data: MachineView) -> tuple[float, float]:
-    """The window drawn: the one read, or the extent of what was found."""
+def _extent_of(data: MachineView) -> tuple[float, float]:
+    """The span the plot shows: from the first to the last time logged in the window
+    (a machine that started ten minutes ago fills the plot's width), else the window."""
+    found = [t for t, _ in [*data.lines.values(), *data.temperatures_C.values()] if len(t)]
+    if len(data.probe_t_s):
+        found.append(np.asarray(data.probe_t_s))
+    if found:
+        first = min(float(np.min(t)) for t in found)
+        last = max(float(np.max(t)) for t in found)
+        if last > first:
+            margin = 0.02 * (last - first)
+            return first - margin, last + margin
     if data.window_s is not None:
         return data.window_s
-    times = [t for t, _ in [*data.lines.values(), *data.temperatures_C.values()] if len(t)]
-    times.append(np.asarray(data.probe_t_s))
-    found = np.concatenate(times) if times else np.zeros(0)
     now = time.time()
-    return (float(found.min()), float(found.max())) if len(found) else (now - 3600.0, now)
+    return now - 3600.0, now
 
 
 class _Panel:
@@ -110,7 +121,7 @@ class _Panel:
             self.ax.plot(self.days(t), y, label=label, linewidth=0.9, **style)
 
 
-def _figure(rows: int, window_s: tuple[float, float]) -> tuple[Any, list[_Panel]]:
+def _figure(rows: int, span_s: tuple[float, float]) -> tuple[Any, list[_Panel]]:
     """The panels, one above the other, sharing a time axis with fixed ticks."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import FixedFormatter, FixedLocator
@@ -123,12 +134,12 @@ def _figure(rows: int, window_s: tuple[float, float]) -> tuple[Any, list[_Panel]
         left=0.08, right=0.955, top=1 - 0.3 / height_in, bottom=0.75 / height_in, hspace=0.12
     )
     axes = fig.subplots(rows, 1, sharex=True, squeeze=False)[:, 0]
-    days = LocalDays(window_s)
-    at, labels = days.ticks(window_s)
+    days = LocalDays(span_s)
+    at, labels = days.ticks(span_s)
     for ax in axes:
         ax.xaxis.set_major_locator(FixedLocator(at.tolist()))
     axes[-1].xaxis.set_major_formatter(FixedFormatter(labels))
-    axes[-1].set_xlim(*days(np.asarray(window_s)))
+    axes[-1].set_xlim(*days(np.asarray(span_s)))
     return fig, [_Panel(ax, days) for ax in axes]
 
 
@@ -175,7 +186,7 @@ def machine_svg(data: MachineView, title: str) -> str:
 
 def _machine_svg(data: MachineView, title: str) -> str:
     further = list(data.axis_lines)[1:]
-    fig, panels = _figure(4 + len(further), _window_of(data))
+    fig, panels = _figure(4 + len(further), _extent_of(data))
     temps, speed, comp, *axis_panels, probe = panels
     for sensor, series in sorted(data.temperatures_C.items()):
         temps.line(series, sensor)
@@ -240,7 +251,7 @@ def read_machine_view(
 
 def draw_machine(data: MachineView, machine: str) -> str:
     """Worker entry: the page's plot of a view read by :func:`read_machine_view`."""
-    start, stop = _window_of(data)
+    start, stop = data.window_s or _extent_of(data)
     return machine_svg(data, f"{machine}: last {(stop - start) / 3600:g} h ({data.cycles} cycles)")
 
 

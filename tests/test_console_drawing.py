@@ -19,13 +19,10 @@ import pytest
 
 from gateway.outputs.local_store import LocalStore
 from gateway.outputs.points import points_from_record, probe_point
-from gateway.scada.login_throttle import ThrottlePolicy
 from gateway.web.plots import LocalDays, machine_svg
 from gateway.web.series import COLUMNS, MachineView
-from gateway.web.server import WebConsole, WebSettings
-from tests.ports import free_tcp_port
 from tests.test_timeseries import make_records
-from tests.test_web_auth import OPERATOR, gateway_of
+from tests.test_web_auth import OPERATOR, console_of
 
 
 def test_the_page_is_answered_with_its_plot_already_being_drawn(tmp_path: Path) -> None:
@@ -39,12 +36,7 @@ def test_the_page_is_answered_with_its_plot_already_being_drawn(tmp_path: Path) 
         store.write([*points, probe_point("m1", 300, 4.0, now - 600)])
 
     async def scenario() -> tuple[bool, bool, str, int]:
-        settings = WebSettings(
-            host="127.0.0.1", port=free_tcp_port(), users=[OPERATOR], throttle=ThrottlePolicy()
-        )
-        console = WebConsole(settings, gateway_of(["m1"], tmp_path))
-        await console.start()
-        try:
+        async with console_of(["m1"], tmp_path) as console:
             url = console.url.rstrip("/")
             async with aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as client:
                 form = {"username": OPERATOR.username, "password": OPERATOR.password}
@@ -59,8 +51,6 @@ def test_the_page_is_answered_with_its_plot_already_being_drawn(tmp_path: Path) 
                 async with client.get(url + "/machines/m1/plot.svg?h=1") as plot:
                     svg = await plot.text()
                 return ahead, read_once, svg, html.count("plot.svg")
-        finally:
-            await console.stop()
 
     ahead, read_once, svg, images = asyncio.run(scenario())
     assert images == 1

@@ -4,6 +4,8 @@ and its configuration refuses a lone TLS file."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+from collections.abc import AsyncIterator
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -40,6 +42,21 @@ def gateway_of(machines: list[str], tmp_path: Path) -> Any:
         config=SimpleNamespace(logging=logging),
         health=lambda machine: {"cycles": 0},
     )
+
+
+@contextlib.asynccontextmanager
+async def console_of(machines: list[str], tmp_path: Path) -> AsyncIterator[WebConsole]:
+    """A console of ``machines`` (their store under ``tmp_path``) with one operator,
+    started on a free port and stopped after the block."""
+    settings = WebSettings(
+        host="127.0.0.1", port=free_tcp_port(), users=[OPERATOR], throttle=ThrottlePolicy()
+    )
+    console = WebConsole(settings, gateway_of(machines, tmp_path))
+    await console.start()
+    try:
+        yield console
+    finally:
+        await console.stop()
 
 
 async def attempt(url: str, password: str) -> int:

@@ -241,19 +241,10 @@ class InfluxReader:
         start_ns: int | None = None,
         stop_ns: int | None = None,
     ) -> str:
-        start = 0 if start_ns is None else int(start_ns)
-        stop = MAX_TIME_NS if stop_ns is None else int(stop_ns)
-        machine_filter = (
-            ""
-            if machine is None
-            else f"\n  |> filter(fn: (r) => r.machine == {_flux_string(machine)})"
-        )
         # int(v: r._time) keeps the nanoseconds (the client parses _time to µs datetimes).
         return (
-            f"from(bucket: {_flux_string(self.bucket)})\n"
-            f"  |> range(start: time(v: {start}), stop: time(v: {stop}))\n"
-            f"  |> filter(fn: (r) => r._measurement == {_flux_string(measurement)})"
-            f"{machine_filter}\n"
+            self._range_flux(machine, start_ns, stop_ns) + "\n"
+            f"  |> filter(fn: (r) => r._measurement == {_flux_string(measurement)})\n"
             '  |> pivot(rowKey: ["_time"], columnKey: ["_field"], valueColumn: "_value")\n'
             "  |> map(fn: (r) => ({r with _time_ns: int(v: r._time)}))"
         )

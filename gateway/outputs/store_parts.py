@@ -75,7 +75,6 @@ def _copy(sql: str, path: Path, options: str, batch: dict[str, np.ndarray] | Non
     db = duckdb.connect()
     try:
         db.execute("SET threads = 1")
-        db.execute("SET parquet_metadata_cache = true")
         db.execute(f"COPY ({sql}) TO '{tmp}' (FORMAT parquet, COMPRESSION zstd, {options})")
         with tmp.open("rb+") as stream:
             os.fsync(stream.fileno())

@@ -59,8 +59,8 @@ class LocalDays:
     of the drawing. Local time is the clock on the shop floor; a window across a change
     of the UTC offset (summer time) converts each point on its own."""
 
-    def __init__(self, window_s: tuple[float, float]) -> None:
-        start, stop = window_s
+    def __init__(self, span_s: tuple[float, float]) -> None:
+        start, stop = span_s
         offsets = {time.localtime(start).tm_gmtoff, time.localtime(stop).tm_gmtoff}
         self.offset_s = offsets.pop() if len(offsets) == 1 else None
 
@@ -71,9 +71,9 @@ class LocalDays:
         offsets = np.array([time.localtime(x).tm_gmtoff for x in t.tolist()], dtype=float)
         return (t + offsets) / SECONDS_PER_DAY
 
-    def ticks(self, window_s: tuple[float, float]) -> tuple[np.ndarray, list[str]]:
-        """Ticks on whole local steps over the window, and their labels."""
-        low, high = self(np.asarray(window_s))
+    def ticks(self, span_s: tuple[float, float]) -> tuple[np.ndarray, list[str]]:
+        """Ticks on whole local steps over the span, and their labels."""
+        low, high = self(np.asarray(span_s))
         span_h = (high - low) * 24
         step_h = next((h for h in TICK_STEPS_H if span_h / h <= MAX_TICKS), TICK_STEPS_H[-1])
         step = step_h / 24

@@ -34,20 +34,20 @@ from gateway.outputs.points import (
     PROBE_MEASUREMENT,
     TEMPERATURE_MEASUREMENT,
 )
-from gateway.web.store_history import HistoryWindow, column_width_ns, history_window, minute_floor
+from gateway.web.store_history import (
+    CYCLE_NUMBERS,
+    HistoryWindow,
+    column_width_ns,
+    history_window,
+    minute_floor,
+)
 from gateway.web.store_window import temperature_envelopes, window_columns, window_rows
 
 #: ("local", path) or ("influx", url, token, org, bucket, timeout_s): picklable for the worker.
 SourceSpec = tuple
 
-CYCLE_FIELDS = (
-    "speed_rpm",
-    "predicted_um",
-    "applied_um",
-    "written_cnc",
-    "correction_um",
-    "interval_um",
-)
+#: A cycle's numbers the page reads (the history keeps each one's extremes per minute).
+CYCLE_FIELDS = CYCLE_NUMBERS
 MAX_EVENTS = 200
 #: Pixel columns of a plot: the envelope keeps two points per column.
 COLUMNS = 900

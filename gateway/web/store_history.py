@@ -34,7 +34,6 @@ CYCLE_NUMBERS = (
     "correction_um",
     "interval_um",
 )
-_NUMBERS = (*CYCLE_NUMBERS, "value_C", "error_um")
 
 
 @dataclass

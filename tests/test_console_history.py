@@ -15,10 +15,12 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import duckdb
 import numpy as np
 import pytest
 from selenium.webdriver.common.by import By
 
+from gateway.outputs import store_parts
 from gateway.outputs.local_store import LocalStore, history_folder, parts_folder
 from gateway.outputs.points import NS_PER_S, points_from_record, probe_point
 from gateway.web import series, store_history
@@ -222,3 +224,41 @@ def test_sparse_write_refusals_are_each_found_in_their_own_time_range(
     writes = sorted(t - EPOCH_S for t, kind, _ in view.events if kind == "write")
     assert writes == [float(i) for i in refused]
     assert view.events == every
+
+
+def test_a_history_written_before_the_write_states_gives_the_same_page(
+    store: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The first 4 h closed with a history that keeps no write state (as one written
+    before it did), the rest with it: the page's lines and events are those of the store
+    whose history has the states throughout, and those of reading every row."""
+    without = store_parts.HISTORY_SELECT.rsplit(", min(", 1)[0]
+    assert "write_state" in store_parts.HISTORY_SELECT and "write_state" not in without
+    assert "speed_rpm_min" in without
+    path = tmp_path / "points.sqlite"
+    points = _points(EPOCH_S)
+    half = int((EPOCH_S + 4 * 3600) * NS_PER_S)
+    with LocalStore(path) as local:
+        monkeypatch.setattr(store_parts, "HISTORY_SELECT", without)
+        local.write([p for p in points if p.time_ns < half])
+        local.compact(half)
+        monkeypatch.undo()
+        local.write([p for p in points if p.time_ns >= half])
+        local.compact(int((EPOCH_S + CYCLES) * NS_PER_S))
+    kinds = [
+        "write_state_min" in {c for (c, *_) in duckdb.sql(f"DESCRIBE FROM '{f}'").fetchall()}
+        for f in sorted(history_folder(path).glob("*.parquet"))
+    ]
+    assert True in kinds and False in kinds, kinds  # both kinds of history file
+    window = (EPOCH_S, EPOCH_S + CYCLES)
+    monkeypatch.setattr(series, "MAX_EVENTS", 10**6)  # every event compared, not the newest
+    mixed = machine_view(("local", str(path)), "m1", *window, 1000.0, COLUMNS)
+    stated = machine_view(("local", str(store)), "m1", *window, 1000.0, COLUMNS)
+    every = series.events(read_machine(("local", str(path)), "m1", *window, 1000.0))
+    assert mixed.events == stated.events == every
+    assert {kind for _, kind, _ in every} >= {"source fault", "reconnected", "sensor flag"}
+    early = {kind for t, kind, _ in every if t < half / NS_PER_S and kind != "sensor flag"}
+    assert {"source fault", "reconnected"} <= early, early  # changes in the older history
+    for name, (t_s, values) in stated.lines.items():
+        assert np.array_equal(mixed.lines[name][0], t_s), name
+        assert np.array_equal(mixed.lines[name][1], values, equal_nan=True), name

@@ -625,7 +625,8 @@ class LocalStore:
     ) -> list[dict[str, object]]:
         """The per-minute history of ``measurement`` (of ``machine``): one dict per
         minute and series, with ``time_ns`` (the minute's start), ``samples`` and
-        ``<field>_min``, ``_mean``, ``_max`` of every numeric field, by time."""
+        ``<field>_min``, ``_mean``, ``_max`` of every numeric field, and the lowest and
+        highest write state (:data:`store_parts.WRITE_STATE`), by time."""
         self.flush()
         with self._lock:
             names = [n for (n,) in self._db.execute("SELECT name FROM history ORDER BY first_ns")]

@@ -176,9 +176,18 @@ _AGGREGATES = ", ".join(
     f"min({f}) AS {f}_min, avg({f}) AS {f}_mean, max({f}) AS {f}_max"
     for f in (*FLOAT_FIELDS, *INT_FIELDS)
 )
+#: A cycle row's write state as one text: its write status (NULL kept apart from any
+#: text) and whether a source was failing. The history keeps each minute's lowest and
+#: highest (``write_state_min``, ``_max``): equal where the state held all minute, so a
+#: reader finds the minutes where it changed without reading every row.
+WRITE_STATE = (
+    "(CASE WHEN write_status IS NULL THEN 'n' ELSE 's' || write_status END) || "
+    "(CASE WHEN coalesce(link_errors, 0) > 0 THEN '|down' ELSE '|up' END)"
+)
 HISTORY_SELECT = (
     f"SELECT {_KEYS}, time_ns // {MINUTE_NS} * {MINUTE_NS} AS time_ns, "
-    f"count(*) AS samples, {_AGGREGATES}"
+    f"count(*) AS samples, {_AGGREGATES}, "
+    f"min({WRITE_STATE}) AS write_state_min, max({WRITE_STATE}) AS write_state_max"
 )
 
 
@@ -197,7 +206,8 @@ def read_history(
     start_ns: int | None,
     stop_ns: int | None,
 ) -> list[dict[str, object]]:
-    """The history rows of ``files`` for one measurement (and machine), by time."""
+    """The history rows of ``files`` for one measurement (and machine), by time (a file
+    written before a column was added gives it as None)."""
     if not files:
         return []
     where: list[str] = ["measurement = ?"]
@@ -213,7 +223,8 @@ def read_history(
     db = duckdb.connect()
     try:
         found = db.execute(
-            f"SELECT * FROM read_parquet([{listed}]) WHERE {' AND '.join(where)} "
+            f"SELECT * FROM read_parquet([{listed}], union_by_name = true) "
+            f"WHERE {' AND '.join(where)} "
             "ORDER BY time_ns, machine, sensor, quality",
             params,
         )

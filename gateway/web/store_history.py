@@ -22,7 +22,7 @@ import numpy as np
 
 from gateway.outputs.local_store import history_folder, parts_folder, read_window
 from gateway.outputs.points import CYCLE_MEASUREMENT, PROBE_MEASUREMENT, TEMPERATURE_MEASUREMENT
-from gateway.outputs.store_parts import MINUTE_NS, literal
+from gateway.outputs.store_parts import MINUTE_NS, WRITE_STATE, literal
 
 Series = tuple[np.ndarray, np.ndarray]
 #: The numbers the page draws, by measurement.
@@ -86,17 +86,24 @@ _KEPT = (
     "value_C_max",
     "error_um_mean",
     "predicted_um_mean",
+    "write_state_min",
+    "write_state_max",
 )
 
 
 def _raw_as_minute(column: str) -> str:
     """A kept history column taken from a 1-s row (a minute of one sample)."""
+    if column.startswith("write_state_"):
+        return f"{WRITE_STATE} AS {column}"
     return f"{column.rsplit('_', 1)[0]} AS {column}"
 
 
-def _minutes_sql(files: list[Path], machine: str, start_ns: int, covered_ns: int) -> str:
+def _minutes_sql(
+    db: duckdb.DuckDBPyConnection, files: list[Path], machine: str, start_ns: int, covered_ns: int
+) -> str:
     """One table of minutes: the history's, then the 1-s rows after ``covered_ns`` as
-    minutes of one sample (the same columns)."""
+    minutes of one sample (the same columns). A history file written before the write
+    state was kept gives it as NULL (its minutes' states unknown)."""
     numbers = ", ".join(_raw_as_minute(c) for c in _KEPT)
     raw = (
         "SELECT measurement, sensor, quality, tags_extra, time_ns, 1 AS samples, "
@@ -104,10 +111,12 @@ def _minutes_sql(files: list[Path], machine: str, start_ns: int, covered_ns: int
     )
     if not files:
         return raw
-    listed = ", ".join(literal(str(f)) for f in files)
+    source = f"read_parquet([{', '.join(literal(str(f)) for f in files)}], union_by_name = true)"
+    present = {row[0] for row in db.execute(f"DESCRIBE SELECT * FROM {source}").fetchall()}
+    kept = ", ".join(c if c in present else f"CAST(NULL AS VARCHAR) AS {c}" for c in _KEPT)
     history = (
-        f"SELECT measurement, sensor, quality, tags_extra, time_ns, samples, {', '.join(_KEPT)} "
-        f"FROM read_parquet([{listed}]) WHERE machine = {literal(machine)} "
+        f"SELECT measurement, sensor, quality, tags_extra, time_ns, samples, {kept} "
+        f"FROM {source} WHERE machine = {literal(machine)} "
         f"AND time_ns >= {start_ns} AND time_ns <= {covered_ns}"
     )
     return f"{history} UNION ALL {raw}"
@@ -127,12 +136,19 @@ _CHANGES = (
     "OR before IS DISTINCT FROM write_status OR down <> (coalesce(link_errors, 0) > 0) "
     "ORDER BY time_ns"
 )
-#: Each 10-minute bucket's states (write status, link down): only buckets where the
-#: state changes, and the bucket before each, need the ordered scan above.
+#: Each 10-minute bucket's write states (status and link down), from the minutes (the
+#: history's lowest and highest state of each minute): only buckets where the state
+#: changes, and the bucket before each, need the ordered scan above.
 BUCKET_NS = 600 * 1_000_000_000
 _STATES = (
-    "SELECT DISTINCT time_ns // {bucket} AS b, tags_extra, write_status, "
-    "coalesce(link_errors, 0) > 0 FROM w WHERE measurement = '{measurement}' ORDER BY b"
+    "SELECT DISTINCT time_ns // {bucket} AS b, tags_extra, write_state_min, write_state_max "
+    "FROM m WHERE measurement = '{measurement}'"
+)
+#: The same from the 1-s rows, for the minutes of a history written without the states.
+_RAW_STATES = (
+    "SELECT b, tags_extra, {state} FROM (SELECT DISTINCT time_ns // {bucket} AS b, tags_extra, "
+    "write_status, least(coalesce(link_errors, 0), 1) AS link_errors FROM w "
+    "WHERE measurement = '{measurement}' AND {where})"
 )
 _FLIPS = (
     "SELECT time_ns, sensor, before, quality FROM (SELECT time_ns, sensor, quality, "
@@ -154,7 +170,8 @@ def history_window(
     finally:
         db.close()
     try:
-        found.execute(f"CREATE TEMP TABLE m AS {_minutes_sql(files, machine, start_ns, covered)}")
+        minutes = _minutes_sql(found, files, machine, start_ns, covered)
+        found.execute(f"CREATE TEMP TABLE m AS {minutes}")
         return _grouped(found, start_ns, width_ns)
     finally:
         found.close()
@@ -203,10 +220,7 @@ def _changing_buckets(db: duckdb.DuckDBPyConnection) -> str:
     """SQL selecting the cycle rows of the buckets where a series' state may change
     (more than one state in it, or another than the bucket before) and the bucket
     before each: elsewhere the state stays as it was, so no event begins there."""
-    rows = db.execute(_STATES.format(bucket=BUCKET_NS, measurement=CYCLE_MEASUREMENT))
-    states: dict[tuple[object, int], set] = {}
-    for bucket, tag, status, down in rows.fetchall():
-        states.setdefault((tag, bucket), set()).add((status, down))
+    states = _bucket_states(db)
     wanted: set[int] = set()
     last: dict[object, set] = {}
     for (tag, bucket), found in sorted(states.items(), key=lambda kv: kv[0][1]):
@@ -216,6 +230,27 @@ def _changing_buckets(db: duckdb.DuckDBPyConnection) -> str:
     if not wanted:
         return "FALSE"
     return _bucket_ranges(sorted(wanted))
+
+
+def _bucket_states(db: duckdb.DuckDBPyConnection) -> dict[tuple[object, int], set]:
+    """Each (series, bucket)'s write states, from the minutes; a bucket holding minutes of
+    a history written before it kept them is read from its 1-s rows instead."""
+    query = _STATES.format(bucket=BUCKET_NS, measurement=CYCLE_MEASUREMENT)
+    states: dict[tuple[object, int], set] = {}
+    unknown: set[int] = set()
+    for bucket, tag, lowest, highest in db.execute(query).fetchall():
+        if lowest is None:
+            unknown.add(bucket)
+        else:
+            states.setdefault((tag, bucket), set()).update((lowest, highest))
+    if unknown:
+        where = _bucket_ranges(sorted(unknown))
+        query = _RAW_STATES.format(
+            bucket=BUCKET_NS, state=WRITE_STATE, measurement=CYCLE_MEASUREMENT, where=where
+        )
+        for bucket, tag, state in db.execute(query).fetchall():
+            states.setdefault((tag, bucket), set()).add(state)
+    return states
 
 
 #: Up to this many runs of wanted buckets are read as time ranges (each pruned to

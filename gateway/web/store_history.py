@@ -8,7 +8,8 @@ to exactly the envelope of reading every row: the history for the minutes it cov
 the 1-s rows for the rest (the open period, not yet in the history). The events need
 every change of a cycle's write status and link state and every quality flip: those
 come from the 1-s rows while they are kept (grouped in DuckDB, only the changes come
-back); once the 1-s rows have aged out, the plots still come from the history.
+back), read only in the 10-minute stretches where the history's write states say one
+may begin; once the 1-s rows have aged out, the plots still come from the history.
 """
 
 from __future__ import annotations

@@ -27,6 +27,10 @@ from tests.counting_proxy import CountingProxy
 from tests.ports import free_tcp_port
 from tests.test_drivers_cnc import HOST, NAMESPACE, run, snapshot, typed_macro_server
 
+#: Generous for a loaded test machine (an OPC UA connect is several round trips under
+#: one bound of three timeouts); no test here is about a timeout.
+TIMEOUT_S = 5.0
+
 MACROS = {500: 0.0125, 502: -0.0375, 503: 2.0, 510: 1.5, 530: -4.25, 600: 7.0, 999: 3.0}
 
 
@@ -65,7 +69,7 @@ def test_opcua_reads_several_macros_in_one_read_and_a_refused_node_fails_alone()
             CncOpcUaServer(link, port=port, macro_range=(500, 600)),
             counted(port, "opcua") as proxy,
         ):
-            cnc = OpcUaCnc(f"opc.tcp://{HOST}:{proxy.port}/cnc", timeout_s=1.0)
+            cnc = OpcUaCnc(f"opc.tcp://{HOST}:{proxy.port}/cnc", timeout_s=TIMEOUT_S)
             try:
                 await cnc.read_speed()  # connect first: only the multi-read counted
                 reads = proxy.counts["read"]
@@ -94,12 +98,12 @@ def test_opcua_multi_read_learns_each_macros_type_for_its_write() -> None:
         port = free_tcp_port()
         server = await typed_macro_server(port)
         try:
-            cnc = OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=1.0)
+            cnc = OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=TIMEOUT_S)
             try:
                 many = await cnc.read_macros([500, 501, 502])
                 assert many == await one_by_one(cnc, [500, 501, 502])
                 await cnc.close()
-                cnc = OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=1.0)
+                cnc = OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=TIMEOUT_S)
                 await cnc.read_macros([500, 501, 502])
                 # #500 is a Float at this CNC: the multi-read's type is what it is written as
                 guarded = await cnc.write_macro_if(500, 0.25, lambda held: held == 0.0)
@@ -122,7 +126,7 @@ def test_modbus_reads_close_macros_in_one_request_and_far_ones_in_their_own() ->
             await server.publish()
             host, port = server.address
             async with counted(port, "modbus") as proxy:
-                cnc = ModbusCnc(host, proxy.port, timeout_s=1.0)
+                cnc = ModbusCnc(host, proxy.port, timeout_s=TIMEOUT_S)
                 try:
                     # #500–#510 lie within MACRO_SPAN_REGISTERS: one read; #530 and #600 not
                     assert 2 * (510 - 500) + 2 <= MACRO_SPAN_REGISTERS < 2 * (530 - 500) + 2
@@ -187,7 +191,7 @@ def test_opcua_guarded_writes_go_as_one_read_and_one_write_each_macro_its_own_ou
         server = await guarded_server(port)
         try:
             async with counted(port, "opcua") as proxy:
-                cnc = OpcUaCnc(f"opc.tcp://{HOST}:{proxy.port}/cnc", timeout_s=1.0)
+                cnc = OpcUaCnc(f"opc.tcp://{HOST}:{proxy.port}/cnc", timeout_s=TIMEOUT_S)
                 try:
                     await cnc.read_macro(500)  # connect first: only the guarded writes counted
                     before = Counter(proxy.counts)
@@ -245,9 +249,9 @@ def test_a_refused_macro_fails_alone_among_guarded_writes(cnc_kind: str) -> None
         async with server:
             await server.publish()
             cnc: CncClient = (
-                OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=1.0)
+                OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=TIMEOUT_S)
                 if cnc_kind == "opcua"
-                else ModbusCnc(HOST, port, timeout_s=1.0)
+                else ModbusCnc(HOST, port, timeout_s=TIMEOUT_S)
             )
             try:
                 outcome = await cnc.write_macros_if(

@@ -66,33 +66,54 @@ def test_interval_widens_with_the_time_since_the_last_probe(tmp_path: Path, stor
     assert len(probes_off) >= 10, "the probe cycle never wrote #600"
     assert all(r.correction_um is None for r in off)
 
+    # A cycle whose bus went unanswered past its timeout (the test machine descheduled
+    # that long under load) has no interval in that run only; at most 1 % of them.
+    unanswered = [
+        k for k, (a, b) in enumerate(zip(off, on, strict=True)) if a.link_errors or b.link_errors
+    ]
+    assert len(unanswered) <= 0.01 * len(on), unanswered
+
     last_probe_s: float | None = None
     widened = 0
-    for a, b in zip(off, on, strict=True):
+    for k, (a, b) in enumerate(zip(off, on, strict=True)):
         assert a.time_s == b.time_s
-        if a.interval_um is None:
-            assert b.interval_um is None
-            continue
-        assert b.interval_um is not None
-        if last_probe_s is None:
-            assert b.interval_um == a.interval_um  # no correction yet: nothing to add
+        if k in unanswered or a.interval_um is None:
+            assert k in unanswered or b.interval_um is None
         else:
-            hours = (b.time_s - last_probe_s) / 3600.0
-            expected = math.sqrt(a.interval_um**2 + Z_90**2 * PROCESS_UM2_PER_H * hours)
-            assert math.isclose(b.interval_um, expected, rel_tol=1e-9), (b.time_s, last_probe_s)
-            widened += b.interval_um > a.interval_um
+            assert b.interval_um is not None
+            if last_probe_s is None:
+                assert b.interval_um == a.interval_um  # no correction yet: nothing to add
+            else:
+                hours = (b.time_s - last_probe_s) / 3600.0
+                expected = math.sqrt(a.interval_um**2 + Z_90**2 * PROCESS_UM2_PER_H * hours)
+                assert math.isclose(b.interval_um, expected, rel_tol=1e-9), (b.time_s, last_probe_s)
+                widened += b.interval_um > a.interval_um
         # the filter takes the probe read this cycle at its end (after the interval)
-        if b.probe_error_um is not None and not b.probe_refused and b.correction_um is not None:
+        if accepted(b):
             last_probe_s = b.time_s
     assert widened > 100
+
     # each accepted probe takes the width back down on the next cycle
-    pairs = zip(off, on, strict=True)
-    ratios = [b.interval_um / a.interval_um if a.interval_um else 1.0 for a, b in pairs]
-    taken = [
-        k
-        for k, r in enumerate(on[:-1])
-        if r.probe_error_um is not None and not r.probe_refused and r.correction_um is not None
-    ]
+    def ratio(k: int) -> float:
+        a, b = off[k].interval_um, on[k].interval_um
+        assert a is not None and b is not None
+        return b / a
+
+    taken = [k for k, r in enumerate(on[:-1]) if accepted(r)]
     assert len(taken) >= 10
-    drops = [(ratios[k], ratios[k + 1]) for k in taken[1:]]
+    drops = [
+        (ratio(k), ratio(k + 1))
+        for k in taken[1:]
+        if not {k, k + 1} & set(unanswered) and off[k].interval_um and off[k + 1].interval_um
+    ]
+    assert len(drops) >= len(taken) - 3
     assert all(before > 1.5 and after < before for before, after in drops), drops
+
+
+def accepted(record: CycleRecord) -> bool:
+    """Whether the online correction took the probe read in this cycle."""
+    return (
+        record.probe_error_um is not None
+        and not record.probe_refused
+        and record.correction_um is not None
+    )

@@ -5,7 +5,7 @@ run against the width calibrated on the other runs (stored with the model), the 
 recording's later runs c5–c6 scored with the model fitted on c1–c4, and simulated
 production programmes the fit never saw. The nominal interval is 90 %; a coverage
 outside 85–95 % fails (the forward FL figure on c5–c6 is only bounded below: it
-covers 99–100 %, see docs/models/interval.md).
+covers 96–100 %, see docs/models/interval.md).
 """
 
 from __future__ import annotations

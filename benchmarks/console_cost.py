@@ -274,6 +274,9 @@ def chromium_load(
         driver.find_element(By.ID, "username").send_keys(USER[0])
         driver.find_element(By.ID, "password").send_keys(USER[1])
         driver.find_element(By.ID, "login").click()
+        # the session cookie is set once the login's answer arrived: a page asked for
+        # before that is the login page again (seen under full contention)
+        WebDriverWait(driver, 30).until(lambda d: "/login" not in d.current_url)
         loads, timing = [], None
         for k in range(1 + AGAIN):
             if k and clear is not None:

@@ -25,11 +25,7 @@ from simulator.servers.modbus_cnc import CncModbusServer
 from simulator.servers.opcua_cnc import CncOpcUaServer
 from tests.counting_proxy import CountingProxy
 from tests.ports import free_tcp_port
-from tests.test_drivers_cnc import HOST, NAMESPACE, run, snapshot, typed_macro_server
-
-#: Generous for a loaded test machine (an OPC UA connect is several round trips under
-#: one bound of three timeouts); no test here is about a timeout.
-TIMEOUT_S = 5.0
+from tests.test_drivers_cnc import HOST, NAMESPACE, TIMEOUT_S, run, snapshot, typed_macro_server
 
 MACROS = {500: 0.0125, 502: -0.0375, 503: 2.0, 510: 1.5, 530: -4.25, 600: 7.0, 999: 3.0}
 

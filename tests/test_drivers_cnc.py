@@ -33,6 +33,9 @@ T = TypeVar("T")
 HOST = "127.0.0.1"
 NAMESPACE = "urn:spindle-gateway:simulated-cnc"
 FAST_BACKOFF = {"initial_s": 0.1, "max_s": 0.4}
+#: Request timeout of the CNC clients of tests not about a timeout: generous for a loaded
+#: test machine (an OPC UA connect is several round trips under one bound of three timeouts).
+TIMEOUT_S = 5.0
 
 
 def snapshot(speed: float = 4000.0, commanded: float = 4500.0) -> MachineSnapshot:
@@ -89,7 +92,7 @@ def test_opcua_reads_speed_and_round_trips_a_macro() -> None:
     async def body() -> None:
         link = FixedLink(snapshot())
         async with CncOpcUaServer(link, port=free_tcp_port()) as server:
-            cnc = OpcUaCnc(server.endpoint, timeout_s=5.0)
+            cnc = OpcUaCnc(server.endpoint, timeout_s=TIMEOUT_S)
             assert cnc.namespace_index is None  # lazy: the constructor did no I/O
             try:
                 assert await cnc.read_speed() == SpeedReading(4000.0, 4500.0, int(RunMode.AUTO))
@@ -112,7 +115,7 @@ def test_opcua_reads_speed_and_round_trips_a_macro() -> None:
                 await cnc.read_speed()
 
             # Misconfigured clients fail with messages that say what is wrong.
-            other = OpcUaCnc(server.endpoint, namespace="urn:nobody", timeout_s=5.0)
+            other = OpcUaCnc(server.endpoint, namespace="urn:nobody", timeout_s=TIMEOUT_S)
             with pytest.raises(CncError, match="urn:nobody") as info:
                 await other.read_speed()
             assert server.endpoint in str(info.value)
@@ -124,7 +127,7 @@ def test_opcua_reads_speed_and_round_trips_a_macro() -> None:
                 await named.read_speed()  # the simulator takes anonymous sessions only
             await named.close()
 
-            no_run_mode = OpcUaCnc(server.endpoint, run_mode_node=None, timeout_s=5.0)
+            no_run_mode = OpcUaCnc(server.endpoint, run_mode_node=None, timeout_s=TIMEOUT_S)
             assert (await no_run_mode.read_speed()).run_mode is None
             await no_run_mode.close()
 
@@ -349,7 +352,7 @@ def test_opcua_writes_a_macro_as_the_type_the_cnc_holds_it_in() -> None:
         server = await typed_macro_server(port)
         try:
             # A first write with no read before it: the type is read first.
-            cnc = OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=5.0)
+            cnc = OpcUaCnc(f"opc.tcp://{HOST}:{port}/cnc", timeout_s=TIMEOUT_S)
             await cnc.write_macro(500, 0.0125)
             assert await cnc.read_macro(500) == pytest.approx(0.0125, abs=1e-9)  # float32
             await cnc.write_macro(502, -0.0375)
@@ -382,20 +385,20 @@ def test_opcua_over_a_signed_and_encrypted_channel_with_its_own_certificate(
         link = FixedLink(snapshot())
         served = (tmp_path / "cnc" / "cert.der", tmp_path / "cnc" / "key.pem")
         async with CncOpcUaServer(link, port=free_tcp_port(), secure=served) as server:
-            plain = OpcUaCnc(server.endpoint, timeout_s=5.0)
+            plain = OpcUaCnc(server.endpoint, timeout_s=TIMEOUT_S)
             with pytest.raises(CncError, match=r"No matching endpoints: 1, .*SecurityPolicy#None"):
                 await plain.read_speed()
             await plain.close()
 
             mine = OpcUaSecurity(tmp_path / "pki" / "cert.der", tmp_path / "pki" / "key.pem")
-            secured = OpcUaCnc(server.endpoint, timeout_s=5.0, security=mine)
+            secured = OpcUaCnc(server.endpoint, timeout_s=TIMEOUT_S, security=mine)
             assert await secured.read_speed() == SpeedReading(4000.0, 4500.0, int(RunMode.AUTO))
             assert mine.certificate.exists() and mine.private_key.stat().st_mode & 0o077 == 0
             await check_macro_round_trip(secured, link, -0.0375)
             await secured.close()
 
             pinned = OpcUaSecurity(mine.certificate, mine.private_key, server_certificate=served[0])
-            right = OpcUaCnc(server.endpoint, timeout_s=5.0, security=pinned)
+            right = OpcUaCnc(server.endpoint, timeout_s=TIMEOUT_S, security=pinned)
             assert (await right.read_speed()).actual_rpm == 4000.0
             await right.close()
 

@@ -68,9 +68,9 @@ def test_interval_widens_with_the_time_since_the_last_probe(tmp_path: Path, stor
 
     # A cycle whose bus went unanswered past its timeout (the test machine descheduled
     # that long under load) has no interval in that run only; at most 1 % of them.
-    unanswered = [
+    unanswered = {
         k for k, (a, b) in enumerate(zip(off, on, strict=True)) if a.link_errors or b.link_errors
-    ]
+    }
     assert len(unanswered) <= 0.01 * len(on), unanswered
 
     last_probe_s: float | None = None
@@ -104,7 +104,7 @@ def test_interval_widens_with_the_time_since_the_last_probe(tmp_path: Path, stor
     drops = [
         (ratio(k), ratio(k + 1))
         for k in taken[1:]
-        if not {k, k + 1} & set(unanswered) and off[k].interval_um and off[k + 1].interval_um
+        if not {k, k + 1} & unanswered and off[k].interval_um and off[k + 1].interval_um
     ]
     assert len(drops) >= len(taken) - 3
     assert all(before > 1.5 and after < before for before, after in drops), drops

@@ -5,7 +5,8 @@ run against the width calibrated on the other runs (stored with the model), the 
 recording's later runs c5–c6 scored with the model fitted on c1–c4, and simulated
 production programmes the fit never saw. The nominal interval is 90 %; a coverage
 outside 85–95 % fails (the forward FL figure on c5–c6 is only bounded below: it
-covers 96–100 %, see docs/models/interval.md).
+covers 96–100 %, and no width calibrated on c1–c4 can be in band there on every
+channel, which ``score``'s half-widths for 85–95 % show; see docs/models/interval.md).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import pytest
 from gateway.live.bank.model_bank import BankedModel
 from gateway.live.interval import assess
 from models.fit.interval import (
+    band_half_widths,
     calibrate,
     conformal_half_width,
     coverage,
@@ -48,6 +50,16 @@ def test_half_width_is_the_conformal_rank() -> None:
     # ⌈(100 + 1) · 0.9⌉ = 91st smallest
     assert conformal_half_width(values, 0.9) == 91.0
     assert conformal_half_width(values[:20], 0.9) is None  # too few to place it
+
+
+def test_band_half_widths_cover_85_and_95_percent_of_the_rows() -> None:
+    values = np.concatenate([np.arange(1.0, 201.0)[::-1], [np.nan, np.inf]])
+    low, high = band_half_widths(values)
+    assert (low, high) == (170.0, 190.0)  # the 170th and 190th smallest of 200
+    finite = values[np.isfinite(values)]
+    assert coverage(finite, np.zeros(finite.size), low)["coverage"] == 0.85
+    assert coverage(finite, np.zeros(finite.size), high)["coverage"] == 0.95
+    assert band_half_widths(np.array([np.nan])) is None
 
 
 def test_coverage_counts_rows_within_the_width() -> None:
@@ -163,7 +175,12 @@ def fl_fit(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFact
     done = gateway_in_process("score", test, "--model", model_id, "--store", store, "--json", out)
     assert done.returncode == 0, done.stderr
     document = json.loads((store / f"{model_id}.json").read_text(encoding="utf-8"))
-    return {"document": document, "score": json.loads(out.read_text()), "stdout": done.stdout}
+    return {
+        "document": document,
+        "score": json.loads(out.read_text()),
+        "stdout": done.stdout,
+        "stderr": done.stderr,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -212,6 +229,33 @@ def test_fl_forward_coverage_scored_on_c5_c6(fl_fit: dict) -> None:
     assert pooled["coverage"] >= BAND[0], found  # never narrower than promised
     assert pooled["mean_width_um"] >= 2 * fl_fit["document"]["interval"]["half_width_um"]
     assert "interval" in fl_fit["stdout"] and "coverage" in fl_fit["stdout"]
+
+
+def test_fl_forward_score_says_which_widths_would_have_been_in_band(fl_fit: dict) -> None:
+    """``score`` gives, per run and pooled, the stored half-widths that would have covered
+    85 % and 95 % of the rows; the coverage it reports agrees with where the stored width
+    lies against them, and a stored width outside them is named."""
+    found = fl_fit["score"]["interval"]
+    stored = found["half_width_um_stored"]
+    for row in (*found["per_run"].values(), found["pooled"]):
+        low, high = row["half_width_um_for_85_95"]
+        assert 0 < low <= high
+        assert (row["coverage"] >= BAND[1]) == (stored >= high), row
+        assert (row["coverage"] < BAND[0]) == (stored < low), row
+    low, high = found["pooled"]["half_width_um_for_85_95"]
+    named = f"{low:.2f}–{high:.2f} µm would have covered"
+    assert (named in fl_fit["stdout"] + fl_fit["stderr"]) == (not low <= stored <= high)
+
+
+def test_fl_calibration_gives_each_schemes_band(fl_fit: dict) -> None:
+    """The calibration's own held-out rows: the half-widths covering 85 % and 95 % of each
+    scheme's residuals bracket that scheme's 90 % quantile."""
+    interval = fl_fit["document"]["interval"]
+    bands = interval["half_width_um_for_85_95"]
+    for scheme, quantile in (("loro", "half_width_um_loro"), ("forward", "half_width_um_forward")):
+        low, high = bands[scheme]
+        assert low <= interval[quantile] <= high, (scheme, interval)
+        assert low < high
 
 
 # --- simulated production ------------------------------------------------------------

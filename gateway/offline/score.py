@@ -39,7 +39,13 @@ from models.data.features import Prepared, prepare
 from models.data.references import first_rows
 from models.data.targets import load_targets, view
 from models.data.unit_ranges import SENSOR_PATTERN
-from models.fit.interval import coverage, span_excess, widened_um
+from models.fit.interval import (
+    COVERAGE_BAND,
+    band_half_widths,
+    coverage,
+    span_excess,
+    widened_um,
+)
 from models.fit.metrics import accuracy
 from models.store import FORMAT as PLAIN_FORMAT
 from models.store import ModelStore, StoreError, load_file
@@ -254,15 +260,21 @@ def interval_figures(
     if widths is None or scored.interval is None:
         return None
     measured = prepared.error_um
-    per_run = {
-        run_id: coverage(measured[rows], predicted[rows], widths[rows])
-        for run_id, rows in prepared.data.run_slices()
-    }
+    stored = float(scored.interval["half_width_um"])
+    # |residual| over the row's widening: the stored half-width each row needed.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        needed = np.abs(measured - predicted) * stored / widths
+
+    def of_rows(rows: slice | np.ndarray) -> dict[str, Any]:
+        found: dict[str, Any] = coverage(measured[rows], predicted[rows], widths[rows])
+        found["half_width_um_for_85_95"] = band_half_widths(needed[rows])
+        return found
+
     return {
         "nominal_coverage": scored.interval.get("nominal_coverage"),
-        "half_width_um_stored": scored.interval.get("half_width_um"),
-        "per_run": per_run,
-        "pooled": coverage(measured, predicted, widths),
+        "half_width_um_stored": stored,
+        "per_run": {run_id: of_rows(rows) for run_id, rows in prepared.data.run_slices()},
+        "pooled": of_rows(np.ones(measured.size, bool)),
     }
 
 
@@ -388,12 +400,25 @@ def interval_lines(interval: dict[str, Any] | None) -> list[str]:
     if interval is None:
         return ["note: the model file holds no calibrated interval: its width is unknown"]
     nominal = float(interval["nominal_coverage"])
-    header = f"{'interval':<16} {'rows':>6} {'coverage':>8} {'width µm':>9}"
-    lines = [f"{header}  (nominal {nominal:.0%})"]
+    low, high = COVERAGE_BAND
+    band_header = f"± µm for {low:.0%}–{high:.0%}"
+    header = f"{'interval':<16} {'rows':>6} {'coverage':>8} {'width µm':>9} {band_header:>17}"
+    lines = [f"{header}  (nominal {nominal:.0%}, stored ± {interval['half_width_um_stored']:.2f})"]
     rows = {**interval["per_run"], "pooled": interval["pooled"]}
     for name, row in rows.items():
+        band = row.get("half_width_um_for_85_95")
+        band_text = f"{band[0]:.2f}–{band[1]:.2f}" if band else "–"
         lines.append(
-            f"{name:<16} {row['n_samples']:>6} {row['coverage']:8.1%} {row['mean_width_um']:9.2f}"
+            f"{name:<16} {row['n_samples']:>6} {row['coverage']:8.1%} "
+            f"{row['mean_width_um']:9.2f} {band_text:>17}"
+        )
+    band = interval["pooled"].get("half_width_um_for_85_95")
+    stored = float(interval["half_width_um_stored"])
+    if band and not band[0] <= stored <= band[1]:
+        side = "wider" if stored > band[1] else "narrower"
+        lines.append(
+            f"note: the stored half-width {stored:.2f} µm is {side} than these rows needed: "
+            f"{band[0]:.2f}–{band[1]:.2f} µm would have covered {low:.0%}–{high:.0%} of them"
         )
     return lines
 

@@ -55,6 +55,8 @@ MIN_SAMPLES = 30
 OUTSIDE_GAIN = 2.0
 #: Width factor per machine sensor flagged bad.
 BAD_SENSOR_FACTOR = 1.5
+#: The coverage band a nominal 90 % interval is held to on data it was not calibrated on.
+COVERAGE_BAND = (0.85, 0.95)
 
 
 def conformal_half_width(abs_residuals_um: np.ndarray, coverage: float) -> float | None:
@@ -66,6 +68,26 @@ def conformal_half_width(abs_residuals_um: np.ndarray, coverage: float) -> float
     if n < MIN_SAMPLES or rank > n:
         return None
     return float(values[rank - 1])
+
+
+def band_half_widths(
+    abs_scaled_um: np.ndarray, band: tuple[float, float] = COVERAGE_BAND
+) -> list[float] | None:
+    """The half-widths (µm, before any widening) that cover the band's lower and upper
+    share of these rows: the ⌈n·share⌉-th smallest |residual| / widening for each.
+
+    A stored half-width between the two would have put these rows inside the band; one
+    above the upper is wider than they needed, one below the lower narrower. Comparing the
+    pair of the calibration's held-out rows with the pair of a later file tells whether
+    any width calibrated on the first could have been in band on the second. None
+    without rows.
+    """
+    values = np.sort(np.asarray(abs_scaled_um, dtype=float))
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return None
+    ranks = [max(math.ceil(values.size * share), 1) for share in band]
+    return [float(values[rank - 1]) for rank in ranks]
 
 
 def coverage(
@@ -140,6 +162,14 @@ def calibrate(
         "half_width_um_loro": q_loro,
         "half_width_um_forward": q_forward,
         "n_samples": int(np.isfinite(abs_res).sum()),
+        "half_width_um_for_85_95": {
+            "loro": band_half_widths(abs_res / scale),
+            "forward": (
+                band_half_widths(forward_abs_residuals_um)
+                if forward_abs_residuals_um is not None
+                else None
+            ),
+        },
         "heldout_coverage": pooled,
         "per_run_coverage": per_run,
         "stored_rule_check": rule_check(
@@ -151,7 +181,9 @@ def calibrate(
             "predicted ± half_width_um holds the measured error in nominal_coverage of samples "
             "like the held-out ones; heldout_coverage: each run checked against the width "
             "calibrated on the other runs; widened live by outside_gain per unit of excess "
-            "beyond the training span and by bad_sensor_factor per sensor flagged bad"
+            "beyond the training span and by bad_sensor_factor per sensor flagged bad; "
+            "half_width_um_for_85_95: the half-widths that cover 85 % and 95 % of each "
+            "scheme's held-out rows"
         ),
     }
 

@@ -13,12 +13,13 @@ import contextlib
 import fcntl
 import shutil
 import tempfile
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from drivers.clock import Clock
 from gateway.demo.compensate import fit_models, write_training_data
+from gateway.live.record import CycleRecord
 from simulator.closed_loop import ClosedLoop
 from simulator.serve import SimulatedPlant, SimulatorConfig
 from tests.ports import free_tcp_port
@@ -28,6 +29,25 @@ DEVICES = [
     {"device_id": 2, "channels": ["T9", "ambient"]},
 ]
 SENSORS = [f"T{i}" for i in range(1, 10)]
+#: The share of cycles a loaded test machine may leave unanswered (see :func:`answered`).
+UNANSWERED_SHARE = 0.01
+
+
+def answered(
+    records: Sequence[CycleRecord], unanswered_share: float = UNANSWERED_SHARE
+) -> list[CycleRecord]:
+    """The cycles every source answered (no link error), after asserting that at most
+    ``unanswered_share`` of ``records`` did not.
+
+    With CI's four test processes on two cores, a test's event loop is now and then
+    descheduled past a bus timeout (0.5–2 s): that cycle has a link error and, by design,
+    holds instead of predicting. It says nothing about the rule under test, which is
+    then checked on the answered cycles; the bound keeps a real link fault from hiding.
+    """
+    found = [r for r in records if not r.link_errors]
+    missing = len(records) - len(found)
+    assert missing <= unanswered_share * len(records), [r.link_errors for r in records]
+    return found
 
 
 def gateway_devices() -> list[dict[str, Any]]:

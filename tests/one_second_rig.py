@@ -44,14 +44,9 @@ class Run:
     @property
     def predicting_answered(self) -> float:
         """Share of the cycles after the fault in which every source answered, with a
-        prediction: a cycle whose bus went unanswered past its timeout (the test machine
-        descheduled that long under load) says nothing about the plausibility rules."""
-        answered = self.answered()
+        prediction (:func:`tests.gateway_rig.answered`: at most 1 % unanswered)."""
+        answered = rig.answered(self.after)
         return sum(r.predicted_um is not None for r in answered) / len(answered)
-
-    def answered(self) -> list[CycleRecord]:
-        """The cycles after the fault without a link error."""
-        return [r for r in self.after if not r.link_errors]
 
     def held(self) -> list[str]:
         """Every sensor held as implausible at some cycle after the fault, sorted."""

@@ -323,3 +323,11 @@ def test_replay_reports_the_interval_coverage_per_run_and_pooled(tmp_path: Path)
     }
     assert BAND[0] <= interval["heldout_coverage"] <= BAND[1], interval
     assert "coverage" in done.stdout and "pooled over the held-out runs" in done.stdout
+    # Each run: the half-widths that would have covered 85 % and 95 % of it, which agree
+    # with its coverage at the width calibrated on the other runs.
+    for run, row in interval["per_run_coverage"].items():
+        low, high = row["half_width_um_for_85_95"]
+        assert 0 < low <= high, row
+        assert (row["coverage"] >= BAND[1]) == (row["half_width_um"] >= high), (run, row)
+        assert (row["coverage"] < BAND[0]) == (row["half_width_um"] < low), (run, row)
+        assert f"85–95 % at ±{low:.2f}–{high:.2f} µm" in done.stdout

@@ -306,7 +306,12 @@ def _say_interval(interval: dict[str, Any] | None, say: Callable[[str], None]) -
         f" µm, coverage {covered} pooled over the held-out runs"
     )
     for run, row in interval["per_run_coverage"].items():
-        say(f"  {run:<14} coverage {row['coverage']:6.1%}  width {row['mean_width_um']:6.2f} µm")
+        band = row.get("half_width_um_for_85_95")
+        needed = f"  85–95 % at ±{band[0]:.2f}–{band[1]:.2f} µm" if band else ""
+        say(
+            f"  {run:<14} coverage {row['coverage']:6.1%}  width {row['mean_width_um']:6.2f} µm"
+            f" (±{row['half_width_um']:.2f}){needed}"
+        )
 
 
 def store_lagged(

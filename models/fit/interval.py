@@ -288,10 +288,10 @@ def _fold_excess(inputs: ModelInputs, labels: np.ndarray) -> np.ndarray:
 
 def _per_run_coverage(
     abs_res: np.ndarray, scale: np.ndarray, labels: np.ndarray, nominal: float
-) -> dict[str, dict[str, float | int]]:
+) -> dict[str, dict[str, Any]]:
     """Each run against the (widened) half-width calibrated on every other run's residuals,
     with the half-widths that would have covered 85 % and 95 % of it."""
-    found: dict[str, dict[str, float | int]] = {}
+    found: dict[str, dict[str, Any]] = {}
     for run in dict.fromkeys(labels.tolist()):
         rows = labels == run
         q = conformal_half_width(abs_res[~rows] / scale[~rows], nominal)

@@ -400,10 +400,11 @@ def interval_lines(interval: dict[str, Any] | None) -> list[str]:
     if interval is None:
         return ["note: the model file holds no calibrated interval: its width is unknown"]
     nominal = float(interval["nominal_coverage"])
+    stored = float(interval["half_width_um_stored"])
     low, high = COVERAGE_BAND
     band_header = f"± µm for {low:.0%}–{high:.0%}"
     header = f"{'interval':<16} {'rows':>6} {'coverage':>8} {'width µm':>9} {band_header:>17}"
-    lines = [f"{header}  (nominal {nominal:.0%}, stored ± {interval['half_width_um_stored']:.2f})"]
+    lines = [f"{header}  (nominal {nominal:.0%}, stored ± {stored:.2f})"]
     rows = {**interval["per_run"], "pooled": interval["pooled"]}
     for name, row in rows.items():
         band = row.get("half_width_um_for_85_95")
@@ -413,7 +414,6 @@ def interval_lines(interval: dict[str, Any] | None) -> list[str]:
             f"{row['mean_width_um']:9.2f} {band_text:>17}"
         )
     band = interval["pooled"].get("half_width_um_for_85_95")
-    stored = float(interval["half_width_um_stored"])
     if band and not band[0] <= stored <= band[1]:
         side = "wider" if stored > band[1] else "narrower"
         lines.append(

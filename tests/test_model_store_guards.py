@@ -81,10 +81,14 @@ def test_proposal_files_left_behind_by_a_killed_promote_are_repaired(tmp_path: P
             assert "model store recovered: P0002: proposed → promoted" in log_path.read_text()
 
             stale_after_commit(commands, store, "P0003")
-            repaired = wait_until(lambda: file_status(store, "P0003") == PROMOTED, 30)
+            # the file is written before the line is logged: wait for both
+            said = "model store recovered: P0003: proposed → promoted"
+            repaired = wait_until(
+                lambda: file_status(store, "P0003") == PROMOTED and said in log_path.read_text(),
+                30,
+            )
             assert repaired, log_path.read_text()[-3000:]
             assert file_status(store, "P0002") == SUPERSEDED
-            assert "model store recovered: P0003: proposed → promoted" in log_path.read_text()
             assert gateway.poll() is None
     finally:
         commands.close()

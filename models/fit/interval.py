@@ -59,10 +59,15 @@ BAD_SENSOR_FACTOR = 1.5
 COVERAGE_BAND = (0.85, 0.95)
 
 
+def _sorted_finite(values: np.ndarray) -> np.ndarray:
+    """The finite values, smallest first: what a rank among rows is taken from."""
+    array = np.asarray(values, dtype=float)
+    return np.sort(array[np.isfinite(array)])
+
+
 def conformal_half_width(abs_residuals_um: np.ndarray, coverage: float) -> float | None:
     """The ⌈(n+1)·coverage⌉-th smallest |residual| (µm); None when n is too small for it."""
-    values = np.sort(np.asarray(abs_residuals_um, dtype=float))
-    values = values[np.isfinite(values)]
+    values = _sorted_finite(abs_residuals_um)
     n = values.size
     rank = math.ceil((n + 1) * coverage)
     if n < MIN_SAMPLES or rank > n:
@@ -82,8 +87,7 @@ def band_half_widths(
     any width calibrated on the first could have been in band on the second. None
     without rows.
     """
-    values = np.sort(np.asarray(abs_scaled_um, dtype=float))
-    values = values[np.isfinite(values)]
+    values = _sorted_finite(abs_scaled_um)
     if values.size == 0:
         return None
     ranks = [max(math.ceil(values.size * share), 1) for share in band]

@@ -265,7 +265,7 @@ def interval_figures(
     with np.errstate(divide="ignore", invalid="ignore"):
         needed = np.abs(measured - predicted) * stored / widths
 
-    def of_rows(rows: slice | np.ndarray) -> dict[str, Any]:
+    def of_rows(rows: slice) -> dict[str, Any]:
         found: dict[str, Any] = coverage(measured[rows], predicted[rows], widths[rows])
         found["half_width_um_for_85_95"] = band_half_widths(needed[rows])
         return found
@@ -274,7 +274,7 @@ def interval_figures(
         "nominal_coverage": scored.interval.get("nominal_coverage"),
         "half_width_um_stored": stored,
         "per_run": {run_id: of_rows(rows) for run_id, rows in prepared.data.run_slices()},
-        "pooled": of_rows(np.ones(measured.size, bool)),
+        "pooled": of_rows(slice(None)),
     }
 
 

@@ -69,6 +69,15 @@ def test_text_in_numeric_cell(tmp_path: Path) -> None:
     assert str(error).startswith(f"{path}:4: column 'T2'")
 
 
+def test_a_stray_control_byte_is_shown_not_hidden(tmp_path: Path) -> None:
+    """A control byte is invisible on a terminal: the message shows it escaped."""
+    rows = list(GOOD_ROWS)
+    rows[2] = "K1,360,2000,21.0,\x0121.5,20.1,2.5,warm\n"
+    error = refused(write(tmp_path, HEADER + "".join(rows)))
+    assert (error.line, error.column) == (4, "T2")
+    assert "expected a finite number, found '\\x0121.5'" in str(error), str(error)
+
+
 def test_non_finite_number_is_refused(tmp_path: Path) -> None:
     rows = list(GOOD_ROWS)
     rows[1] = "K1,180,2000,20.5,21.2,20.1,inf,warm\n"

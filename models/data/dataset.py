@@ -609,14 +609,14 @@ class _ColumnReader:
                     self.path,
                     line,
                     name,
-                    f"expected a finite number, found '{found[name][1]}' "
+                    f"expected a finite number, found {found[name][1]!r} "
                     f"(the column holds {bounds_of(name).what})",
                 )
             next_line += len(chunk)
         for name, (line, cell) in found.items():
             self.notes[name] = (
                 f"column '{name}' is read as text, not as {bounds_of(name).what}: "
-                f"line {line} holds '{cell}'"
+                f"line {line} holds {cell!r}"
             )
         return set(found)
 
